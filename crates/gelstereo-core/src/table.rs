@@ -1,0 +1,305 @@
+//! The per-frame tables other tools read (DESIGN.md "Interfaces"): `markers.csv`, one row per marker
+//! and frame, and `frames.csv`, one row per frame. Empty cells stand for what a mono sensor or a
+//! lost marker lacks. Readers look columns up by name, so files may carry extra columns (the
+//! simulator adds its ground-truth ones).
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use crate::{Error, GridIndex, MarkerStatus, Point2, Result, SlipState};
+
+/// Columns of `markers.csv`, in order.
+pub const MARKER_COLUMNS: [&str; 14] = [
+    "frame", "row", "col", "x_left", "y_left", "x_right", "y_right", "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm",
+    "dZ_mm", "status",
+];
+
+/// Columns of `frames.csv`, in order.
+pub const FRAME_COLUMNS: [&str; 7] =
+    ["frame", "contact", "contact_area_mm2", "max_depth_mm", "centroid_X_mm", "centroid_Y_mm", "slip"];
+
+/// One row of `markers.csv`: one marker in one frame.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct MarkerRecord {
+    /// Frame number, from 0.
+    pub frame: u32,
+    /// The marker's grid identity.
+    pub index: GridIndex,
+    /// Position in the left view (a mono sensor fills this one), px.
+    pub left_px: Option<Point2>,
+    /// Position in the right view, px.
+    pub right_px: Option<Point2>,
+    /// 3-D position in the left camera frame, mm.
+    pub position_mm: Option<[f64; 3]>,
+    /// 3-D displacement against the reference frame, mm.
+    pub displacement_mm: Option<[f64; 3]>,
+    /// How the position was obtained; empty for ground truth and single-frame reconstructions.
+    pub status: Option<MarkerStatus>,
+}
+
+/// One row of `frames.csv`: the contact summary of one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameSummary {
+    /// Frame number, from 0.
+    pub frame: u32,
+    /// Whether anything touches the gel.
+    pub contact: bool,
+    /// Contact area, mm^2 (0 without contact).
+    pub contact_area_mm2: f64,
+    /// Largest indentation depth, mm (0 without contact).
+    pub max_depth_mm: f64,
+    /// Contact centroid in the left camera frame, mm; empty without contact.
+    pub centroid_mm: Option<[f64; 2]>,
+    /// Slip state.
+    pub slip: SlipState,
+}
+
+fn push_opt(out: &mut String, v: Option<f64>) {
+    out.push(',');
+    if let Some(v) = v {
+        // Six decimals: 1e-6 px / 1e-6 mm, far below any accuracy we claim.
+        let _ = write!(out, "{v:.6}");
+    }
+}
+
+impl MarkerRecord {
+    /// Appends this row's 14 cells (no newline) in [`MARKER_COLUMNS`] order.
+    pub fn write_csv(&self, out: &mut String) {
+        let _ = write!(out, "{},{},{}", self.frame, self.index.row, self.index.col);
+        for p in [self.left_px, self.right_px] {
+            push_opt(out, p.map(|p| p.x));
+            push_opt(out, p.map(|p| p.y));
+        }
+        for v in [self.position_mm, self.displacement_mm] {
+            for k in 0..3 {
+                push_opt(out, v.map(|v| v[k]));
+            }
+        }
+        out.push(',');
+        if let Some(s) = self.status {
+            out.push_str(s.as_str());
+        }
+    }
+
+    /// Reads the row `row` of `table`.
+    pub fn from_table(table: &CsvTable, row: usize) -> Result<Self> {
+        let point = |x: &str, y: &str| -> Result<Option<Point2>> {
+            Ok(match (table.opt_f64(row, x)?, table.opt_f64(row, y)?) {
+                (Some(x), Some(y)) => Some(Point2::new(x, y)),
+                _ => None,
+            })
+        };
+        let vec3 = |names: [&str; 3]| -> Result<Option<[f64; 3]>> {
+            let [a, b, c] = names;
+            Ok(match (table.opt_f64(row, a)?, table.opt_f64(row, b)?, table.opt_f64(row, c)?) {
+                (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+                _ => None,
+            })
+        };
+        Ok(Self {
+            frame: table.value(row, "frame", "a frame number")?,
+            index: GridIndex {
+                row: table.value(row, "row", "a grid row (0-65535)")?,
+                col: table.value(row, "col", "a grid column (0-65535)")?,
+            },
+            left_px: point("x_left", "y_left")?,
+            right_px: point("x_right", "y_right")?,
+            position_mm: vec3(["X_mm", "Y_mm", "Z_mm"])?,
+            displacement_mm: vec3(["dX_mm", "dY_mm", "dZ_mm"])?,
+            status: match table.cell(row, "status")? {
+                "" => None,
+                _ => Some(table.value(row, "status", "tracked, predicted or lost")?),
+            },
+        })
+    }
+}
+
+impl FrameSummary {
+    /// Appends this row's 7 cells (no newline) in [`FRAME_COLUMNS`] order.
+    pub fn write_csv(&self, out: &mut String) {
+        let _ = write!(out, "{},{}", self.frame, u8::from(self.contact));
+        push_opt(out, Some(self.contact_area_mm2));
+        push_opt(out, Some(self.max_depth_mm));
+        push_opt(out, self.centroid_mm.map(|c| c[0]));
+        push_opt(out, self.centroid_mm.map(|c| c[1]));
+        let _ = write!(out, ",{}", self.slip);
+    }
+
+    /// Reads the row `row` of `table`.
+    pub fn from_table(table: &CsvTable, row: usize) -> Result<Self> {
+        let contact: u8 = table.value(row, "contact", "0 or 1")?;
+        Ok(Self {
+            frame: table.value(row, "frame", "a frame number")?,
+            contact: contact == 1,
+            contact_area_mm2: table.value(row, "contact_area_mm2", "an area in mm^2")?,
+            max_depth_mm: table.value(row, "max_depth_mm", "a depth in mm")?,
+            centroid_mm: match (table.opt_f64(row, "centroid_X_mm")?, table.opt_f64(row, "centroid_Y_mm")?) {
+                (Some(x), Some(y)) => Some([x, y]),
+                _ => None,
+            },
+            slip: table.value(row, "slip", "no_contact, stick, partial_slip or gross_slip")?,
+        })
+    }
+}
+
+/// A comma-separated table with a header line, read whole. Cells hold no commas or quotes (all our
+/// tables are numbers and single words).
+#[derive(Debug, Clone)]
+pub struct CsvTable {
+    path: String,
+    header: Vec<String>,
+    rows: Vec<Vec<String>>,
+}
+
+impl CsvTable {
+    /// Reads `path`, checking that it has a header and that every row has as many cells.
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|source| Error::Io { path: path.display().to_string(), source })?;
+        Self::from_text(&path.display().to_string(), &text)
+    }
+
+    /// Parses `text`; `path` names it in errors.
+    pub fn from_text(path: &str, text: &str) -> Result<Self> {
+        let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
+        let Some((_, head)) = lines.next() else {
+            return Err(table_err(path, 1, "(header)", "a header line", ""));
+        };
+        let header: Vec<String> = head.split(',').map(|s| s.trim().to_owned()).collect();
+        let mut rows = Vec::new();
+        for (i, line) in lines {
+            let cells: Vec<String> = line.split(',').map(|s| s.trim().to_owned()).collect();
+            if cells.len() != header.len() {
+                return Err(table_err(
+                    path,
+                    i + 1,
+                    "(row)",
+                    &format!("{} cells like the header", header.len()),
+                    &format!("{} cells", cells.len()),
+                ));
+            }
+            rows.push(cells);
+        }
+        Ok(Self { path: path.to_owned(), header, rows })
+    }
+
+    /// Checks that every column in `columns` is present.
+    pub fn require(&self, columns: &[&str]) -> Result<()> {
+        for c in columns {
+            self.column(c)?;
+        }
+        Ok(())
+    }
+
+    /// Number of data rows.
+    pub fn len(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Whether the table has no data rows.
+    pub fn is_empty(&self) -> bool {
+        self.rows.is_empty()
+    }
+
+    /// The header's column names.
+    pub fn header(&self) -> &[String] {
+        &self.header
+    }
+
+    fn column(&self, name: &str) -> Result<usize> {
+        self.header
+            .iter()
+            .position(|h| h == name)
+            .ok_or_else(|| table_err(&self.path, 1, name, "this column in the header", &self.header.join(",")))
+    }
+
+    /// The raw text of `column` in data row `row` (0-based).
+    pub fn cell(&self, row: usize, column: &str) -> Result<&str> {
+        let c = self.column(column)?;
+        Ok(self.rows.get(row).and_then(|r| r.get(c)).map(String::as_str).unwrap_or(""))
+    }
+
+    /// Parses a required cell.
+    pub fn value<T: std::str::FromStr>(&self, row: usize, column: &str, expected: &str) -> Result<T> {
+        let s = self.cell(row, column)?;
+        s.parse().map_err(|_| table_err(&self.path, row + 2, column, expected, s))
+    }
+
+    /// Parses an optional number: an empty cell is `None`; NaN and infinities are rejected.
+    pub fn opt_f64(&self, row: usize, column: &str) -> Result<Option<f64>> {
+        match self.cell(row, column)? {
+            "" => Ok(None),
+            s => match s.parse::<f64>() {
+                Ok(v) if v.is_finite() => Ok(Some(v)),
+                _ => Err(table_err(&self.path, row + 2, column, "a finite number or an empty cell", s)),
+            },
+        }
+    }
+}
+
+fn table_err(path: &str, line: usize, column: &str, expected: &str, found: &str) -> Error {
+    Error::Table {
+        path: path.to_owned(),
+        line,
+        column: column.to_owned(),
+        expected: expected.to_owned(),
+        found: found.to_owned(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn marker_rows_round_trip_with_empty_cells() {
+        let full = MarkerRecord {
+            frame: 7,
+            index: GridIndex::new(3, 22),
+            left_px: Some(Point2::new(101.25, 33.5)),
+            right_px: None,
+            position_mm: Some([1.0, -2.5, 30.125]),
+            displacement_mm: None,
+            status: Some(MarkerStatus::Predicted),
+        };
+        let mono = MarkerRecord { frame: 8, left_px: Some(Point2::new(1.0, 2.0)), ..Default::default() };
+        let mut text = MARKER_COLUMNS.join(",");
+        for r in [&full, &mono] {
+            text.push('\n');
+            r.write_csv(&mut text);
+        }
+        let table = CsvTable::from_text("mem", &text).unwrap();
+        assert_eq!(MarkerRecord::from_table(&table, 0).unwrap(), full);
+        assert_eq!(MarkerRecord::from_table(&table, 1).unwrap(), mono);
+    }
+
+    #[test]
+    fn bad_cells_name_file_line_column_and_expectation() {
+        let text = format!("{}\n0,1,2,NaN,,,,,,,,,,tracked", MARKER_COLUMNS.join(","));
+        let table = CsvTable::from_text("gt/markers.csv", &text).unwrap();
+        let err = MarkerRecord::from_table(&table, 0).unwrap_err().to_string();
+        assert!(err.contains("gt/markers.csv:2") && err.contains("x_left") && err.contains("NaN"), "{err}");
+
+        let short = CsvTable::from_text("f.csv", "frame,contact\n1").unwrap_err().to_string();
+        assert!(short.contains("f.csv:2") && short.contains("2 cells"), "{short}");
+        let missing = FrameSummary::from_table(&CsvTable::from_text("f.csv", "frame\n1").unwrap(), 0);
+        assert!(missing.unwrap_err().to_string().contains("'contact'"));
+    }
+
+    #[test]
+    fn frame_rows_round_trip() {
+        let s = FrameSummary {
+            frame: 3,
+            contact: true,
+            contact_area_mm2: 12.5,
+            max_depth_mm: 0.75,
+            centroid_mm: Some([0.5, -1.25]),
+            slip: SlipState::PartialSlip,
+        };
+        let mut text = FRAME_COLUMNS.join(",");
+        text.push('\n');
+        s.write_csv(&mut text);
+        let table = CsvTable::from_text("mem", &text).unwrap();
+        assert_eq!(FrameSummary::from_table(&table, 0).unwrap(), s);
+    }
+}

@@ -1,0 +1,4 @@
+//! Camera models, calibration files and triangulation for a stereo GelStereo sensor.
+//!
+//! Conventions (see DESIGN.md): pixel (0, 0) is the centre of the top-left pixel; camera frame x right,
+//! y down, z forward; 3-D in mm in the LEFT camera's frame; `p_in_right = right_from_left * p_in_left`.

@@ -1,0 +1,2 @@
+//! The synthetic GelStereo sensor: elastic gel deformation under indenters, stereo rendering through
+//! calibrated cameras, and exact ground truth, written as recordings and datasets.

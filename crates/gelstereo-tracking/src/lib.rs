@@ -1,0 +1,1 @@
+//! Marker tracking over time, displacement fields, contact geometry and slip detection.
