@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# README command 1: set up, build, and run the main job on the bundled data. Results go to out/sample/.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+bash scripts/setup.sh
+cargo build --release --locked -p gelstereo-cli
+BIN="$ROOT/target/release/gelstereo"
+OUT="$ROOT/out/sample"
+mkdir -p "$OUT"
+"$BIN" --version
+"$BIN" doctor
+echo "results in $OUT"
