@@ -1,4 +1,48 @@
 //! `gelstereo`: the command-line tool. Thin: argument parsing, progress and error context; the work is
 //! done by the library crates.
 
-fn main() {}
+use std::process::ExitCode;
+
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
+
+mod cmd_doctor;
+mod project;
+
+/// Stereo visuotactile reconstruction for GelStereo-type tactile sensors.
+#[derive(Parser)]
+#[command(name = "gelstereo", about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Check every component a user needs and say how to fix what is missing.
+    Doctor(cmd_doctor::Args),
+}
+
+fn main() -> ExitCode {
+    // Loading ONNX Runtime for the banner costs time: only when the banner is asked for.
+    let wants_version = std::env::args().skip(1).any(|a| a == "--version" || a == "-V");
+    let version = if wants_version {
+        project::version_text()
+    } else {
+        env!("CARGO_PKG_VERSION").to_owned()
+    };
+    let matches = Cli::command().version(version).get_matches();
+    let cli = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
+    let result = match cli.command {
+        Command::Doctor(args) => cmd_doctor::run(&args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -13,8 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// The library's file name on this platform (`libonnxruntime.so` on Linux).
-pub const LIBRARY_FILE: &str =
-    "libonnxruntime.so";
+pub const LIBRARY_FILE: &str = "libonnxruntime.so";
 
 /// Where `scripts/setup.sh` unpacks ONNX Runtime for the checkout this crate was built from.
 pub const PROJECT_LIBRARY_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../.deps/onnxruntime/lib");
@@ -23,7 +22,9 @@ pub const PROJECT_LIBRARY_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../.
 #[derive(Debug, thiserror::Error)]
 pub enum OnnxRuntimeError {
     /// `ORT_DYLIB_PATH` names a file that does not exist.
-    #[error("ORT_DYLIB_PATH={0} does not exist; unset it or point it at libonnxruntime.so (run scripts/setup.sh)")]
+    #[error(
+        "ORT_DYLIB_PATH={0} does not exist; unset it or point it at libonnxruntime.so (run scripts/setup.sh)"
+    )]
     EnvPathMissing(PathBuf),
     /// No candidate location holds the library.
     #[error(
@@ -58,7 +59,11 @@ pub struct OnnxRuntime {
 pub fn candidate_paths() -> Result<Vec<PathBuf>, OnnxRuntimeError> {
     if let Some(p) = std::env::var_os("ORT_DYLIB_PATH").filter(|p| !p.is_empty()) {
         let p = PathBuf::from(p);
-        return if p.exists() { Ok(vec![p]) } else { Err(OnnxRuntimeError::EnvPathMissing(p)) };
+        return if p.exists() {
+            Ok(vec![p])
+        } else {
+            Err(OnnxRuntimeError::EnvPathMissing(p))
+        };
     }
     let mut paths = vec![Path::new(PROJECT_LIBRARY_DIR).join(LIBRARY_FILE)];
     if let Some(dir) = std::env::current_exe().ok().as_deref().and_then(Path::parent) {
@@ -82,7 +87,9 @@ pub fn locate() -> Result<PathBuf, OnnxRuntimeError> {
             tried: candidates
                 .iter()
                 .map(|p| p.display().to_string())
-                .chain(std::iter::once(format!("{LIBRARY_FILE} via LD_LIBRARY_PATH/ldconfig")))
+                .chain(std::iter::once(format!(
+                    "{LIBRARY_FILE} via LD_LIBRARY_PATH/ldconfig"
+                )))
                 .collect::<Vec<_>>()
                 .join(", "),
         }),
@@ -101,7 +108,15 @@ fn system_library() -> Option<PathBuf> {
         .unwrap_or_default();
     from_env
         .into_iter()
-        .chain(["/usr/local/lib", "/usr/lib", "/usr/lib/x86_64-linux-gnu", "/lib/x86_64-linux-gnu"].map(PathBuf::from))
+        .chain(
+            [
+                "/usr/local/lib",
+                "/usr/lib",
+                "/usr/lib/x86_64-linux-gnu",
+                "/lib/x86_64-linux-gnu",
+            ]
+            .map(PathBuf::from),
+        )
         .map(|d| d.join(LIBRARY_FILE))
         .find(|p| p.exists())
         .map(|p| normalise(&p))
@@ -115,36 +130,53 @@ static RUNTIME: OnceLock<Result<OnnxRuntime, String>> = OnceLock::new();
 pub fn init() -> Result<&'static OnnxRuntime, OnnxRuntimeError> {
     let result = RUNTIME.get_or_init(|| start().map_err(|e| e.to_string()));
     result.as_ref().map_err(|reason| match locate() {
-        Ok(path) => OnnxRuntimeError::Load { path, reason: reason.clone() },
+        Ok(path) => OnnxRuntimeError::Load {
+            path,
+            reason: reason.clone(),
+        },
         Err(e) => e,
     })
 }
 
 fn start() -> Result<OnnxRuntime, OnnxRuntimeError> {
     let library = locate()?;
-    let load_err = |reason: String| OnnxRuntimeError::Load { path: library.clone(), reason };
+    let load_err = |reason: String| OnnxRuntimeError::Load {
+        path: library.clone(),
+        reason,
+    };
     let builder = ort::init_from(&library).map_err(|e| load_err(e.to_string()))?;
-    let environment = builder.with_name("gelstereo").build().map_err(|e| load_err(e.to_string()))?;
-    let version = parse_version(ort::info()).unwrap_or_else(|| "unknown".to_owned());
-    Ok(OnnxRuntime { library, version, environment })
+    let environment = builder
+        .with_name("gelstereo")
+        .build()
+        .map_err(|e| load_err(e.to_string()))?;
+    let version = library_version(&library).unwrap_or_else(|| "unknown".to_owned());
+    Ok(OnnxRuntime {
+        library,
+        version,
+        environment,
+    })
 }
 
-/// Pulls `1.31.1` out of ONNX Runtime's build-info string (`... git-branch=rel-1.31.1, ...`).
-fn parse_version(info: &str) -> Option<String> {
-    let start = info.find("rel-")? + 4;
-    let rest = &info[start..];
-    let end = rest.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(rest.len());
-    (end > 0).then(|| rest[..end].to_owned())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn version_is_read_from_build_info() {
-        let info = "ORT Build Info: git-branch=rel-1.31.1, git-commit-id=abc, build type=Release";
-        assert_eq!(parse_version(info).as_deref(), Some("1.31.1"));
-        assert_eq!(parse_version("no version here"), None);
+/// Asks the library for its version (`OrtGetApiBase()->GetVersionString()`, e.g. "1.31.1"); `ort`
+/// checks compatibility when loading but does not expose the string, and ONNX Runtime's build-info
+/// string does not carry it.
+#[allow(unsafe_code)]
+fn library_version(path: &Path) -> Option<String> {
+    type GetApiBase = unsafe extern "C" fn() -> *const ort::sys::OrtApiBase;
+    // SAFETY: the file was just loaded successfully by `ort::init_from` as an ONNX Runtime library
+    // (same dlopen handle, refcounted). `OrtGetApiBase` takes no arguments and returns a pointer to a
+    // static struct; `GetVersionString` returns a static NUL-terminated string that must not be freed.
+    unsafe {
+        let lib = libloading::Library::new(path).ok()?;
+        let get: libloading::Symbol<GetApiBase> = lib.get(b"OrtGetApiBase").ok()?;
+        let base = get();
+        if base.is_null() {
+            return None;
+        }
+        let version = ((*base).GetVersionString)();
+        if version.is_null() {
+            return None;
+        }
+        Some(std::ffi::CStr::from_ptr(version).to_string_lossy().into_owned())
     }
 }

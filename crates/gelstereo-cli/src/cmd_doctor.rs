@@ -1,0 +1,146 @@
+//! `gelstereo doctor`: one line per component a user needs, with a one-line fix for each problem.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::bail;
+
+use crate::project;
+
+/// Arguments of `gelstereo doctor`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// Folder with the shipped models (default: data/models of the project).
+    #[arg(long)]
+    models: Option<PathBuf>,
+}
+
+/// How much a missing component matters.
+#[derive(Clone, Copy, PartialEq)]
+enum Need {
+    /// The pipeline cannot run without it: doctor fails.
+    Required,
+    /// Only some commands need it (training, a given sensor): reported, doctor still passes.
+    Optional,
+}
+
+struct Check {
+    name: &'static str,
+    need: Need,
+    outcome: Result<String, String>,
+    fix: &'static str,
+}
+
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let home = project::home();
+    let models = args.models.clone().unwrap_or_else(|| home.join("data/models"));
+    let checks = [
+        Check {
+            name: "OpenCV",
+            need: Need::Required,
+            outcome: opencv::core::get_version_string()
+                .map(|v| format!("{v} (linked)"))
+                .map_err(|e| e.to_string()),
+            fix: "install Debian's libopencv-dev (scripts/setup.sh does)",
+        },
+        Check {
+            name: "ONNX Runtime",
+            need: Need::Required,
+            outcome: gelstereo_markers::runtime::init()
+                .map(|rt| format!("{} at {}", rt.version, rt.library.display()))
+                .map_err(|e| e.to_string()),
+            fix: "run scripts/setup.sh (unpacks it into .deps/onnxruntime/lib) or set ORT_DYLIB_PATH",
+        },
+        Check {
+            name: "Marknet model",
+            need: Need::Optional,
+            outcome: model_summary(&models.join("marknet.onnx")),
+            fix: "train/retrain.sh retrains it, or restore data/models/ from git",
+        },
+        Check {
+            name: "MRE model",
+            need: Need::Optional,
+            outcome: model_summary(&models.join("mre.onnx")),
+            fix: "train/retrain.sh retrains it, or restore data/models/ from git",
+        },
+        Check {
+            name: "Python training env",
+            need: Need::Optional,
+            outcome: python_env(&home),
+            fix: "run scripts/setup.sh (creates .venv with train/requirements.txt)",
+        },
+    ];
+
+    let mut missing_required = 0;
+    for c in &checks {
+        match &c.outcome {
+            Ok(what) => println!("ok       {:<20} {what}", c.name),
+            Err(why) => {
+                let tag = if c.need == Need::Required {
+                    "MISSING"
+                } else {
+                    "warning"
+                };
+                missing_required += usize::from(c.need == Need::Required);
+                println!(
+                    "{tag:<8} {:<20} {why}\n         {:<20} fix: {}",
+                    c.name, "", c.fix
+                );
+            }
+        }
+    }
+    if missing_required > 0 {
+        bail!("{missing_required} required component(s) missing, see above");
+    }
+    println!("all required components present");
+    Ok(())
+}
+
+/// Opens an ONNX model with ONNX Runtime and lists its contract metadata.
+fn model_summary(path: &Path) -> Result<String, String> {
+    if !path.exists() {
+        return Err(format!("{} not found", path.display()));
+    }
+    let rt = gelstereo_markers::runtime::init().map_err(|e| e.to_string())?;
+    let session = ort::session::Session::builder(&rt.environment)
+        .and_then(|mut b| b.commit_from_file(path))
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let meta = session
+        .metadata()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut keys = meta
+        .custom_keys()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    keys.sort();
+    let props: Vec<String> = keys
+        .iter()
+        .filter_map(|k| meta.custom(k).map(|v| format!("{k}={v}")))
+        .collect();
+    if props.is_empty() {
+        return Err(format!(
+            "{} has no metadata_props (contract missing)",
+            path.display()
+        ));
+    }
+    Ok(format!("{} [{}]", path.display(), props.join(", ")))
+}
+
+/// Asks the project's Python environment for its PyTorch and ONNX Runtime versions.
+fn python_env(home: &Path) -> Result<String, String> {
+    let python = home.join(".venv/bin/python");
+    if !python.exists() {
+        return Err(format!("{} not found", python.display()));
+    }
+    let out = Command::new(&python)
+        .args(["-c", "import torch, onnx, onnxruntime; print(f'torch {torch.__version__}, onnx {onnx.__version__}, onnxruntime {onnxruntime.__version__}')"])
+        .output()
+        .map_err(|e| format!("{}: {e}", python.display()))?;
+    if !out.status.success() {
+        return Err(format!(
+            "{} cannot import torch/onnx/onnxruntime: {}",
+            python.display(),
+            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
+        ));
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
+}
