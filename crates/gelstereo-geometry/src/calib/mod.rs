@@ -1,0 +1,95 @@
+//! Calibration files: OpenCV FileStorage (YAML/XML) and mrcal `.cameramodel` pairs.
+//!
+//! [`StereoRig::load`] and [`StereoRig::save`] pick the format from the path:
+//! - `*.yaml`, `*.yml`, `*.xml`: OpenCV FileStorage ([`StereoRig::read_opencv`]);
+//! - `LEFT.cameramodel,RIGHT.cameramodel` (two paths joined by a comma): a mrcal pair;
+//! - a directory: the mrcal pair `DIR/left.cameramodel` and `DIR/right.cameramodel`.
+
+mod mrcal;
+mod opencv;
+pub(crate) mod pyliteral;
+
+use std::path::{Path, PathBuf};
+
+use crate::camera::StereoRig;
+use crate::error::{Error, Result};
+
+/// Where a calibration lives, as decided from its path by [`CalibrationPath::parse`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CalibrationPath {
+    /// An OpenCV FileStorage YAML file.
+    OpenCvYaml(PathBuf),
+    /// An OpenCV FileStorage XML file.
+    OpenCvXml(PathBuf),
+    /// A pair of mrcal `.cameramodel` files.
+    Mrcal {
+        /// The left camera's model (the reference frame).
+        left: PathBuf,
+        /// The right camera's model.
+        right: PathBuf,
+    },
+}
+
+impl CalibrationPath {
+    /// Decides the format: `.yaml`/`.yml`/`.xml` (any case) are OpenCV; `A,B` is a mrcal pair; an
+    /// existing directory, or a path without an extension, is a directory holding `left.cameramodel`
+    /// and `right.cameramodel`.
+    pub fn parse(spec: &str) -> Result<Self> {
+        if let Some((l, r)) = spec.split_once(',') {
+            let (l, r) = (PathBuf::from(l.trim()), PathBuf::from(r.trim()));
+            let is_model = |p: &Path| {
+                p.extension()
+                    .is_some_and(|e| e.eq_ignore_ascii_case("cameramodel"))
+            };
+            if is_model(&l) && is_model(&r) {
+                return Ok(Self::Mrcal { left: l, right: r });
+            }
+            return Err(Error::UnknownFormat {
+                path: spec.to_owned(),
+            });
+        }
+        let path = PathBuf::from(spec);
+        let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+        match ext.as_deref() {
+            Some("yaml" | "yml") => Ok(Self::OpenCvYaml(path)),
+            Some("xml") => Ok(Self::OpenCvXml(path)),
+            _ if path.is_dir() || ext.is_none() => Ok(Self::Mrcal {
+                left: path.join("left.cameramodel"),
+                right: path.join("right.cameramodel"),
+            }),
+            _ => Err(Error::UnknownFormat {
+                path: spec.to_owned(),
+            }),
+        }
+    }
+}
+
+impl StereoRig {
+    /// Reads a calibration, choosing the format from the path (see [`CalibrationPath::parse`]).
+    pub fn load(spec: &str) -> Result<StereoRig> {
+        match CalibrationPath::parse(spec)? {
+            CalibrationPath::OpenCvYaml(p) | CalibrationPath::OpenCvXml(p) => StereoRig::read_opencv(p),
+            CalibrationPath::Mrcal { left, right } => StereoRig::read_mrcal(left, right),
+        }
+    }
+
+    /// Writes the calibration, choosing the format from the path (see [`CalibrationPath::parse`]); a
+    /// directory for a mrcal pair is created if needed.
+    pub fn save(&self, spec: &str) -> Result<()> {
+        match CalibrationPath::parse(spec)? {
+            CalibrationPath::OpenCvYaml(p) => self.write_opencv_yaml(p),
+            CalibrationPath::OpenCvXml(p) => self.write_opencv_xml(p),
+            CalibrationPath::Mrcal { left, right } => {
+                for p in [&left, &right] {
+                    if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {
+                        std::fs::create_dir_all(dir).map_err(|source| Error::Io {
+                            path: dir.to_path_buf(),
+                            source,
+                        })?;
+                    }
+                }
+                self.write_mrcal(left, right)
+            }
+        }
+    }
+}

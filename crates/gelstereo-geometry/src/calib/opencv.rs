@@ -1,0 +1,442 @@
+//! OpenCV FileStorage calibration files (YAML and XML), read and written through OpenCV itself.
+//!
+//! Keys: `K1 D1 K2 D2 R T image_width image_height` (the names `stereoCalibrate` outputs take in most
+//! tools); `M1`/`M2` are accepted for `K1`/`K2` (OpenCV's `samples/cpp/stereo_calib.cpp`). `R` is
+//! a 3x3 rotation matrix (a 3-vector is read as a Rodrigues vector), `T` a 3-vector in mm,
+//! `p_in_right = R p_in_left + T`. The image size may also be given as `image_size` or
+//! `imageSize` = `[width, height]`. Other keys (`E`, `F`, `R1`, `P1`, `Q`, ...) are ignored.
+
+use std::path::Path;
+
+use gelstereo_core::ImageSize;
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use opencv::core::{FileNode, FileNodeTraitConst, FileStorage, FileStorageTrait, FileStorageTraitConst};
+use opencv::core::{Mat, MatTrait, MatTraitConst, Scalar};
+
+use crate::camera::{Camera, Distortion, StereoRig};
+use crate::error::{Error, Result};
+
+/// A numeric matrix read from a file: `rows` x `cols`, row-major.
+struct Numbers {
+    rows: usize,
+    cols: usize,
+    data: Vec<f64>,
+}
+
+impl Numbers {
+    fn shape(&self) -> String {
+        format!("a {}x{} matrix", self.rows, self.cols)
+    }
+    fn is_vector(&self) -> bool {
+        self.rows == 1 || self.cols == 1 || self.data.is_empty()
+    }
+}
+
+fn cv(context: impl Into<String>) -> impl FnOnce(opencv::Error) -> Error {
+    let context = context.into();
+    move |source| Error::OpenCv { context, source }
+}
+
+/// Reads node `key`; `None` when the file has no such key.
+fn node(fs: &FileStorage, path: &Path, key: &str) -> Result<Option<FileNode>> {
+    let n = fs
+        .get(key)
+        .map_err(cv(format!("reading key '{key}' of {}", path.display())))?;
+    let absent = n.empty().map_err(cv("FileNode::empty"))? || n.is_none().map_err(cv("FileNode::isNone"))?;
+    Ok(if absent { None } else { Some(n) })
+}
+
+fn numbers(n: &FileNode, path: &Path, key: &str) -> Result<Numbers> {
+    let bad = |found: String| Error::BadValue {
+        path: path.to_path_buf(),
+        key: key.to_owned(),
+        expected: "a numeric matrix (!!opencv-matrix) or a sequence of numbers".to_owned(),
+        found,
+    };
+    if n.is_seq().map_err(cv("FileNode::isSeq"))? {
+        let len = n.size().map_err(cv("FileNode::size"))?;
+        let mut data = Vec::with_capacity(len);
+        for i in 0..len {
+            let item = n
+                .at(i32::try_from(i).unwrap_or(i32::MAX))
+                .map_err(cv("FileNode::at"))?;
+            if !(item.is_int().map_err(cv("FileNode::isInt"))?
+                || item.is_real().map_err(cv("FileNode::isReal"))?)
+            {
+                return Err(bad(format!("a sequence whose item {i} is not a number")));
+            }
+            data.push(item.real().map_err(cv("FileNode::real"))?);
+        }
+        return Ok(Numbers {
+            rows: 1,
+            cols: data.len(),
+            data,
+        });
+    }
+    if n.is_map().map_err(cv("FileNode::isMap"))? {
+        let m = n
+            .mat()
+            .map_err(|e| bad(format!("a map that OpenCV cannot read as a matrix ({e})")))?;
+        if m.empty() {
+            return Ok(Numbers {
+                rows: 0,
+                cols: 0,
+                data: Vec::new(),
+            });
+        }
+        if m.channels() != 1 {
+            return Err(bad(format!("a matrix with {} channels", m.channels())));
+        }
+        let mut m64 = Mat::default();
+        m.convert_to(&mut m64, opencv::core::CV_64F, 1.0, 0.0)
+            .map_err(cv("Mat::convertTo"))?;
+        let (rows, cols) = (m64.rows(), m64.cols());
+        let mut data = Vec::new();
+        for r in 0..rows {
+            for c in 0..cols {
+                data.push(*m64.at_2d::<f64>(r, c).map_err(cv("Mat::at"))?);
+            }
+        }
+        return Ok(Numbers {
+            rows: usize::try_from(rows).unwrap_or(0),
+            cols: usize::try_from(cols).unwrap_or(0),
+            data,
+        });
+    }
+    if n.is_int().map_err(cv("FileNode::isInt"))? || n.is_real().map_err(cv("FileNode::isReal"))? {
+        return Ok(Numbers {
+            rows: 1,
+            cols: 1,
+            data: vec![n.real().map_err(cv("FileNode::real"))?],
+        });
+    }
+    let kind = match n.typ().map_err(cv("FileNode::type"))? & 7 {
+        3 => format!("the string '{}'", n.to_string().map_err(cv("FileNode::string"))?),
+        t => format!("a node of FileNode type {t}"),
+    };
+    Err(bad(kind))
+}
+
+fn required(fs: &FileStorage, path: &Path, keys: &[&str], expected: &str) -> Result<(String, Numbers)> {
+    for key in keys {
+        if let Some(n) = node(fs, path, key)? {
+            return Ok(((*key).to_owned(), numbers(&n, path, key)?));
+        }
+    }
+    Err(Error::MissingKey {
+        path: path.to_path_buf(),
+        key: keys.join(" or "),
+        expected: expected.to_owned(),
+    })
+}
+
+fn check_finite(path: &Path, key: &str, m: &Numbers) -> Result<()> {
+    if let Some(v) = m.data.iter().find(|v| !v.is_finite()) {
+        return Err(Error::BadValue {
+            path: path.to_path_buf(),
+            key: key.to_owned(),
+            expected: "finite numbers".to_owned(),
+            found: format!("{v}"),
+        });
+    }
+    Ok(())
+}
+
+fn camera_matrix(path: &Path, key: &str, m: &Numbers) -> Result<(f64, f64, f64, f64)> {
+    if m.rows != 3 || m.cols != 3 {
+        return Err(Error::BadValue {
+            path: path.to_path_buf(),
+            key: key.to_owned(),
+            expected: "a 3x3 camera matrix".to_owned(),
+            found: m.shape(),
+        });
+    }
+    check_finite(path, key, m)?;
+    let d = &m.data;
+    let bad = |expected: &str, found: String| Error::BadValue {
+        path: path.to_path_buf(),
+        key: key.to_owned(),
+        expected: expected.to_owned(),
+        found,
+    };
+    if d[1] != 0.0 {
+        return Err(bad(
+            "zero skew K[0][1] (skew is not supported)",
+            format!("{}", d[1]),
+        ));
+    }
+    if d[3] != 0.0 || d[6] != 0.0 || d[7] != 0.0 || d[8] != 1.0 {
+        return Err(bad(
+            "last row [0, 0, 1] and K[1][0] = 0",
+            format!("{:?}", [d[3], d[6], d[7], d[8]]),
+        ));
+    }
+    if d[0] <= 0.0 || d[4] <= 0.0 {
+        return Err(bad(
+            "positive focal lengths",
+            format!("fx = {}, fy = {}", d[0], d[4]),
+        ));
+    }
+    Ok((d[0], d[4], d[2], d[5]))
+}
+
+fn distortion(path: &Path, key: &str, m: &Numbers) -> Result<Distortion> {
+    if !m.is_vector() {
+        return Err(Error::BadValue {
+            path: path.to_path_buf(),
+            key: key.to_owned(),
+            expected: "a vector of 0, 4, 5, 8 or 12 distortion coefficients".to_owned(),
+            found: m.shape(),
+        });
+    }
+    check_finite(path, key, m)?;
+    Distortion::new(m.data.clone()).map_err(|e| Error::BadValue {
+        path: path.to_path_buf(),
+        key: key.to_owned(),
+        expected: "0, 4, 5, 8 or 12 distortion coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]])"
+            .to_owned(),
+        found: format!("{} ({e})", m.shape()),
+    })
+}
+
+fn image_size(fs: &FileStorage, path: &Path) -> Result<ImageSize> {
+    let as_u32 = |key: &str, v: f64| -> Result<u32> {
+        if v.fract() == 0.0 && v >= 1.0 && v <= f64::from(u32::MAX) {
+            // Checked above: a positive whole number that fits.
+            #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+            Ok(v as u32)
+        } else {
+            Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: key.to_owned(),
+                expected: "a positive whole number of pixels".to_owned(),
+                found: format!("{v}"),
+            })
+        }
+    };
+    let w = node(fs, path, "image_width")?;
+    let h = node(fs, path, "image_height")?;
+    if let (Some(w), Some(h)) = (w, h) {
+        let (wn, hn) = (
+            numbers(&w, path, "image_width")?,
+            numbers(&h, path, "image_height")?,
+        );
+        for (key, n) in [("image_width", &wn), ("image_height", &hn)] {
+            if n.data.len() != 1 {
+                return Err(Error::BadValue {
+                    path: path.to_path_buf(),
+                    key: key.to_owned(),
+                    expected: "a single integer".to_owned(),
+                    found: n.shape(),
+                });
+            }
+        }
+        return Ok(ImageSize {
+            width: as_u32("image_width", wn.data[0])?,
+            height: as_u32("image_height", hn.data[0])?,
+        });
+    }
+    for key in ["image_size", "imageSize"] {
+        if let Some(n) = node(fs, path, key)? {
+            let n = numbers(&n, path, key)?;
+            if n.data.len() != 2 {
+                return Err(Error::BadValue {
+                    path: path.to_path_buf(),
+                    key: key.to_owned(),
+                    expected: "[width, height]".to_owned(),
+                    found: n.shape(),
+                });
+            }
+            return Ok(ImageSize {
+                width: as_u32(key, n.data[0])?,
+                height: as_u32(key, n.data[1])?,
+            });
+        }
+    }
+    Err(Error::MissingKey {
+        path: path.to_path_buf(),
+        key: "image_width and image_height".to_owned(),
+        expected: "the calibrated image size in pixels, two integers (or image_size: [width, height])"
+            .to_owned(),
+    })
+}
+
+impl StereoRig {
+    /// Reads an OpenCV FileStorage stereo calibration (YAML or XML; see the [module docs](self)).
+    ///
+    /// Errors name the file, the key and the expected against the actual shape.
+    pub fn read_opencv(path: impl AsRef<Path>) -> Result<StereoRig> {
+        let path = path.as_ref();
+        std::fs::metadata(path).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let name = path.to_string_lossy().into_owned();
+        let fs = FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
+            Error::Syntax {
+                path: path.to_path_buf(),
+                line: 0,
+                message: format!("OpenCV FileStorage cannot parse it: {e}"),
+            }
+        })?;
+        if !fs.is_opened().map_err(cv("FileStorage::isOpened"))? {
+            return Err(Error::Syntax {
+                path: path.to_path_buf(),
+                line: 0,
+                message: "OpenCV FileStorage could not open it".to_owned(),
+            });
+        }
+        let mut cams = Vec::new();
+        for (k, m, d) in [("K1", "M1", "D1"), ("K2", "M2", "D2")] {
+            let (kkey, kn) = required(&fs, path, &[k, m], "the 3x3 camera matrix")?;
+            let (fx, fy, cx, cy) = camera_matrix(path, &kkey, &kn)?;
+            let (dkey, dn) = required(&fs, path, &[d], "the distortion coefficients (OpenCV order)")?;
+            let distortion = distortion(path, &dkey, &dn)?;
+            cams.push((fx, fy, cx, cy, distortion));
+        }
+        let size = image_size(&fs, path)?;
+        let (_, rn) = required(&fs, path, &["R"], "the 3x3 rotation right_from_left")?;
+        check_finite(path, "R", &rn)?;
+        let rotation = if rn.rows == 3 && rn.cols == 3 {
+            let m = Matrix3::from_row_slice(&rn.data);
+            let ortho = (m.transpose() * m - Matrix3::identity()).abs().max();
+            if ortho > 1e-6 || (m.determinant() - 1.0).abs() > 1e-6 {
+                return Err(Error::BadValue {
+                    path: path.to_path_buf(),
+                    key: "R".to_owned(),
+                    expected: "a rotation matrix (orthonormal, determinant 1, to 1e-6)".to_owned(),
+                    found: format!("|R^T R - I| = {ortho:.3e}, det = {}", m.determinant()),
+                });
+            }
+            UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m))
+        } else if rn.is_vector() && rn.data.len() == 3 {
+            UnitQuaternion::from_scaled_axis(Vector3::new(rn.data[0], rn.data[1], rn.data[2]))
+        } else {
+            return Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: "R".to_owned(),
+                expected: "a 3x3 rotation matrix (or a 3-vector Rodrigues rotation)".to_owned(),
+                found: rn.shape(),
+            });
+        };
+        let (_, tn) = required(&fs, path, &["T"], "the translation right_from_left, mm")?;
+        check_finite(path, "T", &tn)?;
+        if !(tn.is_vector() && tn.data.len() == 3) {
+            return Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: "T".to_owned(),
+                expected: "a 3x1 translation".to_owned(),
+                found: tn.shape(),
+            });
+        }
+        let translation = Translation3::new(tn.data[0], tn.data[1], tn.data[2]);
+        if translation.vector.norm() == 0.0 {
+            return Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: "T".to_owned(),
+                expected: "a non-zero baseline".to_owned(),
+                found: "[0, 0, 0]".to_owned(),
+            });
+        }
+        let mut it = cams.into_iter().map(|(fx, fy, cx, cy, distortion)| Camera {
+            image_size: size,
+            fx,
+            fy,
+            cx,
+            cy,
+            distortion,
+        });
+        let (Some(left), Some(right)) = (it.next(), it.next()) else {
+            return Err(Error::Calibration("internal: two cameras expected".to_owned()));
+        };
+        let rig = StereoRig {
+            left,
+            right,
+            right_from_left: Isometry3::from_parts(translation, rotation),
+        };
+        rig.validate().map_err(|e| Error::BadValue {
+            path: path.to_path_buf(),
+            key: "K1/D1/K2/D2/R/T".to_owned(),
+            expected: "a valid stereo calibration".to_owned(),
+            found: e.to_string(),
+        })?;
+        Ok(rig)
+    }
+
+    /// Writes this rig as an OpenCV FileStorage YAML file (`K1 D1 K2 D2 R T image_width
+    /// image_height`, numbers at full double precision).
+    pub fn write_opencv_yaml(&self, path: impl AsRef<Path>) -> Result<()> {
+        self.write_opencv(path.as_ref(), opencv::core::FileStorage_Mode::FORMAT_YAML as i32)
+    }
+
+    /// Writes this rig as an OpenCV FileStorage XML file (same keys as [`StereoRig::write_opencv_yaml`]).
+    pub fn write_opencv_xml(&self, path: impl AsRef<Path>) -> Result<()> {
+        self.write_opencv(path.as_ref(), opencv::core::FileStorage_Mode::FORMAT_XML as i32)
+    }
+
+    fn write_opencv(&self, path: &Path, format: i32) -> Result<()> {
+        self.validate()?;
+        if self.left.image_size != self.right.image_size {
+            return Err(Error::InvalidParameter {
+                name: "image_size".to_owned(),
+                value: f64::from(self.right.image_size.width),
+                expected: "the same image size for both cameras (the OpenCV format stores one)",
+            });
+        }
+        let name = path.to_string_lossy().into_owned();
+        let ctx = || format!("writing {}", path.display());
+        let mut fs = FileStorage::new(&name, opencv::core::FileStorage_Mode::WRITE as i32 | format, "")
+            .map_err(cv(ctx()))?;
+        if !fs.is_opened().map_err(cv(ctx()))? {
+            return Err(Error::Io {
+                path: path.to_path_buf(),
+                source: std::io::Error::other("OpenCV FileStorage could not open it for writing"),
+            });
+        }
+        let size = self.left.image_size;
+        let r = self.right_from_left.rotation.to_rotation_matrix().into_inner();
+        let t = self.right_from_left.translation.vector;
+        fs.write_comment("gelstereo stereo calibration: p_in_right = R * p_in_left + T (mm); pixel (0,0) = centre of the top-left pixel", false)
+            .map_err(cv(ctx()))?;
+        for (kkey, dkey, cam) in [("K1", "D1", &self.left), ("K2", "D2", &self.right)] {
+            fs.write_mat(kkey, &mat(3, 3, cam.k_matrix().transpose().as_slice())?)
+                .map_err(cv(ctx()))?;
+            fs.write_mat(
+                dkey,
+                &mat(1, cam.distortion.coeffs.len(), &cam.distortion.coeffs)?,
+            )
+            .map_err(cv(ctx()))?;
+        }
+        fs.write_mat("R", &mat(3, 3, r.transpose().as_slice())?)
+            .map_err(cv(ctx()))?;
+        fs.write_mat("T", &mat(3, 1, t.as_slice())?).map_err(cv(ctx()))?;
+        let w = i32::try_from(size.width).map_err(|_| Error::InvalidParameter {
+            name: "image_width".to_owned(),
+            value: f64::from(size.width),
+            expected: "a width that fits an int",
+        })?;
+        let h = i32::try_from(size.height).map_err(|_| Error::InvalidParameter {
+            name: "image_height".to_owned(),
+            value: f64::from(size.height),
+            expected: "a height that fits an int",
+        })?;
+        fs.write_i32("image_width", w).map_err(cv(ctx()))?;
+        fs.write_i32("image_height", h).map_err(cv(ctx()))?;
+        fs.release().map_err(cv(ctx()))?;
+        Ok(())
+    }
+}
+
+/// A `rows` x `cols` CV_64F matrix from row-major `data`.
+fn mat(rows: usize, cols: usize, data: &[f64]) -> Result<Mat> {
+    let r = i32::try_from(rows).unwrap_or(i32::MAX);
+    let c = i32::try_from(cols).unwrap_or(i32::MAX);
+    let mut m = Mat::new_rows_cols_with_default(r, c, opencv::core::CV_64F, Scalar::all(0.0))
+        .map_err(cv("Mat::new"))?;
+    for (i, v) in data.iter().enumerate().take(rows * cols) {
+        let (ri, ci) = (i / cols.max(1), i % cols.max(1));
+        *m.at_2d_mut::<f64>(i32::try_from(ri).unwrap_or(0), i32::try_from(ci).unwrap_or(0))
+            .map_err(cv("Mat::at"))? = *v;
+    }
+    Ok(m)
+}
