@@ -1,1 +1,21 @@
 //! Marker tracking over time, displacement fields, contact geometry and slip detection.
+//!
+//! - [`tracker`]: ids (grid indices from the reference frame) followed frame to frame in one view,
+//!   with motion prediction, k-d tree association, neighbour-based prediction of missed markers and
+//!   re-acquisition.
+//!
+//! # Conventions
+//! - Image coordinates in pixels of the original image, (0, 0) = centre of the top-left pixel,
+//!   x right, y down.
+//! - 3-D positions in mm in the LEFT camera's frame (x right, y down, z forward).
+//! - Marker identity = grid index (row, col) on the reference frame of the left view; every list of
+//!   markers comes in row-major id order.
+//! - Indentation depth is positive when the gel surface is pushed towards the cameras.
+
+pub mod error;
+#[cfg(test)]
+mod synthetic;
+pub mod tracker;
+
+pub use error::{Error, Result};
+pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};
