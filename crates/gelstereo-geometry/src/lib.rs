@@ -3,10 +3,12 @@
 //! Conventions (see DESIGN.md): pixel (0, 0) is the centre of the top-left pixel; camera frame x right,
 //! y down, z forward; 3-D in mm in the LEFT camera's frame; `p_in_right = right_from_left * p_in_left`.
 //!
-//! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files).
+//! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),
+//! [`cv`] (conversions to and from OpenCV matrices).
 
 pub mod calib;
 pub mod camera;
+pub mod cv;
 pub mod error;
 
 pub use calib::CalibrationPath;

@@ -11,9 +11,10 @@ use std::path::Path;
 use gelstereo_core::ImageSize;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use opencv::core::{FileNode, FileNodeTraitConst, FileStorage, FileStorageTrait, FileStorageTraitConst};
-use opencv::core::{Mat, MatTrait, MatTraitConst, Scalar};
+use opencv::core::{Mat, MatTraitConst};
 
 use crate::camera::{Camera, Distortion, StereoRig};
+use crate::cv::mat_from_rows as mat;
 use crate::error::{Error, Result};
 
 /// A numeric matrix read from a file: `rows` x `cols`, row-major.
@@ -425,18 +426,4 @@ impl StereoRig {
         fs.release().map_err(cv(ctx()))?;
         Ok(())
     }
-}
-
-/// A `rows` x `cols` CV_64F matrix from row-major `data`.
-fn mat(rows: usize, cols: usize, data: &[f64]) -> Result<Mat> {
-    let r = i32::try_from(rows).unwrap_or(i32::MAX);
-    let c = i32::try_from(cols).unwrap_or(i32::MAX);
-    let mut m = Mat::new_rows_cols_with_default(r, c, opencv::core::CV_64F, Scalar::all(0.0))
-        .map_err(cv("Mat::new"))?;
-    for (i, v) in data.iter().enumerate().take(rows * cols) {
-        let (ri, ci) = (i / cols.max(1), i % cols.max(1));
-        *m.at_2d_mut::<f64>(i32::try_from(ri).unwrap_or(0), i32::try_from(ci).unwrap_or(0))
-            .map_err(cv("Mat::at"))? = *v;
-    }
-    Ok(m)
 }
