@@ -1,0 +1,194 @@
+"""Training batches: geometric sampling of crops with exact label mapping, and photometric
+augmentation for sim-to-real transfer. Everything is done batch-wise in PyTorch on the CPU.
+
+Geometry (per sample): either the *canonical* view (the whole image resized to the network input, as at
+inference, then a random crop) or a *jittered* view (marker pitch at the input drawn log-uniformly in
+``pitch_in_px``, independent x/y scale for anisotropic resizes, flips, a small rotation). Sampling is
+bilinear with half-pixel centres (OpenCV INTER_LINEAR / torch ``align_corners=False``), i.e. the same
+geometry as the inference resize. Labels are mapped with the same affine transform in continuous
+coordinates (pixel i covers [i, i+1)); markers whose centre falls outside the crop are dropped.
+
+Photometry (per sample, a fraction of samples stays clean): colour gains, brightness/contrast, gamma,
+low-frequency colour shading (the illumination of GelSight-type sensors), greyscale, polarity
+inversion (light markers on a dark background), Gaussian blur, Gaussian noise, JPEG compression.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+
+
+@dataclass
+class AugConfig:
+    """Augmentation parameters (defaults used for the shipped model)."""
+
+    crop: tuple[int, int] = (224, 224)  # (height, width) of a training crop, network input pixels
+    input_size: tuple[int, int] = (416, 416)  # (height, width) of the canonical network input
+    p_canonical: float = 0.5  # share of crops sampled exactly as at inference
+    pitch_in_px: tuple[float, float] = (9.0, 44.0)  # jittered marker pitch (x) at the input
+    aspect: tuple[float, float] = (0.7, 1.5)  # y scale / x scale in jittered crops
+    rotate_deg: float = 8.0
+    flip: bool = True
+    p_clean: float = 0.3  # share of samples without photometric augmentation
+    p_gain: float = 0.6
+    p_contrast: float = 0.7
+    p_gamma: float = 0.5
+    p_shading: float = 0.5
+    p_grey: float = 0.15
+    p_invert: float = 0.15
+    p_blur: float = 0.4
+    blur_sigma: tuple[float, float] = (0.3, 1.6)
+    p_noise: float = 0.5
+    noise_std: tuple[float, float] = (0.003, 0.04)
+    p_jpeg: float = 0.2
+    jpeg_quality: tuple[int, int] = (30, 95)
+
+
+def _window_transform(cfg, h_img, w_img, pitch_px, rng):
+    """Affine map from crop continuous coords u to source continuous coords: p = c + A (u - crop/2)."""
+    ch, cw = cfg.crop
+    if rng.random() < cfg.p_canonical or not math.isfinite(pitch_px):
+        sx = cfg.input_size[1] / w_img
+        sy = cfg.input_size[0] / h_img
+        rot = 0.0
+        fx = fy = 1.0
+    else:
+        lo, hi = np.log(cfg.pitch_in_px[0]), np.log(cfg.pitch_in_px[1])
+        sx = float(np.exp(rng.uniform(lo, hi))) / pitch_px
+        sy = sx * float(np.exp(rng.uniform(np.log(cfg.aspect[0]), np.log(cfg.aspect[1]))))
+        rot = math.radians(rng.uniform(-cfg.rotate_deg, cfg.rotate_deg))
+        fx = -1.0 if (cfg.flip and rng.random() < 0.5) else 1.0
+        fy = -1.0 if (cfg.flip and rng.random() < 0.5) else 1.0
+    c, s = math.cos(rot), math.sin(rot)
+    a = np.array([[c, -s], [s, c]]) @ np.diag([fx / sx, fy / sy])
+    # Half extent of the window in source pixels (bounding box of the rotated crop).
+    half = np.abs(a) @ np.array([cw / 2.0, ch / 2.0])
+    cen = np.empty(2)
+    for k, size in enumerate((w_img, h_img)):
+        lo, hi = half[k], size - half[k]
+        cen[k] = rng.uniform(lo, hi) if hi > lo else size / 2.0
+    return a, cen
+
+
+def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator):
+    """Cut one crop per index. Returns a float tensor (B, 3, ch, cw) in [0, 1] and a list of (n, 2)
+    float32 label arrays in crop continuous coordinates."""
+    ch, cw = cfg.crop
+    out = torch.empty(len(idx), 3, ch, cw)
+    labels = []
+    for b, i in enumerate(idx):
+        img = images[i]
+        h_img, w_img = img.shape[:2]
+        a, cen = _window_transform(cfg, h_img, w_img, pitches[i], rng)
+        half = np.abs(a) @ np.array([cw / 2.0, ch / 2.0])
+        # Sub-window of the source that covers the crop (+2 px margin for bilinear taps).
+        x0 = int(max(0, math.floor(cen[0] - half[0]) - 2))
+        y0 = int(max(0, math.floor(cen[1] - half[1]) - 2))
+        x1 = int(min(w_img, math.ceil(cen[0] + half[0]) + 2))
+        y1 = int(min(h_img, math.ceil(cen[1] + half[1]) + 2))
+        sub = torch.from_numpy(np.array(img[y0:y1, x0:x1])).permute(2, 0, 1).float() / 255.0
+        hs, ws = sub.shape[1:]
+        # Normalised coords of the sub-window: xn = 2 * (p - x0) / ws - 1, u_n in [-1, 1] over the crop.
+        theta = torch.tensor(
+            [
+                [2.0 / ws * a[0, 0] * cw / 2, 2.0 / ws * a[0, 1] * ch / 2, 2.0 * (cen[0] - x0) / ws - 1.0],
+                [2.0 / hs * a[1, 0] * cw / 2, 2.0 / hs * a[1, 1] * ch / 2, 2.0 * (cen[1] - y0) / hs - 1.0],
+            ],
+            dtype=torch.float32,
+        )
+        grid = F.affine_grid(theta[None], [1, 3, ch, cw], align_corners=False)
+        out[b] = F.grid_sample(sub[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+        pts = np.asarray(points[i], dtype=np.float64).reshape(-1, 2) + 0.5  # continuous source coords
+        u = (pts - cen) @ np.linalg.inv(a).T + np.array([cw / 2.0, ch / 2.0])
+        keep = (u[:, 0] >= 0) & (u[:, 0] < cw) & (u[:, 1] >= 0) & (u[:, 1] < ch)
+        labels.append(u[keep].astype(np.float32))
+    return out, labels
+
+
+def _gaussian_blur(x: torch.Tensor, sigmas: np.ndarray) -> torch.Tensor:
+    """Per-sample separable Gaussian blur (grouped convolution)."""
+    b, c, h, w = x.shape
+    r = int(math.ceil(2.5 * max(float(sigmas.max()), 0.4)))
+    t = torch.arange(-r, r + 1, dtype=torch.float32)
+    s = torch.from_numpy(np.maximum(sigmas, 1e-3)).float().view(b, 1)
+    k = torch.exp(-0.5 * (t[None] / s) ** 2)
+    k = k / k.sum(1, keepdim=True)
+    k = k.repeat_interleave(c, dim=0)  # (b*c, 2r+1)
+    y = x.reshape(1, b * c, h, w)
+    y = F.pad(y, (r, r, r, r), mode="replicate")
+    y = F.conv2d(y, k.view(b * c, 1, 1, -1), groups=b * c)
+    y = F.conv2d(y, k.view(b * c, 1, -1, 1), groups=b * c)
+    return y.view(b, c, h, w)
+
+
+def _jpeg(img: torch.Tensor, quality: int) -> torch.Tensor:
+    arr = (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).numpy()
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="JPEG", quality=int(quality))
+    buf.seek(0)
+    with Image.open(buf) as im:
+        back = np.asarray(im.convert("RGB"))
+    return torch.from_numpy(back.copy()).permute(2, 0, 1).float() / 255.0
+
+
+def photometric(x: torch.Tensor, cfg: AugConfig, rng: np.random.Generator) -> torch.Tensor:
+    """Apply the photometric augmentations to a (B, 3, H, W) batch in [0, 1] (each op only on the
+    samples drawn for it)."""
+    b, _, h, w = x.shape
+    aug = rng.random(b) >= cfg.p_clean
+
+    def pick(p):
+        return torch.from_numpy(np.nonzero(aug & (rng.random(b) < p))[0])
+
+    def u(lo, hi, n, c=1):
+        return torch.from_numpy(rng.uniform(lo, hi, (n, c, 1, 1))).float()
+
+    i = pick(cfg.p_gain)
+    if len(i):
+        x[i] = x[i] * u(0.6, 1.4, len(i), 3)
+    i = pick(cfg.p_contrast)
+    if len(i):
+        xi = x[i]
+        mean = xi.mean(dim=(1, 2, 3), keepdim=True)
+        x[i] = (xi - mean) * u(0.5, 1.5, len(i)) + mean + u(-0.2, 0.2, len(i))
+    i = pick(cfg.p_shading)
+    if len(i):
+        field = torch.from_numpy(rng.normal(0.0, 1.0, (len(i), 3, 3, 3))).float()
+        field = F.interpolate(field, size=(h, w), mode="bilinear", align_corners=True)
+        x[i] = x[i] + u(0.03, 0.25, len(i)) * field
+    x.clamp_(0, 1)
+    i = pick(cfg.p_gamma)
+    if len(i):
+        gam = torch.from_numpy(np.exp(rng.uniform(np.log(0.6), np.log(1.6), (len(i), 1, 1, 1)))).float()
+        x[i] = x[i].clamp_min(1e-4) ** gam
+    i = pick(cfg.p_grey)
+    if len(i):
+        x[i] = x[i].mean(1, keepdim=True).expand(-1, 3, -1, -1)
+    i = pick(cfg.p_invert)
+    if len(i):
+        x[i] = 1.0 - x[i]
+    i = pick(cfg.p_blur)
+    if len(i):
+        x[i] = _gaussian_blur(x[i], rng.uniform(*cfg.blur_sigma, len(i)))
+    i = pick(cfg.p_noise)
+    if len(i):
+        x[i] = x[i] + torch.randn(len(i), 3, h, w) * u(*cfg.noise_std, len(i))
+    x.clamp_(0, 1)
+    for k in pick(cfg.p_jpeg).tolist():
+        x[k] = _jpeg(x[k], rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
+    # Real images are 8-bit: quantise like the inference input.
+    return torch.round(x * 255.0) / 255.0
+
+
+def make_batch(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator):
+    """A training batch: (B, 3, ch, cw) float tensor and per-sample label arrays (input pixels)."""
+    idx = rng.integers(0, len(images), batch)
+    x, labels = sample_crops(images, points, pitches, idx, cfg, rng)
+    return photometric(x, cfg, rng), labels

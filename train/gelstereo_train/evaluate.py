@@ -1,0 +1,163 @@
+"""Evaluate Marknet, Marknet + MRE and the blob baseline on a split with the paper's metrics.
+
+    python -m gelstereo_train.evaluate --data ROOT --split test --marknet runs/marknet.pt \
+        --mre runs/mre.pt --out runs/eval_test.json
+
+Models are given as PyTorch checkpoints (.pt) or exported ONNX files (.onnx, run in onnxruntime).
+See gelstereo_train.metrics for the definitions (r = 0.25 x pitch, splits easy / hard / contact).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .blob import BlobDetector
+from .data import list_samples
+from .metrics import Evaluator, hard_mask, radius_for
+from .postprocess import PostConfig, TorchMRE, decode_to_original, postprocess, preprocess
+
+
+class MarknetRunner:
+    """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image."""
+
+    def __init__(self, path: Path | str, threads: int = 2):
+        path = Path(path)
+        self.path = path
+        if path.suffix == ".onnx":
+            import onnxruntime as ort
+
+            so = ort.SessionOptions()
+            so.intra_op_num_threads = threads
+            so.inter_op_num_threads = 1
+            self.sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            meta = self.sess.get_modelmeta().custom_metadata_map
+            self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
+            self.stride = int(meta["stride"])
+            self.model = None
+        else:
+            from .train_marknet import load_checkpoint
+
+            self.model, meta = load_checkpoint(path)
+            self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
+            self.stride = self.model.stride
+            self.sess = None
+        self.meta = meta
+
+    def raw(self, x: torch.Tensor) -> np.ndarray:
+        if self.sess is not None:
+            return self.sess.run(["raw"], {"image": x.numpy()})[0]
+        with torch.no_grad():
+            return self.model(x).numpy()
+
+    def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
+        out = []
+        for i in range(0, len(images), batch):
+            chunk = images[i : i + batch]
+            x = torch.cat([preprocess(im, self.input_hw) for im in chunk])
+            for im, r in zip(chunk, self.raw(x)):
+                out.append(decode_to_original(r, self.stride, (im.shape[1], im.shape[0]), self.input_hw[::-1]))
+        return out
+
+
+def load_mre(path: Path | str | None, threads: int = 2):
+    """A callable (n, 11) -> (n,) probabilities from an MRE checkpoint (.pt) or ONNX file."""
+    if path is None:
+        return None
+    path = Path(path)
+    if path.suffix == ".onnx":
+        import onnxruntime as ort
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        return lambda f: sess.run(["score"], {"features": np.asarray(f, np.float32)})[0][:, 0]
+    from .train_mre import load_mre_checkpoint
+
+    return TorchMRE(load_mre_checkpoint(path)[0])
+
+
+def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: BlobDetector | None = None,
+             log=print, batch: int = 8) -> dict:
+    """Metrics of Marknet, Marknet+MRE and the blob baseline over samples."""
+    ev = {"marknet": Evaluator(), "marknet_mre": Evaluator(), "blob": Evaluator()}
+    blob = blob or BlobDetector()
+    t0 = time.time()
+    t_net = 0.0
+    for i in range(0, len(samples), batch):
+        chunk = samples[i : i + batch]
+        imgs = [s.load() for s in chunk]
+        t = time.time()
+        decoded = runner(imgs, batch=batch)
+        t_net += time.time() - t
+        for s, img, dec in zip(chunk, imgs, decoded):
+            gt = s.points_px
+            r = radius_for(gt)
+            bl = blob.detect(img)
+            hard = hard_mask(bl, gt, r)
+            det = postprocess(dec, post, mre_fn)
+            ev["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r)
+            if mre_fn is not None:
+                ev["marknet_mre"].add_image(det.marknet_mre, gt, hard, s.in_contact, r)
+            ev["blob"].add_image(bl, gt, hard, s.in_contact, r)
+        if (i // batch) % 25 == 0:
+            log(f"evaluated {i + len(chunk)}/{len(samples)} images ({time.time() - t0:.0f} s)")
+    out = {k: v.summary() for k, v in ev.items() if v.radii}
+    out["images"] = len(samples)
+    out["torch_or_ort_seconds_per_image"] = t_net / max(1, len(samples))
+    return out
+
+
+def format_table(res: dict) -> str:
+    """Markdown table: method x split with precision, recall, loss."""
+    lines = ["| method | split | precision | recall | loss (px^2) | T | PT | PF |", "|---|---|---|---|---|---|---|---|"]
+    for method in ("blob", "marknet", "marknet_mre"):
+        if method not in res:
+            continue
+        for split in ("easy", "hard", "contact", "all"):
+            m = res[method][split]
+            lines.append(
+                f"| {method} | {split} | {100 * m['precision']:.2f}% | {100 * m['recall']:.2f}% | "
+                f"{m['loss_px2']:.3f} | {m['T']} | {m['PT']} | {m['PF']} |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--marknet", type=Path, required=True, help=".pt checkpoint or .onnx")
+    p.add_argument("--mre", type=Path, default=None, help=".pt checkpoint or .onnx")
+    p.add_argument("--out", type=Path, default=None, help="JSON file for the results")
+    p.add_argument("--frame-step", type=int, default=1)
+    p.add_argument("--max-experiments", type=int, default=None)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--dedup-radius-frac", type=float, default=None)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    runner = MarknetRunner(args.marknet, args.threads)
+    post = PostConfig()
+    if args.dedup_radius_frac is not None:
+        post.dedup_radius_frac = args.dedup_radius_frac
+    samples = list_samples(args.data, args.split, frame_step=args.frame_step, max_experiments=args.max_experiments)
+    res = evaluate(samples, runner, load_mre(args.mre, args.threads), post)
+    res["split"] = args.split
+    res["marknet_file"] = str(args.marknet)
+    res["mre_file"] = str(args.mre) if args.mre else None
+    print(format_table(res))
+    print(json.dumps({k: res[k] for k in ("images", "split")} | {"radius_px": res["marknet"].get("radius_px")}))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

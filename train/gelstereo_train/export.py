@@ -1,0 +1,177 @@
+"""Export Marknet and MRE to ONNX per docs/model-contract.md and check them in onnxruntime.
+
+    python -m gelstereo_train.export --marknet runs/marknet.pt --mre runs/mre.pt --out-dir data/models
+
+torch.onnx.export(dynamo=False, opset 17) with fixed names (image -> raw, features -> score), a dynamic
+batch axis and the contract in metadata_props. Right after export each file is run in onnxruntime on
+random inputs and compared with PyTorch; the max abs difference is printed and stored in a JSON report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from .model import MRE, Marknet
+from .postprocess import MISSING_DISTANCE, NEIGHBOURS, PostConfig
+
+OPSET = 17
+MARKNET_CONTRACT = "gelstereo-marknet/1"
+MRE_CONTRACT = "gelstereo-mre/1"
+
+
+class MREWithSigmoid(nn.Module):
+    """The exported MRE: probability = sigmoid(logit)."""
+
+    def __init__(self, mre: MRE):
+        super().__init__()
+        self.mre = mre
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.mre(features))
+
+
+def _set_metadata(path: Path, props: dict) -> None:
+    m = onnx.load(str(path))
+    del m.metadata_props[:]
+    for k, v in props.items():
+        e = m.metadata_props.add()
+        e.key, e.value = k, str(v)
+    m.producer_name = "gelstereo-train"
+    onnx.checker.check_model(m)
+    onnx.save(m, str(path))
+
+
+def marknet_metadata(model: Marknet, input_hw, dataset: str, trained: str, post: PostConfig) -> dict:
+    h, w = input_hw
+    return {
+        "contract": MARKNET_CONTRACT,
+        "input_height": h,
+        "input_width": w,
+        "stride": model.stride,
+        "grid": w // model.stride,
+        "candidates": model.candidates,
+        "normalisation": "rgb/255",
+        "layout": "NCHW",
+        "resize": "bilinear, half-pixel centres, no antialiasing",
+        "dataset": dataset,
+        "trained": trained,
+        "conf_keep": post.conf_keep,
+        "conf_low": post.conf_low,
+        "conf_marknet_only": post.conf_marknet_only,
+        "dedup_radius_frac": post.dedup_radius_frac,
+    }
+
+
+def mre_metadata(dataset: str, post: PostConfig) -> dict:
+    return {
+        "contract": MRE_CONTRACT,
+        "features": NEIGHBOURS + 1,
+        "neighbours": NEIGHBOURS,
+        "distance_unit": "pitch",
+        "missing_distance": MISSING_DISTANCE,
+        "accept": post.accept,
+        "conf_low": post.conf_low,
+        "conf_keep": post.conf_keep,
+        "dataset": dataset,
+    }
+
+
+def _ort(path: Path):
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 2
+    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+
+
+def export_marknet(model: Marknet, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
+    """Export and verify; returns the max abs difference ONNX Runtime vs PyTorch on the raw output."""
+    model = model.eval()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = input_hw
+    dummy = torch.rand(1, 3, h, w)
+    torch.onnx.export(
+        model,
+        (dummy,),
+        str(path),
+        dynamo=False,
+        opset_version=OPSET,
+        input_names=["image"],
+        output_names=["raw"],
+        dynamic_axes={"image": {0: "batch"}, "raw": {0: "batch"}},
+        do_constant_folding=True,
+    )
+    _set_metadata(path, metadata)
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(2, 3, h, w, generator=g)
+    with torch.no_grad():
+        ref = model(x).numpy()
+    got = _ort(path).run(["raw"], {"image": x.numpy()})[0]
+    if got.shape != ref.shape:
+        raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
+    return float(np.abs(got - ref).max())
+
+
+def export_mre(mre: MRE, path: Path, metadata: dict, seed: int = 0) -> float:
+    """Export and verify the MRE; returns the max abs difference of the score."""
+    wrapped = MREWithSigmoid(mre.eval()).eval()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.onnx.export(
+        wrapped,
+        (torch.rand(4, NEIGHBOURS + 1),),
+        str(path),
+        dynamo=False,
+        opset_version=OPSET,
+        input_names=["features"],
+        output_names=["score"],
+        dynamic_axes={"features": {0: "batch"}, "score": {0: "batch"}},
+    )
+    _set_metadata(path, metadata)
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(64, NEIGHBOURS + 1, generator=g) * 3
+    with torch.no_grad():
+        ref = wrapped(x).numpy()
+    got = _ort(path).run(["score"], {"features": x.numpy()})[0]
+    if got.shape != ref.shape:
+        raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
+    return float(np.abs(got - ref).max())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--marknet", type=Path, required=True, help="Marknet checkpoint (.pt)")
+    p.add_argument("--mre", type=Path, default=None, help="MRE checkpoint (.pt)")
+    p.add_argument("--out-dir", type=Path, required=True)
+    args = p.parse_args(argv)
+    from .train_marknet import load_checkpoint
+    from .train_mre import load_mre_checkpoint
+
+    torch.set_num_threads(2)
+    model, meta = load_checkpoint(args.marknet)
+    post = PostConfig()
+    hw = (int(meta["input_height"]), int(meta["input_width"]))
+    report = {}
+    mk = args.out_dir / "marknet.onnx"
+    report["marknet_max_abs_diff"] = export_marknet(
+        model, mk, hw, marknet_metadata(model, hw, meta["dataset"], meta["trained"], post)
+    )
+    print(f"{mk}: onnxruntime vs PyTorch max abs diff (raw logits) {report['marknet_max_abs_diff']:.3g}")
+    if args.mre:
+        mre, mmeta = load_mre_checkpoint(args.mre)
+        mp = args.out_dir / "mre.onnx"
+        report["mre_max_abs_diff"] = export_mre(mre, mp, mre_metadata(mmeta.get("dataset", meta["dataset"]), post))
+        print(f"{mp}: onnxruntime vs PyTorch max abs diff (score) {report['mre_max_abs_diff']:.3g}")
+    (args.out_dir / "export_report.json").write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""Marknet (grid regression of marker centres) and MRE (marker rationality evaluator).
+
+Marknet follows the paper (section II-A): convolutions, residual shortcuts, upsampling and ONE detection
+layer. The backbone always goes down to stride 32 (13 x 13 cells at 416 x 416); a top-down path with
+upsampling brings it back to the stride of the single head: 32 (S = 13), 16 (S = 26) or 8 (S = 52). The
+head outputs, for each cell, m candidates of raw logits (tx, ty, tc); decoding is
+``x_in = (sigmoid(tx) + gx) * stride`` (the paper's eq. 5-6), ``c = sigmoid(tc)``.
+
+At the default width (8) and S = 52, m = 5 the net has ~45k parameters and ~0.29 GFLOP at 416 x 416.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+STRIDE_FOR_GRID_416 = {13: 32, 26: 16, 52: 8}
+
+
+def conv_bn(cin: int, cout: int, k: int, s: int = 1) -> nn.Sequential:
+    """Convolution + BatchNorm + LeakyReLU(0.1), the YOLO building block."""
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, k, s, k // 2, bias=False),
+        nn.BatchNorm2d(cout),
+        nn.LeakyReLU(0.1, inplace=True),
+    )
+
+
+class Residual(nn.Module):
+    """Darknet residual block: 1x1 bottleneck, 3x3, shortcut addition."""
+
+    def __init__(self, c: int):
+        super().__init__()
+        self.a = conv_bn(c, c // 2, 1)
+        self.b = conv_bn(c // 2, c, 3)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.b(self.a(x))
+
+
+class Marknet(nn.Module):
+    """Marknet. Input (N, 3, H, W) RGB in [0, 1]; output (N, H/stride, W/stride, m, 3) raw logits."""
+
+    def __init__(self, stride: int = 8, candidates: int = 5, width: int = 8):
+        super().__init__()
+        if stride not in (8, 16, 32):
+            raise ValueError(f"stride must be 8, 16 or 32 (S = 52, 26, 13 at 416), got {stride}")
+        if not 1 <= candidates <= 5:
+            raise ValueError(f"candidates m must be in 1..5, got {candidates}")
+        self.stride = stride
+        self.candidates = candidates
+        self.width = width
+        w = width
+        # Backbone: stride 2, 4, 8, 16, 32.
+        self.stem = nn.Sequential(conv_bn(3, w, 3, 2), Residual(w))
+        self.s4 = nn.Sequential(conv_bn(w, 2 * w, 3, 2), Residual(2 * w))
+        self.s8 = nn.Sequential(conv_bn(2 * w, 4 * w, 3, 2), Residual(4 * w))
+        self.s16 = nn.Sequential(conv_bn(4 * w, 8 * w, 3, 2), Residual(8 * w))
+        self.s32 = nn.Sequential(conv_bn(8 * w, 8 * w, 3, 2), Residual(8 * w))
+        # Top-down path (upsampling + lateral concatenation) down to the head's stride.
+        self.up = nn.ModuleList()
+        chans = {8: 4 * w, 16: 8 * w, 32: 8 * w}
+        cur = chans[32]
+        s = 32
+        while s > stride:
+            s //= 2
+            lat = chans[s]
+            self.up.append(
+                nn.ModuleDict(
+                    {
+                        "reduce": conv_bn(cur, lat // 2, 1),
+                        "fuse1": conv_bn(lat // 2 + lat, lat // 2, 1),
+                        "fuse2": conv_bn(lat // 2, lat, 3),
+                    }
+                )
+            )
+            cur = lat
+        self.head = nn.Conv2d(cur, candidates * 3, 1)
+        with torch.no_grad():
+            self.head.weight.mul_(0.1)
+            b = self.head.bias.view(candidates, 3)
+            b.zero_()
+            b[:, 2] = -4.0  # confidence prior ~0.018
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f2 = self.stem(x)
+        f4 = self.s4(f2)
+        f8 = self.s8(f4)
+        f16 = self.s16(f8)
+        f32 = self.s32(f16)
+        feats = {8: f8, 16: f16, 32: f32}
+        y = f32
+        s = 32
+        for block in self.up:
+            s //= 2
+            y = block["reduce"](y)
+            y = F.interpolate(y, scale_factor=2.0, mode="nearest")
+            y = torch.cat([y, feats[s]], dim=1)
+            y = block["fuse2"](block["fuse1"](y))
+        out = self.head(y)  # (N, m*3, Gy, Gx), channel = k*3 + j
+        n, _, gy, gx = out.shape
+        return out.view(n, self.candidates, 3, gy, gx).permute(0, 3, 4, 1, 2).contiguous()
+
+
+def decode(raw: torch.Tensor, stride: int) -> torch.Tensor:
+    """Raw logits (N, Gy, Gx, m, 3) -> (N, Gy, Gx, m, 3) of (x_in, y_in, c), continuous input pixels."""
+    n, gy, gx, m, _ = raw.shape
+    sig = torch.sigmoid(raw)
+    ys = torch.arange(gy, dtype=raw.dtype, device=raw.device).view(1, gy, 1, 1)
+    xs = torch.arange(gx, dtype=raw.dtype, device=raw.device).view(1, 1, gx, 1)
+    x = (sig[..., 0] + xs) * stride
+    y = (sig[..., 1] + ys) * stride
+    return torch.stack([x, y, sig[..., 2]], dim=-1)
+
+
+class MRE(nn.Module):
+    """Marker rationality evaluator: 11 features -> 3 fully connected layers -> logit."""
+
+    def __init__(self, features: int = 11, hidden: int = 32):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(features, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, 1),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits (N, 1); apply sigmoid for the probability (the exported model does)."""
+        return self.net(x)
+
+
+def count_flops(model: Marknet, h: int = 416, w: int = 416) -> float:
+    """Multiply-adds x 2 of the convolutions at an input size (GFLOP)."""
+    total = 0
+
+    def hook(mod, inp, out):
+        nonlocal total
+        k = mod.kernel_size[0] * mod.kernel_size[1] * (mod.in_channels // mod.groups)
+        total += 2 * k * out.numel() // out.shape[0]
+
+    hs = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, nn.Conv2d)]
+    was = model.training
+    model.eval()
+    with torch.no_grad():
+        model(torch.zeros(1, 3, h, w))
+    model.train(was)
+    for hh in hs:
+        hh.remove()
+    return total / 1e9

@@ -1,0 +1,170 @@
+"""Inference-side processing shared by evaluation, the MRE dataset and the Rust fixtures; this is the
+reference implementation of docs/model-contract.md.
+
+Order of operations for one image (all positions in ORIGINAL pixels, pixel-centre convention):
+1. decode every cell/slot: ``x_in = (sigmoid(tx) + gx) * stride``, ``x_orig = x_in * W / input_width - 0.5``
+   (likewise y), ``c = sigmoid(tc)``;
+2. candidates = those with ``c > conf_low``;
+3. ``pitch_px`` = median nearest-neighbour distance between the candidates with ``c > conf_keep``
+   (fallback: all candidates; undefined with fewer than 2);
+4. de-duplication: candidates visited in descending c (ties: lower flat index first, flat index =
+   (gy * Gx + gx) * m + k); one closer than ``dedup_radius_frac * pitch_px`` to an already kept one
+   is dropped;
+5. Marknet only: the kept candidates with ``c > conf_marknet_only``;
+6. Marknet + MRE: the kept candidates with ``c > conf_keep``, plus those with c <= conf_keep whose MRE
+   score is > ``accept``. MRE feature: the 10 smallest distances from the candidate to the OTHER kept
+   candidates, ascending, divided by pitch_px, missing ones = 4.0 (all = 4.0 when pitch is undefined),
+   then c.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+MISSING_DISTANCE = 4.0
+NEIGHBOURS = 10
+
+
+@dataclass
+class PostConfig:
+    """Post-processing thresholds (paper values; stored in the model's metadata_props)."""
+
+    conf_keep: float = 0.4  # paper: c > 0.4 passes directly
+    conf_low: float = 0.1  # paper: 0.1 < c <= 0.4 goes to the MRE
+    conf_marknet_only: float = 0.2  # paper: Marknet alone outputs c > 0.2
+    dedup_radius_frac: float = 0.3  # of pitch_px; below half the smallest compressed pitch seen in sim
+    accept: float = 0.99  # paper: MRE accepts when y_e > 0.99
+
+
+def preprocess(rgb: np.ndarray, input_hw: tuple[int, int]) -> torch.Tensor:
+    """uint8 RGB (H, W, 3) (or grey (H, W)) -> float (1, 3, h, w) in [0, 1]: rgb/255, then a bilinear
+    resize with half-pixel centres and no antialiasing (OpenCV INTER_LINEAR geometry)."""
+    a = np.asarray(rgb)
+    if a.ndim == 2:
+        a = np.repeat(a[:, :, None], 3, axis=2)
+    x = torch.from_numpy(np.ascontiguousarray(a[:, :, :3])).permute(2, 0, 1).float()[None] / 255.0
+    if tuple(x.shape[2:]) != tuple(input_hw):
+        x = F.interpolate(x, size=tuple(input_hw), mode="bilinear", align_corners=False, antialias=False)
+    return x
+
+
+def decode_to_original(raw: np.ndarray, stride: int, image_wh: tuple[int, int], input_wh: tuple[int, int]):
+    """Raw logits (Gy, Gx, m, 3) of one image -> (Gy*Gx*m, 3) array (x_orig, y_orig, c), flat order."""
+    raw = np.asarray(raw, dtype=np.float64)
+    gy, gx, m, _ = raw.shape
+    sig = 1.0 / (1.0 + np.exp(-raw))
+    xs = np.arange(gx).reshape(1, gx, 1)
+    ys = np.arange(gy).reshape(gy, 1, 1)
+    x_in = (sig[..., 0] + xs) * stride
+    y_in = (sig[..., 1] + ys) * stride
+    sx = image_wh[0] / input_wh[0]
+    sy = image_wh[1] / input_wh[1]
+    out = np.stack([x_in * sx - 0.5, y_in * sy - 0.5, sig[..., 2]], axis=-1)
+    return out.reshape(-1, 3)
+
+
+def _pairwise(p: np.ndarray) -> np.ndarray:
+    d = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(-1))
+    np.fill_diagonal(d, np.inf)
+    return d
+
+
+def pitch_px(cands: np.ndarray, conf_keep: float) -> float:
+    """Median nearest-neighbour distance of the confident candidates (NaN when undefined)."""
+    sel = cands[cands[:, 2] > conf_keep]
+    if len(sel) < 2:
+        sel = cands
+    if len(sel) < 2:
+        return float("nan")
+    return float(np.median(_pairwise(sel[:, :2]).min(axis=1)))
+
+
+def dedup(cands: np.ndarray, radius_px: float) -> np.ndarray:
+    """Indices (into cands) kept by the greedy de-duplication, in descending confidence."""
+    order = np.argsort(-cands[:, 2], kind="stable")
+    if not np.isfinite(radius_px) or radius_px <= 0 or len(cands) < 2:
+        return order
+    p = cands[order, :2]
+    d = _pairwise(p)
+    kept = np.zeros(len(p), dtype=bool)
+    for i in range(len(p)):
+        if not (kept & (d[i] < radius_px)).any():
+            kept[i] = True
+    return order[kept]
+
+
+def mre_features(kept: np.ndarray, pitch: float, which: np.ndarray) -> np.ndarray:
+    """(len(which), 11) float32 features of kept[which] against all other kept candidates."""
+    feats = np.full((len(which), NEIGHBOURS + 1), MISSING_DISTANCE, dtype=np.float64)
+    if len(which) == 0:
+        return feats.astype(np.float32)
+    feats[:, NEIGHBOURS] = kept[which, 2]
+    if np.isfinite(pitch) and pitch > 0 and len(kept) > 1:
+        d = np.sqrt(((kept[which, None, :2] - kept[None, :, :2]) ** 2).sum(-1))
+        d[np.arange(len(which)), which] = np.inf
+        d.sort(axis=1)
+        k = min(NEIGHBOURS, len(kept) - 1)
+        feats[:, :k] = d[:, :k] / pitch
+    return feats.astype(np.float32)
+
+
+@dataclass
+class Detections:
+    """Result of post-processing one image."""
+
+    candidates: np.ndarray  # (K, 3) kept (de-duplicated) candidates with c > conf_low, desc. c
+    pitch_px: float
+    marknet: np.ndarray  # (n, 3) Marknet-only output
+    marknet_mre: np.ndarray  # (n, 3) Marknet + MRE output
+    mre_index: np.ndarray  # indices into candidates that went to the MRE
+    mre_features: np.ndarray  # their features (len(mre_index), 11)
+    mre_scores: np.ndarray  # their scores (NaN when no MRE given)
+
+
+def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None) -> Detections:
+    """Steps 2-6 of the module doc on decoded (x_orig, y_orig, c) rows in flat order.
+    ``mre_fn`` maps an (n, 11) float32 array to (n,) probabilities; None = Marknet only."""
+    cands = decoded[decoded[:, 2] > cfg.conf_low]
+    pitch = pitch_px(cands, cfg.conf_keep)
+    kept = cands[dedup(cands, cfg.dedup_radius_frac * pitch)]
+    marknet = kept[kept[:, 2] > cfg.conf_marknet_only]
+    low = np.nonzero(kept[:, 2] <= cfg.conf_keep)[0]
+    feats = mre_features(kept, pitch, low)
+    if mre_fn is not None and len(low):
+        scores = np.asarray(mre_fn(feats), dtype=np.float64).reshape(-1)
+    else:
+        scores = np.full(len(low), np.nan)
+    accept = np.zeros(len(kept), dtype=bool)
+    accept[kept[:, 2] > cfg.conf_keep] = True
+    if mre_fn is not None:
+        accept[low[scores > cfg.accept]] = True
+    return Detections(kept, pitch, marknet, kept[accept], low, feats, scores)
+
+
+class TorchMRE:
+    """Callable wrapper of a trained MRE module (probabilities)."""
+
+    def __init__(self, model):
+        self.model = model.eval()
+
+    def __call__(self, feats: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return torch.sigmoid(self.model(torch.from_numpy(np.asarray(feats, np.float32)))).numpy()[:, 0]
+
+
+def run_marknet(model, rgb_images: list[np.ndarray], input_hw: tuple[int, int], batch: int = 8):
+    """Decoded candidates (flat, original px) for each image, running the PyTorch model."""
+    model.eval()
+    out = []
+    with torch.no_grad():
+        for i in range(0, len(rgb_images), batch):
+            chunk = rgb_images[i : i + batch]
+            x = torch.cat([preprocess(im, input_hw) for im in chunk])
+            raw = model(x).numpy()
+            for im, r in zip(chunk, raw):
+                out.append(decode_to_original(r, model.stride, (im.shape[1], im.shape[0]), input_hw[::-1]))
+    return out

@@ -1,0 +1,183 @@
+"""Train Marknet on a `gelstereo simulate` dataset.
+
+    python -m gelstereo_train.train_marknet --data ROOT --out runs/marknet.pt --minutes 45
+
+Training runs on random crops (default 208 x 208 network pixels) of the training images, sampled and
+augmented by gelstereo_train.augment; Adam with a warm-up and cosine decay over the budget (minutes or
+steps). The checkpoint holds the weights and every setting needed to rebuild and export the model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .augment import AugConfig, make_batch
+from .data import dataset_tag, list_samples, median_nn_distance
+from .loss import build_targets, marknet_loss
+from .model import STRIDE_FOR_GRID_416, Marknet, count_flops
+
+
+def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print):
+    """Decode (a subset of) the samples into memory: images, label points, per-image pitch."""
+    if max_images is not None and len(samples) > max_images:
+        keep = np.sort(rng.choice(len(samples), max_images, replace=False))
+        samples = [samples[i] for i in keep]
+    images, points, pitches = [], [], []
+    t0 = time.time()
+    for k, s in enumerate(samples):
+        images.append(s.load())
+        points.append(s.points_px.astype(np.float32))
+        pitches.append(median_nn_distance(s.points_px))
+        if (k + 1) % 500 == 0:
+            log(f"loaded {k + 1}/{len(samples)} images ({time.time() - t0:.0f} s)")
+    return samples, images, points, np.asarray(pitches, np.float64)
+
+
+def save_checkpoint(path: Path, model: Marknet, meta: dict) -> None:
+    """Weights + constructor arguments + metadata (dataset, input size, training record)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".part")
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "arch": {"stride": model.stride, "candidates": model.candidates, "width": model.width},
+            "meta": meta,
+        },
+        tmp,
+    )
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path | str) -> tuple[Marknet, dict]:
+    """Rebuild a Marknet from a checkpoint; returns (model in eval mode, meta)."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    model = Marknet(**ck["arch"])
+    model.load_state_dict(ck["model"])
+    return model.eval(), ck["meta"]
+
+
+def train(args, log=print) -> Path:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    samples = list_samples(args.data, "train", frame_step=args.frame_step)
+    if not samples:
+        raise SystemExit(f"{args.data}/train: no images found")
+    samples, images, points, pitches = load_images(samples, args.max_images, rng, log)
+    n_markers = sum(len(p) for p in points)
+    log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
+
+    stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
+    model = Marknet(stride=stride, candidates=args.candidates, width=args.width)
+    log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
+        f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
+    model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size))
+    budget_s = args.minutes * 60.0 if args.minutes else None
+    warm = 200
+    t0 = time.time()
+    step = 0
+    hist = []
+    last_log = t0
+    model.train()
+    while True:
+        elapsed = time.time() - t0
+        if args.steps is not None:
+            frac = step / args.steps
+            if step >= args.steps:
+                break
+        else:
+            frac = elapsed / budget_s
+            if frac >= 1.0:
+                break
+        lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng)
+        x = x.contiguous(memory_format=torch.channels_last)
+        raw = model(x)
+        tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
+        loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        opt.step()
+        hist.append((loss.item(), lc.item(), lp.item(), md.item(), dropped))
+        step += 1
+        now = time.time()
+        if now - last_log > args.log_every_s or step == 1:
+            h = np.asarray(hist[-50:])
+            log(f"step {step} t {now - t0:.0f}s lr {lr:.2e} loss {h[:, 0].mean():.4f} "
+                f"conf {h[:, 1].mean():.4f} dist {h[:, 2].mean():.4f} mean_d {h[:, 3].mean():.3f}px "
+                f"dropped {int(h[:, 4].sum())} ({step * args.batch / (now - t0):.0f} img/s)")
+            last_log = now
+    train_s = time.time() - t0
+    model = model.to(memory_format=torch.contiguous_format)
+    meta = {
+        "dataset": dataset_tag(args.data, len(images)),
+        "data_root": str(args.data),
+        "input_height": args.input_size,
+        "input_width": args.input_size,
+        "trained": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "train_seconds": round(train_s, 1),
+        "steps": step,
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "aug": dataclasses.asdict(cfg),
+        "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
+    }
+    save_checkpoint(Path(args.out), model, meta)
+    log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
+    return Path(args.out)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="dataset root (has train/ val/ test/)")
+    p.add_argument("--out", type=Path, required=True, help="checkpoint file to write (.pt)")
+    p.add_argument("--minutes", type=float, default=45.0, help="wall-clock training budget")
+    p.add_argument("--steps", type=int, default=None, help="train this many steps instead of --minutes")
+    p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
+    p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
+    p.add_argument("--width", type=int, default=8, help="base channel width")
+    p.add_argument("--input-size", type=int, default=416)
+    p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
+    p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
+    p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
+    p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-every-s", type=float, default=30.0)
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    if args.steps is None and not args.minutes:
+        print("give --minutes or --steps", file=sys.stderr)
+        return 2
+
+    def log(msg):
+        print(f"[{datetime.now().strftime('%H:%M:%S')}] {msg}", flush=True)
+
+    train(args, log)
+    log(json.dumps({"done": str(args.out)}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

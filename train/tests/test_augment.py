@@ -1,0 +1,65 @@
+"""Labels must follow the pixels through every geometric transform: check each crop label against the
+intensity centroid of the dark dot around it in the crop."""
+
+import numpy as np
+import pytest
+import torch
+
+from gelstereo_train.augment import AugConfig, make_batch, photometric, sample_crops
+from gelstereo_train.tinydata import grid_points, render_dots
+
+
+def _centroid(img, u, v, r):
+    """Darkness-weighted centroid over a disc of radius r around (u, v) (continuous coords)."""
+    h, w = img.shape
+    if u - r < 0 or v - r < 0 or u + r > w or v + r > h:
+        return None
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    disc = (xx - u) ** 2 + (yy - v) ** 2 <= r * r
+    wgt = np.clip(np.median(img) - img, 0, None) * disc
+    s = wgt.sum()
+    return (xx * wgt).sum() / s, (yy * wgt).sum() / s
+
+
+@pytest.mark.parametrize("canonical", [1.0, 0.0])
+def test_crop_labels_sit_on_the_dots(canonical):
+    rng = np.random.default_rng(3)
+    pitch = 20.0
+    pts, _, _ = grid_points(200, 260, pitch, 9, 12)
+    img = render_dots(200, 260, pts, 5.0, rng)
+    cfg = AugConfig(crop=(96, 96), input_size=(160, 160), p_canonical=canonical, rotate_deg=10.0,
+                    pitch_in_px=(14.0, 24.0))
+    errs = []
+    for _ in range(6):
+        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), cfg, rng)
+        grey = x[0].mean(0).numpy()
+        for u, v in labels[0]:
+            c = _centroid(grey, u, v, 6.5)
+            if c is not None:
+                errs.append(np.hypot(c[0] - u, c[1] - v))
+    assert len(errs) > 40
+    # tolerance: centroid of a bilinearly resampled, anti-aliased dot; 0.25 input px
+    assert np.median(errs) < 0.1 and np.max(errs) < 0.25
+
+
+def test_photometric_keeps_range_and_shape_and_changes_pixels():
+    rng = np.random.default_rng(0)
+    x = torch.rand(8, 3, 64, 64)
+    y = photometric(x.clone(), AugConfig(p_clean=0.0), rng)
+    assert y.shape == x.shape and float(y.min()) >= 0 and float(y.max()) <= 1
+    assert float((y - x).abs().mean()) > 0.01
+    # 8-bit quantised like a real image
+    assert torch.allclose(y * 255, torch.round(y * 255), atol=1e-3)
+
+
+def test_make_batch_on_dataset(tiny_root):
+    from gelstereo_train.data import list_samples, median_nn_distance
+
+    s = list_samples(tiny_root, "train")
+    imgs = [a.load() for a in s]
+    pts = [a.points_px for a in s]
+    x, labels = make_batch(imgs, pts, np.array([median_nn_distance(p) for p in pts]), 4,
+                           AugConfig(crop=(64, 64)), np.random.default_rng(0))
+    assert x.shape == (4, 3, 64, 64)
+    for lab in labels:
+        assert ((lab >= 0) & (lab < 64)).all()

@@ -1,0 +1,52 @@
+"""The committed Rust fixtures (data/fixtures/onnx, made by scripts/make_onnx_fixtures.py) must agree
+with what onnxruntime computes from the committed files, through this package's post-processing."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+
+from gelstereo_train.data import load_rgb
+from gelstereo_train.postprocess import PostConfig, decode_to_original, postprocess, preprocess
+
+FIX = Path(__file__).resolve().parents[2] / "data" / "fixtures" / "onnx"
+
+
+@pytest.fixture(scope="module")
+def expected():
+    return json.loads((FIX / "expected.json").read_text())
+
+
+def test_fixture_files_are_small():
+    assert sum(f.stat().st_size for f in FIX.iterdir()) < 200 * 1024
+
+
+def test_marknet_fixture_matches_expected(expected):
+    sess = ort.InferenceSession(str(FIX / "marknet_tiny.onnx"), providers=["CPUExecutionProvider"])
+    props = {p.key: p.value for p in onnx.load(str(FIX / "marknet_tiny.onnx")).metadata_props}
+    assert props == expected["marknet_metadata"]
+    hw = (int(props["input_height"]), int(props["input_width"]))
+    mre = ort.InferenceSession(str(FIX / "mre_tiny.onnx"), providers=["CPUExecutionProvider"])
+    post = PostConfig(**expected["post"])
+    for name, e in expected["images"].items():
+        img = load_rgb(FIX / name)
+        raw = sess.run(["raw"], {"image": preprocess(img, hw).numpy()})[0][0]
+        assert list(raw.shape) == e["raw_shape"]
+        # tolerance: same preprocessing code, ONNX Runtime vs the PyTorch that wrote the file
+        assert np.abs(raw.reshape(-1) - np.array(e["raw"])).max() < 1e-4
+        dec = decode_to_original(raw, int(props["stride"]), (img.shape[1], img.shape[0]), hw[::-1])
+        assert np.abs(dec - np.array(e["decoded"])).max() < 1e-4
+        det = postprocess(dec, post, lambda f: mre.run(["score"], {"features": f})[0][:, 0])
+        assert det.pitch_px == pytest.approx(e["pitch_px"], abs=1e-4)
+        assert len(det.marknet) == len(e["marknet"]) and len(det.marknet_mre) == len(e["marknet_mre"])
+        assert np.abs(det.marknet_mre - np.array(e["marknet_mre"]).reshape(-1, 3)).max() < 1e-4
+
+
+def test_mre_fixture_rows(expected):
+    mre = ort.InferenceSession(str(FIX / "mre_tiny.onnx"), providers=["CPUExecutionProvider"])
+    f = np.array(expected["mre_rows"]["features"], np.float32)
+    got = mre.run(["score"], {"features": f})[0][:, 0]
+    assert np.abs(got - np.array(expected["mre_rows"]["scores"])).max() < 1e-5

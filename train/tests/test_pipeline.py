@@ -1,0 +1,102 @@
+"""Train a few steps on the tiny dataset, build the MRE set, export both models and check them in
+onnxruntime against PyTorch (the export round trip of the issue)."""
+
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from gelstereo_train import evaluate, export, train_marknet, train_mre
+from gelstereo_train.augment import AugConfig, make_batch
+from gelstereo_train.data import list_samples, median_nn_distance
+from gelstereo_train.loss import build_targets, marknet_loss
+from gelstereo_train.model import Marknet
+
+
+def test_training_reduces_the_loss_on_a_fixed_batch(tiny_root):
+    torch.manual_seed(0)
+    s = list_samples(tiny_root, "train")
+    imgs = [a.load() for a in s]
+    pts = [a.points_px for a in s]
+    rng = np.random.default_rng(0)
+    x, labels = make_batch(imgs, pts, np.array([median_nn_distance(p) for p in pts]), 4,
+                           AugConfig(crop=(96, 96), input_size=(128, 128)), rng)
+    m = Marknet(stride=8, candidates=2, width=4)
+    opt = torch.optim.Adam(m.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(40):
+        raw = m(x)
+        tgt, mask, _ = build_targets(labels, raw.shape[1], raw.shape[2], 8, 2)
+        loss = marknet_loss(raw, tgt, mask, 8)[0]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0]
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    ck = out / "marknet.pt"
+    args = train_marknet.parser().parse_args(
+        ["--data", str(tiny_root), "--out", str(ck), "--steps", "3", "--batch", "2", "--crop", "64",
+         "--input-size", "128", "--width", "4", "--candidates", "3"]
+    )
+    train_marknet.train(args, log=lambda *_: None)
+    mre = out / "mre.pt"
+    assert train_mre.main(["--data", str(tiny_root), "--marknet", str(ck), "--out", str(mre), "--epochs", "2",
+                           "--variants", "1"]) == 0
+    onnx_dir = out / "onnx"
+    assert export.main(["--marknet", str(ck), "--mre", str(mre), "--out-dir", str(onnx_dir)]) == 0
+    return ck, mre, onnx_dir
+
+
+def test_export_round_trip_and_metadata(trained):
+    ck, mre_ck, onnx_dir = trained
+    report = json.loads((onnx_dir / "export_report.json").read_text())
+    # tolerance: float32 ONNX Runtime vs PyTorch with folded BatchNorm
+    assert report["marknet_max_abs_diff"] < 1e-4 and report["mre_max_abs_diff"] < 1e-5
+    m = onnx.load(str(onnx_dir / "marknet.onnx"))
+    props = {p.key: p.value for p in m.metadata_props}
+    assert props["contract"] == "gelstereo-marknet/1"
+    assert (props["input_height"], props["input_width"], props["stride"], props["grid"], props["candidates"]) == (
+        "128", "128", "8", "16", "3")
+    assert props["normalisation"] == "rgb/255" and props["layout"] == "NCHW" and "images=" in props["dataset"]
+    assert m.opset_import[0].version == 17
+    sess = ort.InferenceSession(str(onnx_dir / "marknet.onnx"), providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["image"] and [o.name for o in sess.get_outputs()] == ["raw"]
+    model, _ = train_marknet.load_checkpoint(ck)
+    for n in (1, 3):  # dynamic batch
+        x = torch.rand(n, 3, 128, 128)
+        got = sess.run(["raw"], {"image": x.numpy()})[0]
+        with torch.no_grad():
+            ref = model(x).numpy()
+        assert got.shape == (n, 16, 16, 3, 3)
+        assert np.abs(got - ref).max() < 1e-4
+    mprops = {p.key: p.value for p in onnx.load(str(onnx_dir / "mre.onnx")).metadata_props}
+    assert mprops["contract"] == "gelstereo-mre/1" and mprops["features"] == "11" and mprops["accept"] == "0.99"
+    ms = ort.InferenceSession(str(onnx_dir / "mre.onnx"), providers=["CPUExecutionProvider"])
+    f = np.random.default_rng(0).uniform(0, 4, (5, 11)).astype(np.float32)
+    score = ms.run(["score"], {"features": f})[0]
+    ref = evaluate.load_mre(mre_ck)(f)
+    assert score.shape == (5, 1) and np.abs(score[:, 0] - ref).max() < 1e-5
+
+
+def test_evaluate_runs_on_onnx_and_checkpoint_alike(trained, tiny_root, tmp_path):
+    ck, mre_ck, onnx_dir = trained
+    out = tmp_path / "eval.json"
+    assert evaluate.main(["--data", str(tiny_root), "--split", "test", "--marknet", str(onnx_dir / "marknet.onnx"),
+                          "--mre", str(onnx_dir / "mre.onnx"), "--out", str(out)]) == 0
+    a = json.loads(out.read_text())
+    assert evaluate.main(["--data", str(tiny_root), "--split", "test", "--marknet", str(ck), "--mre", str(mre_ck),
+                          "--out", str(out)]) == 0
+    b = json.loads(out.read_text())
+    for method in ("marknet", "marknet_mre", "blob"):
+        assert a[method]["all"]["T"] == b[method]["all"]["T"] > 0
+        assert a[method]["all"]["PT"] == b[method]["all"]["PT"]
+    # the blob baseline finds the clean rendered dots
+    assert a["blob"]["easy"]["recall"] > 0.9

@@ -1,0 +1,67 @@
+import numpy as np
+import pytest
+import torch
+
+from gelstereo_train.model import Marknet, decode
+from gelstereo_train.postprocess import (
+    MISSING_DISTANCE,
+    PostConfig,
+    decode_to_original,
+    dedup,
+    mre_features,
+    postprocess,
+    preprocess,
+)
+
+
+def test_decode_maps_input_to_original_pixels():
+    raw = np.zeros((2, 3, 1, 3))  # sigmoid(0) = 0.5: cell centres
+    out = decode_to_original(raw, 8, (48, 32), (24, 16))  # image 48x32, input 24x16: scale 2
+    # cell (gy=1, gx=2): x_in = 2.5 * 8 = 20 -> x_orig = 20 * 2 - 0.5
+    k = (1 * 3 + 2) * 1
+    assert out[k].tolist() == pytest.approx([39.5, 12 * 2 - 0.5, 0.5])
+    t = decode(torch.zeros(1, 2, 3, 1, 3), 8)
+    assert t[0, 1, 2, 0].tolist() == pytest.approx([20.0, 12.0, 0.5])
+
+
+def test_model_output_layout_and_shape():
+    m = Marknet(stride=8, candidates=3, width=4).eval()
+    y = m(torch.rand(2, 3, 64, 96))
+    assert y.shape == (2, 8, 12, 3, 3)
+
+
+def test_preprocess_resize_geometry_matches_half_pixel_convention():
+    img = np.zeros((8, 8), np.uint8)
+    img[:, 4:] = 255
+    x = preprocess(img, (4, 4))
+    assert x.shape == (1, 3, 4, 4)
+    assert x[0, 0, 0].tolist() == pytest.approx([0, 0, 1, 1])
+
+
+def test_dedup_keeps_the_most_confident_of_close_pairs():
+    c = np.array([[0, 0, 0.5], [0.5, 0, 0.9], [10, 0, 0.3], [10.2, 0.1, 0.3]])
+    kept = dedup(c, 1.0)
+    assert kept.tolist() == [1, 2]  # ties: lower index first
+
+
+def test_mre_features_sorted_scaled_and_padded():
+    kept = np.array([[0, 0, 0.9], [3, 0, 0.8], [0, 4, 0.3]])
+    f = mre_features(kept, 2.0, np.array([2]))
+    assert f.shape == (1, 11)
+    assert f[0, :2].tolist() == pytest.approx([2.0, 2.5])
+    assert (f[0, 2:10] == MISSING_DISTANCE).all() and f[0, 10] == pytest.approx(0.3)
+
+
+def test_postprocess_thresholds_and_mre_acceptance():
+    g = np.stack(np.meshgrid(np.arange(6) * 10.0, np.arange(6) * 10.0), -1).reshape(-1, 2)
+    conf = np.full(len(g), 0.9)
+    conf[:3] = [0.3, 0.15, 0.05]
+    dec = np.c_[g, conf]
+    dec = np.r_[dec, [[10.5, 10.0, 0.35]]]  # a duplicate of a confident marker
+    det = postprocess(dec, PostConfig(), mre_fn=lambda f: (f[:, 0] > 0.5).astype(float))
+    assert det.pitch_px == pytest.approx(10.0)
+    assert len(det.candidates) == 35  # 0.05 under conf_low, duplicate removed
+    assert len(det.marknet) == 34  # 0.15 under conf_marknet_only
+    assert len(det.marknet_mre) == 35  # both uncertain ones accepted by the toy MRE
+    det2 = postprocess(dec, PostConfig(), mre_fn=lambda f: np.zeros(len(f)))
+    assert len(det2.marknet_mre) == 33
