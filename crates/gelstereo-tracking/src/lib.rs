@@ -3,6 +3,7 @@
 //! - [`tracker`]: ids (grid indices from the reference frame) followed frame to frame in one view,
 //!   with motion prediction, k-d tree association, neighbour-based prediction of missed markers and
 //!   re-acquisition.
+//! - [`contact`]: the marker mesh, indentation depth, contact region, area, centroid, largest depth.
 //!
 //! # Conventions
 //! - Image coordinates in pixels of the original image, (0, 0) = centre of the top-left pixel,
@@ -12,10 +13,12 @@
 //!   markers comes in row-major id order.
 //! - Indentation depth is positive when the gel surface is pushed towards the cameras.
 
+pub mod contact;
 pub mod error;
 #[cfg(test)]
 mod synthetic;
 pub mod tracker;
 
+pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
 pub use error::{Error, Result};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};
