@@ -1,2 +1,321 @@
 //! Marker localizers behind one trait: Marknet + MRE through ONNX Runtime (the paper's method), and
 //! OpenCV's SimpleBlobDetector (the paper's baseline); plus the paper's detection metrics.
+//!
+//! - [`Localizer`]: the trait the CLI, the evaluator and the benchmarks use; [`create_localizer`] builds
+//!   one of the three [`Method`]s (`blob`, `marknet`, `marknet-mre`) from a [`LocalizerConfig`].
+//! - [`marknet`]: loading a Marknet ONNX model and checking its metadata contract
+//!   (`docs/model-contract.md`), preprocessing, batched stereo inference, and [`postprocess`]ing
+//!   (decoding, thresholds, de-duplication, MRE features and acceptance).
+//! - [`blob`]: the SimpleBlobDetector baseline with documented, file-based parameters.
+//! - [`metrics`]: one-to-one matching, precision / recall / loss and the easy / hard / contact splits
+//!   (DESIGN.md "Metrics").
+//! - [`overlay`]: drawing detections onto images.
+//!
+//! # Conventions
+//! - Every position is in pixels of the ORIGINAL image, (0, 0) = centre of the top-left pixel, x right,
+//!   y down; never in the network's resized input.
+//! - Images are 8-bit OpenCV [`Mat`]s, BGR (3 channels), BGRA (4) or grey (1). Network tensors are f32,
+//!   geometry f64.
+//! - Detections come out sorted by y, then x, so results are deterministic.
+
+pub mod blob;
+pub mod contract;
+pub mod marknet;
+pub mod metrics;
+pub mod overlay;
+pub mod postprocess;
+pub mod runtime;
+pub mod yolo;
+
+use std::path::PathBuf;
+
+use gelstereo_core::{Detection, ImageSize, StereoPair};
+use opencv::core::{Mat, MatTraitConst};
+
+pub use blob::{BlobLocalizer, BlobParams};
+pub use contract::{MarknetContract, MreContract};
+pub use marknet::{Marknet, Mre, SessionOptions};
+pub use postprocess::PostProcess;
+
+/// Errors of the marker localizers. Each names the file, the field or the image property concerned and
+/// what was expected.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// ONNX Runtime could not be found or started.
+    #[error(transparent)]
+    Runtime(#[from] runtime::OnnxRuntimeError),
+    /// A file could not be read at the OS level.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A model's inputs, outputs or `metadata_props` break the contract of `docs/model-contract.md`.
+    #[error("{path}: model contract: '{key}': expected {expected}, found {found}")]
+    Contract {
+        /// The model file.
+        path: PathBuf,
+        /// The metadata key, or the input/output name, that does not match.
+        key: String,
+        /// What the contract requires.
+        expected: String,
+        /// What the model has.
+        found: String,
+    },
+    /// ONNX Runtime failed while loading or running a model.
+    #[error("{path}: ONNX Runtime: {what}: {message}")]
+    Onnx {
+        /// The model file.
+        path: PathBuf,
+        /// The step that failed, e.g. "loading the model", "inference".
+        what: &'static str,
+        /// ONNX Runtime's message.
+        message: String,
+    },
+    /// An image cannot be localized: empty, of an unsupported type, or of an unexpected size.
+    #[error("image {property}: expected {expected}, found {found}")]
+    Image {
+        /// The property that is wrong ("size", "type", "stereo sizes").
+        property: &'static str,
+        /// What is accepted.
+        expected: String,
+        /// What the image has.
+        found: String,
+    },
+    /// OpenCV failed in one of our calls.
+    #[error("OpenCV: {context}: {source}")]
+    OpenCv {
+        /// Which step failed (e.g. "resize", "SimpleBlobDetector::detect").
+        context: &'static str,
+        /// OpenCV's error.
+        source: opencv::Error,
+    },
+    /// A configuration file (e.g. the blob parameters) has a missing or invalid field.
+    #[error("{path}: '{field}': expected {expected}, found {found}")]
+    Config {
+        /// The file.
+        path: PathBuf,
+        /// The field.
+        field: String,
+        /// What is accepted.
+        expected: String,
+        /// What the file has.
+        found: String,
+    },
+    /// Inputs to the metrics are inconsistent (e.g. a non-positive radius).
+    #[error("metrics: {0}")]
+    Metrics(String),
+    /// A localization method name that is not one of [`Method::ALL`].
+    #[error("unknown localization method '{0}': expected one of blob, yolo, marknet, marknet-mre")]
+    UnknownMethod(String),
+}
+
+/// Result with the markers [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+pub(crate) fn cv_err(context: &'static str) -> impl FnOnce(opencv::Error) -> Error {
+    move |source| Error::OpenCv { context, source }
+}
+
+/// Smallest image side a localizer accepts, px: below it no marker of any sensor we know is resolvable.
+pub const MIN_IMAGE_SIDE_PX: u32 = 16;
+
+/// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
+pub trait Localizer {
+    /// The method's name as used on the command line and in tables (`blob`, `marknet`, `marknet-mre`).
+    fn name(&self) -> &str;
+
+    /// Markers in `image` (8-bit BGR, BGRA or grey), in pixels of `image`, sorted by y then x.
+    fn detect(&mut self, image: &Mat) -> Result<Vec<Detection>>;
+
+    /// For `marknet-mre`: the confidence at or below which a detection was accepted by MRE (its
+    /// `conf_keep`), so overlays can mark those. `None` for methods without MRE.
+    fn mre_band_top(&self) -> Option<f32> {
+        None
+    }
+
+    /// Markers in both views of a stereo pair. The two views must have the same size; the learned
+    /// localizer runs both in one batch.
+    fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
+        check_stereo_sizes(pair)?;
+        Ok(StereoPair::new(
+            self.detect(&pair.left)?,
+            self.detect(&pair.right)?,
+        ))
+    }
+}
+
+/// Checks that `image` is something a localizer can work on and returns its size: non-empty, at least
+/// [`MIN_IMAGE_SIDE_PX`] on each side, 8-bit with 1, 3 or 4 channels.
+pub fn check_image(image: &Mat) -> Result<ImageSize> {
+    let (w, h) = (image.cols(), image.rows());
+    if image.empty() || w < MIN_IMAGE_SIDE_PX as i32 || h < MIN_IMAGE_SIDE_PX as i32 {
+        return Err(Error::Image {
+            property: "size",
+            expected: format!("at least {MIN_IMAGE_SIDE_PX}x{MIN_IMAGE_SIDE_PX} px"),
+            found: format!("{}x{} px", w.max(0), h.max(0)),
+        });
+    }
+    let depth = image.depth();
+    let channels = image.channels();
+    if depth != opencv::core::CV_8U || !matches!(channels, 1 | 3 | 4) {
+        return Err(Error::Image {
+            property: "type",
+            expected: "8-bit grey, BGR or BGRA".into(),
+            found: format!("{} channel(s) of depth code {depth}", channels),
+        });
+    }
+    Ok(ImageSize {
+        width: w as u32,
+        height: h as u32,
+    })
+}
+
+/// Checks both views with [`check_image`] and that they have the same size.
+pub fn check_stereo_sizes(pair: &StereoPair<Mat>) -> Result<ImageSize> {
+    let l = check_image(&pair.left)?;
+    let r = check_image(&pair.right)?;
+    if l != r {
+        return Err(Error::Image {
+            property: "stereo sizes",
+            expected: format!("right view of the left view's size {}x{}", l.width, l.height),
+            found: format!("{}x{}", r.width, r.height),
+        });
+    }
+    Ok(l)
+}
+
+/// Sorts detections by y, then x (deterministic output order).
+pub fn sort_detections(detections: &mut [Detection]) {
+    detections.sort_by(|a, b| {
+        a.position
+            .y
+            .total_cmp(&b.position.y)
+            .then(a.position.x.total_cmp(&b.position.x))
+    });
+}
+
+/// The localization methods of the paper's Table I that gelstereo implements.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Method {
+    /// OpenCV's SimpleBlobDetector with the sensor's tuned parameters (the paper's "OpenCV").
+    Blob,
+    /// The paper's YOLOv3 baseline: box centres of an anchor-based detector after threshold and NMS
+    /// ([`yolo`], model `yolo.onnx` beside the Marknet model).
+    Yolo,
+    /// Marknet alone: candidates with c > `conf_marknet_only` (0.2) (the paper's "Marknet").
+    Marknet,
+    /// Marknet with MRE post-processing: c > 0.4 kept, 0.1 < c <= 0.4 kept when MRE's score > 0.99.
+    MarknetMre,
+}
+
+impl Method {
+    /// All methods, in the order of the paper's table.
+    pub const ALL: [Method; 4] = [Method::Blob, Method::Yolo, Method::Marknet, Method::MarknetMre];
+
+    /// The command-line name.
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            Method::Blob => "blob",
+            Method::Yolo => "yolo",
+            Method::Marknet => "marknet",
+            Method::MarknetMre => "marknet-mre",
+        }
+    }
+
+    /// Parses a comma-separated list such as `blob,marknet-mre`.
+    pub fn parse_list(text: &str) -> Result<Vec<Method>> {
+        let mut out = Vec::new();
+        for word in text.split(',').map(str::trim).filter(|w| !w.is_empty()) {
+            let m: Method = word.parse()?;
+            if !out.contains(&m) {
+                out.push(m);
+            }
+        }
+        if out.is_empty() {
+            return Err(Error::UnknownMethod(text.to_owned()));
+        }
+        Ok(out)
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.as_str() == s)
+            .ok_or_else(|| Error::UnknownMethod(s.to_owned()))
+    }
+}
+
+/// Everything needed to build any [`Method`]'s localizer.
+#[derive(Debug, Clone)]
+pub struct LocalizerConfig {
+    /// The Marknet model (`data/models/marknet.onnx` in a checkout).
+    pub marknet_path: PathBuf,
+    /// The MRE model (`data/models/mre.onnx` in a checkout).
+    pub mre_path: PathBuf,
+    /// SimpleBlobDetector parameters (`data/blob_params.json`, or OpenCV's defaults).
+    pub blob: BlobParams,
+    /// ONNX Runtime options.
+    pub session: SessionOptions,
+}
+
+/// Builds the localizer for `method`. Models are loaded (and their contract checked) only for the
+/// learned methods, so `blob` works without ONNX Runtime.
+pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Localizer>> {
+    Ok(match method {
+        Method::Blob => Box::new(BlobLocalizer::new(config.blob)?),
+        Method::Yolo => Box::new(yolo::YoloLocalizer::load(&yolo::model_path(config), &config.session)?),
+        Method::Marknet => Box::new(Marknet::load(&config.marknet_path, &config.session)?),
+        Method::MarknetMre => {
+            let mre = Mre::load(&config.mre_path, &config.session)?;
+            Box::new(Marknet::load(&config.marknet_path, &config.session)?.with_mre(mre)?)
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_8UC3, CV_16UC1, Scalar};
+
+    #[test]
+    fn methods_parse_and_unknown_names_are_reported() {
+        assert_eq!(
+            Method::parse_list("blob, marknet-mre,blob").unwrap(),
+            [Method::Blob, Method::MarknetMre]
+        );
+        for m in Method::ALL {
+            assert_eq!(m.as_str().parse::<Method>().unwrap(), m);
+        }
+        let err = Method::parse_list("blob,ssd").unwrap_err().to_string();
+        assert!(err.contains("'ssd'") && err.contains("marknet-mre"), "{err}");
+        assert!(Method::parse_list(" , ").is_err());
+    }
+
+    #[test]
+    fn images_of_unusable_size_or_type_are_rejected() {
+        let tiny = Mat::new_rows_cols_with_default(8, 640, CV_8UC3, Scalar::all(0.0)).unwrap();
+        let err = check_image(&tiny).unwrap_err().to_string();
+        assert!(err.contains("640x8") && err.contains("at least 16x16"), "{err}");
+        let deep = Mat::new_rows_cols_with_default(32, 32, CV_16UC1, Scalar::all(0.0)).unwrap();
+        assert!(check_image(&deep).unwrap_err().to_string().contains("8-bit"));
+        assert!(check_image(&Mat::default()).is_err());
+        let a = Mat::new_rows_cols_with_default(48, 64, CV_8UC3, Scalar::all(0.0)).unwrap();
+        let b = Mat::new_rows_cols_with_default(48, 60, CV_8UC3, Scalar::all(0.0)).unwrap();
+        let err = check_stereo_sizes(&StereoPair::new(a, b))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("64x48") && err.contains("60x48"), "{err}");
+    }
+}

@@ -1,0 +1,486 @@
+//! Marknet (and its MRE) through ONNX Runtime: loading with a contract check, preprocessing any image
+//! size, batched inference of both stereo views, decoding and post-processing.
+//!
+//! Preprocessing (`docs/model-contract.md`): the whole image is resized with OpenCV's bilinear
+//! `INTER_LINEAR` (half-pixel centres) to the network input, converted to planar RGB f32 in [0, 1]
+//! (grey replicated, BGRA's alpha dropped). A frame already of the input size is not resized.
+//! Outputs are mapped back with `x_orig = x_in * W / input_width - 0.5` (likewise y).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use gelstereo_core::{Detection, ImageSize, StereoPair};
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
+use opencv::imgproc;
+use ort::session::Session;
+use ort::session::builder::GraphOptimizationLevel;
+use ort::value::{TensorRef, ValueType};
+
+use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
+use crate::postprocess::{DecodeGeometry, Selection, decode};
+use crate::{
+    Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
+};
+
+/// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
+/// squashes markers into shapes far from anything the network was trained on.
+pub const MAX_ASPECT_DISTORTION: f64 = 2.0;
+
+/// ONNX Runtime session options shared by Marknet and MRE.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SessionOptions {
+    /// Intra-op threads; 0 lets ONNX Runtime choose (one per core).
+    pub intra_threads: usize,
+    /// Register the CUDA execution provider when this ONNX Runtime build has it (the PyPI CPU wheel
+    /// does not; then the CPU provider runs).
+    pub use_cuda: bool,
+}
+
+impl Default for SessionOptions {
+    fn default() -> Self {
+        Self {
+            intra_threads: 0,
+            use_cuda: true,
+        }
+    }
+}
+
+fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error + 'a {
+    move |message| Error::Onnx {
+        path: path.to_path_buf(),
+        what,
+        message,
+    }
+}
+
+/// A loaded model: its session, `metadata_props`, and input / output signatures.
+struct Opened {
+    session: Session,
+    metadata: BTreeMap<String, String>,
+    inputs: Vec<TensorSpec>,
+    outputs: Vec<TensorSpec>,
+}
+
+/// Loads a model file into a session, and reads its metadata and signature.
+fn open_session(path: &Path, options: &SessionOptions) -> Result<Opened> {
+    std::fs::metadata(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let rt = runtime::init()?;
+    let load = onnx_err(path, "loading the model");
+    let mut builder = Session::builder(&rt.environment)
+        .map_err(|e| load(e.to_string()))?
+        .with_optimization_level(GraphOptimizationLevel::Level3)
+        .map_err(|e| load(e.to_string()))?;
+    if options.intra_threads > 0 {
+        builder = builder
+            .with_intra_threads(options.intra_threads)
+            .map_err(|e| load(e.to_string()))?;
+    }
+    if options.use_cuda && cuda_available() {
+        builder = builder
+            .with_execution_providers([ort::ep::CUDA::default().build()])
+            .map_err(|e| load(e.to_string()))?;
+    }
+    let session = builder.commit_from_file(path).map_err(|e| load(e.to_string()))?;
+    let meta_err = onnx_err(path, "reading metadata_props");
+    let metadata = session.metadata().map_err(|e| meta_err(e.to_string()))?;
+    let mut map = BTreeMap::new();
+    for key in metadata.custom_keys().map_err(|e| meta_err(e.to_string()))? {
+        if let Some(v) = metadata.custom(&key) {
+            map.insert(key, v);
+        }
+    }
+    drop(metadata);
+    let spec = |o: &ort::value::Outlet| match o.dtype() {
+        ValueType::Tensor { ty, shape, .. } => TensorSpec {
+            name: o.name().to_owned(),
+            float32: *ty == ort::value::TensorElementType::Float32,
+            dims: shape.to_vec(),
+        },
+        _ => TensorSpec {
+            name: o.name().to_owned(),
+            float32: false,
+            dims: Vec::new(),
+        },
+    };
+    let inputs = session.inputs().iter().map(spec).collect();
+    let outputs = session.outputs().iter().map(spec).collect();
+    Ok(Opened {
+        session,
+        metadata: map,
+        inputs,
+        outputs,
+    })
+}
+
+/// Whether this ONNX Runtime build includes the CUDA execution provider.
+pub fn cuda_available() -> bool {
+    use ort::ep::ExecutionProvider as _;
+    ort::ep::CUDA::is_available().unwrap_or(false)
+}
+
+/// The Marker Rationality Evaluator: 11 features in, the probability that a candidate is right out.
+pub struct Mre {
+    path: PathBuf,
+    session: Session,
+    contract: MreContract,
+    buffer: Vec<f32>,
+}
+
+impl std::fmt::Debug for Mre {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Mre")
+            .field("path", &self.path)
+            .field("contract", &self.contract)
+            .finish()
+    }
+}
+
+impl Mre {
+    /// Loads `path` and checks its contract.
+    pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
+        let Opened {
+            session,
+            metadata: meta,
+            inputs,
+            outputs,
+        } = open_session(path, options)?;
+        let contract = MreContract::from_model(path, &meta, &inputs, &outputs)?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            session,
+            contract,
+            buffer: Vec::new(),
+        })
+    }
+
+    /// The model's declared contract.
+    pub fn contract(&self) -> &MreContract {
+        &self.contract
+    }
+
+    /// Scores a batch of feature vectors (one run); an empty batch gives an empty result.
+    pub fn score(&mut self, features: &[[f32; MRE_FEATURES]]) -> Result<Vec<f32>> {
+        if features.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.buffer.clear();
+        self.buffer.extend(features.iter().flatten());
+        let run = onnx_err(&self.path, "inference");
+        let input = TensorRef::from_array_view(([features.len(), MRE_FEATURES], self.buffer.as_slice()))
+            .map_err(|e| run(e.to_string()))?;
+        let outputs = self
+            .session
+            .run(ort::inputs![MRE_INPUT => input])
+            .map_err(|e| run(e.to_string()))?;
+        let (shape, data) = outputs[MRE_OUTPUT]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| run(e.to_string()))?;
+        if data.len() != features.len() {
+            return Err(run(format!(
+                "output '{MRE_OUTPUT}' has shape {shape}, expected [{}, 1]",
+                features.len()
+            )));
+        }
+        Ok(data.to_vec())
+    }
+}
+
+/// The Marknet localizer: `marknet` (c > `conf_marknet_only`) or, with an [`Mre`], `marknet-mre`.
+pub struct Marknet {
+    path: PathBuf,
+    session: Session,
+    contract: MarknetContract,
+    post: PostProcess,
+    mre: Option<Mre>,
+    scaled: Mat,
+    resized: Mat,
+    input: Vec<f32>,
+    lut: [f32; 256],
+}
+
+impl std::fmt::Debug for Marknet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Marknet")
+            .field("path", &self.path)
+            .field("contract", &self.contract)
+            .field("post", &self.post)
+            .field("mre", &self.mre)
+            .finish()
+    }
+}
+
+impl Marknet {
+    /// Loads `path` and checks its contract; the localizer is `marknet` until [`with_mre`](Self::with_mre).
+    pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
+        let Opened {
+            session,
+            metadata: meta,
+            inputs,
+            outputs,
+        } = open_session(path, options)?;
+        let contract = MarknetContract::from_model(path, &meta, &inputs, &outputs)?;
+        let mut lut = [0f32; 256];
+        for (i, v) in lut.iter_mut().enumerate() {
+            *v = i as f32 / 255.0;
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            session,
+            post: contract.postprocess,
+            contract,
+            mre: None,
+            scaled: Mat::default(),
+            resized: Mat::default(),
+            input: Vec::new(),
+            lut,
+        })
+    }
+
+    /// Adds MRE post-processing (`marknet-mre`); MRE's confidence band must match Marknet's, and its
+    /// acceptance threshold replaces the default.
+    pub fn with_mre(mut self, mre: Mre) -> Result<Self> {
+        mre.contract.check_compatible(&mre.path, &self.post)?;
+        self.post.accept = mre.contract.accept;
+        self.mre = Some(mre);
+        Ok(self)
+    }
+
+    /// The model's declared contract.
+    pub fn contract(&self) -> &MarknetContract {
+        &self.contract
+    }
+
+    /// The post-processing thresholds in use.
+    pub fn postprocess(&self) -> &PostProcess {
+        &self.post
+    }
+
+    /// Replaces the post-processing thresholds (e.g. for a threshold sweep).
+    pub fn set_postprocess(&mut self, post: PostProcess) {
+        self.post = post;
+    }
+
+    /// Whether MRE post-processing is on (`marknet-mre`).
+    pub fn has_mre(&self) -> bool {
+        self.mre.is_some()
+    }
+
+    fn check_size(&self, size: ImageSize) -> Result<()> {
+        let img = f64::from(size.width) / f64::from(size.height);
+        let net = f64::from(self.contract.input_width) / f64::from(self.contract.input_height);
+        let ratio = if img > net { img / net } else { net / img };
+        if ratio > MAX_ASPECT_DISTORTION {
+            return Err(Error::Image {
+                property: "size",
+                expected: format!(
+                    "an aspect ratio within {MAX_ASPECT_DISTORTION}x of the network input {}x{}",
+                    self.contract.input_width, self.contract.input_height
+                ),
+                found: format!("{}x{}", size.width, size.height),
+            });
+        }
+        Ok(())
+    }
+
+    /// Converts `image` to RGB f32 in [0, 1], resizes it to the network input and writes it into batch
+    /// slot `slot` of the input buffer (planar RGB). The order (scale to [0, 1], then a float bilinear
+    /// resize) is the trainer's, so both sides feed the network the same numbers.
+    fn preprocess(&mut self, image: &Mat, slot: usize) -> Result<ImageSize> {
+        let size = check_image(image)?;
+        self.check_size(size)?;
+        let (iw, ih) = (
+            self.contract.input_width as i32,
+            self.contract.input_height as i32,
+        );
+        let hw = (iw * ih) as usize;
+        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
+        let (r, rest) = plane.split_at_mut(hw);
+        let (g, b) = rest.split_at_mut(hw);
+        let channels = image.channels() as usize;
+        if image.cols() == iw && image.rows() == ih {
+            // No resize: straight from the 8-bit pixels through a lookup table.
+            let owned;
+            let src = if image.is_continuous() {
+                image
+            } else {
+                owned = image
+                    .try_clone()
+                    .map_err(cv_err("copy of a non-continuous image"))?;
+                &owned
+            };
+            let bytes = src.data_bytes().map_err(cv_err("image data"))?;
+            let lut = &self.lut;
+            for (i, px) in bytes.chunks_exact(channels).take(hw).enumerate() {
+                if channels == 1 {
+                    let v = lut[usize::from(px[0])];
+                    (r[i], g[i], b[i]) = (v, v, v);
+                } else {
+                    (b[i], g[i], r[i]) = (
+                        lut[usize::from(px[0])],
+                        lut[usize::from(px[1])],
+                        lut[usize::from(px[2])],
+                    );
+                }
+            }
+            return Ok(size);
+        }
+        image
+            .convert_to(&mut self.scaled, opencv::core::CV_32F, 1.0 / 255.0, 0.0)
+            .map_err(cv_err("conversion to float"))?;
+        imgproc::resize(
+            &self.scaled,
+            &mut self.resized,
+            Size::new(iw, ih),
+            0.0,
+            0.0,
+            imgproc::INTER_LINEAR,
+        )
+        .map_err(cv_err("resize to the network input"))?;
+        // One float per element: view the interleaved channels as a single-channel matrix.
+        let flat = self
+            .resized
+            .reshape(1, 0)
+            .map_err(cv_err("reshape of the resized image"))?;
+        let values = flat.data_typed::<f32>().map_err(cv_err("resized data"))?;
+        for (i, px) in values.chunks_exact(channels).take(hw).enumerate() {
+            if channels == 1 {
+                (r[i], g[i], b[i]) = (px[0], px[0], px[0]);
+            } else {
+                (b[i], g[i], r[i]) = (px[0], px[1], px[2]);
+            }
+        }
+        Ok(size)
+    }
+
+    /// Runs the network on `images` (one batch): each image's size and its raw output (`[Gy, Gx, m, 3]`
+    /// logits, row-major, `Gy * Gx * m * 3` values per image, concatenated).
+    pub fn raw_output(&mut self, images: &[&Mat]) -> Result<(Vec<ImageSize>, Vec<f32>)> {
+        if images.is_empty() {
+            return Ok((Vec::new(), Vec::new()));
+        }
+        let (iw, ih) = (
+            self.contract.input_width as usize,
+            self.contract.input_height as usize,
+        );
+        self.input.resize(images.len() * 3 * iw * ih, 0.0);
+        let mut sizes = Vec::with_capacity(images.len());
+        for (slot, image) in images.iter().enumerate() {
+            sizes.push(self.preprocess(image, slot)?);
+        }
+        let run = onnx_err(&self.path, "inference");
+        let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
+            .map_err(|e| run(e.to_string()))?;
+        let outputs = self
+            .session
+            .run(ort::inputs![MARKNET_INPUT => input])
+            .map_err(|e| run(e.to_string()))?;
+        let (shape, raw) = outputs[MARKNET_OUTPUT]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| run(e.to_string()))?;
+        let c = &self.contract;
+        let per_image = (c.grid_y * c.grid_x * c.candidates * 3) as usize;
+        if raw.len() != per_image * images.len() {
+            return Err(run(format!(
+                "output '{MARKNET_OUTPUT}' has shape {shape}, expected [{}, {}, {}, {}, 3]",
+                images.len(),
+                c.grid_y,
+                c.grid_x,
+                c.candidates
+            )));
+        }
+        Ok((sizes, raw.to_vec()))
+    }
+
+    /// The decoding geometry for an image of `size` under this model's contract.
+    pub fn geometry(&self, size: ImageSize) -> DecodeGeometry {
+        let c = &self.contract;
+        DecodeGeometry {
+            grid_y: c.grid_y as usize,
+            grid_x: c.grid_x as usize,
+            candidates: c.candidates as usize,
+            stride: f64::from(c.stride),
+            scale_x: f64::from(size.width) / f64::from(c.input_width),
+            scale_y: f64::from(size.height) / f64::from(c.input_height),
+        }
+    }
+
+    /// Runs the network on `images` (one batch) and returns each image's candidates with
+    /// c > `min_confidence`, in that image's pixels, in flat order (step 1 of [`crate::postprocess`]).
+    pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
+        let (sizes, raw) = self.raw_output(images)?;
+        let per_image = raw.len() / sizes.len().max(1);
+        Ok(sizes
+            .iter()
+            .enumerate()
+            .map(|(i, size)| {
+                decode(
+                    &raw[i * per_image..(i + 1) * per_image],
+                    &self.geometry(*size),
+                    min_confidence,
+                )
+            })
+            .collect())
+    }
+
+    /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run
+    /// for all images' pending candidates.
+    pub fn detect_batch(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
+        let with_mre = self.mre.is_some();
+        let post = self.post;
+        let candidates = self.candidates(images, post.conf_low)?;
+        let selections: Vec<Selection> = candidates
+            .into_iter()
+            .map(|c| Selection::new(c, &post, with_mre))
+            .collect();
+        let Some(mre) = self.mre.as_mut() else {
+            return Ok(selections
+                .into_iter()
+                .map(|s| s.finish(&[], post.accept))
+                .collect());
+        };
+        let features: Vec<[f32; MRE_FEATURES]> = selections
+            .iter()
+            .flat_map(|s| s.features.iter().copied())
+            .collect();
+        let scores = mre.score(&features)?;
+        let mut offset = 0;
+        Ok(selections
+            .into_iter()
+            .map(|s| {
+                let n = s.pending.len();
+                let mine = scores.get(offset..offset + n).unwrap_or(&[]);
+                offset += n;
+                s.finish(mine, post.accept)
+            })
+            .collect())
+    }
+}
+
+impl Localizer for Marknet {
+    fn name(&self) -> &str {
+        if self.mre.is_some() {
+            "marknet-mre"
+        } else {
+            "marknet"
+        }
+    }
+
+    fn detect(&mut self, image: &Mat) -> Result<Vec<Detection>> {
+        Ok(self.detect_batch(&[image])?.pop().unwrap_or_default())
+    }
+
+    fn mre_band_top(&self) -> Option<f32> {
+        self.mre.is_some().then_some(self.post.conf_keep)
+    }
+
+    fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
+        crate::check_stereo_sizes(pair)?;
+        let mut out = self.detect_batch(&[&pair.left, &pair.right])?;
+        let right = out.pop().unwrap_or_default();
+        let left = out.pop().unwrap_or_default();
+        Ok(StereoPair::new(left, right))
+    }
+}

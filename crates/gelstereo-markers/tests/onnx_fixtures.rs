@@ -1,0 +1,306 @@
+//! Marknet + MRE through ONNX Runtime against values computed independently in Python.
+//!
+//! Fixtures: `data/fixtures/onnx/` (tiny random-weight models, two rendered images and
+//! `expected.json`), made by `train/scripts/make_onnx_fixtures.py` with the trainer's reference
+//! implementation (`train/gelstereo_train/postprocess.py`). Tolerances are the ones `expected.json`
+//! states: raw logits 1e-4 for the 64x64 image (no resize), 0.05 for the resized 80x60 one; MRE
+//! scores 1e-5. Post-processing run on the Python raw output must reproduce the Python result to 1e-5
+//! (the file rounds to 6 decimals).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers: a failure is a test failure
+
+use std::path::{Path, PathBuf};
+
+use gelstereo_core::{Detection, Point2, StereoPair};
+use gelstereo_markers::postprocess::{Selection, decode};
+use gelstereo_markers::{Error, Localizer, Marknet, Mre, PostProcess, SessionOptions};
+use opencv::core::{CV_8UC3, Mat, Scalar};
+use serde_json::Value;
+
+fn fixtures() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/fixtures/onnx")
+}
+
+fn expected() -> Value {
+    let text = std::fs::read_to_string(fixtures().join("expected.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn options() -> SessionOptions {
+    SessionOptions {
+        intra_threads: 1,
+        use_cuda: false,
+    }
+}
+
+fn marknet() -> Marknet {
+    Marknet::load(&fixtures().join("marknet_tiny.onnx"), &options()).unwrap()
+}
+
+fn mre() -> Mre {
+    Mre::load(&fixtures().join("mre_tiny.onnx"), &options()).unwrap()
+}
+
+fn image(name: &str) -> Mat {
+    let path = fixtures().join(name);
+    let m = opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    assert!(!opencv::core::MatTraitConst::empty(&m), "{name} unreadable");
+    m
+}
+
+fn floats(v: &Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
+}
+
+/// Rows `[x, y, c]` of the file as detections.
+fn rows(v: &Value) -> Vec<Detection> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            let r = floats(r);
+            Detection {
+                position: Point2::new(r[0], r[1]),
+                confidence: r[2] as f32,
+            }
+        })
+        .collect()
+}
+
+fn post_of(e: &Value) -> PostProcess {
+    let p = &e["post"];
+    let f = |k: &str| p[k].as_f64().unwrap();
+    PostProcess {
+        conf_keep: f("conf_keep") as f32,
+        conf_low: f("conf_low") as f32,
+        conf_marknet_only: f("conf_marknet_only") as f32,
+        dedup_radius_frac: f("dedup_radius_frac"),
+        accept: f("accept") as f32,
+    }
+}
+
+fn sorted(mut d: Vec<Detection>) -> Vec<Detection> {
+    gelstereo_markers::sort_detections(&mut d);
+    d
+}
+
+fn assert_same(got: &[Detection], want: &[Detection], tol_px: f64, tol_c: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: count");
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        assert!(
+            g.position.distance(w.position) <= tol_px && (g.confidence - w.confidence).abs() <= tol_c,
+            "{what}[{i}]: got {g:?}, want {w:?}"
+        );
+    }
+}
+
+#[test]
+fn contract_is_read_from_the_fixture_metadata() {
+    let m = marknet();
+    let c = m.contract();
+    assert_eq!(
+        (
+            c.input_width,
+            c.input_height,
+            c.stride,
+            c.grid_x,
+            c.grid_y,
+            c.candidates
+        ),
+        (64, 64, 8, 8, 8, 2)
+    );
+    assert_eq!(c.postprocess, post_of(&expected()));
+    let with = m.with_mre(mre()).unwrap();
+    assert_eq!(with.name(), "marknet-mre");
+}
+
+/// Decoding and post-processing alone, on the Python raw output: no ONNX Runtime in the loop.
+#[test]
+fn postprocessing_of_python_raw_output_matches_python() {
+    let e = expected();
+    let post = post_of(&e);
+    let m = marknet();
+    for (name, img) in e["images"].as_object().unwrap() {
+        let raw: Vec<f32> = floats(&img["raw"]).into_iter().map(|v| v as f32).collect();
+        let size = gelstereo_core::ImageSize {
+            width: img["width"].as_u64().unwrap() as u32,
+            height: img["height"].as_u64().unwrap() as u32,
+        };
+        let geometry = m.geometry(size);
+        // Every candidate, flat order.
+        let all = decode(&raw, &geometry, -1.0);
+        assert_same(
+            &all,
+            &rows(&img["decoded"]),
+            1e-4,
+            1e-5,
+            &format!("{name} decoded"),
+        );
+        let cands = decode(&raw, &geometry, post.conf_low);
+        let marknet_only = Selection::new(cands.clone(), &post, false);
+        let pitch = img["pitch_px"].as_f64().unwrap();
+        assert!(
+            (marknet_only.pitch_px.unwrap() - pitch).abs() < 1e-4,
+            "{name} pitch"
+        );
+        assert_eq!(
+            marknet_only.kept,
+            img["kept"].as_array().unwrap().len(),
+            "{name} kept after de-duplication"
+        );
+        assert_same(
+            &sorted(marknet_only.accepted),
+            &sorted(rows(&img["marknet"])),
+            1e-4,
+            1e-5,
+            &format!("{name} marknet"),
+        );
+        let with_mre = Selection::new(cands, &post, true);
+        let want_f = img["mre_features"].as_array().unwrap();
+        assert_eq!(with_mre.features.len(), want_f.len(), "{name} MRE feature count");
+        for (i, (g, w)) in with_mre.features.iter().zip(want_f).enumerate() {
+            for (k, (a, b)) in g.iter().zip(floats(w)).enumerate() {
+                assert!(
+                    (f64::from(*a) - b).abs() < 1e-4,
+                    "{name} feature {i}[{k}]: {a} vs {b}"
+                );
+            }
+        }
+        let scores: Vec<f32> = floats(&img["mre_scores"]).into_iter().map(|v| v as f32).collect();
+        let out = with_mre.finish(&scores, post.accept);
+        assert_same(
+            &out,
+            &sorted(rows(&img["marknet_mre"])),
+            1e-4,
+            1e-5,
+            &format!("{name} marknet-mre"),
+        );
+    }
+}
+
+#[test]
+fn mre_scores_match_python() {
+    let e = expected();
+    let mut mre = mre();
+    let feats: Vec<[f32; 11]> = e["mre_rows"]["features"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            let v = floats(r);
+            std::array::from_fn(|k| v[k] as f32)
+        })
+        .collect();
+    let got = mre.score(&feats).unwrap();
+    for (g, w) in got.iter().zip(floats(&e["mre_rows"]["scores"])) {
+        assert!((f64::from(*g) - w).abs() < 1e-5, "{g} vs {w}");
+    }
+    assert!(mre.score(&[]).unwrap().is_empty());
+}
+
+/// The whole path through ONNX Runtime, with and without resizing, single and batched.
+#[test]
+fn onnx_runtime_pipeline_matches_python() {
+    let e = expected();
+    let mut m = marknet().with_mre(mre()).unwrap();
+    for (name, tol_raw, tol_px, tol_c) in [
+        ("dots_64x64.png", 1e-4, 1e-3, 1e-4f32),
+        ("dots_80x60.png", 0.05, 0.05, 0.01f32),
+    ] {
+        let img = image(name);
+        let want = &e["images"][name];
+        let (_, raw) = m.raw_output(&[&img]).unwrap();
+        let want_raw = floats(&want["raw"]);
+        assert_eq!(raw.len(), want_raw.len());
+        let worst = raw
+            .iter()
+            .zip(&want_raw)
+            .map(|(a, b)| (f64::from(*a) - b).abs())
+            .fold(0.0, f64::max);
+        assert!(worst <= tol_raw, "{name}: raw differs by {worst} > {tol_raw}");
+        let found = m.detect(&img).unwrap();
+        assert_same(
+            &found,
+            &sorted(rows(&want["marknet_mre"])),
+            tol_px,
+            tol_c,
+            &format!("{name} detect"),
+        );
+    }
+    // A stereo pair runs as one batch of two and gives what each view gives alone.
+    let a = image("dots_64x64.png");
+    let mut b = Mat::default();
+    opencv::core::flip(&a, &mut b, 1).unwrap();
+    let pair = m.detect_stereo(&StereoPair::new(a.clone(), b.clone())).unwrap();
+    assert_eq!(pair.left, m.detect(&a).unwrap());
+    assert_eq!(pair.right, m.detect(&b).unwrap());
+}
+
+#[test]
+fn bad_inputs_give_clear_errors() {
+    let mut m = marknet();
+    let thin = Mat::new_rows_cols_with_default(20, 200, CV_8UC3, Scalar::all(128.0)).unwrap();
+    let err = m.detect(&thin).unwrap_err().to_string();
+    assert!(err.contains("200x20") && err.contains("aspect ratio"), "{err}");
+    assert!(matches!(m.detect(&Mat::default()), Err(Error::Image { .. })));
+    let a = Mat::new_rows_cols_with_default(64, 64, CV_8UC3, Scalar::all(128.0)).unwrap();
+    let b = Mat::new_rows_cols_with_default(60, 80, CV_8UC3, Scalar::all(128.0)).unwrap();
+    let err = m.detect_stereo(&StereoPair::new(a, b)).unwrap_err().to_string();
+    assert!(err.contains("stereo sizes"), "{err}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nothing.onnx");
+    let err = Marknet::load(&missing, &options()).unwrap_err().to_string();
+    assert!(err.contains("nothing.onnx"), "{err}");
+    let junk = dir.path().join("junk.onnx");
+    std::fs::write(&junk, b"not a model at all").unwrap();
+    let err = Marknet::load(&junk, &options()).unwrap_err().to_string();
+    assert!(
+        err.contains("junk.onnx") && err.contains("loading the model"),
+        "{err}"
+    );
+}
+
+/// The fixture model with one metadata value or key changed in place (same length, so the protobuf
+/// stays valid): the loader must name the key.
+#[test]
+fn wrong_metadata_is_named() {
+    let bytes = std::fs::read(fixtures().join("marknet_tiny.onnx")).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    for (from, to, key) in [
+        (
+            &b"gelstereo-marknet/1"[..],
+            &b"gelstereo-marknet/7"[..],
+            "'contract'",
+        ),
+        (b"candidates", b"candidatez", "'candidates'"),
+        (b"rgb/255", b"bgr/255", "'normalisation'"),
+    ] {
+        let at = bytes
+            .windows(from.len())
+            .position(|w| w == from)
+            .expect("key in fixture");
+        let mut edited = bytes.clone();
+        edited[at..at + from.len()].copy_from_slice(to);
+        let path = dir.path().join("edited.onnx");
+        std::fs::write(&path, &edited).unwrap();
+        let err = Marknet::load(&path, &options()).unwrap_err().to_string();
+        assert!(err.contains(key) && err.contains("edited.onnx"), "{key}: {err}");
+    }
+    // An MRE file where a Marknet is expected, and the reverse.
+    let err = Marknet::load(&fixtures().join("mre_tiny.onnx"), &options())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("'contract'") && err.contains("gelstereo-mre/1"),
+        "{err}"
+    );
+    let err = Mre::load(&fixtures().join("marknet_tiny.onnx"), &options())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("'contract'"), "{err}");
+}
