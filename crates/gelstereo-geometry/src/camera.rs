@@ -105,7 +105,8 @@ impl Distortion {
         let j11 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x + 2.0 * y * dsy;
         let out = Vector2::new(xd, yd);
         let jac = Matrix2::new(j00, j01, j10, j11);
-        (out.iter().chain(jac.iter()).all(|v| v.is_finite())).then_some((out, jac))
+        let finite = (xd + yd + j00 + j01 + j10 + j11).is_finite();
+        finite.then_some((out, jac))
     }
 
     /// Applies the distortion to normalised coordinates `(x/z, y/z)`.
@@ -131,7 +132,18 @@ impl Distortion {
             if res.norm() <= TOL {
                 return Some(x);
             }
-            let step = jac.lu().solve(&res)?;
+            let det = jac[(0, 0)] * jac[(1, 1)] - jac[(0, 1)] * jac[(1, 0)];
+            if det == 0.0 || !det.is_finite() {
+                return None;
+            }
+            let step = Vector2::new(
+                (jac[(1, 1)] * res.x - jac[(0, 1)] * res.y) / det,
+                (jac[(0, 0)] * res.y - jac[(1, 0)] * res.x) / det,
+            );
+            if step.norm() <= 1e-15 {
+                // Quadratic convergence: what is left after this step is ~ step^2.
+                return Some(x - step);
+            }
             let mut t = 1.0;
             loop {
                 let cand = x - step * t;

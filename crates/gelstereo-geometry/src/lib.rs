@@ -4,13 +4,16 @@
 //! y down, z forward; 3-D in mm in the LEFT camera's frame; `p_in_right = right_from_left * p_in_left`.
 //!
 //! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),
-//! [`cv`] (conversions to and from OpenCV matrices).
+//! [`cv`] (conversions to and from OpenCV matrices), [`triangulation`] (mid-point, Lee-Civera Mid2,
+//! Lindstrom, pixel-optimal; per-point reprojection error and rejection).
 
 pub mod calib;
 pub mod camera;
 pub mod cv;
 pub mod error;
+pub mod triangulation;
 
 pub use calib::CalibrationPath;
 pub use camera::{Camera, Distortion, StereoRig};
 pub use error::{Error, Result};
+pub use triangulation::{Rejection, Triangulated, TriangulationConfig, TriangulationMethod, Triangulator};
