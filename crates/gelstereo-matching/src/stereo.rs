@@ -1,0 +1,471 @@
+//! Left/right identities and pairs: the right view's lattice aligned to the left's by the epipolar
+//! constraint, per-frame indexing of the right view gated by it, and pairing by index.
+//!
+//! The epipolar constraint is used rectification-free: both points are undistorted to normalised
+//! coordinates with the calibrated distortion model, and the distance of the right point to the
+//! epipolar line `E x_left` (`E = [t]x R` from `right_from_left`) is measured in pixels of the
+//! undistorted right image.
+
+use gelstereo_core::{Detection, GridIndex, GridShape, Point2};
+use gelstereo_geometry::StereoRig;
+use nalgebra::{Matrix3, Vector2, Vector3};
+
+use crate::grow::NONE;
+use crate::lattice::{IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch};
+use crate::{Error, Result};
+
+/// The epipolar geometry of a calibrated rig, for distances of right points to left points'
+/// epipolar lines.
+#[derive(Debug, Clone)]
+pub struct EpipolarGeometry {
+    rig: StereoRig,
+    essential: Matrix3<f64>,
+}
+
+impl EpipolarGeometry {
+    /// The epipolar geometry of `rig` (checked: finite intrinsics and extrinsics, non-zero baseline).
+    pub fn new(rig: &StereoRig) -> Result<Self> {
+        rig.validate()?;
+        let t = rig.right_from_left.translation.vector;
+        let r = rig.right_from_left.rotation.to_rotation_matrix().into_inner();
+        let essential = t.cross_matrix() * r;
+        Ok(Self {
+            rig: rig.clone(),
+            essential,
+        })
+    }
+
+    /// The rig.
+    pub fn rig(&self) -> &StereoRig {
+        &self.rig
+    }
+
+    /// The epipolar line of left pixel `left_px` in the right view's normalised coordinates
+    /// (`l . (x, y, 1) = 0`); `None` when the point cannot be undistorted.
+    pub fn line_of_left(&self, left_px: Point2) -> Option<Vector3<f64>> {
+        let x = self.rig.left.undistort(left_px)?;
+        let l = self.essential * Vector3::new(x.x, x.y, 1.0);
+        (l.x.is_finite() && l.y.is_finite() && l.z.is_finite() && (l.x != 0.0 || l.y != 0.0)).then_some(l)
+    }
+
+    /// Normalised coordinates of right pixel `right_px`.
+    pub fn undistort_right(&self, right_px: Point2) -> Option<Vector2<f64>> {
+        self.rig.right.undistort(right_px)
+    }
+
+    /// Distance, in px of the undistorted right image, of normalised right point `x` to `line`.
+    pub fn line_distance_px(&self, line: &Vector3<f64>, x: &Vector2<f64>) -> f64 {
+        let num = (line.x * x.x + line.y * x.y + line.z).abs();
+        let (a, b) = (line.x / self.rig.right.fx, line.y / self.rig.right.fy);
+        num / (a * a + b * b).sqrt()
+    }
+
+    /// Distance, px, of `right_px` to the epipolar line of `left_px`; `None` when either point
+    /// cannot be undistorted.
+    pub fn distance_px(&self, left_px: Point2, right_px: Point2) -> Option<f64> {
+        let l = self.line_of_left(left_px)?;
+        let x = self.undistort_right(right_px)?;
+        Some(self.line_distance_px(&l, &x))
+    }
+}
+
+/// Tuning of the stereo matcher.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StereoConfig {
+    /// A pair is accepted when the right point lies within this distance of the left point's
+    /// epipolar line, px. Default 2.0: several times the localisation noise of either detector
+    /// (Marknet-MRE ~0.1-0.3 px, blobs under contact ~1 px) plus calibration error, and well below
+    /// the offset of a neighbouring row's marker (a sizeable fraction of the pitch, ~20 px).
+    pub max_epipolar_px: f64,
+    /// Indexing of each view.
+    pub indexing: IndexingConfig,
+}
+
+impl Default for StereoConfig {
+    fn default() -> Self {
+        Self {
+            max_epipolar_px: 2.0,
+            indexing: IndexingConfig::default(),
+        }
+    }
+}
+
+/// Expected positions per node of both views (row-major), e.g. the previous frame's.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct StereoPrior {
+    /// Left view.
+    pub left: Vec<Option<Point2>>,
+    /// Right view.
+    pub right: Vec<Option<Point2>>,
+}
+
+/// A left/right pair of one marker that passed the epipolar check.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MatchedPair {
+    /// The marker.
+    pub index: GridIndex,
+    /// Left view position, px.
+    pub left_px: Point2,
+    /// Right view position, px.
+    pub right_px: Point2,
+    /// Distance of the right point to the left point's epipolar line, px.
+    pub epipolar_px: f64,
+}
+
+/// A marker indexed in both views whose pair failed the epipolar check.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PairRejection {
+    /// The marker.
+    pub index: GridIndex,
+    /// Left view position, px.
+    pub left_px: Point2,
+    /// Right view position, px.
+    pub right_px: Point2,
+    /// Epipolar distance, px; `None` when a point could not be undistorted.
+    pub epipolar_px: Option<f64>,
+}
+
+/// Both views of one frame indexed and paired.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameMatch {
+    /// The left view's indexing.
+    pub left: IndexedView,
+    /// The right view's indexing (same identities as the left).
+    pub right: IndexedView,
+    /// Accepted pairs, row-major.
+    pub pairs: Vec<MatchedPair>,
+    /// Markers indexed in both views whose pair failed the epipolar check, row-major.
+    pub rejected: Vec<PairRejection>,
+}
+
+impl FrameMatch {
+    /// Positions of this frame as the prior of the next.
+    pub fn to_prior(&self) -> StereoPrior {
+        StereoPrior {
+            left: self.left.node_positions(),
+            right: self.right.node_positions(),
+        }
+    }
+}
+
+/// Pairs two indexed views by index and checks each pair against the epipolar constraint
+/// (`max_epipolar_px`). Pairs come out row-major.
+pub fn pair_by_index(
+    left: &IndexedView,
+    right: &IndexedView,
+    epipolar: &EpipolarGeometry,
+    max_epipolar_px: f64,
+) -> Result<(Vec<MatchedPair>, Vec<PairRejection>)> {
+    if left.shape() != right.shape() {
+        return Err(Error::ShapeMismatch {
+            left: left.shape(),
+            right: right.shape(),
+        });
+    }
+    let mut pairs = Vec::new();
+    let mut rejected = Vec::new();
+    for (index, left_px) in left.markers() {
+        let Some(right_px) = right.position(index) else {
+            continue;
+        };
+        match epipolar.distance_px(left_px, right_px) {
+            Some(e) if e <= max_epipolar_px => pairs.push(MatchedPair {
+                index,
+                left_px,
+                right_px,
+                epipolar_px: e,
+            }),
+            e => rejected.push(PairRejection {
+                index,
+                left_px,
+                right_px,
+                epipolar_px: e,
+            }),
+        }
+    }
+    Ok((pairs, rejected))
+}
+
+/// The reference lattices of both views with aligned identities, and the stereo geometry.
+#[derive(Debug, Clone)]
+pub struct StereoLattice {
+    left: ReferenceLattice,
+    right: ReferenceLattice,
+    epipolar: EpipolarGeometry,
+    config: StereoConfig,
+}
+
+impl StereoLattice {
+    /// Indexes the reference (no-contact) frame of both views. The left view defines the
+    /// identities ([`ReferenceLattice::from_detections`]); the right view's lattice is grown from
+    /// scratch and then shifted by the whole number of rows and columns that puts the most right
+    /// markers within `max_epipolar_px` of the epipolar lines of their left namesakes. When the
+    /// epipolar lines run along the grid rows, column shifts are not told apart by the constraint;
+    /// then the right lattice's own extent decides if the right view shows the whole lattice, and
+    /// the alignment fails otherwise.
+    pub fn from_reference(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        config: StereoConfig,
+    ) -> Result<Self> {
+        if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
+            return Err(Error::Config {
+                field: "max_epipolar_px",
+                expected: "a distance > 0 px".into(),
+                found: config.max_epipolar_px.to_string(),
+            });
+        }
+        let epipolar = EpipolarGeometry::new(rig)?;
+        let left_lattice = ReferenceLattice::from_detections(left, shape, config.indexing.clone())?;
+        if right.is_empty() {
+            return Err(Error::StereoAlignment {
+                reason: "the right reference frame has no detections".into(),
+            });
+        }
+        let points: Vec<Point2> = right.iter().map(|d| d.position).collect();
+        if let Some(i) = points.iter().position(|p| !(p.x.is_finite() && p.y.is_finite())) {
+            return Err(Error::NonFiniteDetection {
+                detection: i,
+                x: points[i].x,
+                y: points[i].y,
+            });
+        }
+        let scratch = grow_from_scratch(&points, shape, &config.indexing)?;
+        let (h, w) = (usize::from(shape.rows), usize::from(shape.cols));
+        let Some((rmin, rmax, cmin, cmax)) = scratch.extent() else {
+            return Err(Error::StereoAlignment {
+                reason: "no lattice found in the right view".into(),
+            });
+        };
+
+        // Epipolar lines of the observed left reference markers; undistorted right points.
+        let lines: Vec<Option<Vector3<f64>>> = shape
+            .indices()
+            .map(|idx| {
+                left_lattice
+                    .observed(idx)
+                    .then(|| left_lattice.node_position(idx))
+                    .flatten()
+                    .and_then(|p| epipolar.line_of_left(p))
+            })
+            .collect();
+        let right_norm: Vec<Option<Vector2<f64>>> =
+            points.iter().map(|&p| epipolar.undistort_right(p)).collect();
+        let assigned: Vec<(i64, i64, usize)> = scratch
+            .node_det
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| **d != NONE)
+            .map(|(n, &d)| ((n / scratch.cols) as i64, (n % scratch.cols) as i64, d as usize))
+            .collect();
+        let score = |r0: i64, c0: i64| -> usize {
+            assigned
+                .iter()
+                .filter(|&&(r, c, d)| {
+                    let (gr, gc) = (r - r0, c - c0);
+                    if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
+                        return false;
+                    }
+                    match (&lines[gr as usize * w + gc as usize], &right_norm[d]) {
+                        (Some(l), Some(x)) => epipolar.line_distance_px(l, x) <= config.max_epipolar_px,
+                        _ => false,
+                    }
+                })
+                .count()
+        };
+        let mut scored = Vec::new();
+        for r0 in rmin as i64 - h as i64 + 1..=rmax as i64 {
+            for c0 in cmin as i64 - w as i64 + 1..=cmax as i64 {
+                scored.push((score(r0, c0), r0, c0));
+            }
+        }
+        // Highest score first; lowest offsets among equals (deterministic).
+        scored.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let best = scored[0];
+        let possible = assigned.len().min(lines.iter().flatten().count());
+        if best.0 * 2 < possible {
+            return Err(Error::StereoAlignment {
+                reason: format!(
+                    "at best {} of {} right markers lie within {} px of their left namesakes' epipolar \
+                     lines: expected at least half; check that the calibration belongs to this sensor",
+                    best.0,
+                    assigned.len(),
+                    config.max_epipolar_px
+                ),
+            });
+        }
+        let rivals: Vec<(i64, i64)> = scored
+            .iter()
+            .filter(|s| s.0 * 10 >= best.0 * 9)
+            .map(|s| (s.1, s.2))
+            .collect();
+        let (r0, c0) = if rivals.len() == 1 {
+            (best.1, best.2)
+        } else {
+            // The window of the right lattice's own rows and columns that holds the most markers
+            // (a stray row of dust beside the lattice does not move it); it decides when every
+            // one of its rows and columns is occupied.
+            let (row_counts, col_counts) = scratch.counts();
+            let (wr, wc) = (best_window(&row_counts, h), best_window(&col_counts, w));
+            let full = !row_counts[wr..wr + h].contains(&0) && !col_counts[wc..wc + w].contains(&0);
+            let by_extent = (wr as i64, wc as i64);
+            if full && rivals.contains(&by_extent) {
+                by_extent
+            } else {
+                return Err(Error::StereoAlignment {
+                    reason: format!(
+                        "{} row/column offsets of the right lattice fit the epipolar constraint about equally \
+                         well (best {} markers) and the right view does not show the whole {} x {} lattice \
+                         (rows {}..={}, columns {}..={} of its own grid)",
+                        rivals.len(),
+                        best.0,
+                        h,
+                        w,
+                        rmin,
+                        rmax,
+                        cmin,
+                        cmax
+                    ),
+                });
+            }
+        };
+        let node_det: Vec<u32> = (0..h * w)
+            .map(|n| {
+                let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
+                if r < 0 || c < 0 || r >= scratch.rows as i64 || c >= scratch.cols as i64 {
+                    return NONE;
+                }
+                let d = scratch.node_det[r as usize * scratch.cols + c as usize];
+                // Drop right markers that contradict the constraint (where the left one was seen).
+                let ok = d != NONE
+                    && match (&lines[n], &right_norm[d as usize]) {
+                        (Some(l), Some(x)) => epipolar.line_distance_px(l, x) <= config.max_epipolar_px,
+                        (Some(_), None) => false,
+                        (None, _) => true,
+                    };
+                if ok { d } else { NONE }
+            })
+            .collect();
+        let right_lattice = ReferenceLattice::from_assignment(
+            points,
+            shape,
+            &node_det,
+            scratch.pitch_px,
+            config.indexing.clone(),
+        )?;
+        Ok(Self {
+            left: left_lattice,
+            right: right_lattice,
+            epipolar,
+            config,
+        })
+    }
+
+    /// The left view's reference lattice (defines the identities).
+    pub fn left(&self) -> &ReferenceLattice {
+        &self.left
+    }
+
+    /// The right view's reference lattice, aligned to the left's identities.
+    pub fn right(&self) -> &ReferenceLattice {
+        &self.right
+    }
+
+    /// The epipolar geometry.
+    pub fn epipolar(&self) -> &EpipolarGeometry {
+        &self.epipolar
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &StereoConfig {
+        &self.config
+    }
+
+    /// The reference frame's own match (its indexed views, paired and checked).
+    pub fn reference_match(&self) -> Result<FrameMatch> {
+        let (left, right) = (
+            self.left.reference_view().clone(),
+            self.right.reference_view().clone(),
+        );
+        let (pairs, rejected) = pair_by_index(&left, &right, &self.epipolar, self.config.max_epipolar_px)?;
+        Ok(FrameMatch {
+            left,
+            right,
+            pairs,
+            rejected,
+        })
+    }
+
+    /// Indexes and pairs one stereo frame. The left view is indexed against the left reference
+    /// lattice; the right view against the right one, where a detection is only admitted for a
+    /// marker indexed in the left view if it lies within `max_epipolar_px` of that marker's
+    /// epipolar line. Every pair is then checked again ([`pair_by_index`]).
+    pub fn match_frame(
+        &self,
+        left: &[Detection],
+        right: &[Detection],
+        prior: Option<&StereoPrior>,
+    ) -> Result<FrameMatch> {
+        let left_view = self.left.index(left, prior.map(|p| p.left.as_slice()))?;
+        let w = usize::from(self.left.shape().cols);
+        let lines: Vec<Option<Vector3<f64>>> = left_view
+            .node_positions()
+            .iter()
+            .map(|p| p.and_then(|p| self.epipolar.line_of_left(p)))
+            .collect();
+        let right_norm: Vec<Option<Vector2<f64>>> = right
+            .iter()
+            .map(|d| self.epipolar.undistort_right(d.position))
+            .collect();
+        let tol = self.config.max_epipolar_px;
+        let right_view = self
+            .right
+            .index_with(right, prior.map(|p| p.right.as_slice()), |idx, d| {
+                let n = usize::from(idx.row) * w + usize::from(idx.col);
+                match (&lines[n], &right_norm[d]) {
+                    (Some(l), Some(x)) => self.epipolar.line_distance_px(l, x) <= tol,
+                    (Some(_), None) => false,
+                    (None, _) => true,
+                }
+            })?;
+        // Pair by index, reusing the lines and undistorted points computed above.
+        let (pairs, rejected) = {
+            let mut pairs = Vec::new();
+            let mut rejected = Vec::new();
+            for (index, left_px) in left_view.markers() {
+                let Some(rd) = right_view.detection_at(index) else {
+                    continue;
+                };
+                let right_px = right[rd].position;
+                let n = usize::from(index.row) * w + usize::from(index.col);
+                let e = match (&lines[n], &right_norm[rd]) {
+                    (Some(l), Some(x)) => Some(self.epipolar.line_distance_px(l, x)),
+                    _ => None,
+                };
+                match e {
+                    Some(e) if e <= tol => pairs.push(MatchedPair {
+                        index,
+                        left_px,
+                        right_px,
+                        epipolar_px: e,
+                    }),
+                    e => rejected.push(PairRejection {
+                        index,
+                        left_px,
+                        right_px,
+                        epipolar_px: e,
+                    }),
+                }
+            }
+            (pairs, rejected)
+        };
+        Ok(FrameMatch {
+            left: left_view,
+            right: right_view,
+            pairs,
+            rejected,
+        })
+    }
+}
