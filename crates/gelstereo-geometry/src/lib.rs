@@ -5,15 +5,18 @@
 //!
 //! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),
 //! [`cv`] (conversions to and from OpenCV matrices), [`triangulation`] (mid-point, Lee-Civera Mid2,
-//! Lindstrom, pixel-optimal; per-point reprojection error and rejection).
+//! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`checkerboard`] (stereo
+//! checkerboard calibration with OpenCV).
 
 pub mod calib;
 pub mod camera;
+pub mod checkerboard;
 pub mod cv;
 pub mod error;
 pub mod triangulation;
 
 pub use calib::CalibrationPath;
 pub use camera::{Camera, Distortion, StereoRig};
+pub use checkerboard::{Board, CalibrationOptions, CalibrationReport, StereoCorners};
 pub use error::{Error, Result};
 pub use triangulation::{Rejection, Triangulated, TriangulationConfig, TriangulationMethod, Triangulator};
