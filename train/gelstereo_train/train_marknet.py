@@ -27,20 +27,30 @@ from .loss import build_targets, marknet_loss
 from .model import STRIDE_FOR_GRID_416, Marknet, count_flops
 
 
-def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print):
-    """Decode (a subset of) the samples into memory: images, label points, per-image pitch."""
-    if max_images is not None and len(samples) > max_images:
-        keep = np.sort(rng.choice(len(samples), max_images, replace=False))
-        samples = [samples[i] for i in keep]
-    images, points, pitches = [], [], []
+def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print, max_gb: float | None = None):
+    """Decode a random subset of the samples into memory (at most max_images, at most max_gb of
+    uint8 pixels): images, label points, per-image pitch."""
+    order = rng.permutation(len(samples))
+    if max_images is not None:
+        order = order[:max_images]
+    budget = None if max_gb is None else max_gb * 1e9
+    kept, images, points, pitches = [], [], [], []
+    total = 0
     t0 = time.time()
-    for k, s in enumerate(samples):
-        images.append(s.load())
+    for k in np.sort(order):
+        s = samples[k]
+        img = s.load()
+        if budget is not None and total + img.nbytes > budget:
+            log(f"memory budget {max_gb} GB reached after {len(images)} images")
+            break
+        total += img.nbytes
+        kept.append(s)
+        images.append(img)
         points.append(s.points_px.astype(np.float32))
         pitches.append(median_nn_distance(s.points_px))
-        if (k + 1) % 500 == 0:
-            log(f"loaded {k + 1}/{len(samples)} images ({time.time() - t0:.0f} s)")
-    return samples, images, points, np.asarray(pitches, np.float64)
+        if len(images) % 500 == 0:
+            log(f"loaded {len(images)}/{len(order)} images ({time.time() - t0:.0f} s, {total / 1e9:.2f} GB)")
+    return kept, images, points, np.asarray(pitches, np.float64)
 
 
 def save_checkpoint(path: Path, model: Marknet, meta: dict) -> None:
@@ -73,7 +83,7 @@ def train(args, log=print) -> Path:
     samples = list_samples(args.data, "train", frame_step=args.frame_step)
     if not samples:
         raise SystemExit(f"{args.data}/train: no images found")
-    samples, images, points, pitches = load_images(samples, args.max_images, rng, log)
+    samples, images, points, pitches = load_images(samples, args.max_images, rng, log, args.max_gb)
     n_markers = sum(len(p) for p in points)
     log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
 
@@ -158,6 +168,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
+    p.add_argument("--max-gb", type=float, default=3.0, help="memory budget for the decoded images")
     p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
