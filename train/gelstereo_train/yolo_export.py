@@ -1,0 +1,117 @@
+"""Export the YOLOv3 baseline to ONNX (contract ``gelstereo-yolo/1``, docs/model-contract.md) and check
+it in onnxruntime against PyTorch.
+
+    python -m gelstereo_train.yolo_export --checkpoint runs/yolo.pt --out data/models/yolo.onnx \
+        [--conf-threshold 0.25] [--nms-iou 0.45]
+
+torch.onnx.export(dynamo=False, opset 17), input ``image`` [N, 3, H, W] (the Marknet preprocessing),
+output ``raw`` [N, K, 5] (gelstereo_train.yolo_model), a dynamic batch axis; anchors, strides and the
+post-processing thresholds in metadata_props. The max abs difference onnxruntime vs PyTorch on random
+inputs is printed (and written to ``--report`` with the metadata).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .export import OPSET, _ort, _set_metadata
+from .yolo_model import OUTPUTS_PER_ANCHOR, TW_CLAMP, YoloV3
+from .yolo_post import YoloPost
+
+YOLO_CONTRACT = "gelstereo-yolo/1"
+
+
+def anchors_text(anchors: np.ndarray) -> str:
+    """Anchors (heads, A, 2) as 'w,h w,h ...' (input pixels, heads in ascending stride), 6 significant
+    digits (k-means anchors are rounded to 0.01 px, so this is exact)."""
+    return " ".join(f"{w:.6g},{h:.6g}" for w, h in np.asarray(anchors, np.float64).reshape(-1, 2))
+
+
+def parse_anchors(text: str) -> np.ndarray:
+    """The metadata's anchor text back to (n, 2) f64: the exact values the Rust loader decodes with."""
+    return np.array([[float(v) for v in pair.split(",")] for pair in text.split()], dtype=np.float64)
+
+
+def yolo_metadata(model: YoloV3, input_hw, dataset: str, trained: str, post: YoloPost, diameter_frac: float) -> dict:
+    """metadata_props of a yolo.onnx (all values become strings)."""
+    h, w = input_hw
+    return {
+        "contract": YOLO_CONTRACT,
+        "input_height": h,
+        "input_width": w,
+        "strides": ",".join(str(s) for s in model.strides),
+        "anchors_per_head": model.anchors_per_head,
+        "anchors": anchors_text(model.anchors.numpy()),
+        "outputs_per_anchor": OUTPUTS_PER_ANCHOR,
+        "tw_clamp": f"{TW_CLAMP:g}",
+        "normalisation": "rgb/255",
+        "layout": "NCHW",
+        "resize": "bilinear, half-pixel centres, no antialiasing",
+        "conf_threshold": f"{post.conf_threshold:g}",
+        "nms_iou": f"{post.nms_iou:g}",
+        "box": f"marker diameter = {diameter_frac:g} x local lattice spacing per axis",
+        "dataset": dataset,
+        "trained": trained,
+    }
+
+
+def export_yolo(model: YoloV3, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
+    """Export and verify; returns the max abs difference onnxruntime vs PyTorch on ``raw``."""
+    model = model.eval()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    h, w = input_hw
+    torch.onnx.export(
+        model,
+        (torch.rand(1, 3, h, w),),
+        str(path),
+        dynamo=False,
+        opset_version=OPSET,
+        input_names=["image"],
+        output_names=["raw"],
+        dynamic_axes={"image": {0: "batch"}, "raw": {0: "batch"}},
+        do_constant_folding=True,
+    )
+    _set_metadata(path, metadata)
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(2, 3, h, w, generator=g)
+    with torch.no_grad():
+        ref = model(x).numpy()
+    got = _ort(path).run(["raw"], {"image": x.numpy()})[0]
+    if got.shape != ref.shape:
+        raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
+    return float(np.abs(got - ref).max())
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", type=Path, required=True, help="yolo_train checkpoint (.pt)")
+    p.add_argument("--out", type=Path, required=True, help="the .onnx file to write")
+    p.add_argument("--conf-threshold", type=float, default=YoloPost.conf_threshold)
+    p.add_argument("--nms-iou", type=float, default=YoloPost.nms_iou)
+    p.add_argument("--report", type=Path, default=None, help="JSON file for the check and the metadata")
+    args = p.parse_args(argv)
+    from .yolo_train import load_checkpoint
+
+    torch.set_num_threads(1)
+    model, meta = load_checkpoint(args.checkpoint)
+    hw = (int(meta["input_height"]), int(meta["input_width"]))
+    post = YoloPost(args.conf_threshold, args.nms_iou)
+    md = yolo_metadata(model, hw, meta["dataset"], meta["trained"], post, float(meta.get("diameter_frac", 0.5)))
+    diff = export_yolo(model, args.out, hw, md)
+    print(f"{args.out}: onnxruntime vs PyTorch max abs diff (raw) {diff:.3g}")
+    if args.report:
+        report = {"max_abs_diff": diff, "metadata": {k: str(v) for k, v in md.items()}}
+        args.report.parent.mkdir(parents=True, exist_ok=True)
+        args.report.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,400 @@
+"""Train the YOLOv3 baseline on a `gelstereo simulate` dataset (same split, sampler and augmentation as
+Marknet: gelstereo_train.augment).
+
+    python -m gelstereo_train.yolo_train --data ROOT --out runs/yolo.pt --minutes 40 --threads 1
+
+Boxes. The simulator labels marker centres only; a YOLO box needs a size. A marker is a printed dot of
+diameter ``dot_diameter_mm`` on a lattice of pitch ``pitch_mm`` (the sensor description), so its
+apparent diameter is ``diameter_frac = dot_diameter_mm / pitch_mm`` times the LOCAL lattice spacing in
+the image, measured per marker and per axis: box width = diameter_frac x the distance to its nearest
+horizontal neighbour (|dx| >= |dy|), height = diameter_frac x the distance to its nearest vertical one
+(the other axis' value when one is missing). This follows perspective, the anisotropic resize to the
+network input and the local compression/stretch of the gel in contact. It is computed on the label
+points after the crop's affine map, so crops and jittered scales get consistent boxes.
+
+Anchors: k-means (1 - IoU) on the boxes of the training images as the network sees them at inference
+(the whole image resized to the input size), k = heads x anchors per head, rounded to 0.01 px, sorted
+by area and given to the heads in ascending stride (YOLOv3's rule).
+
+Targets and loss (YOLOv3): each ground-truth box is assigned to ONE anchor, the one (over all heads) of
+best shape IoU, in the cell that contains its centre. The modification for markers: all markers have
+nearly the same shape, so two markers in one cell would want the same anchor and YOLOv3 would drop one;
+here the second takes the next-best anchor still free in its cell at any head (``fallbacks``); only when
+every anchor of every head is taken is a marker left unassigned (``collisions``). Loss = box_scale x [BCE(sigmoid(tx), x - gx) + BCE(., y - gy)
++ (tw - log(w / aw))^2 + (th - log(h / ah))^2] over assigned anchors, + BCE objectness (1 for assigned,
+0 for the others except those whose decoded box overlaps a ground-truth box by IoU > ``ignore_iou``,
+0.5), with box_scale = 2 - w h / (crop area); everything summed and divided by the number of
+assigned anchors (as the Marknet loss).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .augment import AugConfig, make_batch
+from .data import dataset_tag, list_samples, read_dataset_info
+from .model import count_flops
+from .train_marknet import load_images
+from .yolo_model import OUTPUTS_PER_ANCHOR, YoloV3, decode_head, kmeans_anchors, mean_best_iou, wh_iou
+
+DEFAULT_DIAMETER_FRAC = 0.5  # calib/reference-sensor.json: dot_diameter_mm 0.4 / pitch_mm 0.8
+
+
+def _find_grid(obj):
+    """The first dict holding both 'dot_diameter_mm' and 'pitch_mm' in a nested JSON value."""
+    if isinstance(obj, dict):
+        if "dot_diameter_mm" in obj and "pitch_mm" in obj:
+            return obj
+        for v in obj.values():
+            g = _find_grid(v)
+            if g is not None:
+                return g
+    elif isinstance(obj, list):
+        for v in obj:
+            g = _find_grid(v)
+            if g is not None:
+                return g
+    return None
+
+
+def diameter_fraction(root: Path | str) -> tuple[float, str]:
+    """dot diameter / pitch of the sensor a dataset was rendered with, and where it was read from:
+    ROOT/dataset.json, else the first experiment's meta.json, else the reference sensor's 0.5."""
+    root = Path(root)
+    sources = [root / "dataset.json"]
+    for split in ("train", "val", "test"):
+        d = root / split
+        if d.is_dir():
+            exps = sorted(p for p in d.iterdir() if p.is_dir())
+            if exps:
+                sources.append(exps[0] / "meta.json")
+    for src in sources:
+        if not src.exists():
+            continue
+        try:
+            info = read_dataset_info(root) if src.name == "dataset.json" else json.loads(src.read_text())
+        except (OSError, ValueError):
+            continue
+        g = _find_grid(info)
+        if g is not None:
+            try:
+                frac = float(g["dot_diameter_mm"]) / float(g["pitch_mm"])
+            except (TypeError, ValueError, ZeroDivisionError):
+                continue
+            if 0.0 < frac < 1.0:
+                return frac, str(src)
+    return DEFAULT_DIAMETER_FRAC, "default (reference sensor 0.4 mm / 0.8 mm)"
+
+
+def marker_boxes(points: np.ndarray, diameter_frac: float, fallback_px: float = float("nan")) -> np.ndarray:
+    """Box (w, h) per marker from the local lattice spacing (module docs). (n, 2) points -> (n, 2).
+    A marker without any neighbour gets ``diameter_frac * fallback_px`` (NaN when no fallback)."""
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    n = len(p)
+    out = np.full((n, 2), np.nan)
+    if n == 0:
+        return out
+    if n > 1:
+        d = p[None, :, :] - p[:, None, :]
+        dist = np.sqrt((d**2).sum(-1))
+        np.fill_diagonal(dist, np.inf)
+        horiz = np.abs(d[..., 0]) >= np.abs(d[..., 1])
+        sx = np.where(horiz, dist, np.inf).min(1)
+        sy = np.where(~horiz, dist, np.inf).min(1)
+        sx = np.where(np.isfinite(sx), sx, sy)
+        sy = np.where(np.isfinite(sy), sy, sx)
+        out[:, 0], out[:, 1] = sx, sy
+    bad = ~np.isfinite(out).all(1)
+    out[bad] = fallback_px
+    return out * diameter_frac
+
+
+def canonical_boxes(points_list, image_sizes, input_hw, diameter_frac: float, max_boxes: int = 200_000,
+                    seed: int = 0) -> np.ndarray:
+    """Training boxes (w, h) in network input pixels of whole images resized to ``input_hw``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for pts, (h_img, w_img) in zip(points_list, image_sizes):
+        s = np.array([input_hw[1] / w_img, input_hw[0] / h_img])
+        out.append(marker_boxes(np.asarray(pts, np.float64) * s, diameter_frac))
+    wh = np.concatenate(out) if out else np.zeros((0, 2))
+    wh = wh[np.isfinite(wh).all(1)]
+    if len(wh) > max_boxes:
+        wh = wh[rng.choice(len(wh), max_boxes, replace=False)]
+    return wh
+
+
+@dataclasses.dataclass
+class Targets:
+    """YOLOv3 targets of a batch, per head: (B, Gy, Gx, A) masks and (B, Gy, Gx, A, 4) (tx, ty, tw, th)
+    regression targets, the box scale, and the ground-truth boxes per image (x, y, w, h)."""
+
+    mask: list
+    txy: list
+    twh: list
+    scale: list
+    gt: list
+    assigned: int
+    collisions: int
+    fallbacks: int
+
+
+def build_targets(labels, boxes, shapes, strides, anchors: np.ndarray, crop_area: float) -> Targets:
+    """labels: per image (n, 2) centres (input px); boxes: per image (n, 2) sizes; shapes: per head
+    (Gy, Gx); anchors (heads, A, 2)."""
+    b = len(labels)
+    heads, a_per, _ = anchors.shape
+    flat_anchors = anchors.reshape(-1, 2)
+    mask = [np.zeros((b, gy, gx, a_per), bool) for gy, gx in shapes]
+    txy = [np.zeros((b, gy, gx, a_per, 2), np.float32) for gy, gx in shapes]
+    twh = [np.zeros((b, gy, gx, a_per, 2), np.float32) for gy, gx in shapes]
+    scale = [np.zeros((b, gy, gx, a_per), np.float32) for gy, gx in shapes]
+    gts = []
+    assigned = collisions = fallbacks = 0
+    for i, (pts, wh) in enumerate(zip(labels, boxes)):
+        pts = np.asarray(pts, np.float64).reshape(-1, 2)
+        wh = np.asarray(wh, np.float64).reshape(-1, 2)
+        ok = np.isfinite(wh).all(1) & (wh > 0).all(1)
+        pts, wh = pts[ok], wh[ok]
+        gts.append(np.concatenate([pts, wh], 1).astype(np.float32))
+        if len(pts) == 0:
+            continue
+        ranked = np.argsort(-wh_iou(wh, flat_anchors), axis=1, kind="stable")
+        for k in range(len(pts)):
+            for rank, flat in enumerate(ranked[k]):
+                h, a = divmod(int(flat), a_per)
+                s = strides[h]
+                gy_n, gx_n = shapes[h]
+                cx = min(int(math.floor(pts[k, 0] / s)), gx_n - 1)
+                cy = min(int(math.floor(pts[k, 1] / s)), gy_n - 1)
+                if cx >= 0 and cy >= 0 and not mask[h][i, cy, cx, a]:
+                    break
+            else:
+                collisions += 1
+                continue
+            if rank > 0:
+                fallbacks += 1
+            mask[h][i, cy, cx, a] = True
+            txy[h][i, cy, cx, a] = (pts[k, 0] / s - cx, pts[k, 1] / s - cy)
+            twh[h][i, cy, cx, a] = np.log(wh[k] / anchors[h, a])
+            scale[h][i, cy, cx, a] = 2.0 - wh[k, 0] * wh[k, 1] / crop_area
+            assigned += 1
+    t = lambda arrs: [torch.from_numpy(x) for x in arrs]  # noqa: E731
+    return Targets(t(mask), t(txy), t(twh), t(scale), gts, assigned, collisions, fallbacks)
+
+
+def box_iou_xywh(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """IoU of (n, 4) and (k, 4) centre-size boxes -> (n, k)."""
+    a1, a2 = a[:, None, :2] - a[:, None, 2:] / 2, a[:, None, :2] + a[:, None, 2:] / 2
+    b1, b2 = b[None, :, :2] - b[None, :, 2:] / 2, b[None, :, :2] + b[None, :, 2:] / 2
+    inter = (torch.minimum(a2, b2) - torch.maximum(a1, b1)).clamp_min(0).prod(-1)
+    area = a[:, None, 2:].prod(-1) + b[None, :, 2:].prod(-1) - inter
+    return inter / area.clamp_min(1e-9)
+
+
+def yolo_loss(maps, tg: Targets, strides, anchors: torch.Tensor, ignore_iou: float = 0.5):
+    """YOLOv3 loss (module docs). Returns (total, objectness part, box part, mean centre error, input px)."""
+    npos = max(tg.assigned, 1)
+    obj_sum = maps[0].new_zeros(())
+    box_sum = maps[0].new_zeros(())
+    centre_err = []
+    for h, raw in enumerate(maps):
+        s = strides[h]
+        m = tg.mask[h]
+        with torch.no_grad():
+            dec = decode_head(raw.detach(), s, anchors[h])
+            ignore = torch.zeros(m.shape, dtype=torch.bool)
+            for i, gt in enumerate(tg.gt):
+                if len(gt) == 0:
+                    continue
+                iou = box_iou_xywh(dec[i, ..., :4].reshape(-1, 4), torch.from_numpy(gt))
+                ignore[i] = (iou.max(1).values > ignore_iou).view(m.shape[1:])
+        neg = ~m & ~ignore
+        obj_logit = raw[..., 4]
+        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(obj_logit[m], torch.ones_like(obj_logit[m]), reduction="sum")
+        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(obj_logit[neg], torch.zeros_like(obj_logit[neg]), reduction="sum")
+        if m.any():
+            p = raw[m]
+            sc = tg.scale[h][m]
+            bxy = F.binary_cross_entropy_with_logits(p[:, :2], tg.txy[h][m], reduction="none").sum(1)
+            bwh = ((p[:, 2:4] - tg.twh[h][m]) ** 2).sum(1)
+            box_sum = box_sum + (sc * (bxy + bwh)).sum()
+            with torch.no_grad():
+                centre_err.append(((torch.sigmoid(p[:, :2]) - tg.txy[h][m]) * s).norm(dim=1))
+    total = (obj_sum + box_sum) / npos
+    ce = torch.cat(centre_err).mean() if centre_err else torch.zeros(())
+    return total, obj_sum / npos, box_sum / npos, ce
+
+
+def save_checkpoint(path: Path, model: YoloV3, meta: dict) -> None:
+    """Weights + constructor arguments (anchors, strides, width) + metadata."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".part")
+    torch.save(
+        {
+            "model": model.state_dict(),
+            "arch": {"anchors": model.anchors.numpy().tolist(), "strides": list(model.strides), "width": model.width},
+            "meta": meta,
+        },
+        tmp,
+    )
+    tmp.replace(path)
+
+
+def load_checkpoint(path: Path | str) -> tuple[YoloV3, dict]:
+    """Rebuild the detector from a checkpoint; returns (model in eval mode, meta)."""
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    model = YoloV3(**ck["arch"])
+    model.load_state_dict(ck["model"])
+    return model.eval(), ck["meta"]
+
+
+def fit_anchors(points, images, input_hw, diameter_frac, heads: int, per_head: int, seed: int, log=print):
+    """k-means anchors from the canonical training boxes; (heads, per_head, 2) and the fit report."""
+    wh = canonical_boxes(points, [im.shape[:2] for im in images], input_hw, diameter_frac, seed=seed)
+    anchors = np.round(kmeans_anchors(wh, heads * per_head, seed=seed), 2)  # exact in the metadata text
+    fit = mean_best_iou(wh, anchors)
+    log(f"k-means anchors (input px, w x h) from {len(wh)} boxes: "
+        + ", ".join(f"{w:.2f}x{h:.2f}" for w, h in anchors) + f"; mean best IoU {fit:.3f}; "
+        f"box w median {np.median(wh[:, 0]):.2f} h median {np.median(wh[:, 1]):.2f}")
+    return anchors.reshape(heads, per_head, 2), {"boxes": int(len(wh)), "mean_best_iou": round(fit, 4)}
+
+
+def train(args, log=print) -> Path:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    samples = list_samples(args.data, "train", frame_step=args.frame_step)
+    if not samples:
+        raise SystemExit(f"{args.data}/train: no images found")
+    samples, images, points, pitches = load_images(samples, args.max_images, rng, log)
+    log(f"train images {len(images)}, markers {sum(len(p) for p in points)}, "
+        f"median pitch {np.nanmedian(pitches):.2f} px")
+    frac, frac_src = diameter_fraction(args.data)
+    if args.diameter_frac is not None:
+        frac, frac_src = args.diameter_frac, "--diameter-frac"
+    log(f"marker diameter = {frac:.3f} x local pitch ({frac_src})")
+    strides = tuple(int(s) for s in args.strides.split(","))
+    input_hw = (args.input_size, args.input_size)
+    anchors, fit = fit_anchors(points, images, input_hw, frac, len(strides), args.anchors_per_head, args.seed, log)
+    model = YoloV3(anchors, strides=strides, width=args.width)
+    log(f"YOLOv3 strides {strides} anchors/head {args.anchors_per_head} width {args.width}: "
+        f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
+    model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    cfg = AugConfig(crop=(args.crop, args.crop), input_size=input_hw)
+    budget_s = args.minutes * 60.0 if args.minutes else None
+    warm = 200
+    anchors_t = model.anchors.detach().clone()
+    t0 = time.time()
+    step, hist, last_log = 0, [], t0
+    model.train()
+    while True:
+        elapsed = time.time() - t0
+        if args.steps is not None:
+            frac_done = step / args.steps
+            if step >= args.steps:
+                break
+        else:
+            frac_done = elapsed / budget_s
+            if frac_done >= 1.0:
+                break
+        lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac_done, 1.0))))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng)
+        boxes = [marker_boxes(lab, frac) for lab in labels]
+        x = x.contiguous(memory_format=torch.channels_last)
+        maps = model.head_maps(x)
+        tg = build_targets(labels, boxes, [m.shape[1:3] for m in maps], strides, anchors_t.numpy(),
+                           float(args.crop * args.crop))
+        loss, lo, lb, ce = yolo_loss(maps, tg, strides, anchors_t, args.ignore_iou)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        opt.step()
+        hist.append((loss.item(), lo.item(), lb.item(), ce.item(), tg.collisions, tg.assigned, tg.fallbacks))
+        step += 1
+        now = time.time()
+        if now - last_log > args.log_every_s or step == 1:
+            h = np.asarray(hist[-50:])
+            log(f"step {step} t {now - t0:.0f}s lr {lr:.2e} loss {h[:, 0].mean():.4f} obj {h[:, 1].mean():.4f} "
+                f"box {h[:, 2].mean():.4f} centre_err {h[:, 3].mean():.3f}px fallbacks {int(h[:, 6].sum())} "
+                f"collisions {int(h[:, 4].sum())}/{int(h[:, 4].sum() + h[:, 5].sum())} "
+                f"({step * args.batch / (now - t0):.0f} img/s)")
+            last_log = now
+    train_s = time.time() - t0
+    model = model.to(memory_format=torch.contiguous_format)
+    meta = {
+        "dataset": dataset_tag(args.data, len(images)),
+        "data_root": str(args.data),
+        "input_height": args.input_size,
+        "input_width": args.input_size,
+        "trained": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "train_seconds": round(train_s, 1),
+        "steps": step,
+        "threads": args.threads,
+        "diameter_frac": frac,
+        "diameter_frac_source": frac_src,
+        "anchor_fit": fit,
+        "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+        "aug": dataclasses.asdict(cfg),
+        "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
+    }
+    save_checkpoint(Path(args.out), model, meta)
+    log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
+    return Path(args.out)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="dataset root (has train/ val/ test/)")
+    p.add_argument("--out", type=Path, required=True, help="checkpoint file to write (.pt)")
+    p.add_argument("--minutes", type=float, default=40.0, help="wall-clock training budget")
+    p.add_argument("--steps", type=int, default=None, help="train this many steps instead of --minutes")
+    p.add_argument("--strides", default="8,16", help="head strides, ascending (from 8, 16, 32)")
+    p.add_argument("--anchors-per-head", type=int, default=3)
+    p.add_argument("--width", type=int, default=8, help="base channel width")
+    p.add_argument("--input-size", type=int, default=416)
+    p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
+    p.add_argument("--batch", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--ignore-iou", type=float, default=0.5, help="YOLOv3 ignore threshold for negatives")
+    p.add_argument("--diameter-frac", type=float, default=None,
+                   help="dot diameter / pitch (default: from the dataset's sensor description)")
+    p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
+    p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-every-s", type=float, default=30.0)
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    if args.steps is None and not args.minutes:
+        print("give --minutes or --steps", file=sys.stderr)
+        return 2
+
+    def log(msg):
+        print(f"[{datetime.now().strftime('%H:%M:%S')}] {msg}", flush=True)
+
+    train(args, log)
+    log(json.dumps({"done": str(args.out)}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
