@@ -278,7 +278,7 @@ def train(args, log=print) -> Path:
     samples = list_samples(args.data, "train", frame_step=args.frame_step)
     if not samples:
         raise SystemExit(f"{args.data}/train: no images found")
-    samples, images, points, pitches = load_images(samples, args.max_images, rng, log)
+    samples, images, points, pitches = load_images(samples, args.max_images, rng, log, max_gb=args.max_gb)
     log(f"train images {len(images)}, markers {sum(len(p) for p in points)}, "
         f"median pitch {np.nanmedian(pitches):.2f} px")
     frac, frac_src = diameter_fraction(args.data)
@@ -375,6 +375,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--diameter-frac", type=float, default=None,
                    help="dot diameter / pitch (default: from the dataset's sensor description)")
     p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
+    p.add_argument("--max-gb", type=float, default=3.0, help="memory budget for the decoded images")
     p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
