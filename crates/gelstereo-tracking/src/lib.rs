@@ -3,6 +3,8 @@
 //! - [`tracker`]: ids (grid indices from the reference frame) followed frame to frame in one view,
 //!   with motion prediction, k-d tree association, neighbour-based prediction of missed markers and
 //!   re-acquisition.
+//! - [`slip`]: per-frame slip state from the 3-D field; [`planar`]: contact and slip of mono sensors.
+//! - [`session`]: whole recordings, stereo and mono, producing the `markers.csv` / `frames.csv` rows.
 //! - [`contact`]: the marker mesh, indentation depth, contact region, area, centroid, largest depth.
 //!
 //! # Conventions
@@ -15,10 +17,16 @@
 
 pub mod contact;
 pub mod error;
+pub mod planar;
+pub mod session;
+pub mod slip;
 #[cfg(test)]
 mod synthetic;
 pub mod tracker;
 
 pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
 pub use error::{Error, Result};
+pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
+pub use session::{MonoFrame, MonoSession, SessionConfig, StereoFrame, StereoSession, flagged_rows};
+pub use slip::{SlipConfig, SlipDetector, SlipFrame};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

@@ -1,0 +1,127 @@
+//! Contact geometry and slip on the simulator's exact 3-D marker positions (its `markers.csv`,
+//! no images, no detector), against its per-frame ground truth (`frames.csv`): the development loop
+//! of `docs/tracking.md`, used to choose the defaults of `ContactConfig` and `SlipConfig`.
+//!
+//! `cargo run --release -p gelstereo-tracking --example truth_eval -- [--noise MM] REC...`
+//! (a recording folder per experiment; `VERBOSE=1` prints every contact frame).
+
+use std::path::Path;
+
+use gelstereo_core::{CsvTable, FrameSummary, GridShape, MarkerRecord, SlipState};
+use gelstereo_tracking::{ContactConfig, ReferenceSurface, SlipConfig, SlipDetector};
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let mut noise = 0.0;
+    if args.first().is_some_and(|a| a == "--noise") && args.len() > 1 {
+        noise = args[1].parse()?;
+        args.drain(..2);
+    }
+    let verbose = std::env::var("VERBOSE").is_ok();
+    let (mut area_ok, mut depth_ok, mut cent_ok, mut cmp) = (0usize, 0usize, 0usize, 0usize);
+    let mut conf = [[0usize; 4]; 4];
+    let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
+    let mut slip_before_contact = 0;
+    let mut onset_err = Vec::new();
+    let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for rec in &args {
+        let rec = Path::new(rec);
+        let markers = CsvTable::read(&rec.join("markers.csv"))?;
+        let frames = CsvTable::read(&rec.join("frames.csv"))?;
+        let rows: Vec<MarkerRecord> = (0..markers.len())
+            .map(|r| MarkerRecord::from_table(&markers, r))
+            .collect::<Result<_, _>>()?;
+        let truth: Vec<FrameSummary> = (0..frames.len())
+            .map(|r| FrameSummary::from_table(&frames, r))
+            .collect::<Result<_, _>>()?;
+        let shape = GridShape {
+            rows: rows.iter().map(|m| m.index.row).max().unwrap_or(0) + 1,
+            cols: rows.iter().map(|m| m.index.col).max().unwrap_or(0) + 1,
+        };
+        let mut per_frame: Vec<Vec<Option<[f64; 3]>>> = vec![vec![None; shape.count()]; truth.len()];
+        for m in &rows {
+            if let (Some(lin), Some(p)) = (shape.linear(m.index), m.position_mm)
+                && let Some(slot) = per_frame.get_mut(m.frame as usize)
+            {
+                slot[lin] = Some(p.map(|v| v + noise * (2.0 * uniform() - 1.0) * 3f64.sqrt()));
+            }
+        }
+        let surface = ReferenceSurface::new(shape, &per_frame[0])?;
+        let mut det = SlipDetector::new(SlipConfig::default())?;
+        let (mut gt_onset, mut est_onset) = (None, None);
+        let mut touched = false;
+        for (f, gt) in truth.iter().enumerate() {
+            let c = surface.analyze(&per_frame[f], &ContactConfig::default())?;
+            let sl = det.update(&surface, &c);
+            touched |= gt.contact;
+            if !touched && sl.state != SlipState::NoContact && sl.state != SlipState::Stick {
+                slip_before_contact += 1;
+            }
+            conf[gt.slip as usize][sl.state as usize] += 1;
+            let (g, p) = (gt.slip == SlipState::GrossSlip, sl.state == SlipState::GrossSlip);
+            tp += usize::from(g && p);
+            fp += usize::from(!g && p);
+            fneg += usize::from(g && !p);
+            if g && gt_onset.is_none() {
+                gt_onset = Some(f);
+            }
+            if p && est_onset.is_none() {
+                est_onset = Some(f);
+            }
+            let ce = match (gt.centroid_mm, c.centroid_mm) {
+                (Some(a), Some(b)) => (a[0] - b.x).hypot(a[1] - b.y),
+                _ => f64::INFINITY,
+            };
+            let ae = (c.contact_area_mm2 - gt.contact_area_mm2) / gt.contact_area_mm2.max(1e-9);
+            let de = c.max_depth_mm - gt.max_depth_mm;
+            // Geometry is scored where the contact is established (ground-truth depth >= 0.1 mm).
+            if gt.max_depth_mm >= 0.1 {
+                cmp += 1;
+                area_ok += usize::from(ae.abs() <= 0.1);
+                depth_ok += usize::from(de.abs() <= 0.05);
+                cent_ok += usize::from(ce <= 0.2);
+            }
+            if verbose && (gt.contact || c.contact) {
+                println!(
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3}",
+                    rec.display(),
+                    c.contact_area_mm2,
+                    gt.contact_area_mm2,
+                    ae,
+                    c.max_depth_mm,
+                    gt.max_depth_mm,
+                    ce,
+                    sl.state.as_str(),
+                    gt.slip.as_str(),
+                    sl.stick_fraction,
+                    sl.drift_mm,
+                    sl.shear_mm.norm()
+                );
+            }
+        }
+        match (gt_onset, est_onset) {
+            (Some(a), Some(b)) => onset_err.push(b as i64 - a as i64),
+            (None, None) => {}
+            _ => onset_err.push(999),
+        }
+    }
+    let pct = |a: usize| 100.0 * a as f64 / cmp.max(1) as f64;
+    println!(
+        "frames with depth >= 0.1 mm: {cmp}; area within 10%: {:.1}%, depth within 0.05 mm: {:.1}%, centroid within 0.2 mm: {:.1}%",
+        pct(area_ok),
+        pct(depth_ok),
+        pct(cent_ok)
+    );
+    let f1 = 2.0 * tp as f64 / (2 * tp + fp + fneg).max(1) as f64;
+    println!(
+        "gross slip F1 {f1:.3} (tp {tp} fp {fp} fn {fneg}); slip before contact {slip_before_contact}; onset errors {onset_err:?}"
+    );
+    println!("confusion (rows truth, cols estimate; no_contact stick partial gross): {conf:?}");
+    Ok(())
+}

@@ -1,0 +1,491 @@
+//! Contact geometry from the 3-D marker field: the deformed surface as a triangle mesh over the
+//! marker lattice, indentation depth, contact region, area, centroid and largest depth.
+//!
+//! - The **reference surface** is the triangle mesh of the reference (no-contact) marker positions:
+//!   each lattice cell with four markers gives two triangles (one with three). Vertex normals are the
+//!   area-weighted normals of the triangles around a vertex, oriented away from the left camera
+//!   (from the cameras through the gel towards the object).
+//! - **Indentation depth** of a marker is its displacement against the reference along the reversed
+//!   normal: positive when the surface is pushed towards the cameras.
+//! - The **contact region** is where the depth, linearly interpolated over the mesh triangles,
+//!   exceeds `max(min_depth_mm, relative_depth * max_depth)`: under an elastic contact the surface
+//!   takes the indenter's shape and the depth falls off steeply at the contact edge (for a sphere
+//!   on an elastic half-space the edge depth is exactly half the central one, Johnson, *Contact
+//!   Mechanics*, 1985, §4.2). Area and centroid are integrated exactly over the clipped triangles of
+//!   the deformed mesh, so they resolve the contact edge below the marker pitch.
+//! - The **largest depth** is refined below the pitch by a least-squares paraboloid over the 3 x 3
+//!   markers around the deepest one, when the fit is concave and its apex lies inside that patch.
+
+use gelstereo_core::{GridIndex, GridShape};
+use nalgebra::{Matrix6, Point3, Vector3, Vector6};
+
+use crate::error::{Error, Result, config_err};
+
+/// Settings of the contact estimate. Defaults were chosen on the simulated training split
+/// (`docs/tracking.md`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContactConfig {
+    /// A frame is in contact when its largest depth exceeds this, mm. 0.03: three times the depth
+    /// noise of the reference rig's triangulation (about 0.01 mm for 0.1 px of disparity noise).
+    pub min_depth_mm: f64,
+    /// Contact threshold as a fraction of the frame's largest depth (see the module docs).
+    pub relative_depth: f64,
+    /// Whether to refine the largest depth with a local paraboloid.
+    pub refine_peak: bool,
+}
+
+impl Default for ContactConfig {
+    fn default() -> Self {
+        Self {
+            min_depth_mm: 0.03,
+            relative_depth: 0.5,
+            refine_peak: true,
+        }
+    }
+}
+
+impl ContactConfig {
+    /// Checks every field's range.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.min_depth_mm.is_finite() && self.min_depth_mm > 0.0 && self.min_depth_mm < 10.0) {
+            return Err(config_err(
+                "min_depth_mm",
+                "a depth in (0, 10) mm",
+                self.min_depth_mm,
+            ));
+        }
+        if !(self.relative_depth.is_finite() && (0.0..1.0).contains(&self.relative_depth)) {
+            return Err(config_err(
+                "relative_depth",
+                "a fraction in [0, 1)",
+                self.relative_depth,
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A triangle of the marker mesh: three row-major lattice positions.
+pub type Triangle = [u32; 3];
+
+/// The reference surface: marker positions of the reference frame, the mesh over them and its normals.
+#[derive(Debug, Clone)]
+pub struct ReferenceSurface {
+    shape: GridShape,
+    positions_mm: Vec<Option<Point3<f64>>>,
+    normals: Vec<Option<Vector3<f64>>>,
+    triangles: Vec<Triangle>,
+    plane_normal: Vector3<f64>,
+}
+
+impl ReferenceSurface {
+    /// Builds the surface from the reference positions, mm, dense over `shape` (row-major, `None`
+    /// where a marker is missing). Needs at least one triangle.
+    pub fn new(shape: GridShape, positions_mm: &[Option<[f64; 3]>]) -> Result<Self> {
+        if positions_mm.len() != shape.count() {
+            return Err(Error::Mismatch {
+                what: "reference positions",
+                expected: format!(
+                    "{} entries ({}x{} lattice)",
+                    shape.count(),
+                    shape.rows,
+                    shape.cols
+                ),
+                found: format!("{} entries", positions_mm.len()),
+            });
+        }
+        let mut pos = Vec::with_capacity(positions_mm.len());
+        for (k, p) in positions_mm.iter().enumerate() {
+            pos.push(match p {
+                Some(p) if p.iter().all(|v| v.is_finite()) => Some(Point3::from(*p)),
+                Some(p) => {
+                    return Err(Error::NotFinite {
+                        what: format!("reference position {k}"),
+                        found: format!("{p:?}"),
+                    });
+                }
+                None => None,
+            });
+        }
+        let triangles = mesh_triangles(shape, &pos);
+        if triangles.is_empty() {
+            return Err(Error::Reference {
+                expected: "3-D markers forming at least one lattice triangle".into(),
+                found: format!(
+                    "{} marker(s) with 3-D positions, no triangle",
+                    pos.iter().flatten().count()
+                ),
+            });
+        }
+        // Plane normal: mean of the triangles' normals, oriented away from the camera at the origin.
+        let mut sum = Vector3::zeros();
+        let mut centre = Vector3::zeros();
+        let mut count = 0.0;
+        for t in &triangles {
+            let [a, b, c] = t.map(|i| pos[i as usize].unwrap_or(Point3::origin()));
+            sum += (b - a).cross(&(c - a));
+            centre += a.coords;
+            count += 1.0;
+        }
+        let mut plane_normal = sum.try_normalize(1e-12).unwrap_or(Vector3::z());
+        if plane_normal.dot(&(centre / count)) < 0.0 {
+            plane_normal = -plane_normal;
+        }
+        let mut normals = vec![Vector3::zeros(); pos.len()];
+        for t in &triangles {
+            let [a, b, c] = t.map(|i| pos[i as usize].unwrap_or(Point3::origin()));
+            let mut n = (b - a).cross(&(c - a));
+            if n.dot(&plane_normal) < 0.0 {
+                n = -n;
+            }
+            for &i in t {
+                normals[i as usize] += n;
+            }
+        }
+        let normals = normals
+            .into_iter()
+            .zip(&pos)
+            .map(|(n, p)| p.map(|_| n.try_normalize(1e-12).unwrap_or(plane_normal)))
+            .collect();
+        Ok(Self {
+            shape,
+            positions_mm: pos,
+            normals,
+            triangles,
+            plane_normal,
+        })
+    }
+
+    /// The lattice.
+    pub fn shape(&self) -> GridShape {
+        self.shape
+    }
+
+    /// Reference positions, mm, row-major.
+    pub fn positions_mm(&self) -> &[Option<Point3<f64>>] {
+        &self.positions_mm
+    }
+
+    /// Unit normal at each marker (away from the cameras), row-major.
+    pub fn normals(&self) -> &[Option<Vector3<f64>>] {
+        &self.normals
+    }
+
+    /// The mesh's triangles (row-major lattice positions), in a deterministic order.
+    pub fn triangles(&self) -> &[Triangle] {
+        &self.triangles
+    }
+
+    /// Mean normal of the surface (away from the cameras).
+    pub fn plane_normal(&self) -> Vector3<f64> {
+        self.plane_normal
+    }
+
+    /// Analyses one frame: `current_mm` holds the frame's 3-D marker positions, dense over the
+    /// lattice like the reference (`None` where a marker is lost).
+    pub fn analyze(&self, current_mm: &[Option<[f64; 3]>], config: &ContactConfig) -> Result<ContactFrame> {
+        config.validate()?;
+        if current_mm.len() != self.positions_mm.len() {
+            return Err(Error::Mismatch {
+                what: "frame positions",
+                expected: format!("{} entries like the reference", self.positions_mm.len()),
+                found: format!("{} entries", current_mm.len()),
+            });
+        }
+        let n = current_mm.len();
+        let mut positions = vec![None; n];
+        let mut displacement = vec![None; n];
+        let mut depth = vec![None; n];
+        for k in 0..n {
+            let (Some(r), Some(nrm), Some(c)) = (self.positions_mm[k], self.normals[k], current_mm[k]) else {
+                continue;
+            };
+            if !c.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            let c = Point3::from(c);
+            let d = c - r;
+            positions[k] = Some(c);
+            displacement[k] = Some(d);
+            depth[k] = Some(-d.dot(&nrm));
+        }
+        let (peak_index, marker_max) = depth
+            .iter()
+            .enumerate()
+            .filter_map(|(k, d)| d.map(|d| (k, d)))
+            .fold(
+                (None, 0.0f64),
+                |(bk, bd), (k, d)| if d > bd { (Some(k), d) } else { (bk, bd) },
+            );
+        let max_depth = match (config.refine_peak, peak_index) {
+            (true, Some(k)) => refine_peak(self.shape, &depth, k).unwrap_or(marker_max),
+            _ => marker_max,
+        };
+        let contact = max_depth > config.min_depth_mm;
+        let threshold = config.min_depth_mm.max(config.relative_depth * max_depth);
+        let mut area = 0.0;
+        let mut moment = Vector3::zeros();
+        let mut ref_area = 0.0;
+        let mut ref_moment = Vector3::zeros();
+        let mut in_contact = vec![false; n];
+        if contact {
+            for k in 0..n {
+                in_contact[k] = depth[k].is_some_and(|d| d > threshold);
+            }
+            for t in &self.triangles {
+                let idx = t.map(|i| i as usize);
+                let (Some(p0), Some(p1), Some(p2)) =
+                    (positions[idx[0]], positions[idx[1]], positions[idx[2]])
+                else {
+                    continue;
+                };
+                let (Some(d0), Some(d1), Some(d2)) = (depth[idx[0]], depth[idx[1]], depth[idx[2]]) else {
+                    continue;
+                };
+                let f = [d0 - threshold, d1 - threshold, d2 - threshold];
+                let (a, m) = clipped_area_moment([p0, p1, p2], f);
+                area += a;
+                moment += m;
+                let r = idx.map(|i| self.positions_mm[i].unwrap_or(Point3::origin()));
+                let (a, m) = clipped_area_moment(r, f);
+                ref_area += a;
+                ref_moment += m;
+            }
+        }
+        let centroid = (contact && area > 0.0).then(|| Point3::from(moment / area));
+        let material_centroid = (contact && ref_area > 0.0).then(|| Point3::from(ref_moment / ref_area));
+        Ok(ContactFrame {
+            positions_mm: positions,
+            displacement_mm: displacement,
+            depth_mm: depth,
+            in_contact,
+            contact: contact && area > 0.0,
+            contact_area_mm2: if contact { area } else { 0.0 },
+            max_depth_mm: max_depth.max(0.0),
+            centroid_mm: centroid,
+            material_centroid_mm: material_centroid,
+            threshold_mm: threshold,
+            peak: peak_index.and_then(|k| index_of(self.shape, k)),
+        })
+    }
+}
+
+/// Contact geometry of one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContactFrame {
+    /// Deformed marker positions, mm, row-major (`None` where lost).
+    pub positions_mm: Vec<Option<Point3<f64>>>,
+    /// 3-D displacement against the reference, mm, row-major.
+    pub displacement_mm: Vec<Option<Vector3<f64>>>,
+    /// Indentation depth (positive towards the cameras), mm, row-major.
+    pub depth_mm: Vec<Option<f64>>,
+    /// Whether each marker lies in the contact region.
+    pub in_contact: Vec<bool>,
+    /// Whether anything touches the gel.
+    pub contact: bool,
+    /// Contact area on the deformed surface, mm^2.
+    pub contact_area_mm2: f64,
+    /// Largest indentation depth, mm (refined below the pitch; 0 without any depth).
+    pub max_depth_mm: f64,
+    /// Area centroid of the contact region on the deformed surface, left camera frame, mm.
+    pub centroid_mm: Option<Point3<f64>>,
+    /// Centroid of the contact region mapped back onto the reference surface (material
+    /// coordinates), mm: it stays put while the contact sticks and moves when the object slides
+    /// across the gel.
+    pub material_centroid_mm: Option<Point3<f64>>,
+    /// The depth threshold that delimits the contact region in this frame, mm.
+    pub threshold_mm: f64,
+    /// The deepest marker.
+    pub peak: Option<GridIndex>,
+}
+
+fn index_of(shape: GridShape, k: usize) -> Option<GridIndex> {
+    let cols = usize::from(shape.cols);
+    (k < shape.count()).then(|| GridIndex::new((k / cols) as u16, (k % cols) as u16))
+}
+
+/// Triangles over the lattice cells whose corners are present: two per full cell (split along the
+/// diagonal from top-left to bottom-right), one when exactly three corners are present.
+pub fn mesh_triangles<T>(shape: GridShape, present: &[Option<T>]) -> Vec<Triangle> {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let mut out = Vec::new();
+    if present.len() != rows * cols {
+        return out;
+    }
+    for r in 0..rows.saturating_sub(1) {
+        for c in 0..cols.saturating_sub(1) {
+            let tl = r * cols + c;
+            let (tr, bl, br) = (tl + 1, tl + cols, tl + cols + 1);
+            let has = |k: usize| present[k].is_some();
+            match (has(tl), has(tr), has(bl), has(br)) {
+                (true, true, true, true) => {
+                    out.push([tl as u32, tr as u32, br as u32]);
+                    out.push([tl as u32, br as u32, bl as u32]);
+                }
+                (true, true, true, false) => out.push([tl as u32, tr as u32, bl as u32]),
+                (true, true, false, true) => out.push([tl as u32, tr as u32, br as u32]),
+                (true, false, true, true) => out.push([tl as u32, br as u32, bl as u32]),
+                (false, true, true, true) => out.push([tr as u32, br as u32, bl as u32]),
+                _ => {}
+            }
+        }
+    }
+    out
+}
+
+/// Area and first moment (area x centroid) of the part of triangle `p` where the linear function
+/// with vertex values `f` is positive.
+fn clipped_area_moment(p: [Point3<f64>; 3], f: [f64; 3]) -> (f64, Vector3<f64>) {
+    let mut poly: Vec<Point3<f64>> = Vec::with_capacity(4);
+    for i in 0..3 {
+        let j = (i + 1) % 3;
+        if f[i] > 0.0 {
+            poly.push(p[i]);
+        }
+        if (f[i] > 0.0) != (f[j] > 0.0) {
+            let t = f[i] / (f[i] - f[j]);
+            poly.push(p[i] + (p[j] - p[i]) * t);
+        }
+    }
+    if poly.len() < 3 {
+        return (0.0, Vector3::zeros());
+    }
+    let mut area = 0.0;
+    let mut moment = Vector3::zeros();
+    for k in 1..poly.len() - 1 {
+        let (a, b, c) = (poly[0], poly[k], poly[k + 1]);
+        let s = 0.5 * (b - a).cross(&(c - a)).norm();
+        area += s;
+        moment += s * (a.coords + b.coords + c.coords) / 3.0;
+    }
+    (area, moment)
+}
+
+/// The apex of a least-squares paraboloid `z = a + b u + c v + d u^2 + e uv + f v^2` over the 3 x 3
+/// lattice neighbourhood of `k` (u, v in lattice steps), when all nine depths exist, the fit is
+/// concave and its apex lies within one step; `None` otherwise.
+fn refine_peak(shape: GridShape, depth: &[Option<f64>], k: usize) -> Option<f64> {
+    let cols = usize::from(shape.cols);
+    let (r, c) = (k / cols, k % cols);
+    if r == 0 || c == 0 || r + 1 >= usize::from(shape.rows) || c + 1 >= cols {
+        return None;
+    }
+    let mut ata = Matrix6::<f64>::zeros();
+    let mut atb = Vector6::<f64>::zeros();
+    for dv in -1i32..=1 {
+        for du in -1i32..=1 {
+            let kk = (r as i64 + i64::from(dv)) as usize * cols + (c as i64 + i64::from(du)) as usize;
+            let z = depth.get(kk).copied().flatten()?;
+            let (u, v) = (f64::from(du), f64::from(dv));
+            let row = Vector6::new(1.0, u, v, u * u, u * v, v * v);
+            ata += row * row.transpose();
+            atb += row * z;
+        }
+    }
+    let s = ata.cholesky()?.solve(&atb);
+    let (a, b, cc, d, e, f) = (s[0], s[1], s[2], s[3], s[4], s[5]);
+    // Apex: gradient zero: [2d e; e 2f] [u v]^T = -[b c]^T.
+    let det = 4.0 * d * f - e * e;
+    if !(d < 0.0 && det > 0.0) {
+        return None;
+    }
+    let u = (-2.0 * f * b + e * cc) / det;
+    let v = (-2.0 * d * cc + e * b) / det;
+    if u.abs() > 1.0 || v.abs() > 1.0 {
+        return None;
+    }
+    let z = a + b * u + cc * v + d * u * u + e * u * v + f * v * v;
+    z.is_finite().then_some(z)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    type Positions = Vec<Option<[f64; 3]>>;
+
+    /// A flat 23 x 23 lattice, pitch 0.8 mm, 24 mm in front of the camera, and the same lattice
+    /// pressed by a spherical cap of radius `radius_mm` to `depth_mm` at (`cx`, `cy`): depth
+    /// `d - r^2 / 2R` inside the cap (towards the camera, i.e. -z), 0 outside.
+    fn lattice(radius_mm: f64, depth_mm: f64, cx: f64, cy: f64) -> (GridShape, Positions, Positions) {
+        let shape = GridShape::REFERENCE;
+        let mut rest = Vec::new();
+        let mut pressed = Vec::new();
+        for i in shape.indices() {
+            let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+            let r2 = (x - cx).powi(2) + (y - cy).powi(2);
+            let w = (depth_mm - r2 / (2.0 * radius_mm)).max(0.0);
+            rest.push(Some([x, y, 24.0]));
+            pressed.push(Some([x, y, 24.0 - w]));
+        }
+        (shape, rest, pressed)
+    }
+
+    #[test]
+    fn spherical_cap_area_centroid_and_depth_resolve_below_the_pitch() {
+        // Apex between markers; the half-depth contour of the cap is the circle r^2 = R d.
+        let (shape, rest, pressed) = lattice(4.0, 0.6, 0.33, -0.21);
+        let surface = ReferenceSurface::new(shape, &rest).unwrap();
+        assert!(
+            (surface.plane_normal() - Vector3::z()).norm() < 1e-9,
+            "normal points away from the camera"
+        );
+        let f = surface.analyze(&pressed, &ContactConfig::default()).unwrap();
+        let want_area = std::f64::consts::PI * 4.0 * 0.6;
+        assert!(f.contact);
+        // Linear interpolation of the concave cap over 0.8 mm triangles lies up to h^2/8R = 0.02 mm
+        // below it, moving the contour inwards by about 0.05 mm: 6 % of the area at most.
+        assert!(
+            (f.contact_area_mm2 - want_area).abs() < 0.07 * want_area,
+            "area {} vs {want_area}",
+            f.contact_area_mm2
+        );
+        let c = f.centroid_mm.unwrap();
+        assert!(
+            (c.x - 0.33).abs() < 0.03 && (c.y + 0.21).abs() < 0.03,
+            "centroid {c:?}"
+        );
+        // The deepest marker is 0.01-0.05 mm shallower than the apex; the paraboloid recovers it.
+        assert!(
+            (f.max_depth_mm - 0.6).abs() < 0.005,
+            "max depth {}",
+            f.max_depth_mm
+        );
+        let unrefined = surface
+            .analyze(
+                &pressed,
+                &ContactConfig {
+                    refine_peak: false,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+        assert!(unrefined.max_depth_mm < 0.6 - 0.005);
+        assert_eq!(surface.triangles().len(), 2 * 22 * 22);
+    }
+
+    #[test]
+    fn no_press_is_no_contact_and_missing_markers_are_tolerated() {
+        let (shape, rest, _) = lattice(4.0, 0.0, 0.0, 0.0);
+        let surface = ReferenceSurface::new(shape, &rest).unwrap();
+        let f = surface.analyze(&rest, &ContactConfig::default()).unwrap();
+        assert!(!f.contact && f.contact_area_mm2 == 0.0 && f.centroid_mm.is_none() && f.max_depth_mm == 0.0);
+        let (_, _, mut pressed) = lattice(4.0, 0.5, 0.0, 0.0);
+        pressed[11 * 23 + 11] = None;
+        pressed[5] = None;
+        let f = surface.analyze(&pressed, &ContactConfig::default()).unwrap();
+        assert!(f.contact && f.depth_mm[5].is_none());
+        let short = surface
+            .analyze(&pressed[..10], &ContactConfig::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            short.contains("frame positions") && short.contains("529"),
+            "{short}"
+        );
+        let none = ReferenceSurface::new(shape, &vec![None; 529])
+            .unwrap_err()
+            .to_string();
+        assert!(none.contains("no triangle"), "{none}");
+    }
+}

@@ -1,0 +1,505 @@
+//! Whole-recording sessions: tracking in each view, triangulation, displacement, contact and slip,
+//! frame after frame, producing the rows of `markers.csv` and `frames.csv`.
+//!
+//! - [`StereoSession`]: two views, 3-D through the calibrated rig.
+//! - [`MonoSession`]: one view (e.g. a GelSight Mini): 2-D displacement, contact and slip from the
+//!   in-plane field (see [`crate::planar`]).
+
+use gelstereo_core::{FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, SlipState};
+use gelstereo_geometry::Triangulator;
+use nalgebra::{Point3, Vector3};
+
+use crate::contact::{ContactConfig, ContactFrame, ReferenceSurface};
+use crate::error::Result;
+use crate::planar::{PlanarConfig, PlanarDetector, PlanarFrame};
+use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
+use crate::tracker::{TrackFrame, Tracker, TrackerConfig};
+
+/// All settings of a session.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SessionConfig {
+    /// The per-view tracker.
+    pub tracker: TrackerConfig,
+    /// Contact geometry (stereo).
+    pub contact: ContactConfig,
+    /// Slip (stereo).
+    pub slip: SlipConfig,
+    /// Contact and slip of mono sensors.
+    pub planar: PlanarConfig,
+}
+
+/// One tracked stereo frame.
+#[derive(Debug, Clone)]
+pub struct StereoFrame {
+    /// Rows of `markers.csv`, one per id, in id order.
+    pub markers: Vec<MarkerRecord>,
+    /// The row of `frames.csv`.
+    pub summary: FrameSummary,
+    /// Tracking in the left view.
+    pub left: TrackFrame,
+    /// Tracking in the right view.
+    pub right: TrackFrame,
+    /// Contact geometry (per-marker depth and displacement, dense over the lattice).
+    pub contact: ContactFrame,
+    /// Slip signals.
+    pub slip: SlipFrame,
+}
+
+/// Tracks a stereo recording from its reference frame on.
+#[derive(Debug, Clone)]
+pub struct StereoSession {
+    shape: GridShape,
+    left: Tracker,
+    right: Tracker,
+    triangulator: Triangulator,
+    surface: ReferenceSurface,
+    slip: SlipDetector,
+    config: SessionConfig,
+    /// Lattice position -> slot in the left / right tracker.
+    left_slot: Vec<Option<usize>>,
+    right_slot: Vec<Option<usize>>,
+    /// Ids in either view, row-major.
+    ids: Vec<GridIndex>,
+    reference_mm: Vec<Option<[f64; 3]>>,
+}
+
+impl StereoSession {
+    /// Starts on the reference frame: the indexed markers of each view (grid index, px). Markers
+    /// indexed in both views and triangulated within the rig's bound form the reference surface.
+    pub fn new(
+        shape: GridShape,
+        left: &[(GridIndex, Point2)],
+        right: &[(GridIndex, Point2)],
+        triangulator: Triangulator,
+        config: SessionConfig,
+    ) -> Result<Self> {
+        let left = Tracker::new(shape, left, config.tracker.clone())?;
+        let right = Tracker::new(shape, right, config.tracker.clone())?;
+        let slot = |t: &Tracker| {
+            let mut s = vec![None; shape.count()];
+            for (k, id) in t.ids().iter().enumerate() {
+                if let Some(lin) = shape.linear(*id) {
+                    s[lin] = Some(k);
+                }
+            }
+            s
+        };
+        let (left_slot, right_slot) = (slot(&left), slot(&right));
+        let ids: Vec<GridIndex> = shape
+            .indices()
+            .filter(|i| {
+                shape
+                    .linear(*i)
+                    .is_some_and(|l| left_slot[l].is_some() || right_slot[l].is_some())
+            })
+            .collect();
+        let mut reference_mm = vec![None; shape.count()];
+        for lin in 0..shape.count() {
+            if let (Some(a), Some(b)) = (left_slot[lin], right_slot[lin])
+                && let Ok(t) = triangulator.triangulate(left.reference_px()[a], right.reference_px()[b])
+            {
+                let p = t.p_in_left_mm;
+                reference_mm[lin] = Some([p.x, p.y, p.z]);
+            }
+        }
+        let surface = ReferenceSurface::new(shape, &reference_mm)?;
+        let slip = SlipDetector::new(config.slip.clone())?;
+        config.contact.validate()?;
+        Ok(Self {
+            shape,
+            left,
+            right,
+            triangulator,
+            surface,
+            slip,
+            config,
+            left_slot,
+            right_slot,
+            ids,
+            reference_mm,
+        })
+    }
+
+    /// The ids written per frame (indexed in either view on the reference frame), row-major.
+    pub fn ids(&self) -> &[GridIndex] {
+        &self.ids
+    }
+
+    /// The lattice.
+    pub fn shape(&self) -> GridShape {
+        self.shape
+    }
+
+    /// The reference surface (mesh, normals).
+    pub fn surface(&self) -> &ReferenceSurface {
+        &self.surface
+    }
+
+    /// The left view's tracker.
+    pub fn left(&self) -> &Tracker {
+        &self.left
+    }
+
+    /// The right view's tracker.
+    pub fn right(&self) -> &Tracker {
+        &self.right
+    }
+
+    /// Makes the latest frame the new reference (drift correction): the 2-D trackers re-zero, the
+    /// reference surface is rebuilt from the latest 3-D positions and the slip history restarts.
+    pub fn rezero(&mut self, latest: &ContactFrame) -> Result<()> {
+        let positions: Vec<Option<[f64; 3]>> = latest
+            .positions_mm
+            .iter()
+            .map(|p| p.map(|p| [p.x, p.y, p.z]))
+            .collect();
+        let surface = ReferenceSurface::new(self.shape, &positions)?;
+        self.left.rezero();
+        self.right.rezero();
+        self.surface = surface;
+        self.reference_mm = positions;
+        self.slip.reset();
+        Ok(())
+    }
+
+    /// Tracks frame number `frame` given the detections of each view (px).
+    pub fn track(&mut self, frame: u32, left: &[Point2], right: &[Point2]) -> Result<StereoFrame> {
+        let lf = self.left.update(left);
+        let rf = self.right.update(right);
+        let n = self.shape.count();
+        let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); n];
+        for (lin, entry) in px.iter_mut().enumerate() {
+            if let Some(k) = self.left_slot[lin] {
+                entry.0 = lf.markers[k].position_px;
+                entry.2 = lf.markers[k].status;
+            }
+            if let Some(k) = self.right_slot[lin] {
+                entry.1 = rf.markers[k].position_px;
+                entry.3 = rf.markers[k].status;
+            }
+        }
+        let mut current: Vec<Option<[f64; 3]>> = vec![None; n];
+        for lin in 0..n {
+            if let (Some(l), Some(r)) = (px[lin].0, px[lin].1)
+                && let Ok(t) = self.triangulator.triangulate(l, r)
+            {
+                let p = t.p_in_left_mm;
+                current[lin] = Some([p.x, p.y, p.z]);
+            }
+        }
+        let measured: Vec<bool> = current.iter().map(Option::is_some).collect();
+        // Markers without a 3-D point take their reference plus the mean 3-D displacement of their
+        // measured 8-neighbours.
+        let filled = fill_from_neighbours(self.shape, &self.reference_mm, &current);
+        let contact = self.surface.analyze(&filled, &self.config.contact)?;
+        let slip = self.slip.update(&self.surface, &contact);
+        let mut markers = Vec::with_capacity(self.ids.len());
+        for id in &self.ids {
+            let Some(lin) = self.shape.linear(*id) else {
+                continue;
+            };
+            let (l, r, ls, rs) = px[lin];
+            let position = filled[lin];
+            let status = if position.is_none() {
+                MarkerStatus::Lost
+            } else if measured[lin] && ls == MarkerStatus::Tracked && rs == MarkerStatus::Tracked {
+                MarkerStatus::Tracked
+            } else {
+                MarkerStatus::Predicted
+            };
+            let displacement = match (position, self.reference_mm[lin]) {
+                (Some(p), Some(r)) => Some([p[0] - r[0], p[1] - r[1], p[2] - r[2]]),
+                _ => None,
+            };
+            markers.push(MarkerRecord {
+                frame,
+                index: *id,
+                left_px: l,
+                right_px: r,
+                position_mm: position,
+                displacement_mm: displacement,
+                status: Some(status),
+            });
+        }
+        let summary = FrameSummary {
+            frame,
+            contact: contact.contact,
+            contact_area_mm2: contact.contact_area_mm2,
+            max_depth_mm: if contact.contact {
+                contact.max_depth_mm
+            } else {
+                0.0
+            },
+            centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
+            slip: slip.state,
+        };
+        Ok(StereoFrame {
+            markers,
+            summary,
+            left: lf,
+            right: rf,
+            contact,
+            slip,
+        })
+    }
+
+    /// A frame that could not be read or detected: every marker is written as lost and the frame as
+    /// without contact, so the tables have no gap; the trackers keep their state.
+    pub fn flagged(&self, frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
+        flagged_rows(&self.ids, frame)
+    }
+}
+
+/// Rows for a frame without data: every id lost, no contact.
+pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
+    let markers = ids
+        .iter()
+        .map(|id| MarkerRecord {
+            frame,
+            index: *id,
+            status: Some(MarkerStatus::Lost),
+            ..Default::default()
+        })
+        .collect();
+    let summary = FrameSummary {
+        frame,
+        contact: false,
+        contact_area_mm2: 0.0,
+        max_depth_mm: 0.0,
+        centroid_mm: None,
+        slip: SlipState::NoContact,
+    };
+    (markers, summary)
+}
+
+/// Dense positions where missing entries with a reference take the reference plus the mean
+/// displacement of their present 8-neighbours (that have a reference).
+fn fill_from_neighbours(
+    shape: GridShape,
+    reference: &[Option<[f64; 3]>],
+    current: &[Option<[f64; 3]>],
+) -> Vec<Option<[f64; 3]>> {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let mut out = current.to_vec();
+    for r in 0..rows {
+        for c in 0..cols {
+            let k = r * cols + c;
+            let (None, Some(rk)) = (current[k], reference[k]) else {
+                continue;
+            };
+            let mut sum = Vector3::zeros();
+            let mut count = 0.0;
+            for dr in -1i64..=1 {
+                for dc in -1i64..=1 {
+                    let (rr, cc) = (r as i64 + dr, c as i64 + dc);
+                    if (dr == 0 && dc == 0) || rr < 0 || cc < 0 || rr >= rows as i64 || cc >= cols as i64 {
+                        continue;
+                    }
+                    let j = rr as usize * cols + cc as usize;
+                    if let (Some(p), Some(q)) = (current[j], reference[j]) {
+                        sum += Vector3::from(p) - Vector3::from(q);
+                        count += 1.0;
+                    }
+                }
+            }
+            if count > 0.0 {
+                let p = Point3::from(rk) + sum / count;
+                out[k] = Some([p.x, p.y, p.z]);
+            }
+        }
+    }
+    out
+}
+
+/// One tracked mono frame.
+#[derive(Debug, Clone)]
+pub struct MonoFrame {
+    /// Rows of `markers.csv` (the `_left` columns filled), one per id, in id order.
+    pub markers: Vec<MarkerRecord>,
+    /// The row of `frames.csv`.
+    pub summary: FrameSummary,
+    /// Tracking.
+    pub track: TrackFrame,
+    /// In-plane contact and slip signals.
+    pub planar: PlanarFrame,
+}
+
+/// Tracks a mono (single camera) recording from its reference frame on.
+#[derive(Debug, Clone)]
+pub struct MonoSession {
+    tracker: Tracker,
+    detector: PlanarDetector,
+}
+
+impl MonoSession {
+    /// Starts on the reference frame's indexed markers (grid index, px).
+    pub fn new(shape: GridShape, reference: &[(GridIndex, Point2)], config: SessionConfig) -> Result<Self> {
+        let tracker = Tracker::new(shape, reference, config.tracker.clone())?;
+        let detector = PlanarDetector::new(config.planar.clone(), &tracker)?;
+        Ok(Self { tracker, detector })
+    }
+
+    /// The tracker.
+    pub fn tracker(&self) -> &Tracker {
+        &self.tracker
+    }
+
+    /// Makes the latest positions the new reference.
+    pub fn rezero(&mut self) {
+        self.tracker.rezero();
+        self.detector.reset();
+    }
+
+    /// Tracks frame number `frame` given its detections (px).
+    pub fn track(&mut self, frame: u32, detections: &[Point2]) -> Result<MonoFrame> {
+        let track = self.tracker.update(detections);
+        let planar = self.detector.update(&self.tracker, &track)?;
+        let markers = track
+            .markers
+            .iter()
+            .map(|m| MarkerRecord {
+                frame,
+                index: m.index,
+                left_px: m.position_px,
+                status: Some(m.status),
+                ..Default::default()
+            })
+            .collect();
+        let summary = FrameSummary {
+            frame,
+            contact: planar.contact,
+            contact_area_mm2: planar.contact_area_mm2,
+            max_depth_mm: 0.0,
+            centroid_mm: planar.centroid_mm,
+            slip: planar.state,
+        };
+        Ok(MonoFrame {
+            markers,
+            summary,
+            track,
+            planar,
+        })
+    }
+
+    /// Rows for a frame that could not be read (every id lost, no contact).
+    pub fn flagged(&self, frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
+        flagged_rows(self.tracker.ids(), frame)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gelstereo_core::ImageSize;
+    use gelstereo_geometry::{Camera, StereoRig, TriangulationConfig};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    fn rig() -> StereoRig {
+        let size = ImageSize {
+            width: 640,
+            height: 480,
+        };
+        let cam = Camera::pinhole(size, 520.0, 520.0, 319.5, 239.5);
+        // Right camera 10 mm to the right, turned 12 degrees towards the left one's axis.
+        let rot = UnitQuaternion::from_euler_angles(0.0, -0.2, 0.0);
+        StereoRig {
+            left: cam.clone(),
+            right: cam,
+            right_from_left: Isometry3::from_parts(Translation3::new(-10.0 * 0.98, 0.0, 2.0), rot),
+        }
+    }
+
+    /// Lattice 23 x 23, pitch 0.8 mm, 24 mm in front of the left camera, pressed by a cap of radius
+    /// 6 mm to `depth_mm` at (0.4, 0.2) mm.
+    fn scene(depth_mm: f64) -> Vec<Point3<f64>> {
+        GridShape::REFERENCE
+            .indices()
+            .map(|i| {
+                let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+                let w = (depth_mm - ((x - 0.4).powi(2) + (y - 0.2).powi(2)) / 12.0).max(0.0);
+                Point3::new(x, y, 24.0 - w)
+            })
+            .collect()
+    }
+
+    fn views(rig: &StereoRig, pts: &[Point3<f64>]) -> (Vec<Point2>, Vec<Point2>) {
+        pts.iter().filter_map(|p| rig.project(p)).unzip()
+    }
+
+    #[test]
+    fn stereo_session_tracks_triangulates_and_measures_a_press() {
+        let rig = rig();
+        let rest = scene(0.0);
+        let (l, r) = views(&rig, &rest);
+        assert_eq!(l.len(), 529);
+        let ids: Vec<GridIndex> = GridShape::REFERENCE.indices().collect();
+        let lref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(l.iter().copied()).collect();
+        let rref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(r.iter().copied()).collect();
+        let tri = Triangulator::new(rig.clone(), TriangulationConfig::default()).unwrap();
+        let mut s =
+            StereoSession::new(GridShape::REFERENCE, &lref, &rref, tri, SessionConfig::default()).unwrap();
+        let f0 = s.track(0, &l, &r).unwrap();
+        assert!(!f0.summary.contact && f0.summary.slip == SlipState::NoContact);
+        assert_eq!(f0.markers.len(), 529);
+        let mut last = None;
+        for (f, d) in [0.1, 0.2, 0.3, 0.4, 0.5].iter().enumerate() {
+            let pts = scene(*d);
+            let (mut l, r) = views(&rig, &pts);
+            l.remove(11 * 23 + 11); // the deepest marker is missed in the left view
+            let out = s.track(f as u32 + 1, &l, &r).unwrap();
+            last = Some((out, pts));
+        }
+        let (out, pts) = last.unwrap();
+        let centre = out
+            .markers
+            .iter()
+            .find(|m| m.index == GridIndex::new(11, 11))
+            .unwrap();
+        assert_eq!(centre.status, Some(MarkerStatus::Predicted));
+        for m in &out.markers {
+            let p = m.position_mm.unwrap();
+            let t = pts[GridShape::REFERENCE.linear(m.index).unwrap()];
+            let tol = if m.status == Some(MarkerStatus::Tracked) {
+                1e-6
+            } else {
+                0.05
+            };
+            assert!(
+                (Point3::from(p) - t).norm() < tol,
+                "{} {:?} {p:?} vs {t:?}",
+                m.index,
+                m.status
+            );
+        }
+        // Half-depth contour of the cap: area pi R d = pi 6 0.5.
+        let want = std::f64::consts::PI * 3.0;
+        assert!(
+            (out.summary.contact_area_mm2 - want).abs() < 0.07 * want,
+            "{}",
+            out.summary.contact_area_mm2
+        );
+        assert!(
+            (out.summary.max_depth_mm - 0.5).abs() < 0.02,
+            "{}",
+            out.summary.max_depth_mm
+        );
+        let c = out.summary.centroid_mm.unwrap();
+        assert!((c[0] - 0.4).abs() < 0.05 && (c[1] - 0.2).abs() < 0.05, "{c:?}");
+        assert_eq!(out.summary.slip, SlipState::Stick);
+
+        // An empty frame: nothing measured, every marker lost, rows still written.
+        let empty = s.track(7, &[], &[]).unwrap();
+        assert!(
+            empty
+                .markers
+                .iter()
+                .all(|m| m.status == Some(MarkerStatus::Lost) && m.position_mm.is_none())
+        );
+        assert!(!empty.summary.contact);
+        let (rows, summary) = s.flagged(8);
+        assert_eq!(
+            (rows.len(), summary.frame, summary.slip),
+            (529, 8, SlipState::NoContact)
+        );
+    }
+}

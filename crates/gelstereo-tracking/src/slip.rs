@@ -1,0 +1,247 @@
+//! Per-frame slip state from the 3-D displacement field: `no_contact | stick | partial_slip |
+//! gross_slip`.
+//!
+//! Two observations of the Cattaneo–Mindlin picture of a sheared elastic contact (Johnson, *Contact
+//! Mechanics*, 1985, §7.2; the marker-field reading of it follows Yuan et al., "Measurement of shear
+//! and slip with a GelSight tactile sensor", ICRA 2015, who detect slip as the displacement field
+//! inside the contact departing from the rigid motion of the object):
+//!
+//! - **Stick region.** Points that stick carry the object's rigid tangential displacement; points
+//!   that slip lag behind it. Projected on the mean shear direction, the tangential displacement of
+//!   the contact markers has a plateau at its maximum over the stick region and falls off where the
+//!   contact slips. The *stick fraction* is the share of contact markers on the plateau (within
+//!   `plateau_tolerance` of the 90th percentile, or `plateau_min_mm`). Below `stick_fraction` the
+//!   contact is in partial slip. This is a rigid-motion fit restricted to translation: the residual
+//!   of the fit is what leaves a marker off the plateau.
+//! - **Gross slip.** While anything sticks, the material under the object stays under it. Once the
+//!   whole contact slides, the contact region moves across the gel: its centroid in material
+//!   (reference) coordinates drifts, in the direction in which the object drags the surface. Gross
+//!   slip is a drift of more than `drift_mm_per_frame` along the shear direction.
+//!
+//! The shear has to exceed `min_shear_mm` before anything but stick is reported, so that pressing
+//! alone (whose lateral spreading is radial) is never called slip; and nothing but `no_contact` is
+//! reported without contact.
+
+use gelstereo_core::SlipState;
+use nalgebra::{Point3, Vector3};
+
+use crate::contact::{ContactFrame, ReferenceSurface};
+use crate::error::{Result, config_err};
+
+/// Settings of the [`SlipDetector`]; defaults chosen on the simulated training split
+/// (`docs/tracking.md`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SlipConfig {
+    /// Mean tangential displacement in the contact below which the contact sticks, mm.
+    pub min_shear_mm: f64,
+    /// Stick fraction below which the contact is in partial slip (0.9, as the simulator's ground truth).
+    pub stick_fraction: f64,
+    /// Relative tolerance of the displacement plateau.
+    pub plateau_tolerance: f64,
+    /// Absolute tolerance of the displacement plateau, mm (a few times the 3-D noise).
+    pub plateau_min_mm: f64,
+    /// Drift of the contact across the gel, per frame, above which the contact slides as a whole, mm.
+    pub drift_mm_per_frame: f64,
+}
+
+impl Default for SlipConfig {
+    fn default() -> Self {
+        Self {
+            min_shear_mm: 0.03,
+            stick_fraction: 0.9,
+            plateau_tolerance: 0.1,
+            plateau_min_mm: 0.02,
+            drift_mm_per_frame: 0.015,
+        }
+    }
+}
+
+impl SlipConfig {
+    /// Checks every field's range.
+    pub fn validate(&self) -> Result<()> {
+        for (field, v) in [
+            ("min_shear_mm", self.min_shear_mm),
+            ("plateau_min_mm", self.plateau_min_mm),
+            ("drift_mm_per_frame", self.drift_mm_per_frame),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v < 10.0) {
+                return Err(config_err(field, "a length in (0, 10) mm", v));
+            }
+        }
+        for (field, v) in [
+            ("stick_fraction", self.stick_fraction),
+            ("plateau_tolerance", self.plateau_tolerance),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v < 1.0) {
+                return Err(config_err(field, "a fraction in (0, 1)", v));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the slip detector saw in one frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SlipFrame {
+    /// The state.
+    pub state: SlipState,
+    /// Mean tangential displacement of the contact markers, mm (zero without contact).
+    pub shear_mm: Vector3<f64>,
+    /// Share of contact markers on the displacement plateau (1 without shear).
+    pub stick_fraction: f64,
+    /// Drift of the contact's material centroid since the last contact frame, along the shear, mm.
+    pub drift_mm: f64,
+}
+
+/// Classifies frames one after the other (it keeps the previous frame's material centroid).
+#[derive(Debug, Clone, Default)]
+pub struct SlipDetector {
+    config: SlipConfig,
+    previous_material_mm: Option<Point3<f64>>,
+}
+
+impl SlipDetector {
+    /// A detector with `config`.
+    pub fn new(config: SlipConfig) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            config,
+            previous_material_mm: None,
+        })
+    }
+
+    /// Forgets the history (after re-zeroing the reference).
+    pub fn reset(&mut self) {
+        self.previous_material_mm = None;
+    }
+
+    /// Classifies the next frame.
+    pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
+        let previous = self.previous_material_mm.take();
+        if !frame.contact {
+            return SlipFrame {
+                state: SlipState::NoContact,
+                shear_mm: Vector3::zeros(),
+                stick_fraction: 1.0,
+                drift_mm: 0.0,
+            };
+        }
+        self.previous_material_mm = frame.material_centroid_mm;
+        let normals = surface.normals();
+        let mut tangential = Vec::new();
+        for (k, d) in frame.displacement_mm.iter().enumerate() {
+            if let (true, Some(d), Some(n)) = (frame.in_contact[k], d, normals[k]) {
+                tangential.push(d - n * d.dot(&n));
+            }
+        }
+        if tangential.is_empty() {
+            return SlipFrame {
+                state: SlipState::Stick,
+                shear_mm: Vector3::zeros(),
+                stick_fraction: 1.0,
+                drift_mm: 0.0,
+            };
+        }
+        let shear = tangential.iter().fold(Vector3::zeros(), |a, t| a + t) / tangential.len() as f64;
+        let Some(dir) = shear
+            .try_normalize(1e-12)
+            .filter(|_| shear.norm() >= self.config.min_shear_mm)
+        else {
+            return SlipFrame {
+                state: SlipState::Stick,
+                shear_mm: shear,
+                stick_fraction: 1.0,
+                drift_mm: 0.0,
+            };
+        };
+        let mut along: Vec<f64> = tangential.iter().map(|t| t.dot(&dir)).collect();
+        along.sort_by(f64::total_cmp);
+        let top = along[((along.len() - 1) as f64 * 0.9).round() as usize];
+        let tol = (self.config.plateau_tolerance * top.abs()).max(self.config.plateau_min_mm);
+        let on_plateau = along.iter().filter(|&&p| p >= top - tol).count();
+        let stick_fraction = on_plateau as f64 / along.len() as f64;
+        let drift = match (previous, frame.material_centroid_mm) {
+            (Some(a), Some(b)) => (b - a).dot(&dir),
+            _ => 0.0,
+        };
+        let state = if drift > self.config.drift_mm_per_frame {
+            SlipState::GrossSlip
+        } else if stick_fraction < self.config.stick_fraction {
+            SlipState::PartialSlip
+        } else {
+            SlipState::Stick
+        };
+        SlipFrame {
+            state,
+            shear_mm: shear,
+            stick_fraction,
+            drift_mm: drift,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::contact::ContactConfig;
+    use gelstereo_core::GridShape;
+
+    /// A 23 x 23 lattice (pitch 0.8 mm, 24 mm from the camera) under a spherical cap (R = 8 mm,
+    /// depth 0.6 mm) centred at `material_x` in reference coordinates, with the Cattaneo–Mindlin
+    /// tangential field `min(slide, k w)` along x (k = 0.8 mm per mm of depth).
+    fn frame(material_x: f64, slide_mm: f64) -> Vec<Option<[f64; 3]>> {
+        GridShape::REFERENCE
+            .indices()
+            .map(|i| {
+                let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+                let w = (0.6 - ((x - material_x).powi(2) + y * y) / 16.0).max(0.0);
+                let u = if w > 0.0 { slide_mm.min(0.8 * w) } else { 0.0 };
+                Some([x + u, y, 24.0 - w])
+            })
+            .collect()
+    }
+
+    #[test]
+    fn press_slide_goes_stick_partial_gross_and_release_is_no_contact() {
+        let rest = frame(0.0, 0.0);
+        let flat: Vec<Option<[f64; 3]>> = rest.iter().map(|p| p.map(|p| [p[0], p[1], 24.0])).collect();
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
+        let cfg = ContactConfig::default();
+        let mut states = Vec::new();
+        // No contact, press, a slide the whole contact carries, slides beyond the limit 0.8 w of
+        // the contact's outer half (w < 0.5 and 0.56 mm), the contact moving across the gel, release.
+        let script = [
+            (None, 0.0),
+            (Some(0.0), 0.0),
+            (Some(0.0), 0.02),
+            (Some(0.0), 0.4),
+            (Some(0.0), 0.45),
+            (Some(0.1), 0.6),
+            (Some(0.2), 0.6),
+            (None, 0.0),
+        ];
+        for (m, s) in script {
+            let pos = match m {
+                Some(m) => frame(m, s),
+                None => flat.clone(),
+            };
+            let c = surface.analyze(&pos, &cfg).unwrap();
+            states.push(det.update(&surface, &c).state);
+        }
+        use SlipState::*;
+        assert_eq!(
+            states,
+            [
+                NoContact,
+                Stick,
+                Stick,
+                PartialSlip,
+                PartialSlip,
+                GrossSlip,
+                GrossSlip,
+                NoContact
+            ]
+        );
+    }
+}
