@@ -17,15 +17,19 @@
 //! 2. Index every later frame: [`ReferenceLattice::index`] (one view, optionally with the previous
 //!    frame's positions as prior) or [`StereoLattice::match_frame`] (both views, the right one gated
 //!    by the epipolar constraint, then paired by index and checked).
+//! 3. Or do all of it and triangulate with [`StereoReconstructor`], which yields the DESIGN.md
+//!    per-frame marker rows.
 //!
 //! See `docs/matching.md` for the method and its measured accuracy.
 
 mod grow;
 mod lattice;
+mod reconstruct;
 mod spatial;
 mod stereo;
 
 pub use lattice::{IndexedView, IndexingConfig, ReferenceLattice};
+pub use reconstruct::{FrameReconstruction, MarkerRejection, ReconstructedMarker, StereoReconstructor};
 pub use stereo::{
     EpipolarGeometry, FrameMatch, MatchedPair, PairRejection, StereoConfig, StereoLattice, StereoPrior,
     pair_by_index,

@@ -459,3 +459,42 @@ fn measure_speed_and_accuracy() {
     });
     println!("stereo match_frame with a prior: {per:.3} ms/frame");
 }
+
+#[test]
+fn reconstruction_recovers_the_exact_3d_lattice_from_exact_projections() {
+    use gelstereo_geometry::TriangulationConfig;
+    use gelstereo_matching::StereoReconstructor;
+    let rig = rig(-4.0, 1.5);
+    let (l0, r0) = stereo_frame(&rig, &Deformation::NONE, CLEAN, 1);
+    let rec = StereoReconstructor::new(
+        &rig,
+        &l0.detections,
+        &r0.detections,
+        SHAPE,
+        StereoConfig::default(),
+        TriangulationConfig::default(),
+    )
+    .unwrap();
+    let def = hard_contact(2);
+    let truth = markers_mm(&def);
+    let (l, r) = stereo_frame(&rig, &def, CLEAN, 2);
+    let frame = rec.reconstruct(&l.detections, &r.detections, None).unwrap();
+    assert_eq!(frame.markers.len(), 529);
+    assert_eq!(
+        frame.reconstructed_count(),
+        529,
+        "every marker is seen in both views"
+    );
+    for (m, t) in frame.markers.iter().zip(&truth) {
+        let p = m.position_mm.unwrap();
+        // Exact projections: triangulation is exact up to the undistortion tolerance (1e-11 px).
+        let err = ((p[0] - t.x).powi(2) + (p[1] - t.y).powi(2) + (p[2] - t.z).powi(2)).sqrt();
+        assert!(err < 1e-6, "{}: {err} mm", m.index);
+        assert!(m.reprojection_error_px.unwrap() < 1e-6);
+        let row = m.record(9);
+        assert_eq!(
+            (row.frame, row.index, row.displacement_mm, row.status),
+            (9, m.index, None, None)
+        );
+    }
+}
