@@ -13,11 +13,11 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file or folder could not be read or written at the OS level.
-    #[error("{path}: {source}")]
+    #[error("I/O error on {path}")]
     Io {
         /// The file or folder.
         path: PathBuf,
-        /// The OS error.
+        /// The OS error (the error's source: shown by `{:#}` / error chains).
         source: std::io::Error,
     },
     /// The file exists but is not an image OpenCV can decode (corrupt, truncated or another format).
@@ -45,7 +45,7 @@ pub enum Error {
         what: String,
     },
     /// OpenCV reported an error while working on `path`.
-    #[error("{path}: OpenCV: {source}")]
+    #[error("OpenCV failed on {path}")]
     OpenCv {
         /// The file concerned.
         path: PathBuf,

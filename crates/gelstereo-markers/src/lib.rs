@@ -45,11 +45,11 @@ pub enum Error {
     #[error(transparent)]
     Runtime(#[from] runtime::OnnxRuntimeError),
     /// A file could not be read at the OS level.
-    #[error("{path}: {source}")]
+    #[error("cannot read {path}")]
     Io {
         /// The file.
         path: PathBuf,
-        /// The OS error.
+        /// The OS error (the error's source: shown by `{:#}` / error chains).
         source: std::io::Error,
     },
     /// A model's inputs, outputs or `metadata_props` break the contract of `docs/model-contract.md`.
@@ -85,7 +85,7 @@ pub enum Error {
         found: String,
     },
     /// OpenCV failed in one of our calls.
-    #[error("OpenCV: {context}: {source}")]
+    #[error("OpenCV failed in {context}")]
     OpenCv {
         /// Which step failed (e.g. "resize", "SimpleBlobDetector::detect").
         context: &'static str,
@@ -275,7 +275,10 @@ pub struct LocalizerConfig {
 pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Localizer>> {
     Ok(match method {
         Method::Blob => Box::new(BlobLocalizer::new(config.blob)?),
-        Method::Yolo => Box::new(yolo::YoloLocalizer::load(&yolo::model_path(config), &config.session)?),
+        Method::Yolo => Box::new(yolo::YoloLocalizer::load(
+            &yolo::model_path(config),
+            &config.session,
+        )?),
         Method::Marknet => Box::new(Marknet::load(&config.marknet_path, &config.session)?),
         Method::MarknetMre => {
             let mre = Mre::load(&config.mre_path, &config.session)?;

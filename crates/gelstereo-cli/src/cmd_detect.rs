@@ -1,0 +1,293 @@
+//! `gelstereo detect`: markers in images, videos and stereo recordings, as `image,x,y,confidence` CSV
+//! (DESIGN.md "Interfaces"), with optional overlay PNGs. Also the localizer options shared with
+//! `gelstereo eval` and `gelstereo bench`.
+
+use std::collections::HashSet;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use gelstereo_core::{Detection, StereoPair};
+use gelstereo_io::images::{self, StereoRecording};
+use gelstereo_io::video::{self, VideoFrames};
+use gelstereo_markers::{
+    BlobParams, Localizer, LocalizerConfig, Method, SessionOptions, create_localizer, overlay,
+};
+use opencv::core::Mat;
+
+use crate::project;
+
+/// How to build the localizers: model files, blob parameters, ONNX Runtime options.
+#[derive(clap::Args, Debug, Clone)]
+pub struct LocalizerArgs {
+    /// Folder with marknet.onnx and mre.onnx (default: data/models of the project).
+    #[arg(long, value_name = "DIR")]
+    pub models: Option<PathBuf>,
+    /// Marknet model file (overrides --models).
+    #[arg(long, value_name = "FILE")]
+    pub marknet: Option<PathBuf>,
+    /// MRE model file (overrides --models).
+    #[arg(long, value_name = "FILE")]
+    pub mre: Option<PathBuf>,
+    /// SimpleBlobDetector parameters: `tuned` (data/blob_params.json), `default` (OpenCV's), or a JSON file.
+    #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
+    pub blob_params: String,
+    /// ONNX Runtime intra-op threads (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Never use the CUDA execution provider, even where ONNX Runtime has it.
+    #[arg(long)]
+    pub cpu: bool,
+}
+
+impl LocalizerArgs {
+    /// The blob parameters `spec` names (`tuned`, `default` or a file).
+    pub fn blob(spec: &str) -> anyhow::Result<BlobParams> {
+        Ok(match spec {
+            "default" => BlobParams::opencv_defaults()?,
+            "tuned" => {
+                let path = project::home().join(gelstereo_markers::blob::DEFAULT_PARAMS_FILE);
+                BlobParams::from_json_file(&path)?
+            }
+            file => BlobParams::from_json_file(Path::new(file))?,
+        })
+    }
+
+    /// The library configuration these options describe.
+    pub fn config(&self) -> anyhow::Result<LocalizerConfig> {
+        let models = self
+            .models
+            .clone()
+            .unwrap_or_else(|| project::home().join("data/models"));
+        Ok(LocalizerConfig {
+            marknet_path: self
+                .marknet
+                .clone()
+                .unwrap_or_else(|| models.join("marknet.onnx")),
+            mre_path: self.mre.clone().unwrap_or_else(|| models.join("mre.onnx")),
+            blob: Self::blob(&self.blob_params)?,
+            session: SessionOptions {
+                intra_threads: self.threads,
+                use_cuda: !self.cpu,
+            },
+        })
+    }
+
+    /// Builds the localizer of `method`, with the failing method named in the error.
+    pub fn localizer(&self, method: Method) -> anyhow::Result<Box<dyn Localizer>> {
+        let config = self.config()?;
+        create_localizer(method, &config).with_context(|| match method {
+            Method::Blob => format!("cannot set up method '{method}'"),
+            _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
+        })
+    }
+}
+
+/// Arguments of `gelstereo detect`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Localization method: blob, marknet or marknet-mre.
+    #[arg(long, default_value = "marknet-mre")]
+    method: Method,
+    /// CSV output (`image,x,y,confidence`); standard output when absent.
+    #[arg(long, value_name = "FILE.csv")]
+    out: Option<PathBuf>,
+    /// Write an overlay PNG per image into this folder (circles coloured by confidence, red = 0.1 to
+    /// green = 1; a cross marks markers MRE accepted).
+    #[arg(long, value_name = "DIR")]
+    overlay: Option<PathBuf>,
+    /// Treat videos as side-by-side stereo (left half, right half).
+    #[arg(long)]
+    side_by_side: bool,
+    #[command(flatten)]
+    localizer: LocalizerArgs,
+    /// Image files, folders of images, stereo recordings (folders with left/ and right/) or video files.
+    #[arg(value_name = "INPUT")]
+    inputs: Vec<PathBuf>,
+}
+
+/// One input, expanded.
+enum Source {
+    Image(PathBuf),
+    Stereo(StereoRecording),
+    Video(PathBuf),
+}
+
+fn expand(inputs: &[PathBuf]) -> anyhow::Result<Vec<Source>> {
+    if inputs.is_empty() {
+        bail!(
+            "no input images: give image files, folders of images, stereo recordings (left/ and right/) or videos"
+        );
+    }
+    let mut out = Vec::new();
+    for p in inputs {
+        if p.is_dir() {
+            if images::is_stereo_recording(p) {
+                out.push(Source::Stereo(StereoRecording::open(p)?));
+            } else {
+                let files = images::list_images(p)?;
+                if files.is_empty() {
+                    bail!(
+                        "{}: folder holds no images (expected {} files, or left/ and right/)",
+                        p.display(),
+                        images::IMAGE_EXTENSIONS.join("/")
+                    );
+                }
+                out.extend(files.into_iter().map(Source::Image));
+            }
+        } else if video::has_video_extension(p) {
+            out.push(Source::Video(p.clone()));
+        } else {
+            out.push(Source::Image(p.clone()));
+        }
+    }
+    Ok(out)
+}
+
+/// Where the CSV rows and overlays go.
+struct Sink {
+    csv: Box<dyn Write>,
+    overlay: Option<PathBuf>,
+    used_names: HashSet<String>,
+    mre_band_top: Option<f32>,
+    images: usize,
+    markers: usize,
+}
+
+impl Sink {
+    fn emit(
+        &mut self,
+        name: &str,
+        overlay_stem: &str,
+        image: &Mat,
+        detections: &[Detection],
+    ) -> anyhow::Result<()> {
+        for d in detections {
+            writeln!(
+                self.csv,
+                "{name},{:.3},{:.3},{:.4}",
+                d.position.x, d.position.y, d.confidence
+            )
+            .context("cannot write the CSV output")?;
+        }
+        self.images += 1;
+        self.markers += detections.len();
+        if let Some(dir) = &self.overlay {
+            let mut file = format!("{overlay_stem}.png");
+            let mut k = 1;
+            while !self.used_names.insert(file.clone()) {
+                file = format!("{overlay_stem}_{k}.png");
+                k += 1;
+            }
+            let drawn = overlay::draw(image, detections, self.mre_band_top, 6)?;
+            images::write_image(&dir.join(&file), &drawn)?;
+        }
+        Ok(())
+    }
+}
+
+fn stem(p: &Path) -> String {
+    p.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "image".to_owned())
+}
+
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let sources = expand(&args.inputs)?;
+    let mut localizer = args.localizer.localizer(args.method)?;
+    let csv: Box<dyn Write> = match &args.out {
+        Some(path) => {
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+            }
+            let f =
+                std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+            Box::new(std::io::BufWriter::new(f))
+        }
+        None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
+    };
+    let mut sink = Sink {
+        csv,
+        overlay: args.overlay.clone(),
+        used_names: HashSet::new(),
+        mre_band_top: localizer.mre_band_top(),
+        images: 0,
+        markers: 0,
+    };
+    writeln!(sink.csv, "image,x,y,confidence").context("cannot write the CSV output")?;
+    for source in &sources {
+        match source {
+            Source::Image(path) => {
+                let image = images::read_image(path)?;
+                let found = localizer
+                    .detect(&image)
+                    .with_context(|| format!("{}", path.display()))?;
+                sink.emit(&path.display().to_string(), &stem(path), &image, &found)?;
+            }
+            Source::Stereo(rec) => {
+                for i in 0..rec.len() {
+                    let (Some(paths), Some(pair)) = (rec.paths(i), rec.read(i)) else {
+                        break;
+                    };
+                    let pair = pair?;
+                    let found = localizer
+                        .detect_stereo(&pair)
+                        .with_context(|| format!("{} (stereo frame {i})", paths.left.display()))?;
+                    for (side, path, image, dets) in [
+                        ("left", &paths.left, &pair.left, &found.left),
+                        ("right", &paths.right, &pair.right, &found.right),
+                    ] {
+                        sink.emit(
+                            &path.display().to_string(),
+                            &format!("{side}_{}", stem(path)),
+                            image,
+                            dets,
+                        )?;
+                    }
+                }
+            }
+            Source::Video(path) => {
+                let mut frames = VideoFrames::open(path)?;
+                while let Some((index, frame)) = frames.next_frame()? {
+                    let name = format!("{}#{index}", path.display());
+                    let context = || format!("{name} (frame {index})");
+                    if args.side_by_side {
+                        let pair: StereoPair<Mat> = video::split_side_by_side(&frame, path)?;
+                        let found = localizer.detect_stereo(&pair).with_context(context)?;
+                        sink.emit(
+                            &format!("{name}:left"),
+                            &format!("{}_{index:06}_left", stem(path)),
+                            &pair.left,
+                            &found.left,
+                        )?;
+                        sink.emit(
+                            &format!("{name}:right"),
+                            &format!("{}_{index:06}_right", stem(path)),
+                            &pair.right,
+                            &found.right,
+                        )?;
+                    } else {
+                        let found = localizer.detect(&frame).with_context(context)?;
+                        sink.emit(&name, &format!("{}_{index:06}", stem(path)), &frame, &found)?;
+                    }
+                }
+            }
+        }
+    }
+    sink.csv.flush().context("cannot write the CSV output")?;
+    if sink.images == 0 {
+        bail!("no images were read from the inputs (empty video?)");
+    }
+    let dest = args
+        .out
+        .as_ref()
+        .map_or_else(|| "standard output".to_owned(), |p| p.display().to_string());
+    eprintln!(
+        "{}: {} markers in {} images ({:.1} per image), written to {dest}",
+        localizer.name(),
+        sink.markers,
+        sink.images,
+        sink.markers as f64 / sink.images as f64
+    );
+    Ok(())
+}
