@@ -1,0 +1,84 @@
+//! `gelstereo simulate`: the synthetic GelStereo sensor writes a dataset of stereo recordings with
+//! exact ground truth (see `docs/sim.md`). The work is `gelstereo_sim::dataset`; this is argument
+//! parsing and a progress bar.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use gelstereo_sim::SensorSpec;
+use gelstereo_sim::dataset::{DatasetConfig, Randomization, write_dataset};
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Arguments of `gelstereo simulate`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Output folder (refused when it exists and is not empty, unless --force).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Number of experiments (recordings), split 6:2:2 into train / val / test.
+    #[arg(long, default_value_t = 10)]
+    experiments: u32,
+    /// Stereo frames per experiment (frame 0 is the no-contact reference).
+    #[arg(long, default_value_t = 80)]
+    frames_per_experiment: u32,
+    /// Master seed: the same seed gives the same bytes.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Sensor description file (default: the reference sensor, calib/reference-sensor.json).
+    #[arg(long, value_name = "FILE.json")]
+    sensor: Option<PathBuf>,
+    /// Domain randomisation: off (reference look), appearance (random looks), full (random looks and
+    /// 40 % of the experiments on random sensor variants: other grids, resolutions, pitches).
+    #[arg(long, default_value = "full")]
+    randomization: String,
+    /// Replace a non-empty output folder.
+    #[arg(long)]
+    force: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+/// Runs `gelstereo simulate`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let sensor = match &args.sensor {
+        Some(path) => SensorSpec::load(path)?,
+        None => SensorSpec::reference(),
+    };
+    let randomization: Randomization = args.randomization.parse()?;
+    let config = DatasetConfig {
+        experiments: args.experiments,
+        frames_per_experiment: args.frames_per_experiment,
+        seed: args.seed,
+        sensor,
+        randomization,
+    };
+    config.validate()?;
+    let total = u64::from(args.experiments) * u64::from(args.frames_per_experiment);
+    let bar = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(total)
+    };
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} stereo frames ({per_sec}, eta {eta})",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    let start = Instant::now();
+    let summary = write_dataset(&args.out, &config, args.force, &|| bar.inc(1))
+        .with_context(|| format!("simulating into {}", args.out.display()))?;
+    bar.finish_and_clear();
+    let secs = start.elapsed().as_secs_f64();
+    let [train, val, test] = summary.experiments;
+    eprintln!(
+        "wrote {} stereo frames ({train} train / {val} val / {test} test experiments) to {} in {secs:.1} s ({:.1} stereo frames/s)",
+        summary.frames,
+        args.out.display(),
+        summary.frames as f64 / secs
+    );
+    Ok(())
+}

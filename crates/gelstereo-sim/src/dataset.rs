@@ -1,0 +1,551 @@
+//! Recordings and datasets on disk (the layout of DESIGN.md):
+//!
+//! ```text
+//! OUT/dataset.json
+//! OUT/{train,val,test}/exp_NNNN/left/NNNNNN.png, right/NNNNNN.png, markers.csv, frames.csv,
+//!                               calib.yaml, left.cameramodel, right.cameramodel, meta.json
+//! ```
+//! Splits are 6:2:2 by experiment, deterministic from the seed. Every frame is seeded from
+//! (seed, experiment, frame), so the output does not depend on how rayon schedules the work.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
+use gelstereo_core::{FrameSummary, MarkerRecord, Point2};
+use nalgebra::Point3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::GENERATOR_VERSION;
+use crate::appearance::Appearance;
+use crate::error::{Error, Result, io_err};
+use crate::indenter::{Indenter, SHAPES};
+use crate::motion::Script;
+use crate::physics::{Layer, SurfaceGrid, deform};
+use crate::render::{MarkerTruth, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
+use crate::sensor::{Sensor, SensorSpec};
+use crate::variant::random_variant;
+
+/// How much a dataset varies from the reference sensor's look and geometry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Randomization {
+    /// The sensor file exactly, with its reference look.
+    Off,
+    /// The sensor file's geometry, random looks (colours, polarity, lighting, marker size and
+    /// contrast, blur, noise, vignetting, JPEG, dust).
+    Appearance,
+    /// Random looks, and 40 % of the experiments on random sensor variants (grids 8-30 per side,
+    /// 320x240 to 1280x720, other pitches and dot sizes).
+    Full,
+}
+
+impl std::str::FromStr for Randomization {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "off" => Ok(Self::Off),
+            "appearance" => Ok(Self::Appearance),
+            "full" => Ok(Self::Full),
+            _ => Err(Error::Parameter {
+                name: "randomization",
+                value: s.to_owned(),
+                expected: "off, appearance or full".into(),
+            }),
+        }
+    }
+}
+
+/// What to generate.
+#[derive(Debug, Clone)]
+pub struct DatasetConfig {
+    /// Number of experiments (recordings), >= 1.
+    pub experiments: u32,
+    /// Frames per experiment, >= 2 (frame 0 is the no-contact reference).
+    pub frames_per_experiment: u32,
+    /// Master seed.
+    pub seed: u64,
+    /// The sensor.
+    pub sensor: SensorSpec,
+    /// Domain randomisation level.
+    pub randomization: Randomization,
+}
+
+impl DatasetConfig {
+    /// The reference sensor, `experiments` x `frames`, seed `seed`, full randomisation.
+    pub fn new(experiments: u32, frames_per_experiment: u32, seed: u64) -> Self {
+        Self {
+            experiments,
+            frames_per_experiment,
+            seed,
+            sensor: SensorSpec::reference(),
+            randomization: Randomization::Full,
+        }
+    }
+
+    /// Checks the counts.
+    pub fn validate(&self) -> Result<()> {
+        if !(1..=100_000).contains(&self.experiments) {
+            return Err(Error::Parameter {
+                name: "experiments",
+                value: self.experiments.to_string(),
+                expected: "1 to 100000".into(),
+            });
+        }
+        if !(2..=100_000).contains(&self.frames_per_experiment) {
+            return Err(Error::Parameter {
+                name: "frames_per_experiment",
+                value: self.frames_per_experiment.to_string(),
+                expected: "2 to 100000 (frame 0 is the no-contact reference)".into(),
+            });
+        }
+        self.sensor.validate("sensor")
+    }
+}
+
+/// Which part of the dataset an experiment belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Split {
+    /// Training (60 %).
+    Train,
+    /// Validation (20 %).
+    Val,
+    /// Test (20 %).
+    Test,
+}
+
+impl Split {
+    /// Folder name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Train => "train",
+            Self::Val => "val",
+            Self::Test => "test",
+        }
+    }
+}
+
+/// Everything that defines one experiment; it alone determines the recording's bytes.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Experiment {
+    /// Index in the dataset (the `NNNN` of `exp_NNNN`).
+    pub index: u32,
+    /// Its split.
+    pub split: Split,
+    /// Seed of this experiment (from the dataset seed and the index).
+    pub seed: u64,
+    /// The sensor it is recorded with.
+    pub sensor: SensorSpec,
+    /// The look.
+    pub appearance: Appearance,
+    /// The motion.
+    pub script: Script,
+}
+
+impl Experiment {
+    /// Folder name `exp_NNNN`.
+    pub fn name(&self) -> String {
+        format!("exp_{:04}", self.index)
+    }
+
+    /// Relative folder `split/exp_NNNN`.
+    pub fn rel_dir(&self) -> PathBuf {
+        Path::new(self.split.as_str()).join(self.name())
+    }
+}
+
+fn mix(a: u64, b: u64) -> u64 {
+    let mut z = a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The experiments of a dataset, in index order, with their splits (6:2:2, shuffled by the seed).
+pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
+    config.validate()?;
+    let n = config.experiments;
+    let mut order: Vec<u32> = (0..n).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(mix(config.seed, 0x5EED));
+    for i in (1..order.len()).rev() {
+        order.swap(i, rng.random_range(0..=i));
+    }
+    let n_train = (f64::from(n) * 0.6).round() as u32;
+    let n_val = (f64::from(n) * 0.2).round() as u32;
+    let mut split = vec![Split::Test; n as usize];
+    for (rank, &e) in order.iter().enumerate() {
+        let rank = rank as u32;
+        split[e as usize] = if rank < n_train {
+            Split::Train
+        } else if rank < n_train + n_val {
+            Split::Val
+        } else {
+            Split::Test
+        };
+    }
+    let shape_offset = rng.random_range(0..SHAPES.len());
+    (0..n)
+        .map(|index| {
+            let seed = mix(config.seed, u64::from(index) + 1);
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let (sensor, appearance) = match config.randomization {
+                Randomization::Off => (config.sensor.clone(), Appearance::reference()),
+                Randomization::Appearance => (config.sensor.clone(), Appearance::random(&mut rng)),
+                Randomization::Full => {
+                    let sensor = if rng.random_bool(0.4) {
+                        random_variant(&config.sensor, &mut rng)
+                    } else {
+                        config.sensor.clone()
+                    };
+                    (sensor, Appearance::random(&mut rng))
+                }
+            };
+            let ref_width = 22.0 * 0.8;
+            let width = f64::from(sensor.grid.rows.min(sensor.grid.cols) - 1) * sensor.grid.pitch_mm;
+            let scale = (width / ref_width).clamp(0.3, 3.0);
+            let shape = SHAPES[(index as usize + shape_offset) % SHAPES.len()];
+            let indenter = Indenter::random(shape, scale, &mut rng).unwrap_or(Indenter::Sphere {
+                radius_mm: 4.0 * scale,
+            });
+            let script = Script::random(
+                indenter,
+                config.frames_per_experiment,
+                0.3 * width,
+                scale,
+                &mut rng,
+            );
+            Ok(Experiment {
+                index,
+                split: split[index as usize],
+                seed,
+                sensor,
+                appearance,
+                script,
+            })
+        })
+        .collect()
+}
+
+/// One frame's ground truth and images.
+pub struct Frame {
+    /// Marker ground truth.
+    pub markers: Vec<MarkerTruth>,
+    /// The frame summary.
+    pub summary: FrameSummary,
+    /// Left and right BGR images.
+    pub images: [opencv::core::Mat; 2],
+}
+
+/// Everything needed to simulate the frames of one experiment.
+pub struct Simulator {
+    /// The experiment.
+    pub experiment: Experiment,
+    /// Its sensor, built.
+    pub sensor: Sensor,
+    optics: StereoOptics,
+    layer: Layer,
+    rest_left: Vec<Point3<f64>>,
+}
+
+impl Simulator {
+    /// Prepares an experiment (camera lookups, layer kernel).
+    pub fn new(experiment: Experiment) -> Result<Self> {
+        let sensor = experiment.sensor.build()?;
+        let optics = StereoOptics::new(&sensor);
+        let grid = SurfaceGrid::new(&sensor.spec.gel);
+        let layer = Layer::new(&sensor.spec.gel, grid);
+        let rest_left = sensor
+            .spec
+            .grid_shape()
+            .indices()
+            .map(|i| {
+                let [x, y] = sensor.spec.marker_rest_mm(i.row, i.col);
+                sensor.left_from_sensor * Point3::new(x, y, 0.0)
+            })
+            .collect();
+        Ok(Self {
+            experiment,
+            sensor,
+            optics,
+            layer,
+            rest_left,
+        })
+    }
+
+    /// Simulates frame `frame`: deformation, ground truth, both images.
+    pub fn frame(&self, frame: u32) -> Result<Frame> {
+        let exp = &self.experiment;
+        let pose = exp.script.pose(frame);
+        let def = deform(&self.sensor.spec.gel, &self.layer, &exp.script, &pose);
+        let markers = marker_truth(&self.sensor, &self.optics, &def);
+        let seed = mix(exp.seed, u64::from(frame) + 0x1000);
+        let radius = 0.5 * self.sensor.spec.grid.dot_diameter_mm * exp.appearance.dot_scale;
+        let radius = radius.min(0.42 * self.sensor.spec.grid.pitch_mm);
+        let lattice_half = 0.5
+            * f64::from(self.sensor.spec.grid.cols.max(self.sensor.spec.grid.rows) - 1)
+            * self.sensor.spec.grid.pitch_mm;
+        let render = |view: usize| {
+            render_view(&ViewJob {
+                optics: if view == 0 {
+                    &self.optics.left
+                } else {
+                    &self.optics.right
+                },
+                view,
+                def: &def,
+                markers: &markers,
+                appearance: &exp.appearance,
+                dot_radius_mm: radius,
+                lattice_half_mm: lattice_half,
+                seed: mix(seed, view as u64),
+            })
+        };
+        let images = [render(0)?, render(1)?];
+        let centroid = def.centroid_mm.map(|c| {
+            let p = self.sensor.left_from_sensor * Point3::new(c[0], c[1], c[2]);
+            [p.x, p.y]
+        });
+        let summary = FrameSummary {
+            frame,
+            contact: def.contact_area_mm2 > 0.0,
+            contact_area_mm2: def.contact_area_mm2,
+            max_depth_mm: def.max_depth_mm,
+            centroid_mm: centroid,
+            slip: def.slip,
+        };
+        Ok(Frame {
+            markers,
+            summary,
+            images,
+        })
+    }
+
+    /// The rows of `markers.csv` for one frame (with the ground-truth columns), appended to `out`.
+    pub fn marker_rows(&self, frame: u32, markers: &[MarkerTruth], out: &mut String) {
+        let cams = [&self.sensor.rig.left, &self.sensor.rig.right];
+        for (k, m) in markers.iter().enumerate() {
+            let p = self.sensor.left_from_sensor * m.position_sensor;
+            let rest = self.rest_left[k];
+            let rec = MarkerRecord {
+                frame,
+                index: m.index,
+                left_px: m.px[0],
+                right_px: m.px[1],
+                position_mm: Some([p.x, p.y, p.z]),
+                displacement_mm: Some([p.x - rest.x, p.y - rest.y, p.z - rest.z]),
+                status: None,
+            };
+            rec.write_csv(out);
+            let vis = |v: usize| u8::from(m.px[v].is_some_and(|q: Point2| cams[v].contains(q)));
+            let _ = writeln!(out, ",{},{},{}", vis(0), vis(1), u8::from(m.in_contact));
+        }
+    }
+}
+
+/// Header of `markers.csv`: the 14 DESIGN.md columns and the simulator's ground-truth flags.
+pub fn markers_header() -> String {
+    format!(
+        "{},visible_left,visible_right,in_contact\n",
+        MARKER_COLUMNS.join(",")
+    )
+}
+
+/// Writes one recording into `dir` (which must exist); `progress` is called once per frame.
+pub fn write_recording(dir: &Path, experiment: &Experiment, progress: &(dyn Fn() + Sync)) -> Result<()> {
+    let sim = Simulator::new(experiment.clone())?;
+    for v in ["left", "right"] {
+        std::fs::create_dir_all(dir.join(v)).map_err(io_err(dir.join(v)))?;
+    }
+    let frames = experiment.script.frames;
+    let rows: Vec<(String, FrameSummary)> = (0..frames)
+        .into_par_iter()
+        .map(|f| -> Result<(String, FrameSummary)> {
+            let fr = sim.frame(f)?;
+            for (v, name) in ["left", "right"].iter().enumerate() {
+                let png = encode_png(&fr.images[v])?;
+                let path = dir.join(name).join(format!("{f:06}.png"));
+                std::fs::write(&path, png).map_err(io_err(path))?;
+            }
+            let mut text = String::with_capacity(fr.markers.len() * 120);
+            sim.marker_rows(f, &fr.markers, &mut text);
+            progress();
+            Ok((text, fr.summary))
+        })
+        .collect::<Result<_>>()?;
+    let mut markers = markers_header();
+    let mut frames_csv = FRAME_COLUMNS.join(",");
+    frames_csv.push('\n');
+    for (text, summary) in &rows {
+        markers.push_str(text);
+        summary.write_csv(&mut frames_csv);
+        frames_csv.push('\n');
+    }
+    let write = |name: &str, text: &str| std::fs::write(dir.join(name), text).map_err(io_err(dir.join(name)));
+    write("markers.csv", &markers)?;
+    write("frames.csv", &frames_csv)?;
+    crate::calibration::write_calibration(&sim.sensor.rig, dir)?;
+    let meta = serde_json::json!({
+        "generator": GENERATOR_VERSION,
+        "experiment": experiment.name(),
+        "split": experiment.split,
+        "seed": experiment.seed,
+        "frames": frames,
+        "image_width": experiment.sensor.cameras.image_width,
+        "image_height": experiment.sensor.cameras.image_height,
+        "grid": { "rows": experiment.sensor.grid.rows, "cols": experiment.sensor.grid.cols },
+        "indenter": experiment.script.indenter,
+        "motion": experiment.script,
+        "appearance": experiment.appearance,
+        "sensor": experiment.sensor,
+    });
+    write("meta.json", &pretty(&meta))?;
+    Ok(())
+}
+
+fn pretty(v: &serde_json::Value) -> String {
+    let mut s = serde_json::to_string_pretty(v).unwrap_or_else(|_| v.to_string());
+    s.push('\n');
+    s
+}
+
+/// What a dataset run produced.
+#[derive(Debug, Clone, Serialize)]
+pub struct DatasetSummary {
+    /// Experiments per split (train, val, test).
+    pub experiments: [u32; 3],
+    /// Stereo frames in all.
+    pub frames: u64,
+}
+
+/// Prepares an output folder: refuses a non-empty one unless `force`, returns the temporary sibling
+/// to write into. Call [`finish_output`] with both when everything is written.
+pub fn begin_output(out: &Path, force: bool) -> Result<PathBuf> {
+    if out.exists() {
+        let non_empty = match std::fs::read_dir(out) {
+            Ok(mut it) => it.next().is_some(),
+            Err(e) if out.is_dir() => {
+                return Err(Error::Io {
+                    path: out.to_owned(),
+                    source: e,
+                });
+            }
+            Err(_) => true,
+        };
+        if non_empty && !force {
+            return Err(Error::OutputNotEmpty { path: out.to_owned() });
+        }
+    }
+    let name = out
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let parent = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&parent).map_err(io_err(&parent))?;
+    let tmp = parent.join(format!(".{name}.partial-{}", std::process::id()));
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
+    }
+    std::fs::create_dir(&tmp).map_err(io_err(&tmp))?;
+    Ok(tmp)
+}
+
+/// Moves the finished temporary folder onto `out` (replacing it when it exists).
+pub fn finish_output(tmp: &Path, out: &Path) -> Result<()> {
+    if out.exists() {
+        if out.is_dir() {
+            std::fs::remove_dir_all(out).map_err(io_err(out))?;
+        } else {
+            std::fs::remove_file(out).map_err(io_err(out))?;
+        }
+    }
+    std::fs::rename(tmp, out).map_err(io_err(out))
+}
+
+/// Writes a whole dataset to `out` (see the module docs). Refuses a non-empty `out` unless
+/// `force`; writes into a temporary sibling and renames it at the end, so an interrupted run never
+/// leaves a complete-looking dataset. `progress` is called once per stereo frame.
+pub fn write_dataset(
+    out: &Path,
+    config: &DatasetConfig,
+    force: bool,
+    progress: &(dyn Fn() + Sync),
+) -> Result<DatasetSummary> {
+    let experiments = plan(config)?;
+    let tmp = begin_output(out, force)?;
+    let result = write_into(&tmp, config, &experiments, progress);
+    match result {
+        Ok(summary) => {
+            finish_output(&tmp, out)?;
+            Ok(summary)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            Err(e)
+        }
+    }
+}
+
+fn write_into(
+    tmp: &Path,
+    config: &DatasetConfig,
+    experiments: &[Experiment],
+    progress: &(dyn Fn() + Sync),
+) -> Result<DatasetSummary> {
+    experiments.par_iter().try_for_each(|e| {
+        let dir = tmp.join(e.rel_dir());
+        std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+        write_recording(&dir, e, progress)
+    })?;
+    let mut counts = [0u32; 3];
+    let mut frames = [0u64; 3];
+    for e in experiments {
+        let k = e.split as usize;
+        counts[k] += 1;
+        frames[k] += u64::from(e.script.frames);
+    }
+    let list: Vec<_> = experiments
+        .iter()
+        .map(|e| {
+            serde_json::json!({
+                "name": e.name(),
+                "path": e.rel_dir().to_string_lossy(),
+                "split": e.split,
+                "seed": e.seed,
+                "frames": e.script.frames,
+                "indenter": e.script.indenter.name(),
+                "motion": e.script.kind,
+                "sensor": e.sensor.name,
+                "image_width": e.sensor.cameras.image_width,
+                "image_height": e.sensor.cameras.image_height,
+                "grid_rows": e.sensor.grid.rows,
+                "grid_cols": e.sensor.grid.cols,
+            })
+        })
+        .collect();
+    let json = serde_json::json!({
+        "generator": GENERATOR_VERSION,
+        "seed": config.seed,
+        "randomization": config.randomization,
+        "frames_per_experiment": config.frames_per_experiment,
+        "sensor": config.sensor,
+        "counts": {
+            "train": { "experiments": counts[0], "frames": frames[0] },
+            "val": { "experiments": counts[1], "frames": frames[1] },
+            "test": { "experiments": counts[2], "frames": frames[2] },
+        },
+        "experiments": list,
+    });
+    let path = tmp.join("dataset.json");
+    std::fs::write(&path, pretty(&json)).map_err(io_err(&path))?;
+    Ok(DatasetSummary {
+        experiments: counts,
+        frames: frames.iter().sum(),
+    })
+}

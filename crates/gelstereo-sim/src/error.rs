@@ -1,0 +1,84 @@
+//! The one error type of this crate.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in `gelstereo-sim`: invalid sensor files, impossible parameters,
+/// output that cannot be written.
+///
+/// Sensor-file errors name the file, the field and what was expected against what was found.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A sensor description file that is not valid JSON or misses / misspells a field.
+    #[error("{}: {message}", path.display())]
+    SensorSyntax {
+        /// The file.
+        path: PathBuf,
+        /// serde's message (field name, line and column).
+        message: String,
+    },
+    /// A field of a sensor description holds a value outside its valid range.
+    #[error("{source_name}: field '{field}': expected {expected}, found {found}")]
+    SensorField {
+        /// The file (or "built-in sensor").
+        source_name: String,
+        /// Dotted field path, e.g. `grid.pitch_mm`.
+        field: String,
+        /// What would be valid.
+        expected: String,
+        /// What was found.
+        found: String,
+    },
+    /// A simulation parameter (command-line option, dataset setting) is impossible.
+    #[error("invalid parameter {name} = {value}: expected {expected}")]
+    Parameter {
+        /// Parameter name, e.g. `frames_per_experiment`.
+        name: &'static str,
+        /// The value given.
+        value: String,
+        /// What would be valid.
+        expected: String,
+    },
+    /// The output folder exists and is not empty (and overwriting was not asked for).
+    #[error("{}: output folder exists and is not empty (pass --force to replace it)", path.display())]
+    OutputNotEmpty {
+        /// The folder.
+        path: PathBuf,
+    },
+    /// Reading or writing a file failed at the OS level.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// An OpenCV call failed.
+    #[error("OpenCV {context}: {source}")]
+    OpenCv {
+        /// What we were doing.
+        context: String,
+        /// OpenCV's error.
+        source: opencv::Error,
+    },
+    /// PNG encoding failed.
+    #[error("PNG encoding: {0}")]
+    Png(String),
+    /// A camera or calibration error from `gelstereo-geometry`.
+    #[error(transparent)]
+    Geometry(#[from] gelstereo_geometry::Error),
+}
+
+/// Result with this crate's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+pub(crate) fn io_err(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Error {
+    let path = path.into();
+    move |source| Error::Io { path, source }
+}
+
+pub(crate) fn cv_err(context: &str) -> impl FnOnce(opencv::Error) -> Error + '_ {
+    move |source| Error::OpenCv {
+        context: context.to_owned(),
+        source,
+    }
+}

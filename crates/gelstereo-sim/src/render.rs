@@ -1,0 +1,467 @@
+//! Stereo rendering of the deformed gel: LED-lit background shaded from surface normals, markers as
+//! anti-aliased projected ellipses, then defocus, vignetting, noise, JPEG and dust.
+//!
+//! Speed: the smooth background is shaded at half resolution through a per-camera lookup (the ray
+//! of every pixel hits the rest surface at a known point), then upsampled; only the markers are
+//! drawn at full resolution, each from its projected centre and the Jacobian of its projection.
+
+use gelstereo_core::{GridIndex, Point2};
+use gelstereo_geometry::Camera;
+use nalgebra::{Isometry3, Matrix2, Point3, Vector2};
+use opencv::core::{CV_8UC3, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Scalar, Size, Vector};
+use opencv::{imgcodecs, imgproc};
+
+use crate::appearance::Appearance;
+use crate::error::{Result, cv_err};
+use crate::physics::Deformation;
+use crate::sensor::Sensor;
+
+/// Per-camera lookup: where each half-resolution pixel's ray meets the rest surface.
+#[derive(Debug, Clone)]
+pub struct ViewOptics {
+    /// The camera.
+    pub camera: Camera,
+    /// This camera's frame from the sensor frame.
+    pub cam_from_sensor: Isometry3<f64>,
+    lo_w: usize,
+    lo_h: usize,
+    /// Rest-surface hit (sensor frame x, y, mm) and ray slope (dx/dz, dy/dz) per low-res pixel.
+    rays: Vec<[f32; 4]>,
+    /// Vignetting radius² (0 centre, 1 corner) per low-res pixel.
+    radius2: Vec<f32>,
+}
+
+impl ViewOptics {
+    /// Builds the lookup of `camera` placed at `cam_from_sensor`.
+    pub fn new(camera: &Camera, cam_from_sensor: Isometry3<f64>) -> Self {
+        let (w, h) = (
+            camera.image_size.width as usize,
+            camera.image_size.height as usize,
+        );
+        let (lo_w, lo_h) = (w.div_ceil(2), h.div_ceil(2));
+        let sensor_from_cam = cam_from_sensor.inverse();
+        let origin = sensor_from_cam.translation.vector;
+        let mut rays = Vec::with_capacity(lo_w * lo_h);
+        let mut radius2 = Vec::with_capacity(lo_w * lo_h);
+        let (hw, hh) = (0.5 * w as f64, 0.5 * h as f64);
+        for j in 0..lo_h {
+            for i in 0..lo_w {
+                // Low-res pixel i covers full-res pixels 2i and 2i+1: centre at 2i + 0.5.
+                let p = Point2::new(2.0 * i as f64 + 0.5, 2.0 * j as f64 + 0.5);
+                let ray = camera.ray(p).map(|r| sensor_from_cam.rotation * r.into_inner());
+                let entry = match ray {
+                    Some(d) if d.z > 1e-3 => {
+                        let t = -origin.z / d.z;
+                        [
+                            (origin.x + t * d.x) as f32,
+                            (origin.y + t * d.y) as f32,
+                            (d.x / d.z) as f32,
+                            (d.y / d.z) as f32,
+                        ]
+                    }
+                    _ => [1e6, 1e6, 0.0, 0.0],
+                };
+                rays.push(entry);
+                let (dx, dy) = ((p.x - hw) / hw, (p.y - hh) / hh);
+                radius2.push((0.5 * (dx * dx + dy * dy)) as f32);
+            }
+        }
+        Self {
+            camera: camera.clone(),
+            cam_from_sensor,
+            lo_w,
+            lo_h,
+            rays,
+            radius2,
+        }
+    }
+
+    /// Projects a sensor-frame point into this view.
+    pub fn project(&self, p_in_sensor: &Point3<f64>) -> Option<Point2> {
+        self.camera.project(&(self.cam_from_sensor * p_in_sensor))
+    }
+}
+
+/// Both views of a sensor.
+#[derive(Debug, Clone)]
+pub struct StereoOptics {
+    /// Left view.
+    pub left: ViewOptics,
+    /// Right view.
+    pub right: ViewOptics,
+}
+
+impl StereoOptics {
+    /// Lookups of both cameras of `sensor`.
+    pub fn new(sensor: &Sensor) -> Self {
+        Self {
+            left: ViewOptics::new(&sensor.rig.left, sensor.left_from_sensor),
+            right: ViewOptics::new(&sensor.rig.right, sensor.right_from_sensor),
+        }
+    }
+}
+
+/// Ground truth of one marker in one frame.
+#[derive(Debug, Clone, Copy)]
+pub struct MarkerTruth {
+    /// Grid identity.
+    pub index: GridIndex,
+    /// Rest position, sensor frame, mm.
+    pub rest_mm: [f64; 2],
+    /// Deformed centre, sensor frame, mm.
+    pub position_sensor: Point3<f64>,
+    /// Projected centre in each view (`None` behind a camera).
+    pub px: [Option<Point2>; 2],
+    /// Jacobian of the projection (px per mm of rest-surface offset) in each view.
+    pub jacobian: [Option<Matrix2<f64>>; 2],
+    /// Whether the marker touches the object.
+    pub in_contact: bool,
+    /// Contact load under the marker, mm (0 outside contact): drives the fading.
+    pub load_mm: f64,
+}
+
+/// Ground truth of every marker of the sensor for deformation `def`.
+pub fn marker_truth(sensor: &Sensor, optics: &StereoOptics, def: &Deformation) -> Vec<MarkerTruth> {
+    let eps = 0.05;
+    let views = [&optics.left, &optics.right];
+    sensor
+        .spec
+        .grid_shape()
+        .indices()
+        .map(|index| {
+            let [x, y] = sensor.spec.marker_rest_mm(index.row, index.col);
+            let c = def.deformed(x, y);
+            let offs = [
+                def.deformed(x + eps, y),
+                def.deformed(x - eps, y),
+                def.deformed(x, y + eps),
+                def.deformed(x, y - eps),
+            ];
+            let mut px = [None; 2];
+            let mut jacobian = [None; 2];
+            for (v, view) in views.iter().enumerate() {
+                px[v] = view.project(&c);
+                let p: Vec<Option<Point2>> = offs.iter().map(|o| view.project(o)).collect();
+                if let (Some(a), Some(b), Some(cc), Some(d)) = (p[0], p[1], p[2], p[3]) {
+                    let s = 0.5 / eps;
+                    jacobian[v] = Some(Matrix2::new(
+                        (a.x - b.x) * s,
+                        (cc.x - d.x) * s,
+                        (a.y - b.y) * s,
+                        (cc.y - d.y) * s,
+                    ));
+                }
+            }
+            MarkerTruth {
+                index,
+                rest_mm: [x, y],
+                position_sensor: c,
+                px,
+                jacobian,
+                in_contact: def.in_contact(x, y),
+                load_mm: def.grid.sample(&def.load, x, y).max(0.0),
+            }
+        })
+        .collect()
+}
+
+/// Per-frame shading on the physics grid: colour offset from the surface slope (LEDs) and the
+/// weight of the contact tint.
+struct Shading {
+    tex: Vec<[f32; 4]>,
+    fields: Vec<[f32; 3]>,
+}
+
+fn shading(def: &Deformation, app: &Appearance) -> Shading {
+    let g = &def.grid;
+    let n = g.n;
+    let inv2s = (0.5 / g.spacing_mm) as f32;
+    let mut tex = vec![[0.0f32; 4]; n * n];
+    let mut fields = vec![[0.0f32; 3]; n * n];
+    for j in 0..n {
+        for i in 0..n {
+            let k = j * n + i;
+            fields[k] = [def.w[k], def.ux[k], def.uy[k]];
+            let gx = if i > 0 && i + 1 < n {
+                (def.w[k + 1] - def.w[k - 1]) * inv2s
+            } else {
+                0.0
+            };
+            let gy = if j > 0 && j + 1 < n {
+                (def.w[k + n] - def.w[k - n]) * inv2s
+            } else {
+                0.0
+            };
+            let norm = (1.0 + gx * gx + gy * gy).sqrt();
+            let mut t = [0.0f32; 4];
+            // Steep walls look darker (light leaves them sideways).
+            let dim = 1.0 - 1.0 / norm;
+            for (v, l) in t.iter_mut().zip(&app.light_dirs) {
+                *v = -app.light_gain * (gx * l[0] + gy * l[1]) / norm - 60.0 * dim;
+            }
+            let load = def.load[k];
+            t[3] = if load > 0.0 {
+                app.contact_tint_strength * (load / 0.05).min(1.0)
+            } else {
+                0.0
+            };
+            tex[k] = t;
+        }
+    }
+    Shading { tex, fields }
+}
+
+#[inline]
+fn sample_n<const N: usize>(g: &crate::physics::SurfaceGrid, f: &[[f32; N]], x: f32, y: f32) -> [f32; N] {
+    let n = g.n;
+    let s = g.spacing_mm as f32;
+    let h = g.half_mm as f32;
+    let fx = ((x + h) / s).clamp(0.0, (n - 1) as f32 - 1e-3);
+    let fy = ((y + h) / s).clamp(0.0, (n - 1) as f32 - 1e-3);
+    let (i, j) = (fx as usize, fy as usize);
+    let (ax, ay) = (fx - i as f32, fy - j as f32);
+    let k = j * n + i;
+    let (a, b, c, d) = (&f[k], &f[k + 1], &f[k + n], &f[k + n + 1]);
+    let mut out = [0.0; N];
+    for m in 0..N {
+        let top = a[m] + (b[m] - a[m]) * ax;
+        let bot = c[m] + (d[m] - c[m]) * ax;
+        out[m] = top + (bot - top) * ay;
+    }
+    out
+}
+
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Draws a filled, anti-aliased ellipse into an RGB buffer: `jac` maps the unit disk to pixels
+/// around `centre`. `soft` is the width of the edge ramp in px.
+#[allow(clippy::too_many_arguments)]
+fn splat(
+    buf: &mut [u8],
+    w: usize,
+    h: usize,
+    centre: Point2,
+    jac: &Matrix2<f64>,
+    rgb: [f32; 3],
+    alpha: f32,
+    soft: f32,
+) {
+    let Some(inv) = jac.try_inverse() else { return };
+    let ex = jac[(0, 0)].hypot(jac[(0, 1)]) + f64::from(soft) + 1.0;
+    let ey = jac[(1, 0)].hypot(jac[(1, 1)]) + f64::from(soft) + 1.0;
+    let x0 = (centre.x - ex).floor().max(0.0) as usize;
+    let y0 = (centre.y - ey).floor().max(0.0) as usize;
+    let x1 = ((centre.x + ex).ceil().min(w as f64 - 1.0)).max(-1.0);
+    let y1 = ((centre.y + ey).ceil().min(h as f64 - 1.0)).max(-1.0);
+    if x1 < 0.0 || y1 < 0.0 || x0 as f64 > x1 || y0 as f64 > y1 {
+        return;
+    }
+    let (x1, y1) = (x1 as usize, y1 as usize);
+    let inv = inv.cast::<f32>();
+    let inv_t = inv.transpose();
+    for y in y0..=y1 {
+        let dy = (y as f64 - centre.y) as f32;
+        for x in x0..=x1 {
+            let dx = (x as f64 - centre.x) as f32;
+            let q = inv * Vector2::new(dx, dy);
+            let rho = q.norm();
+            let cov = if rho < 1e-6 {
+                1.0
+            } else {
+                let grad = (inv_t * (q / rho)).norm();
+                let sd = (rho - 1.0) / grad;
+                (0.5 - sd / soft).clamp(0.0, 1.0)
+            };
+            if cov <= 0.0 {
+                continue;
+            }
+            let a = alpha * cov;
+            let o = (y * w + x) * 3;
+            for c in 0..3 {
+                let v = f32::from(buf[o + c]);
+                buf[o + c] = (v + (rgb[c] - v) * a + 0.5) as u8;
+            }
+        }
+    }
+}
+
+/// What to draw for one view of one frame.
+pub struct ViewJob<'a> {
+    /// The camera lookup.
+    pub optics: &'a ViewOptics,
+    /// 0 left, 1 right.
+    pub view: usize,
+    /// The frame's deformation.
+    pub def: &'a Deformation,
+    /// Marker ground truth (with projections of this view).
+    pub markers: &'a [MarkerTruth],
+    /// The recording's look.
+    pub appearance: &'a Appearance,
+    /// Dot radius on the gel, mm.
+    pub dot_radius_mm: f64,
+    /// Half-width of the marker lattice, mm (scales the LED gradient).
+    pub lattice_half_mm: f64,
+    /// Seed of this frame and view (noise).
+    pub seed: u64,
+}
+
+/// Renders one view: returns an RGB (not BGR) 8-bit image of the camera's size.
+pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
+    let o = job.optics;
+    let app = job.appearance;
+    let def = job.def;
+    let sh = shading(def, app);
+    let (w, h) = (
+        o.camera.image_size.width as usize,
+        o.camera.image_size.height as usize,
+    );
+
+    // Background at half resolution.
+    let mut lo = Mat::new_rows_cols_with_default(o.lo_h as i32, o.lo_w as i32, CV_8UC3, Scalar::all(0.0))
+        .map_err(cv_err("allocating the background"))?;
+    {
+        let buf = lo.data_bytes_mut().map_err(cv_err("background buffer"))?;
+        let inv_half = (1.0 / job.lattice_half_mm) as f32;
+        let contact = def.contact_area_mm2 > 0.0;
+        for (k, px) in buf.chunks_exact_mut(3).enumerate() {
+            let r = o.rays[k];
+            let (mut hx, mut hy) = (r[0], r[1]);
+            let mut t = [0.0f32; 4];
+            if contact {
+                let f = sample_n(&def.grid, &sh.fields, hx, hy);
+                let f = sample_n(&def.grid, &sh.fields, r[0] - f[0] * r[2], r[1] - f[0] * r[3]);
+                hx = r[0] - f[0] * r[2];
+                hy = r[1] - f[0] * r[3];
+                t = sample_n(&def.grid, &sh.tex, hx - f[1], hy - f[2]);
+            }
+            let gx = (hx * inv_half).clamp(-1.5, 1.5) * 0.5;
+            let gy = (hy * inv_half).clamp(-1.5, 1.5) * 0.5;
+            let vig = 1.0 - app.vignette * o.radius2[k];
+            for c in 0..3 {
+                let base = app.background[c] + app.gradient_x[c] * gx + app.gradient_y[c] * gy + t[c];
+                let v = base + (app.contact_tint[c] - base) * t[3];
+                // Float to u8 casts saturate.
+                px[c] = (v * vig + 0.5) as u8;
+            }
+        }
+    }
+    let mut img = Mat::default();
+    imgproc::resize(
+        &lo,
+        &mut img,
+        Size::new(w as i32, h as i32),
+        0.0,
+        0.0,
+        imgproc::INTER_LINEAR,
+    )
+    .map_err(cv_err("upsampling the background"))?;
+
+    // Markers, then dust.
+    {
+        let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
+        let r = job.dot_radius_mm;
+        let (cxp, cyp) = (0.5 * w as f64, 0.5 * h as f64);
+        for m in job.markers {
+            let (Some(c), Some(j)) = (m.px[job.view], m.jacobian[job.view]) else {
+                continue;
+            };
+            let fade = 1.0 - app.contact_fade * (m.load_mm / 0.05).min(1.0) as f32;
+            let (dx, dy) = ((c.x - cxp) / cxp, (c.y - cyp) / cyp);
+            let vig = 1.0 - app.vignette * (0.5 * (dx * dx + dy * dy)) as f32;
+            let col = app.marker_color.map(|v| v * vig);
+            splat(
+                buf,
+                w,
+                h,
+                c,
+                &(j * r),
+                col,
+                app.marker_alpha * fade,
+                app.edge_softness_px,
+            );
+        }
+        let scale = w as f64 / 640.0;
+        for (k, d) in app.dust.iter().enumerate() {
+            // Each view sees its own specks (they sit on the lens or at different parallax).
+            let shift = if job.view == 0 {
+                0.0
+            } else {
+                0.37 + 0.11 * k as f64
+            };
+            let at = Point2::new(((d.at[0] + shift) % 1.0) * w as f64, d.at[1] * h as f64);
+            let (s, c) = d.angle.sin_cos();
+            let (a, b) = (d.radius_px * d.elongation * scale, d.radius_px * scale);
+            let jac = Matrix2::new(c * a, -s * b, s * a, c * b);
+            splat(buf, w, h, at, &jac, d.color, d.alpha, 1.0);
+        }
+    }
+
+    // Optics and sensor.
+    let mut out = Mat::default();
+    if app.blur_px > 0.05 {
+        imgproc::gaussian_blur_def(&img, &mut out, Size::new(0, 0), app.blur_px)
+            .map_err(cv_err("defocus blur"))?;
+    } else {
+        out = img;
+    }
+    if app.noise > 0.0 {
+        let buf = out.data_bytes_mut().map_err(cv_err("image buffer"))?;
+        // Uniform noise of standard deviation `noise` (sqrt(12) * sigma wide), 4 samples per hash.
+        let amp = app.noise * 12f32.sqrt() / 65536.0;
+        let seed = job.seed;
+        for (k, chunk) in buf.chunks_mut(4).enumerate() {
+            let r = splitmix(seed ^ (k as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
+            for (m, v) in chunk.iter_mut().enumerate() {
+                let u = ((r >> (16 * m)) & 0xFFFF) as f32 - 32767.5;
+                *v = (f32::from(*v) + u * amp + 0.5).max(0.0) as u8;
+            }
+        }
+    }
+    if let Some(q) = app.jpeg_quality {
+        let mut enc = Vector::<u8>::new();
+        let params = Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_JPEG_QUALITY, q]);
+        imgcodecs::imencode(".jpg", &out, &mut enc, &params).map_err(cv_err("JPEG encoding"))?;
+        out = imgcodecs::imdecode(&enc, imgcodecs::IMREAD_COLOR).map_err(cv_err("JPEG decoding"))?;
+    }
+    Ok(out)
+}
+
+/// Encodes an RGB image (as [`render_view`] returns it) as PNG, fast compression (Up filter +
+/// `fdeflate`: ~1 ms for 640x480, files about 60 % of the raw size).
+pub fn encode_png(img: &Mat) -> Result<Vec<u8>> {
+    let (w, h) = (img.cols() as u32, img.rows() as u32);
+    let data = img.data_bytes().map_err(cv_err("image buffer"))?;
+    let mut out = Vec::with_capacity(data.len() * 2 / 3);
+    let png_err = |e: png::EncodingError| crate::error::Error::Png(e.to_string());
+    {
+        let mut enc = png::Encoder::new(&mut out, w, h);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_compression(png::Compression::Fastest);
+        enc.set_filter(png::Filter::Up);
+        let mut writer = enc.write_header().map_err(png_err)?;
+        writer.write_image_data(data).map_err(png_err)?;
+        writer.finish().map_err(png_err)?;
+    }
+    Ok(out)
+}
+
+/// Converts an RGB image to OpenCV's BGR order (for `imwrite` and friends).
+pub fn rgb_to_bgr(img: &Mat) -> Result<Mat> {
+    let mut out = Mat::default();
+    imgproc::cvt_color_def(img, &mut out, imgproc::COLOR_RGB2BGR).map_err(cv_err("RGB to BGR"))?;
+    Ok(out)
+}
+
+/// The RGB value of pixel (`x`, `y`) of a 3-channel image (tests).
+pub fn rgb_at(img: &Mat, x: usize, y: usize) -> Option<[u8; 3]> {
+    let w = img.cols() as usize;
+    let buf = img.data_bytes().ok()?;
+    let o = (y * w + x) * 3;
+    buf.get(o..o + 3).map(|s| [s[0], s[1], s[2]])
+}

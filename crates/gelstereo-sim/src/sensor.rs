@@ -1,0 +1,459 @@
+//! The sensor description file: marker grid, gel mechanics and the two cameras.
+//!
+//! # Frames
+//! The *sensor frame* has its origin at the centre of the gel's marker surface, x along the grid's
+//! columns, y along its rows (so row grows with y, col with x, as in the left view), and z pointing
+//! from the cameras out through the gel towards the object. An indenter pushes the surface towards
+//! the cameras, i.e. to negative z. Each camera is placed by its centre `position_mm` and the point
+//! it looks at, `look_at_mm`, both in the sensor frame; the camera's y axis is the sensor's y axis
+//! made orthogonal to the viewing direction. Ground truth is written in the LEFT camera's frame.
+//!
+//! The reference file is `calib/reference-sensor.json`; `docs/sim.md` documents every field.
+
+use std::path::Path;
+
+use gelstereo_core::{GridShape, ImageSize};
+use gelstereo_geometry::{Camera, Distortion, StereoRig};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+
+/// A whole sensor description.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorSpec {
+    /// A name written into every recording's `meta.json`.
+    pub name: String,
+    /// The marker lattice.
+    pub grid: GridSpec,
+    /// Gel mechanics.
+    pub gel: GelSpec,
+    /// The two cameras.
+    pub cameras: CamerasSpec,
+}
+
+/// The marker lattice on the gel surface, centred on the sensor frame's origin.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GridSpec {
+    /// Marker rows (along y).
+    pub rows: u16,
+    /// Marker columns (along x).
+    pub cols: u16,
+    /// Centre-to-centre distance, mm.
+    pub pitch_mm: f64,
+    /// Printed dot diameter, mm.
+    pub dot_diameter_mm: f64,
+}
+
+/// Gel layer mechanics (an elastic layer on a rigid acrylic plate).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GelSpec {
+    /// Thickness of the elastomer layer, mm; sets the width of the elastic response kernel.
+    pub thickness_mm: f64,
+    /// Half-width of the simulated square of gel surface around the origin, mm (must cover what the
+    /// cameras see).
+    pub half_extent_mm: f64,
+    /// Spacing of the physics grid, mm (the deformation is computed on it, then interpolated).
+    pub grid_spacing_mm: f64,
+    /// Coulomb friction coefficient between gel and object.
+    pub friction: f64,
+    /// Tangential over normal compliance of the layer (Cerruti against Boussinesq; about 1.3-1.5
+    /// for a nearly incompressible layer).
+    pub shear_compliance: f64,
+    /// Lateral spreading: outward surface displacement per unit slope of the indentation, per mm of
+    /// layer thickness.
+    pub spreading: f64,
+}
+
+/// The stereo pair: both cameras share the image size.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CamerasSpec {
+    /// Image width, px.
+    pub image_width: u32,
+    /// Image height, px.
+    pub image_height: u32,
+    /// The left camera (the reference 3-D frame of all ground truth).
+    pub left: CameraSpec,
+    /// The right camera.
+    pub right: CameraSpec,
+}
+
+/// One camera: OpenCV intrinsics and its placement in the sensor frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    /// Focal length along x, px.
+    pub fx: f64,
+    /// Focal length along y, px.
+    pub fy: f64,
+    /// Principal point x, px ((0, 0) = centre of the top-left pixel).
+    pub cx: f64,
+    /// Principal point y, px.
+    pub cy: f64,
+    /// OpenCV distortion `k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]]`: 0, 4, 5, 8 or 12 values.
+    pub distortion: Vec<f64>,
+    /// Camera centre in the sensor frame, mm (z < 0: behind the gel).
+    pub position_mm: [f64; 3],
+    /// The point the optical axis goes through, sensor frame, mm.
+    pub look_at_mm: [f64; 3],
+}
+
+fn field_err(source_name: &str, field: &str, expected: &str, found: impl std::fmt::Display) -> Error {
+    Error::SensorField {
+        source_name: source_name.to_owned(),
+        field: field.to_owned(),
+        expected: expected.to_owned(),
+        found: found.to_string(),
+    }
+}
+
+fn positive(src: &str, field: &str, v: f64) -> Result<()> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(field_err(src, field, "a finite number > 0", v))
+    }
+}
+
+fn in_range(src: &str, field: &str, v: f64, lo: f64, hi: f64) -> Result<()> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(field_err(src, field, &format!("a number in [{lo}, {hi}]"), v))
+    }
+}
+
+/// The sensor-frame pose of a simulated sensor: cameras, lattice and mechanics, ready to use.
+#[derive(Debug, Clone)]
+pub struct Sensor {
+    /// The description it was built from.
+    pub spec: SensorSpec,
+    /// The calibrated rig (exactly what is written to `calib.yaml` and the `.cameramodel` files).
+    pub rig: StereoRig,
+    /// Left camera frame from sensor frame.
+    pub left_from_sensor: Isometry3<f64>,
+    /// Right camera frame from sensor frame.
+    pub right_from_sensor: Isometry3<f64>,
+}
+
+impl SensorSpec {
+    /// Reads and validates a sensor description (JSON). Errors name the file and the field.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(crate::error::io_err(path))?;
+        let spec: SensorSpec = serde_json::from_str(&text).map_err(|e| Error::SensorSyntax {
+            path: path.to_owned(),
+            message: e.to_string(),
+        })?;
+        spec.validate(&path.display().to_string())?;
+        Ok(spec)
+    }
+
+    /// The reference GelStereo sensor (the same numbers as `calib/reference-sensor.json`).
+    pub fn reference() -> Self {
+        // Compiled in so the library works without the repository checkout; a test checks that the
+        // file in calib/ is identical.
+        let text = include_str!("../../../calib/reference-sensor.json");
+        match serde_json::from_str(text) {
+            Ok(spec) => spec,
+            Err(e) => unreachable!("calib/reference-sensor.json is checked by a test: {e}"),
+        }
+    }
+
+    /// The marker lattice's shape.
+    pub fn grid_shape(&self) -> GridShape {
+        GridShape {
+            rows: self.grid.rows,
+            cols: self.grid.cols,
+        }
+    }
+
+    /// Image size of both cameras.
+    pub fn image_size(&self) -> ImageSize {
+        ImageSize {
+            width: self.cameras.image_width,
+            height: self.cameras.image_height,
+        }
+    }
+
+    /// Rest position of marker (`row`, `col`) in the sensor frame, mm (z = 0).
+    pub fn marker_rest_mm(&self, row: u16, col: u16) -> [f64; 2] {
+        let p = self.grid.pitch_mm;
+        [
+            (f64::from(col) - 0.5 * f64::from(self.grid.cols - 1)) * p,
+            (f64::from(row) - 0.5 * f64::from(self.grid.rows - 1)) * p,
+        ]
+    }
+
+    /// Checks every field's range; `src` names the file in errors.
+    pub fn validate(&self, src: &str) -> Result<()> {
+        let g = &self.grid;
+        if !(2..=200).contains(&g.rows) {
+            return Err(field_err(src, "grid.rows", "an integer in [2, 200]", g.rows));
+        }
+        if !(2..=200).contains(&g.cols) {
+            return Err(field_err(src, "grid.cols", "an integer in [2, 200]", g.cols));
+        }
+        positive(src, "grid.pitch_mm", g.pitch_mm)?;
+        positive(src, "grid.dot_diameter_mm", g.dot_diameter_mm)?;
+        if g.dot_diameter_mm >= g.pitch_mm {
+            return Err(field_err(
+                src,
+                "grid.dot_diameter_mm",
+                &format!("less than grid.pitch_mm ({})", g.pitch_mm),
+                g.dot_diameter_mm,
+            ));
+        }
+        let gel = &self.gel;
+        positive(src, "gel.thickness_mm", gel.thickness_mm)?;
+        positive(src, "gel.grid_spacing_mm", gel.grid_spacing_mm)?;
+        let span = 0.5 * f64::from(g.rows.max(g.cols) - 1) * g.pitch_mm;
+        if !(gel.half_extent_mm.is_finite() && gel.half_extent_mm > span + g.pitch_mm) {
+            return Err(field_err(
+                src,
+                "gel.half_extent_mm",
+                &format!(
+                    "more than the lattice's half-width plus one pitch ({:.3} mm)",
+                    span + g.pitch_mm
+                ),
+                gel.half_extent_mm,
+            ));
+        }
+        let cells = 2.0 * gel.half_extent_mm / gel.grid_spacing_mm;
+        if !(8.0..=512.0).contains(&cells) {
+            return Err(field_err(
+                src,
+                "gel.grid_spacing_mm",
+                "a spacing giving 8 to 512 physics cells across 2 * gel.half_extent_mm",
+                gel.grid_spacing_mm,
+            ));
+        }
+        in_range(src, "gel.friction", gel.friction, 0.05, 5.0)?;
+        in_range(src, "gel.shear_compliance", gel.shear_compliance, 0.1, 10.0)?;
+        in_range(src, "gel.spreading", gel.spreading, 0.0, 2.0)?;
+        let c = &self.cameras;
+        if !(16..=8192).contains(&c.image_width) {
+            return Err(field_err(
+                src,
+                "cameras.image_width",
+                "an integer in [16, 8192]",
+                c.image_width,
+            ));
+        }
+        if !(16..=8192).contains(&c.image_height) {
+            return Err(field_err(
+                src,
+                "cameras.image_height",
+                "an integer in [16, 8192]",
+                c.image_height,
+            ));
+        }
+        for (name, cam) in [("left", &c.left), ("right", &c.right)] {
+            let f = |k: &str| format!("cameras.{name}.{k}");
+            positive(src, &f("fx"), cam.fx)?;
+            positive(src, &f("fy"), cam.fy)?;
+            in_range(src, &f("cx"), cam.cx, -0.5, f64::from(c.image_width) - 0.5)?;
+            in_range(src, &f("cy"), cam.cy, -0.5, f64::from(c.image_height) - 0.5)?;
+            if !matches!(cam.distortion.len(), 0 | 4 | 5 | 8 | 12) {
+                return Err(field_err(
+                    src,
+                    &f("distortion"),
+                    "0, 4, 5, 8 or 12 OpenCV coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]])",
+                    format!("{} values", cam.distortion.len()),
+                ));
+            }
+            if let Some(v) = cam.distortion.iter().find(|v| !v.is_finite() || v.abs() > 10.0) {
+                return Err(field_err(
+                    src,
+                    &f("distortion"),
+                    "finite coefficients of magnitude <= 10",
+                    v,
+                ));
+            }
+            for (k, v) in cam.position_mm.iter().chain(&cam.look_at_mm).enumerate() {
+                if !v.is_finite() {
+                    let key = if k < 3 { "position_mm" } else { "look_at_mm" };
+                    return Err(field_err(src, &f(key), "finite coordinates", v));
+                }
+            }
+            if cam.position_mm[2] >= 0.0 {
+                return Err(field_err(
+                    src,
+                    &f("position_mm"),
+                    "a camera behind the gel (z < 0 in the sensor frame)",
+                    format!("{:?}", cam.position_mm),
+                ));
+            }
+            let dir = Vector3::from(cam.look_at_mm) - Vector3::from(cam.position_mm);
+            if dir.z <= 0.2 * dir.norm() {
+                return Err(field_err(
+                    src,
+                    &f("look_at_mm"),
+                    "a point in front of the camera, towards the gel (+z)",
+                    format!("{:?}", cam.look_at_mm),
+                ));
+            }
+        }
+        if c.left.position_mm == c.right.position_mm {
+            return Err(field_err(
+                src,
+                "cameras.right.position_mm",
+                "a position different from the left camera's (non-zero baseline)",
+                format!("{:?}", c.right.position_mm),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Builds the cameras and their poses. Call [`SensorSpec::validate`] first (loading does).
+    pub fn build(&self) -> Result<Sensor> {
+        self.validate("sensor")?;
+        let size = self.image_size();
+        let camera = |c: &CameraSpec| -> Result<Camera> {
+            let cam = Camera {
+                image_size: size,
+                fx: c.fx,
+                fy: c.fy,
+                cx: c.cx,
+                cy: c.cy,
+                distortion: Distortion::new(c.distortion.clone())?,
+            };
+            cam.validate()?;
+            Ok(cam)
+        };
+        let left_from_sensor = camera_from_sensor(&self.cameras.left);
+        let right_from_sensor = camera_from_sensor(&self.cameras.right);
+        let rig = StereoRig {
+            left: camera(&self.cameras.left)?,
+            right: camera(&self.cameras.right)?,
+            right_from_left: right_from_sensor * left_from_sensor.inverse(),
+        };
+        rig.validate()?;
+        Ok(Sensor {
+            spec: self.clone(),
+            rig,
+            left_from_sensor,
+            right_from_sensor,
+        })
+    }
+}
+
+/// `camera_from_sensor` of a camera at `position_mm` looking at `look_at_mm`, y axis as close to
+/// the sensor's +y as possible.
+fn camera_from_sensor(c: &CameraSpec) -> Isometry3<f64> {
+    let pos = Vector3::from(c.position_mm);
+    let z = (Vector3::from(c.look_at_mm) - pos).normalize();
+    let x = Vector3::y().cross(&z).normalize();
+    let y = z.cross(&x);
+    // Columns = camera axes in the sensor frame: sensor_from_camera rotation.
+    let sensor_from_cam = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    let rot = UnitQuaternion::from_rotation_matrix(&sensor_from_cam).inverse();
+    let t = -(rot * pos);
+    Isometry3::from_parts(Translation3::from(t), rot)
+}
+
+impl Sensor {
+    /// The sensor-frame point `p` (mm) in the left and right camera frames.
+    pub fn to_cameras(&self, p: &Point3<f64>) -> (Point3<f64>, Point3<f64>) {
+        (self.left_from_sensor * p, self.right_from_sensor * p)
+    }
+
+    /// Whether every marker of the lattice at rest projects inside both images with `margin_px`
+    /// to spare.
+    pub fn all_markers_visible_at_rest(&self, margin_px: f64) -> bool {
+        let size = self.spec.image_size();
+        let inside = |q: gelstereo_core::Point2| {
+            q.x >= margin_px
+                && q.y >= margin_px
+                && q.x <= f64::from(size.width) - 1.0 - margin_px
+                && q.y <= f64::from(size.height) - 1.0 - margin_px
+        };
+        self.spec.grid_shape().indices().all(|i| {
+            let [x, y] = self.spec.marker_rest_mm(i.row, i.col);
+            let (l, r) = self.to_cameras(&Point3::new(x, y, 0.0));
+            matches!((self.rig.left.project(&l), self.rig.right.project(&r)), (Some(a), Some(b)) if inside(a) && inside(b))
+        })
+    }
+
+    /// Marker pitch in the left image at the centre of the lattice, px.
+    pub fn pitch_px(&self) -> f64 {
+        let p = self.spec.grid.pitch_mm;
+        let a = self
+            .rig
+            .left
+            .project(&(self.left_from_sensor * Point3::new(-0.5 * p, 0.0, 0.0)));
+        let b = self
+            .rig
+            .left
+            .project(&(self.left_from_sensor * Point3::new(0.5 * p, 0.0, 0.0)));
+        match (a, b) {
+            (Some(a), Some(b)) => a.distance(b),
+            _ => f64::NAN,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reference_file_is_valid_and_all_markers_are_seen_at_rest() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../calib/reference-sensor.json");
+        let spec = SensorSpec::load(&path).unwrap();
+        assert_eq!(spec, SensorSpec::reference());
+        assert_eq!(spec.grid_shape().count(), 529);
+        let s = spec.build().unwrap();
+        assert!(s.all_markers_visible_at_rest(5.0));
+        let pitch = s.pitch_px();
+        assert!((15.0..=25.0).contains(&pitch), "pitch {pitch} px");
+        // Camera y is the sensor's y: rows grow downwards in the left image.
+        let a = s
+            .rig
+            .left
+            .project(&(s.left_from_sensor * Point3::new(0.0, 0.0, 0.0)))
+            .unwrap();
+        let b = s
+            .rig
+            .left
+            .project(&(s.left_from_sensor * Point3::new(0.0, 1.0, 0.0)))
+            .unwrap();
+        assert!(b.y > a.y + 10.0);
+    }
+
+    #[test]
+    fn bad_fields_are_named() {
+        let mut spec = SensorSpec::reference();
+        spec.grid.pitch_mm = -1.0;
+        let e = spec.validate("x.json").unwrap_err().to_string();
+        assert!(
+            e.contains("x.json") && e.contains("grid.pitch_mm") && e.contains("-1"),
+            "{e}"
+        );
+        let mut spec = SensorSpec::reference();
+        spec.cameras.right.distortion = vec![0.0; 3];
+        let e = spec.validate("x.json").unwrap_err().to_string();
+        assert!(
+            e.contains("cameras.right.distortion") && e.contains("3 values"),
+            "{e}"
+        );
+        let mut spec = SensorSpec::reference();
+        spec.cameras.left.position_mm[2] = 5.0;
+        let e = spec.validate("x.json").unwrap_err().to_string();
+        assert!(e.contains("cameras.left.position_mm"), "{e}");
+
+        let dir = std::env::temp_dir().join(format!("gs-sensor-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("bad.json");
+        std::fs::write(&f, r#"{"name": "x", "grid": {"rows": 3}}"#).unwrap();
+        let e = SensorSpec::load(&f).unwrap_err().to_string();
+        assert!(e.contains("bad.json") && e.contains("cols"), "{e}");
+        std::fs::write(&f, "{\"name\": \"x\", \"gird\": 1}").unwrap();
+        let e = SensorSpec::load(&f).unwrap_err().to_string();
+        assert!(e.contains("gird"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,117 @@
+//! Random sensor variants for domain randomisation: other marker grids (8 to 30 per side), image
+//! sizes (320x240 to 1280x720), pitches, dot sizes, distances and lens distortions, so that a model
+//! trained on them also works on other marker sensors (GelSight-type).
+
+use rand::Rng;
+
+use crate::sensor::{CameraSpec, CamerasSpec, GelSpec, GridSpec, SensorSpec};
+
+const RESOLUTIONS: [(u32, u32); 7] = [
+    (320, 240),
+    (400, 300),
+    (480, 360),
+    (640, 480),
+    (800, 600),
+    (960, 540),
+    (1280, 720),
+];
+
+/// A random sensor: grid, image size, pitch in the image (10 to 45 px), dot-to-pitch ratio,
+/// camera distance and baseline, distortion. Every marker is visible in both views at rest.
+pub fn random_variant(base: &SensorSpec, rng: &mut impl Rng) -> SensorSpec {
+    for _ in 0..50 {
+        if let Some(s) = try_variant(base, rng) {
+            return s;
+        }
+    }
+    base.clone()
+}
+
+fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
+    let (w, h) = RESOLUTIONS[rng.random_range(0..RESOLUTIONS.len())];
+    let fill = rng.random_range(0.55..0.9);
+    // Pitch in the image: 10-45 px, and the grid must fit.
+    let pitch_px: f64 = rng.random_range(10.0..45.0);
+    let max_cols = ((f64::from(w) * fill / pitch_px) as u16 + 1).min(30);
+    let max_rows = ((f64::from(h) * fill / pitch_px) as u16 + 1).min(30);
+    if max_cols < 8 || max_rows < 8 {
+        return None;
+    }
+    let cols = rng.random_range(8..=max_cols);
+    let rows = rng.random_range(8..=max_rows);
+    let pitch_mm = rng.random_range(0.6..1.8);
+    let dist = rng.random_range(15.0..32.0);
+    let baseline = dist * rng.random_range(0.25..0.5);
+    let f = pitch_px * dist / pitch_mm;
+    let dot = pitch_mm * rng.random_range(0.3..0.6);
+    let span = 0.5 * f64::from(rows.max(cols) - 1) * pitch_mm;
+    // The gel must cover everything a camera sees: ray half-angle times distance, plus baseline.
+    let view_half = dist * (f64::from(w.max(h)) / (2.0 * f)) * 1.8 + baseline;
+    let half_extent = view_half.max(span + 2.0 * pitch_mm);
+    let cam = |sign: f64, rng: &mut dyn rand::RngCore| {
+        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * (rng.next_u32() as f64 / f64::from(u32::MAX));
+        CameraSpec {
+            fx: f * u(0.99, 1.01),
+            fy: f * u(0.99, 1.01),
+            cx: 0.5 * f64::from(w - 1) + u(-0.02, 0.02) * f64::from(w),
+            cy: 0.5 * f64::from(h - 1) + u(-0.02, 0.02) * f64::from(h),
+            distortion: vec![
+                u(-0.15, 0.05),
+                u(-0.02, 0.05),
+                u(-1e-3, 1e-3),
+                u(-1e-3, 1e-3),
+                u(-0.01, 0.01),
+            ],
+            position_mm: [sign * 0.5 * baseline, u(-0.1, 0.1), -dist],
+            look_at_mm: [u(-0.3, 0.3), u(-0.3, 0.3), 0.0],
+        }
+    };
+    let left = cam(-1.0, rng);
+    let right = cam(1.0, rng);
+    let spec = SensorSpec {
+        name: format!("variant-{rows}x{cols}-{w}x{h}"),
+        grid: GridSpec {
+            rows,
+            cols,
+            pitch_mm,
+            dot_diameter_mm: dot,
+        },
+        gel: GelSpec {
+            thickness_mm: pitch_mm * rng.random_range(2.5..4.0),
+            half_extent_mm: half_extent,
+            grid_spacing_mm: 2.0 * half_extent / 90.0,
+            friction: rng.random_range(0.4..1.0),
+            shear_compliance: base.gel.shear_compliance,
+            spreading: rng.random_range(0.05..0.3),
+        },
+        cameras: CamerasSpec {
+            image_width: w,
+            image_height: h,
+            left,
+            right,
+        },
+    };
+    let sensor = spec.build().ok()?;
+    sensor.all_markers_visible_at_rest(0.6 * pitch_px).then_some(spec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn variants_are_valid_and_varied() {
+        let base = SensorSpec::reference();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let mut sizes = std::collections::BTreeSet::new();
+        for _ in 0..20 {
+            let v = random_variant(&base, &mut rng);
+            let s = v.build().unwrap();
+            assert!(s.all_markers_visible_at_rest(1.0), "{}", v.name);
+            assert!((8..=30).contains(&v.grid.rows) && (8..=30).contains(&v.grid.cols));
+            sizes.insert((v.cameras.image_width, v.grid.rows));
+        }
+        assert!(sizes.len() > 10);
+    }
+}
