@@ -5,7 +5,10 @@ use std::process::ExitCode;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
+mod cmd_bench;
+mod cmd_detect;
 mod cmd_doctor;
+mod cmd_eval;
 mod cmd_simulate;
 mod project;
 
@@ -21,6 +24,12 @@ struct Cli {
 enum Command {
     /// Check every component a user needs and say how to fix what is missing.
     Doctor(cmd_doctor::Args),
+    /// Find markers in images, videos or stereo recordings; write image,x,y,confidence CSV.
+    Detect(cmd_detect::Args),
+    /// The paper's Table I (easy / hard / contact precision, recall, loss) on a simulated dataset.
+    Eval(cmd_eval::Args),
+    /// Localization latency per view and per stereo pair, each method against the blob baseline.
+    Bench(cmd_bench::Args),
     /// Simulate a GelStereo sensor: stereo recordings with exact ground truth, split train/val/test.
     Simulate(cmd_simulate::Args),
 }
@@ -40,6 +49,9 @@ fn main() -> ExitCode {
     };
     let result = match cli.command {
         Command::Doctor(args) => cmd_doctor::run(&args),
+        Command::Detect(args) => cmd_detect::run(&args),
+        Command::Eval(args) => cmd_eval::run(&args),
+        Command::Bench(args) => cmd_bench::run(&args),
         Command::Simulate(args) => cmd_simulate::run(&args),
     };
     match result {
