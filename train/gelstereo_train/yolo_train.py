@@ -106,12 +106,14 @@ def marker_boxes(points: np.ndarray, diameter_frac: float, fallback_px: float = 
     if n == 0:
         return out
     if n > 1:
-        d = p[None, :, :] - p[:, None, :]
-        dist = np.sqrt((d**2).sum(-1))
-        np.fill_diagonal(dist, np.inf)
-        horiz = np.abs(d[..., 0]) >= np.abs(d[..., 1])
-        sx = np.where(horiz, dist, np.inf).min(1)
-        sy = np.where(~horiz, dist, np.inf).min(1)
+        q = p.astype(np.float32)
+        adx = np.abs(q[None, :, 0] - q[:, None, 0])
+        ady = np.abs(q[None, :, 1] - q[:, None, 1])
+        d2 = adx * adx + ady * ady
+        np.fill_diagonal(d2, np.inf)
+        horiz = adx >= ady
+        sx = np.sqrt(np.where(horiz, d2, np.inf).min(1).astype(np.float64))
+        sy = np.sqrt(np.where(horiz, np.inf, d2).min(1).astype(np.float64))
         sx = np.where(np.isfinite(sx), sx, sy)
         sy = np.where(np.isfinite(sy), sy, sx)
         out[:, 0], out[:, 1] = sx, sy
@@ -203,6 +205,38 @@ def box_iou_xywh(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return inter / area.clamp_min(1e-9)
 
 
+def ignore_mask(dec: torch.Tensor, gt: list, stride: int, ignore_iou: float) -> torch.Tensor:
+    """YOLOv3's ignore rule for one head: (B, Gy, Gx, A) True where the decoded box (B, Gy, Gx, A, >=4)
+    overlaps some ground-truth box by IoU > ignore_iou. A predicted centre lies inside its own cell,
+    so only the 3 x 3 cells around each ground-truth centre are tested (exact for boxes smaller than
+    about two strides, i.e. every marker box)."""
+    b, gy, gx, a = dec.shape[:4]
+    mask = torch.zeros((b, gy, gx, a), dtype=torch.bool)
+    rows = [np.c_[np.full(len(g), i), g] for i, g in enumerate(gt) if len(g)]
+    if not rows:
+        return mask
+    g = torch.from_numpy(np.concatenate(rows).astype(np.float32))  # (n, 5): image, x, y, w, h
+    img = g[:, 0].long()
+    cx = torch.floor(g[:, 1] / stride).long()
+    cy = torch.floor(g[:, 2] / stride).long()
+    off = torch.tensor([-1, 0, 1])
+    nx = (cx[:, None, None] + off[None, None, :]).expand(-1, 3, 3)
+    ny = (cy[:, None, None] + off[None, :, None]).expand(-1, 3, 3)
+    inside = (nx >= 0) & (nx < gx) & (ny >= 0) & (ny < gy)
+    k = inside.nonzero(as_tuple=True)  # (gt index, dy, dx) triples
+    gi, ix, iy = k[0], nx[k], ny[k]
+    pred = dec[img[gi], iy, ix, :, :4]  # (m, A, 4)
+    box = g[gi, 1:5]
+    p1, p2 = pred[..., :2] - pred[..., 2:4] / 2, pred[..., :2] + pred[..., 2:4] / 2
+    b1, b2 = (box[:, :2] - box[:, 2:] / 2)[:, None], (box[:, :2] + box[:, 2:] / 2)[:, None]
+    inter = (torch.minimum(p2, b2) - torch.maximum(p1, b1)).clamp_min(0).prod(-1)
+    union = pred[..., 2:4].prod(-1) + box[:, None, 2:].prod(-1) - inter
+    hit = inter / union.clamp_min(1e-9) > ignore_iou  # (m, A)
+    hits = torch.zeros((b, gy, gx, a), dtype=torch.int32)
+    hits.index_put_((img[gi], iy, ix), hit.int(), accumulate=True)
+    return hits > 0
+
+
 def yolo_loss(maps, tg: Targets, strides, anchors: torch.Tensor, ignore_iou: float = 0.5):
     """YOLOv3 loss (module docs). Returns (total, objectness part, box part, mean centre error, input px)."""
     npos = max(tg.assigned, 1)
@@ -213,17 +247,12 @@ def yolo_loss(maps, tg: Targets, strides, anchors: torch.Tensor, ignore_iou: flo
         s = strides[h]
         m = tg.mask[h]
         with torch.no_grad():
-            dec = decode_head(raw.detach(), s, anchors[h])
-            ignore = torch.zeros(m.shape, dtype=torch.bool)
-            for i, gt in enumerate(tg.gt):
-                if len(gt) == 0:
-                    continue
-                iou = box_iou_xywh(dec[i, ..., :4].reshape(-1, 4), torch.from_numpy(gt))
-                ignore[i] = (iou.max(1).values > ignore_iou).view(m.shape[1:])
+            ignore = ignore_mask(decode_head(raw.detach().float(), s, anchors[h]), tg.gt, s, ignore_iou)
         neg = ~m & ~ignore
         obj_logit = raw[..., 4]
-        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(obj_logit[m], torch.ones_like(obj_logit[m]), reduction="sum")
-        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(obj_logit[neg], torch.zeros_like(obj_logit[neg]), reduction="sum")
+        pos_l, neg_l = obj_logit[m], obj_logit[neg]
+        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(pos_l, torch.ones_like(pos_l), reduction="sum")
+        obj_sum = obj_sum + F.binary_cross_entropy_with_logits(neg_l, torch.zeros_like(neg_l), reduction="sum")
         if m.any():
             p = raw[m]
             sc = tg.scale[h][m]

@@ -64,6 +64,21 @@ def test_targets_assign_best_anchor_and_fall_back_when_taken():
     np.testing.assert_allclose(tg.txy[1][0, 0, 1, 1].numpy(), [20 / 16 - 1, 12 / 16])
 
 
+def test_local_ignore_mask_equals_the_brute_force_one():
+    torch.manual_seed(1)
+    rng = np.random.default_rng(1)
+    anchors = torch.tensor([[5.0, 6.0], [7.0, 7.0]])
+    dec = decode_head(torch.randn(2, 6, 8, 2, 5) * 0.5, 8, anchors)
+    gt = [np.c_[rng.uniform(0, 64, (30, 1)), rng.uniform(0, 48, (30, 1)), rng.uniform(4, 8, (30, 2))].astype(np.float32),
+          np.zeros((0, 4), np.float32)]
+    got = yolo_train.ignore_mask(dec, gt, 8, 0.3)
+    want = torch.zeros(2, 6, 8, 2, dtype=torch.bool)
+    want[0] = (yolo_train.box_iou_xywh(dec[0, ..., :4].reshape(-1, 4), torch.from_numpy(gt[0])).max(1).values
+               > 0.3).view(6, 8, 2)
+    assert want.sum() > 5
+    assert torch.equal(got, want)
+
+
 def test_reference_decoding_matches_the_torch_decoding():
     torch.manual_seed(0)
     model = YoloV3(np.array([[[4, 5], [5, 6]], [[7, 8], [9, 9]]]), strides=(8, 16), width=2).eval()
