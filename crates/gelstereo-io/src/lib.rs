@@ -4,6 +4,7 @@
 //! centre of the top-left pixel, as everywhere in gelstereo.
 
 pub mod images;
+pub mod plot;
 pub mod ply;
 pub mod video;
 
