@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 mod cmd_bench;
+mod cmd_calibrate;
 mod cmd_detect;
 mod cmd_doctor;
 mod cmd_eval;
@@ -30,6 +31,8 @@ enum Command {
     Eval(cmd_eval::Args),
     /// Localization latency per view and per stereo pair, each method against the blob baseline.
     Bench(cmd_bench::Args),
+    /// Stereo checkerboard calibration: OpenCV YAML/XML or a mrcal pair, with RMS and epipolar errors.
+    Calibrate(cmd_calibrate::Args),
     /// Simulate a GelStereo sensor: stereo recordings with exact ground truth, split train/val/test.
     Simulate(cmd_simulate::Args),
 }
@@ -52,6 +55,7 @@ fn main() -> ExitCode {
         Command::Detect(args) => cmd_detect::run(&args),
         Command::Eval(args) => cmd_eval::run(&args),
         Command::Bench(args) => cmd_bench::run(&args),
+        Command::Calibrate(args) => cmd_calibrate::run(&args),
         Command::Simulate(args) => cmd_simulate::run(&args),
     };
     match result {

@@ -15,6 +15,9 @@ pub mod cv;
 pub mod error;
 pub mod triangulation;
 
+/// The `nalgebra` this crate's API uses (points, isometries), re-exported.
+pub use nalgebra;
+
 pub use calib::CalibrationPath;
 pub use camera::{Camera, Distortion, StereoRig};
 pub use checkerboard::{Board, CalibrationOptions, CalibrationReport, StereoCorners};

@@ -1,0 +1,339 @@
+//! `gelstereo calibrate`: stereo checkerboard calibration. Pairs the images of LEFT_DIR and
+//! RIGHT_DIR by file name, finds the board in both views, calibrates with OpenCV
+//! (`gelstereo_geometry::checkerboard`), prints the RMS reprojection and epipolar errors and writes
+//! the calibration (OpenCV YAML/XML or a mrcal pair, by the path given to `--out`).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, bail};
+use gelstereo_core::{ImageSize, Point2};
+use gelstereo_geometry::checkerboard::{calibrate_stereo, find_corners};
+use gelstereo_geometry::{Board, CalibrationOptions, CalibrationPath, StereoCorners};
+use opencv::core::MatTraitConst;
+use rayon::prelude::*;
+
+/// Arguments of `gelstereo calibrate`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The board's INNER corners, COLSxROWS (OpenCV's pattern size): a board of 10 x 7 squares is 9x6.
+    #[arg(long, value_name = "COLSxROWS")]
+    board: String,
+    /// Side of one square, mm.
+    #[arg(long, value_name = "S")]
+    square_mm: f64,
+    /// Where to write the calibration: FILE.yaml / FILE.yml / FILE.xml (OpenCV FileStorage),
+    /// LEFT.cameramodel,RIGHT.cameramodel, or a folder (mrcal pair left.cameramodel, right.cameramodel).
+    #[arg(long, value_name = "FILE")]
+    out: String,
+    /// Distortion coefficients to estimate: 4, 5 (OpenCV's default model), 8 (rational) or 12
+    /// (rational + thin prism).
+    #[arg(long, default_value_t = 5)]
+    distortion: usize,
+    /// Half-size of the cornerSubPix window, px (keep it below half a square in the image).
+    #[arg(long, default_value_t = 5)]
+    subpix_window: i32,
+    /// Also write the figures (errors, pairs used, rejected images) as JSON to this file.
+    #[arg(long, value_name = "FILE.json")]
+    report: Option<PathBuf>,
+    /// Folder of left images.
+    left_dir: PathBuf,
+    /// Folder of right images (same file names as the left ones).
+    right_dir: PathBuf,
+}
+
+/// One detected pair: file name, image size, left and right corners (`None`: board not found).
+type Detected = (String, ImageSize, Option<Vec<Point2>>, Option<Vec<Point2>>);
+
+fn size_of(m: &opencv::core::Mat) -> ImageSize {
+    ImageSize {
+        width: u32::try_from(m.cols()).unwrap_or(0),
+        height: u32::try_from(m.rows()).unwrap_or(0),
+    }
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}
+
+/// Runs `gelstereo calibrate`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let board = Board::parse(&args.board, args.square_mm)?;
+    // Check the output path before the (slow) calibration.
+    CalibrationPath::parse(&args.out)?;
+    let options = CalibrationOptions {
+        distortion_coeffs: args.distortion,
+        subpix_half_window_px: args.subpix_window,
+        ..Default::default()
+    };
+    let left = gelstereo_io::images::list_images(&args.left_dir)?;
+    let right = gelstereo_io::images::list_images(&args.right_dir)?;
+    let mut unpaired = Vec::new();
+    let mut pairs = Vec::new();
+    for l in &left {
+        let name = file_name(l);
+        match right.iter().find(|r| file_name(r) == name) {
+            Some(r) => pairs.push((name, l.clone(), r.clone())),
+            None => unpaired.push(format!("{} (no right image)", l.display())),
+        }
+    }
+    for r in &right {
+        if !left.iter().any(|l| file_name(l) == file_name(r)) {
+            unpaired.push(format!("{} (no left image)", r.display()));
+        }
+    }
+    if pairs.is_empty() {
+        bail!(
+            "no image pairs: {} and {} share no image file names ({} and {} images)",
+            args.left_dir.display(),
+            args.right_dir.display(),
+            left.len(),
+            right.len()
+        );
+    }
+    // Detect in parallel; keep the file order.
+    let detected: Vec<anyhow::Result<Detected>> = pairs
+        .par_iter()
+        .map(|(name, l, r)| {
+            let li = gelstereo_io::images::read_image(l)?;
+            let ri = gelstereo_io::images::read_image(r)?;
+            let (ls, rs) = (size_of(&li), size_of(&ri));
+            if ls != rs {
+                bail!(
+                    "{}: {}x{} but {}: {}x{}; both cameras must have the same image size",
+                    l.display(),
+                    ls.width,
+                    ls.height,
+                    r.display(),
+                    rs.width,
+                    rs.height
+                );
+            }
+            let lc = find_corners(&li, &board, &options).with_context(|| format!("{}", l.display()))?;
+            let rc = find_corners(&ri, &board, &options).with_context(|| format!("{}", r.display()))?;
+            Ok((name.clone(), ls, lc, rc))
+        })
+        .collect();
+    let mut size: Option<(ImageSize, String)> = None;
+    let mut views = Vec::new();
+    let mut not_found = Vec::new();
+    for d in detected {
+        let (name, s, lc, rc) = d?;
+        match &size {
+            None => size = Some((s, name.clone())),
+            Some((first, first_name)) if *first != s => bail!(
+                "{name} is {}x{} but {first_name} is {}x{}: all images must have one size",
+                s.width,
+                s.height,
+                first.width,
+                first.height
+            ),
+            _ => {}
+        }
+        match (lc, rc) {
+            (Some(left), Some(right)) => views.push(StereoCorners { name, left, right }),
+            (None, Some(_)) => not_found.push(format!("{name} (left)")),
+            (Some(_), None) => not_found.push(format!("{name} (right)")),
+            (None, None) => not_found.push(format!("{name} (both)")),
+        }
+    }
+    let Some((image_size, _)) = size else {
+        bail!("no images read")
+    };
+    for u in &unpaired {
+        eprintln!("warning: skipped {u}");
+    }
+    if !not_found.is_empty() {
+        eprintln!(
+            "warning: a {}x{}-corner board was not found in {} of {} pairs: {}",
+            board.inner_cols,
+            board.inner_rows,
+            not_found.len(),
+            pairs.len(),
+            not_found.join(", ")
+        );
+    }
+    let report = calibrate_stereo(&board, image_size, &views, &options).with_context(|| {
+        format!(
+            "calibrating from {} and {}",
+            args.left_dir.display(),
+            args.right_dir.display()
+        )
+    })?;
+    report
+        .rig
+        .save(&args.out)
+        .with_context(|| format!("writing {}", args.out))?;
+    let rig = &report.rig;
+    println!(
+        "calibrated from {} of {} image pairs ({}x{} px)",
+        report.pairs_used,
+        pairs.len(),
+        image_size.width,
+        image_size.height
+    );
+    println!(
+        "RMS reprojection error: left {:.4} px, right {:.4} px, stereo {:.4} px",
+        report.rms_left_px, report.rms_right_px, report.rms_stereo_px
+    );
+    println!(
+        "epipolar error: RMS {:.4} px, max {:.4} px",
+        report.epipolar_rms_px, report.epipolar_max_px
+    );
+    for (name, c) in [("left", &rig.left), ("right", &rig.right)] {
+        println!(
+            "{name}: fx {:.3} fy {:.3} cx {:.3} cy {:.3} px, distortion {:?}",
+            c.fx, c.fy, c.cx, c.cy, c.distortion.coeffs
+        );
+    }
+    let t = rig.right_from_left.translation.vector;
+    println!(
+        "baseline {:.4} mm, T = [{:.4}, {:.4}, {:.4}] mm, rotation {:.4} deg",
+        rig.baseline_mm(),
+        t.x,
+        t.y,
+        t.z,
+        rig.right_from_left.rotation.angle().to_degrees()
+    );
+    println!("wrote {}", args.out);
+    if let Some(path) = &args.report {
+        let json = serde_json::json!({
+            "pairs": pairs.len(),
+            "pairs_used": report.pairs_used,
+            "board_not_found": not_found,
+            "unpaired": unpaired,
+            "rms_left_px": report.rms_left_px,
+            "rms_right_px": report.rms_right_px,
+            "rms_stereo_px": report.rms_stereo_px,
+            "epipolar_rms_px": report.epipolar_rms_px,
+            "epipolar_max_px": report.epipolar_max_px,
+            "baseline_mm": rig.baseline_mm(),
+            "calibration": args.out,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gelstereo_geometry::StereoRig;
+    use gelstereo_geometry::checkerboard::{RayGrid, render_view};
+    use gelstereo_geometry::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+    /// The rig used to render: the geometry crate's reference-sensor fixture (OpenCV 5-coefficient).
+    fn truth() -> StereoRig {
+        StereoRig::read_opencv(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../gelstereo-geometry/tests/data/opencv5.xml"),
+        )
+        .unwrap()
+    }
+
+    /// Renders board pairs through `rig` into DIR/left and DIR/right (PNG), one image pair with no
+    /// board, and one left image without a right counterpart.
+    fn render_pairs(rig: &StereoRig, board: &Board, dir: &Path) {
+        let (gl, gr) = (RayGrid::new(&rig.left), RayGrid::new(&rig.right));
+        std::fs::create_dir_all(dir.join("left")).unwrap();
+        std::fs::create_dir_all(dir.join("right")).unwrap();
+        let (w, h) = (
+            f64::from(board.inner_cols - 1) * board.square_mm,
+            f64::from(board.inner_rows - 1) * board.square_mm,
+        );
+        for (k, (rx, ry, rz, z)) in [
+            (0.3, 0.0, 0.0, 25.0),
+            (-0.3, 0.1, 0.1, 26.0),
+            (0.0, 0.35, -0.1, 24.0),
+            (0.1, -0.35, 0.2, 27.0),
+            (0.25, 0.25, 0.0, 26.0),
+            (-0.25, -0.25, -0.2, 25.0),
+            (0.2, -0.2, 0.1, 28.0),
+            (-0.2, 0.3, 0.0, 27.5),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let rot = UnitQuaternion::from_euler_angles(rx, ry, rz);
+            let pose = Isometry3::from_parts(
+                Translation3::from(Vector3::new(0.0, 0.0, z) - rot * Vector3::new(w / 2.0, h / 2.0, 0.0)),
+                rot,
+            );
+            let l = render_view(&gl, board, &pose).unwrap();
+            let r = render_view(&gr, board, &(rig.right_from_left * pose)).unwrap();
+            gelstereo_io::images::write_image(&dir.join(format!("left/{k:02}.png")), &l).unwrap();
+            gelstereo_io::images::write_image(&dir.join(format!("right/{k:02}.png")), &r).unwrap();
+        }
+        let far = Isometry3::translation(1000.0, 0.0, 25.0);
+        let blank = render_view(&gl, board, &far).unwrap();
+        gelstereo_io::images::write_image(&dir.join("left/99_blank.png"), &blank).unwrap();
+        gelstereo_io::images::write_image(&dir.join("right/99_blank.png"), &blank).unwrap();
+        gelstereo_io::images::write_image(&dir.join("left/98_lonely.png"), &blank).unwrap();
+    }
+
+    #[test]
+    fn calibrates_rendered_boards_and_writes_both_formats() {
+        let rig = truth();
+        let board = Board::parse("9x6", 1.5).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        render_pairs(&rig, &board, dir.path());
+        for out in ["calib.yaml", "models"] {
+            let out_path = dir.path().join(out);
+            let args = Args {
+                board: "9x6".into(),
+                square_mm: 1.5,
+                out: out_path.to_string_lossy().into_owned(),
+                distortion: 5,
+                subpix_window: 5,
+                report: Some(dir.path().join("report.json")),
+                left_dir: dir.path().join("left"),
+                right_dir: dir.path().join("right"),
+            };
+            run(&args).unwrap();
+            let est = StereoRig::load(&args.out).unwrap();
+            assert!(
+                (est.baseline_mm() - rig.baseline_mm()).abs() < 0.05,
+                "{}",
+                est.baseline_mm()
+            );
+            assert!((est.left.fx / rig.left.fx - 1.0).abs() < 0.01, "{}", est.left.fx);
+            let report: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
+                    .unwrap();
+            assert_eq!(report["pairs"], 9);
+            assert_eq!(report["pairs_used"], 8);
+            assert!(report["rms_stereo_px"].as_f64().unwrap() < 0.2, "{report}");
+            assert!(report["epipolar_rms_px"].as_f64().unwrap() < 0.2, "{report}");
+            assert_eq!(report["board_not_found"][0], "99_blank.png (both)");
+            // 3-D check: a point on the gel triangulates where it is.
+            let p = Point3::new(1.0, -1.0, 25.0);
+            let (l, r) = rig.project(&p).unwrap();
+            let t = gelstereo_geometry::Triangulator::new(est, Default::default()).unwrap();
+            assert!((t.triangulate(l, r).unwrap().p_in_left_mm - p).norm() < 0.03);
+        }
+    }
+
+    #[test]
+    fn errors_are_clear() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("l")).unwrap();
+        std::fs::create_dir_all(dir.path().join("r")).unwrap();
+        let args = |board: &str, out: &str| Args {
+            board: board.into(),
+            square_mm: 1.5,
+            out: out.into(),
+            distortion: 5,
+            subpix_window: 5,
+            report: None,
+            left_dir: dir.path().join("l"),
+            right_dir: dir.path().join("r"),
+        };
+        let e = run(&args("9by6", "x.yaml")).unwrap_err().to_string();
+        assert!(e.contains("9by6"), "{e}");
+        let e = run(&args("9x6", "x.json")).unwrap_err().to_string();
+        assert!(e.contains("x.json") && e.contains(".yaml"), "{e}");
+        let e = run(&args("9x6", "x.yaml")).unwrap_err().to_string();
+        assert!(e.contains("no image pairs"), "{e}");
+    }
+}
