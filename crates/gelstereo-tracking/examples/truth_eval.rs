@@ -18,11 +18,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         args.drain(..2);
     }
     let verbose = std::env::var("VERBOSE").is_ok();
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS.
+    let mut contact_cfg = ContactConfig::default();
+    if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.load_threshold = v;
+    }
+    if let Some(v) = std::env::var("LOAD_ITERATIONS").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.load_iterations = v;
+    }
     let (mut area_ok, mut depth_ok, mut cent_ok, mut cmp) = (0usize, 0usize, 0usize, 0usize);
     let mut conf = [[0usize; 4]; 4];
     let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
     let mut slip_before_contact = 0;
     let mut onset_err = Vec::new();
+    let mut ratios = Vec::new();
+    let mut cerrs = Vec::new();
     let mut state: u64 = 0x9E37_79B9_7F4A_7C15;
     let mut uniform = move || {
         state ^= state << 13;
@@ -57,7 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (mut gt_onset, mut est_onset) = (None, None);
         let mut touched = false;
         for (f, gt) in truth.iter().enumerate() {
-            let c = surface.analyze(&per_frame[f], &ContactConfig::default())?;
+            let c = surface.analyze(&per_frame[f], &contact_cfg)?;
             let sl = det.update(&surface, &c);
             touched |= gt.contact;
             if !touched && sl.state != SlipState::NoContact && sl.state != SlipState::Stick {
@@ -84,6 +94,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             if gt.max_depth_mm >= 0.1 {
                 cmp += 1;
                 area_ok += usize::from(ae.abs() <= 0.1);
+                ratios.push(1.0 + ae);
+                cerrs.push(ce);
                 depth_ok += usize::from(de.abs() <= 0.05);
                 cent_ok += usize::from(ce <= 0.2);
             }
@@ -117,6 +129,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         pct(area_ok),
         pct(depth_ok),
         pct(cent_ok)
+    );
+    ratios.sort_by(f64::total_cmp);
+    cerrs.sort_by(f64::total_cmp);
+    let q = |v: &[f64], f: f64| {
+        v.get(((v.len().max(1) - 1) as f64 * f) as usize)
+            .copied()
+            .unwrap_or(f64::NAN)
+    };
+    println!(
+        "area ratio quartiles {:.2} {:.2} {:.2}; centroid error median {:.3} mm, 90th {:.3} mm",
+        q(&ratios, 0.25),
+        q(&ratios, 0.5),
+        q(&ratios, 0.75),
+        q(&cerrs, 0.5),
+        q(&cerrs, 0.9)
     );
     let f1 = 2.0 * tp as f64 / (2 * tp + fp + fneg).max(1) as f64;
     println!(

@@ -484,7 +484,7 @@ mod tests {
             out.summary.max_depth_mm
         );
         let c = out.summary.centroid_mm.unwrap();
-        assert!((c[0] - 0.4).abs() < 0.05 && (c[1] - 0.2).abs() < 0.05, "{c:?}");
+        assert!((c[0] - 0.4).abs() < 0.08 && (c[1] - 0.2).abs() < 0.08, "{c:?}");
         assert_eq!(out.summary.slip, SlipState::Stick);
 
         // An empty frame: nothing measured, every marker lost, rows still written.
