@@ -32,6 +32,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 dot_radius_mm: 0.2,
                 lattice_half_mm: 8.8,
                 seed: 1,
+                previous: None,
+                ridges: None,
             })?;
             let t3 = Instant::now();
             let _ = gelstereo_sim::render::encode_png(&img)?;

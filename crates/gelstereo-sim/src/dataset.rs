@@ -25,7 +25,7 @@ use crate::error::{Error, Result, io_err};
 use crate::indenter::{Indenter, SHAPES};
 use crate::motion::Script;
 use crate::physics::{Layer, SurfaceGrid, deform};
-use crate::render::{MarkerTruth, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
+use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
 use crate::sensor::{Sensor, SensorSpec};
 use crate::variant::random_variant;
 
@@ -288,6 +288,22 @@ impl Simulator {
         let lattice_half = 0.5
             * f64::from(self.sensor.spec.grid.cols.max(self.sensor.spec.grid.rows) - 1)
             * self.sensor.spec.grid.pitch_mm;
+        let previous = if exp.appearance.motion_blur > 0.0 && frame > 0 {
+            let before = exp.script.pose_at(f64::from(frame) - exp.appearance.motion_blur);
+            let def0 = deform(&self.sensor.spec.gel, &self.layer, &exp.script, &before);
+            Some(marker_truth(&self.sensor, &self.optics, &def0))
+        } else {
+            None
+        };
+        let ridges = match (&exp.script.indenter, def.indenter_frame) {
+            (Indenter::Fingertip { rx_mm, ry_mm }, Some([x, y, a])) => Some(Ridges {
+                centre: [x as f32, y as f32],
+                angle: a as f32,
+                aspect: (ry_mm / rx_mm) as f32,
+                period_mm: 0.3 + 0.15 * ((exp.seed >> 11) % 1000) as f32 / 1000.0,
+            }),
+            _ => None,
+        };
         let render = |view: usize| {
             render_view(&ViewJob {
                 optics: if view == 0 {
@@ -302,6 +318,8 @@ impl Simulator {
                 dot_radius_mm: radius,
                 lattice_half_mm: lattice_half,
                 seed: mix(seed, view as u64),
+                previous: previous.as_deref(),
+                ridges,
             })
         };
         let images = [render(0)?, render(1)?];

@@ -90,7 +90,8 @@ pub enum Indenter {
         /// Bumps: centre x, centre y, radius, height (mm).
         bumps: Vec<[f64; 4]>,
     },
-    /// A fingertip: an elongated ellipsoid (ridges are drawn by the renderer).
+    /// A fingertip: a soft elongated pad that flattens in contact (ridges are drawn by the
+    /// renderer).
     Fingertip {
         /// Radius along local x, mm.
         rx_mm: f64,
@@ -422,12 +423,9 @@ impl Indenter {
             }
             Self::Fingertip { rx_mm, ry_mm } => {
                 let q = (x / rx_mm).powi(2) + (y / ry_mm).powi(2);
-                if q < 1.0 {
-                    // Ellipsoid with vertical semi-axis = the mean of the two.
-                    0.5 * (rx_mm + ry_mm) * (1.0 - (1.0 - q).sqrt())
-                } else {
-                    f64::INFINITY
-                }
+                // A soft pad flattens against the gel: flat middle, walls rising steeply towards
+                // the rim (quartic in the elliptic radius), 2.5 mm high at the rim.
+                if q < 1.5 { 2.5 * q * q } else { f64::INFINITY }
             }
         }
     }

@@ -115,14 +115,19 @@ impl Script {
 
     /// The pose in frame `frame` (frame 0 never touches).
     pub fn pose(&self, frame: u32) -> Pose {
-        if frame == 0 || self.frames < 2 {
+        self.pose_at(f64::from(frame))
+    }
+
+    /// The pose at a fractional frame time (for motion blur); frame 0 and earlier never touch.
+    pub fn pose_at(&self, frame: f64) -> Pose {
+        if frame <= 0.0 || self.frames < 2 {
             return Pose {
                 depth_mm: -0.3,
                 slide_mm: [0.0; 2],
                 twist_deg: 0.0,
             };
         }
-        let t = f64::from(frame) / f64::from(self.frames - 1);
+        let t = frame / f64::from(self.frames - 1);
         // Touch-down a little after the start; the press follows a smooth (varying speed) ramp.
         let t0 = 0.06;
         let press = smoothstep((t - t0) / (self.press_end - t0));

@@ -194,6 +194,9 @@ pub struct Deformation {
     pub centroid_mm: Option<[f64; 3]>,
     /// Slip state.
     pub slip: SlipState,
+    /// Where the indenter sits in material coordinates: centre x, y (mm) and the angle of its
+    /// local x axis (radians); `None` without contact.
+    pub indenter_frame: Option<[f64; 3]>,
 }
 
 impl Deformation {
@@ -211,6 +214,7 @@ impl Deformation {
             max_depth_mm: 0.0,
             centroid_mm: None,
             slip: SlipState::NoContact,
+            indenter_frame: None,
         }
     }
 
@@ -436,6 +440,7 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
         max_depth_mm: if contact == 0 { 0.0 } else { max_depth },
         centroid_mm: centroid,
         slip,
+        indenter_frame: (contact > 0).then_some([c_mat.x, c_mat.y, mat_angle]),
     }
 }
 

@@ -168,7 +168,7 @@ pub fn marker_truth(sensor: &Sensor, optics: &StereoOptics, def: &Deformation) -
 /// Per-frame shading on the physics grid: colour offset from the surface slope (LEDs) and the
 /// weight of the contact tint.
 struct Shading {
-    tex: Vec<[f32; 4]>,
+    tex: Vec<[f32; 5]>,
     fields: Vec<[f32; 3]>,
 }
 
@@ -176,7 +176,7 @@ fn shading(def: &Deformation, app: &Appearance) -> Shading {
     let g = &def.grid;
     let n = g.n;
     let inv2s = (0.5 / g.spacing_mm) as f32;
-    let mut tex = vec![[0.0f32; 4]; n * n];
+    let mut tex = vec![[0.0f32; 5]; n * n];
     let mut fields = vec![[0.0f32; 3]; n * n];
     for j in 0..n {
         for i in 0..n {
@@ -193,18 +193,16 @@ fn shading(def: &Deformation, app: &Appearance) -> Shading {
                 0.0
             };
             let norm = (1.0 + gx * gx + gy * gy).sqrt();
-            let mut t = [0.0f32; 4];
+            let mut t = [0.0f32; 5];
             // Steep walls look darker (light leaves them sideways).
             let dim = 1.0 - 1.0 / norm;
             for (v, l) in t.iter_mut().zip(&app.light_dirs) {
                 *v = -app.light_gain * (gx * l[0] + gy * l[1]) / norm - 60.0 * dim;
             }
             let load = def.load[k];
-            t[3] = if load > 0.0 {
-                app.contact_tint_strength * (load / 0.05).min(1.0)
-            } else {
-                0.0
-            };
+            let strength = if load > 0.0 { (load / 0.05).min(1.0) } else { 0.0 };
+            t[3] = app.contact_tint_strength * strength;
+            t[4] = strength;
             tex[k] = t;
         }
     }
@@ -308,6 +306,37 @@ pub struct ViewJob<'a> {
     pub lattice_half_mm: f64,
     /// Seed of this frame and view (noise).
     pub seed: u64,
+    /// Marker ground truth at the start of the exposure (motion blur), if any.
+    pub previous: Option<&'a [MarkerTruth]>,
+    /// Skin ridges to draw in the contact (fingertips).
+    pub ridges: Option<Ridges>,
+}
+
+/// Fingerprint-like ridges: concentric, slightly wavy ellipses around the indenter's centre,
+/// drawn where the skin touches the gel.
+#[derive(Debug, Clone, Copy)]
+pub struct Ridges {
+    /// Centre in material coordinates, mm.
+    pub centre: [f32; 2],
+    /// Orientation of the ellipses' x axis, radians.
+    pub angle: f32,
+    /// Aspect ratio of the ellipses (y over x).
+    pub aspect: f32,
+    /// Ridge period, mm.
+    pub period_mm: f32,
+}
+
+impl Ridges {
+    /// Ridge profile in [-1, 1] at material point (`x`, `y`).
+    #[inline]
+    fn value(&self, x: f32, y: f32) -> f32 {
+        let (s, c) = self.angle.sin_cos();
+        let (dx, dy) = (x - self.centre[0], y - self.centre[1]);
+        let (lx, ly) = (c * dx + s * dy, -s * dx + c * dy);
+        let r =
+            (lx * lx + (ly / self.aspect).powi(2)).sqrt() + 0.12 * (1.7 * lx).sin() + 0.08 * (2.3 * ly).cos();
+        (std::f32::consts::TAU * r / self.period_mm).sin()
+    }
 }
 
 /// Renders one view: returns an RGB (not BGR) 8-bit image of the camera's size.
@@ -331,19 +360,32 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         for (k, px) in buf.chunks_exact_mut(3).enumerate() {
             let r = o.rays[k];
             let (mut hx, mut hy) = (r[0], r[1]);
-            let mut t = [0.0f32; 4];
+            let mut t = [0.0f32; 5];
+            let mut ridge = 0.0;
             if contact {
                 let f = sample_n(&def.grid, &sh.fields, hx, hy);
                 let f = sample_n(&def.grid, &sh.fields, r[0] - f[0] * r[2], r[1] - f[0] * r[3]);
                 hx = r[0] - f[0] * r[2];
                 hy = r[1] - f[0] * r[3];
-                t = sample_n(&def.grid, &sh.tex, hx - f[1], hy - f[2]);
+                let (mx, my) = (hx - f[1], hy - f[2]);
+                t = sample_n(&def.grid, &sh.tex, mx, my);
+                if let Some(rd) = &job.ridges
+                    && t[4] > 0.0
+                {
+                    ridge = rd.value(mx, my) * t[4] * app.ridge_gain;
+                }
             }
             let gx = (hx * inv_half).clamp(-1.5, 1.5) * 0.5;
             let gy = (hy * inv_half).clamp(-1.5, 1.5) * 0.5;
+            let gr = gx * gx + gy * gy;
             let vig = 1.0 - app.vignette * o.radius2[k];
             for c in 0..3 {
-                let base = app.background[c] + app.gradient_x[c] * gx + app.gradient_y[c] * gy + t[c];
+                let base = app.background[c]
+                    + app.gradient_x[c] * gx
+                    + app.gradient_y[c] * gy
+                    + app.gradient_radial[c] * gr
+                    + t[c]
+                    + ridge;
                 let v = base + (app.contact_tint[c] - base) * t[3];
                 // Float to u8 casts saturate.
                 px[c] = (v * vig + 0.5) as u8;
@@ -366,7 +408,7 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
         let r = job.dot_radius_mm;
         let (cxp, cyp) = (0.5 * w as f64, 0.5 * h as f64);
-        for m in job.markers {
+        for (k, m) in job.markers.iter().enumerate() {
             let (Some(c), Some(j)) = (m.px[job.view], m.jacobian[job.view]) else {
                 continue;
             };
@@ -374,16 +416,21 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
             let (dx, dy) = ((c.x - cxp) / cxp, (c.y - cyp) / cyp);
             let vig = 1.0 - app.vignette * (0.5 * (dx * dx + dy * dy)) as f32;
             let col = app.marker_color.map(|v| v * vig);
-            splat(
-                buf,
-                w,
-                h,
-                c,
-                &(j * r),
-                col,
-                app.marker_alpha * fade,
-                app.edge_softness_px,
-            );
+            let alpha = app.marker_alpha * fade;
+            // Motion blur: the marker smears from where it was when the exposure began.
+            let start = job.previous.and_then(|p| p.get(k)).and_then(|p| p.px[job.view]);
+            match start {
+                Some(s) if s.distance(c) > 0.3 => {
+                    let steps = (s.distance(c).ceil() as usize).clamp(2, 8);
+                    let a = 1.0 - (1.0 - alpha).powf(1.0 / steps as f32);
+                    for i in 0..steps {
+                        let f = (i as f64 + 0.5) / steps as f64;
+                        let p = Point2::new(s.x + (c.x - s.x) * f, s.y + (c.y - s.y) * f);
+                        splat(buf, w, h, p, &(j * r), col, a, app.edge_softness_px);
+                    }
+                }
+                _ => splat(buf, w, h, c, &(j * r), col, alpha, app.edge_softness_px),
+            }
         }
         let scale = w as f64 / 640.0;
         for (k, d) in app.dust.iter().enumerate() {

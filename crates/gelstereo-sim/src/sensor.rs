@@ -364,6 +364,12 @@ impl Sensor {
     /// Whether every marker of the lattice at rest projects inside both images with `margin_px`
     /// to spare.
     pub fn all_markers_visible_at_rest(&self, margin_px: f64) -> bool {
+        self.visible_fraction_at_rest(margin_px) >= 1.0
+    }
+
+    /// Fraction of the lattice's markers that, at rest, project inside both images with
+    /// `margin_px` to spare.
+    pub fn visible_fraction_at_rest(&self, margin_px: f64) -> f64 {
         let size = self.spec.image_size();
         let inside = |q: gelstereo_core::Point2| {
             q.x >= margin_px
@@ -371,11 +377,17 @@ impl Sensor {
                 && q.x <= f64::from(size.width) - 1.0 - margin_px
                 && q.y <= f64::from(size.height) - 1.0 - margin_px
         };
-        self.spec.grid_shape().indices().all(|i| {
-            let [x, y] = self.spec.marker_rest_mm(i.row, i.col);
-            let (l, r) = self.to_cameras(&Point3::new(x, y, 0.0));
-            matches!((self.rig.left.project(&l), self.rig.right.project(&r)), (Some(a), Some(b)) if inside(a) && inside(b))
-        })
+        let grid = self.spec.grid_shape();
+        let seen = grid
+            .indices()
+            .filter(|i| {
+                let [x, y] = self.spec.marker_rest_mm(i.row, i.col);
+                let (l, r) = self.to_cameras(&Point3::new(x, y, 0.0));
+                matches!((self.rig.left.project(&l), self.rig.right.project(&r)),
+                    (Some(a), Some(b)) if inside(a) && inside(b))
+            })
+            .count();
+        seen as f64 / grid.count() as f64
     }
 
     /// Marker pitch in the left image at the centre of the lattice, px.

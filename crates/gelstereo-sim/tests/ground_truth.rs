@@ -87,8 +87,11 @@ fn check_recording(dir: &Path, expect_markers: Option<usize>) -> f64 {
                 for k in ["dX_mm", "dY_mm", "dZ_mm"] {
                     assert_eq!(v(k), 0.0);
                 }
-                assert_eq!(table.cell(r, "visible_left").unwrap(), "1");
-                assert_eq!(table.cell(r, "visible_right").unwrap(), "1");
+                if expect_markers.is_some() {
+                    // The reference sensor sees every marker at rest (variants may overfill).
+                    assert_eq!(table.cell(r, "visible_left").unwrap(), "1");
+                    assert_eq!(table.cell(r, "visible_right").unwrap(), "1");
+                }
                 assert_eq!(table.cell(r, "in_contact").unwrap(), "0");
             }
         }
