@@ -138,6 +138,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None, help="JSON file for the results")
     p.add_argument("--frame-step", type=int, default=1)
     p.add_argument("--max-experiments", type=int, default=None)
+    p.add_argument("--max-images", type=int, default=None, help="random subset (seed 0) of the split's images")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--dedup-radius-frac", type=float, default=None)
     args = p.parse_args(argv)
@@ -147,6 +148,9 @@ def main(argv=None) -> int:
     if args.dedup_radius_frac is not None:
         post.dedup_radius_frac = args.dedup_radius_frac
     samples = list_samples(args.data, args.split, frame_step=args.frame_step, max_experiments=args.max_experiments)
+    if args.max_images is not None and len(samples) > args.max_images:
+        keep = np.sort(np.random.default_rng(0).choice(len(samples), args.max_images, replace=False))
+        samples = [samples[i] for i in keep]
     res = evaluate(samples, runner, load_mre(args.mre, args.threads), post)
     res["split"] = args.split
     res["marknet_file"] = str(args.marknet)

@@ -138,6 +138,7 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="val")
     p.add_argument("--variants", type=int, default=2, help="augmented copies per validation image")
     p.add_argument("--frame-step", type=int, default=1)
+    p.add_argument("--max-images", type=int, default=800, help="random subset of the split's images")
     p.add_argument("--max-samples", type=int, default=200000, help="cap of the balanced set (paper: 200,000)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--threads", type=int, default=2)
@@ -152,6 +153,8 @@ def main(argv=None) -> int:
     runner = MarknetRunner(args.marknet, args.threads)
     post = PostConfig()
     samples = list_samples(args.data, args.split, frame_step=args.frame_step)
+    if args.max_images is not None and len(samples) > args.max_images:
+        samples = [samples[i] for i in np.sort(rng.choice(len(samples), args.max_images, replace=False))]
     t0 = time.time()
     feats, labels = collect(samples, runner, post, args.variants, rng, log)
     raw_counts = {"candidates": int(len(labels)), "correct": int(labels.sum()), "wrong": int((~labels).sum())}
