@@ -11,12 +11,17 @@
 //! property float x
 //! property float y
 //! property float z
-//! property ushort row
-//! property ushort col
+//! property int row
+//! property int col
 //! property float reprojection_error
 //! ```
 //! Mesh layout: `x y z`, then one `float` property per [`VertexProperty`], then
 //! `element face M` / `property list uchar int vertex_indices`.
+//!
+//! Checked with Open3D 0.20: `read_point_cloud` gives the positions; `o3d.t.io.read_point_cloud`
+//! also the `row`, `col` (Int32) and `reprojection_error` attributes (it skips 16-bit integers,
+//! hence `int`); `read_triangle_mesh` gives a mesh's vertices and faces, and its extra vertex
+//! properties come with `o3d.t.io.read_point_cloud` on the same file.
 
 use std::io::Write as _;
 use std::path::Path;
@@ -117,8 +122,9 @@ pub fn write_marker_cloud(path: &Path, points: &[MarkerPoint], comment: &str) ->
     for name in ["x", "y", "z"] {
         vertex.properties.add(scalar(name, ScalarType::Float));
     }
-    vertex.properties.add(scalar("row", ScalarType::UShort));
-    vertex.properties.add(scalar("col", ScalarType::UShort));
+    // `int`, not `ushort`: Open3D's tensor reader skips 16-bit properties.
+    vertex.properties.add(scalar("row", ScalarType::Int));
+    vertex.properties.add(scalar("col", ScalarType::Int));
     vertex
         .properties
         .add(scalar("reprojection_error", ScalarType::Float));
@@ -130,8 +136,8 @@ pub fn write_marker_cloud(path: &Path, points: &[MarkerPoint], comment: &str) ->
             for (name, v) in ["x", "y", "z"].iter().zip(p.position_mm) {
                 e.insert((*name).to_owned(), Property::Float(v as f32));
             }
-            e.insert("row".to_owned(), Property::UShort(p.index.row));
-            e.insert("col".to_owned(), Property::UShort(p.index.col));
+            e.insert("row".to_owned(), Property::Int(i32::from(p.index.row)));
+            e.insert("col".to_owned(), Property::Int(i32::from(p.index.col)));
             e.insert(
                 "reprojection_error".to_owned(),
                 Property::Float(p.reprojection_error_px as f32),
@@ -285,6 +291,17 @@ pub fn read_marker_cloud(path: &Path) -> Result<Vec<MarkerPoint>> {
 mod tests {
     use super::*;
 
+    /// The error and its sources, as `anyhow`'s `{:#}` shows them.
+    fn chain(e: &Error) -> String {
+        let mut s = e.to_string();
+        let mut src = std::error::Error::source(e);
+        while let Some(c) = src {
+            s = format!("{s}: {c}");
+            src = c.source();
+        }
+        s
+    }
+
     #[test]
     fn marker_cloud_round_trips_through_a_binary_file() {
         let dir = tempfile::tempdir().unwrap();
@@ -309,7 +326,7 @@ mod tests {
         );
         for line in [
             "element vertex 5",
-            "property ushort row",
+            "property int row",
             "property float reprojection_error",
             "comment frame 0",
         ] {
@@ -329,7 +346,7 @@ mod tests {
             position_mm: [f64::NAN, 0.0, 1.0],
             ..points[0]
         }];
-        let err = write_marker_cloud(&path, &nan, "").unwrap_err().to_string();
+        let err = chain(&write_marker_cloud(&path, &nan, "").unwrap_err());
         assert!(err.contains("000000.ply") && err.contains("non-finite"), "{err}");
     }
 
@@ -367,12 +384,7 @@ mod tests {
             faces: vec![[0, 1, 4]],
             ..mesh.clone()
         };
-        assert!(
-            write_mesh(&path, &bad_face, "")
-                .unwrap_err()
-                .to_string()
-                .contains("beyond the 4 vertices")
-        );
+        assert!(chain(&write_mesh(&path, &bad_face, "").unwrap_err()).contains("beyond the 4 vertices"));
         let short = TriangleMesh {
             properties: vec![VertexProperty {
                 name: "depth_mm".into(),
@@ -381,9 +393,7 @@ mod tests {
             ..mesh.clone()
         };
         assert!(
-            write_mesh(&path, &short, "")
-                .unwrap_err()
-                .to_string()
+            chain(&write_mesh(&path, &short, "").unwrap_err())
                 .contains("1 values, expected one per vertex (4)")
         );
         let clash = TriangleMesh {
@@ -393,11 +403,6 @@ mod tests {
             }],
             ..mesh
         };
-        assert!(
-            write_mesh(&path, &clash, "")
-                .unwrap_err()
-                .to_string()
-                .contains("'x'")
-        );
+        assert!(chain(&write_mesh(&path, &clash, "").unwrap_err()).contains("'x'"));
     }
 }
