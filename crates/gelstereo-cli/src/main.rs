@@ -10,7 +10,9 @@ mod cmd_calibrate;
 mod cmd_detect;
 mod cmd_doctor;
 mod cmd_eval;
+mod cmd_reconstruct;
 mod cmd_simulate;
+mod cmd_track;
 mod project;
 
 /// Stereo visuotactile reconstruction for GelStereo-type tactile sensors.
@@ -35,6 +37,11 @@ enum Command {
     Calibrate(cmd_calibrate::Args),
     /// Simulate a GelStereo sensor: stereo recordings with exact ground truth, split train/val/test.
     Simulate(cmd_simulate::Args),
+    /// Track markers over a recording, video or camera: displacement, contact geometry, slip; CSV,
+    /// PLY, overlays and plots (`--bench`: pipeline timings).
+    Track(cmd_track::Args),
+    /// Localize, index, pair and triangulate a stereo recording: OUT/markers.csv and one PLY per frame.
+    Reconstruct(cmd_reconstruct::Args),
 }
 
 fn main() -> ExitCode {
@@ -57,6 +64,8 @@ fn main() -> ExitCode {
         Command::Bench(args) => cmd_bench::run(&args),
         Command::Calibrate(args) => cmd_calibrate::run(&args),
         Command::Simulate(args) => cmd_simulate::run(&args),
+        Command::Track(args) => cmd_track::run(&args),
+        Command::Reconstruct(args) => cmd_reconstruct::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

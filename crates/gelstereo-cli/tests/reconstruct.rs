@@ -1,0 +1,240 @@
+//! End-to-end tests of `gelstereo reconstruct` on a small recording made here by `gelstereo simulate`
+//! (reference look, 6 frames): ground-truth 2-D positions through indexing, pairing and
+//! triangulation, checked against the simulator's 3-D truth; the blob localizer on one stereo pair;
+//! and the errors a user meets (missing calibration key, image size, zero baseline, empty views).
+
+// A test helper may panic: that is how a test reports failure.
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn gelstereo(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_gelstereo"))
+        .args(args)
+        .output()
+        .expect("run gelstereo")
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = gelstereo(args);
+    let t = text(&out);
+    assert!(out.status.success(), "{args:?} failed:\n{t}");
+    t
+}
+
+fn fails_with(args: &[&str], needles: &[&str]) {
+    let out = gelstereo(args);
+    let t = text(&out);
+    assert!(!out.status.success(), "{args:?} should fail:\n{t}");
+    for n in needles {
+        assert!(t.contains(n), "{args:?}: '{n}' missing from:\n{t}");
+    }
+    assert!(!t.contains("panicked"), "{t}");
+}
+
+/// Simulates one 6-frame experiment into `root` and returns its recording folder.
+fn simulate(root: &Path) -> PathBuf {
+    let out = root.join("sim");
+    let s = out.to_str().unwrap();
+    ok(&[
+        "simulate",
+        "--out",
+        s,
+        "--experiments",
+        "1",
+        "--frames-per-experiment",
+        "6",
+        "--randomization",
+        "off",
+        "--quiet",
+    ]);
+    for split in ["train", "val", "test"] {
+        let dir = out.join(split).join("exp_0000");
+        if dir.is_dir() {
+            return dir;
+        }
+    }
+    panic!("no exp_0000 in {}", out.display());
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = simulate(tmp.path());
+    let calib = rec.join("calib.yaml");
+    let out = tmp.path().join("out");
+    let log = ok(&[
+        "reconstruct",
+        "--calib",
+        s(&calib),
+        "--out",
+        s(&out),
+        "--from-ground-truth",
+        "--evaluate",
+        s(&rec),
+    ]);
+    assert!(log.contains("23x23 lattice"), "{log}");
+
+    // markers.csv: the DESIGN.md header and one row per marker and frame, displacement empty.
+    let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(
+        lines.next().unwrap(),
+        "frame,row,col,x_left,y_left,x_right,y_right,X_mm,Y_mm,Z_mm,dX_mm,dY_mm,dZ_mm,status"
+    );
+    let rows: Vec<&str> = lines.collect();
+    assert_eq!(rows.len(), 6 * 529);
+    assert!(
+        rows[0].starts_with("0,0,0,") && rows[0].ends_with(",,,,"),
+        "{}",
+        rows[0]
+    );
+
+    // Against the truth: the done-when figures (the truth's own 2-D positions are exact, so the
+    // 3-D error is the geometry's numerical error).
+    let eval: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("evaluation.json")).unwrap()).unwrap();
+    let all = &eval["all"];
+    assert!(all["rmse_mm"].as_f64().unwrap() <= 0.02, "{all}");
+    assert!(all["coverage"].as_f64().unwrap() >= 0.99, "{all}");
+    assert_eq!(all["wrong_pairs"], 0, "{all}");
+    assert!(all["index_consistency"].as_f64().unwrap() >= 0.995, "{all}");
+
+    // One PLY per frame with every marker, readable back with its ids.
+    for f in 0..6 {
+        let cloud = gelstereo_io::ply::read_marker_cloud(&out.join(format!("ply/{f:06}.ply"))).unwrap();
+        assert_eq!(cloud.len(), 529);
+        assert!(
+            cloud
+                .iter()
+                .all(|p| p.position_mm[2] > 0.0 && p.reprojection_error_px < 0.01)
+        );
+    }
+
+    // A missing calibration key is named.
+    let yaml = std::fs::read_to_string(&calib).unwrap();
+    let t_at = yaml.find("\nT:").unwrap();
+    let no_t = tmp.path().join("no_t.yaml");
+    let size_at = yaml.find("image_width").unwrap();
+    std::fs::write(&no_t, format!("{}{}", &yaml[..t_at + 1], &yaml[size_at..])).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&no_t),
+            "--out",
+            s(&out),
+            "--from-ground-truth",
+            s(&rec),
+        ],
+        &["'T'"],
+    );
+
+    // A calibration for another image size.
+    let wide = tmp.path().join("wide.yaml");
+    std::fs::write(&wide, yaml.replace("image_width: 640", "image_width: 800")).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&wide),
+            "--out",
+            s(&out),
+            "--from-ground-truth",
+            s(&rec),
+        ],
+        &["image size mismatch", "800x480", "640x480"],
+    );
+
+    // Degenerate geometry: zero baseline.
+    let t_block = &yaml[t_at..];
+    let data_at = t_block.find("data:").unwrap();
+    let zero_t = format!(
+        "{}{}data: [ 0., 0., 0. ]\n{}",
+        &yaml[..t_at],
+        &t_block[..data_at],
+        {
+            let rest = &t_block[data_at..];
+            &rest[rest.find(']').unwrap() + 2..]
+        }
+    );
+    let flat = tmp.path().join("flat.yaml");
+    std::fs::write(&flat, zero_t).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&flat),
+            "--out",
+            s(&out),
+            "--from-ground-truth",
+            s(&rec),
+        ],
+        &["baseline"],
+    );
+
+    // Empty views: two blank images of the right size give a clear error, not NaN rows.
+    let blank = |name: &str| {
+        let p = tmp.path().join(name);
+        let img = opencv::core::Mat::new_rows_cols_with_default(
+            480,
+            640,
+            opencv::core::CV_8UC3,
+            opencv::core::Scalar::all(255.0),
+        )
+        .unwrap();
+        opencv::imgcodecs::imwrite(s(&p), &img, &opencv::core::Vector::new()).unwrap();
+        p
+    };
+    let (l, r) = (blank("blank_l.png"), blank("blank_r.png"));
+    fails_with(
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--out",
+            s(&out),
+            s(&l),
+            s(&r),
+        ],
+        &["reference frame", "no detections"],
+    );
+}
+
+#[test]
+fn reconstruct_runs_the_blob_localizer_on_one_stereo_pair() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = simulate(tmp.path());
+    let out = tmp.path().join("blob");
+    let (l, r) = (rec.join("left/000000.png"), rec.join("right/000000.png"));
+    ok(&[
+        "reconstruct",
+        "--method",
+        "blob",
+        "--calib",
+        s(&rec.join("calib.yaml")),
+        "--out",
+        s(&out),
+        s(&l),
+        s(&r),
+    ]);
+    let cloud = gelstereo_io::ply::read_marker_cloud(&out.join("ply/000000.ply")).unwrap();
+    // The tuned blob detector on the reference look finds nearly every marker (>= 95%).
+    assert!(cloud.len() >= 500, "{} markers", cloud.len());
+    assert!(cloud.iter().all(|p| p.reprojection_error_px <= 2.0));
+}
