@@ -122,6 +122,11 @@ impl IndexedView {
         self.positions.len()
     }
 
+    /// The position of detection `detection` (indexed or not), px.
+    pub fn detection_position(&self, detection: usize) -> Option<Point2> {
+        self.positions.get(detection).copied()
+    }
+
     /// The index of detection `detection` (its position in the slice given to the indexer).
     pub fn index_of(&self, detection: usize) -> Option<GridIndex> {
         self.detection_index.get(detection).copied().flatten()
