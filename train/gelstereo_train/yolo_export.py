@@ -38,7 +38,16 @@ def parse_anchors(text: str) -> np.ndarray:
     return np.array([[float(v) for v in pair.split(",")] for pair in text.split()], dtype=np.float64)
 
 
-def yolo_metadata(model: YoloV3, input_hw, dataset: str, trained: str, post: YoloPost, diameter_frac: float) -> dict:
+def box_description(diameter_frac) -> str:
+    """The metadata's `box` text from a checkpoint's diameter_frac record (a number or min/median/max)."""
+    if isinstance(diameter_frac, dict):
+        span = f"{diameter_frac['min']:.3g}-{diameter_frac['max']:.3g}, median {diameter_frac['median']:.3g}"
+    else:
+        span = f"{float(diameter_frac):.3g}"
+    return f"marker diameter = sensor dot/pitch ({span}) x local lattice spacing per axis"
+
+
+def yolo_metadata(model: YoloV3, input_hw, dataset: str, trained: str, post: YoloPost, box: str) -> dict:
     """metadata_props of a yolo.onnx (all values become strings)."""
     h, w = input_hw
     return {
@@ -55,7 +64,7 @@ def yolo_metadata(model: YoloV3, input_hw, dataset: str, trained: str, post: Yol
         "resize": "bilinear, half-pixel centres, no antialiasing",
         "conf_threshold": f"{post.conf_threshold:g}",
         "nms_iou": f"{post.nms_iou:g}",
-        "box": f"marker diameter = {diameter_frac:g} x local lattice spacing per axis",
+        "box": box,
         "dataset": dataset,
         "trained": trained,
     }
@@ -103,7 +112,7 @@ def main(argv=None) -> int:
     model, meta = load_checkpoint(args.checkpoint)
     hw = (int(meta["input_height"]), int(meta["input_width"]))
     post = YoloPost(args.conf_threshold, args.nms_iou)
-    md = yolo_metadata(model, hw, meta["dataset"], meta["trained"], post, float(meta.get("diameter_frac", 0.5)))
+    md = yolo_metadata(model, hw, meta["dataset"], meta["trained"], post, box_description(meta["diameter_frac"]))
     diff = export_yolo(model, args.out, hw, md)
     print(f"{args.out}: onnxruntime vs PyTorch max abs diff (raw) {diff:.3g}")
     if args.report:

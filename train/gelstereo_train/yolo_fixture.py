@@ -28,7 +28,7 @@ from PIL import Image
 
 from . import yolo_train
 from .tinydata import grid_points, render_dots, write_tiny_dataset
-from .yolo_export import export_yolo, parse_anchors, yolo_metadata
+from .yolo_export import box_description, export_yolo, parse_anchors, yolo_metadata
 from .yolo_post import YoloPost, postprocess
 
 INPUT = 64
@@ -59,7 +59,7 @@ def main(argv=None) -> int:
         yolo_train.train(targs, log=lambda *_: None)
         model, meta = yolo_train.load_checkpoint(ck)
     meta_props = yolo_metadata(model, (INPUT, INPUT), "tinydata fixture (gelstereo_train.yolo_fixture)",
-                               meta["trained"][:10], POST, meta["diameter_frac"])
+                               meta["trained"][:10], POST, box_description(meta["diameter_frac"]))
     onnx_path = out / "yolo_tiny.onnx"
     diff = export_yolo(model, onnx_path, (INPUT, INPUT), meta_props)
 

@@ -4,7 +4,8 @@ Marknet: gelstereo_train.augment).
     python -m gelstereo_train.yolo_train --data ROOT --out runs/yolo.pt --minutes 40 --threads 1
 
 Boxes. The simulator labels marker centres only; a YOLO box needs a size. A marker is a printed dot of
-diameter ``dot_diameter_mm`` on a lattice of pitch ``pitch_mm`` (the sensor description), so its
+diameter ``dot_diameter_mm`` on a lattice of pitch ``pitch_mm`` (the sensor description the simulator
+writes into each experiment's meta.json; the random sensor variants differ), so its
 apparent diameter is ``diameter_frac = dot_diameter_mm / pitch_mm`` times the LOCAL lattice spacing in
 the image, measured per marker and per axis: box width = diameter_frac x the distance to its nearest
 horizontal neighbour (|dx| >= |dy|), height = diameter_frac x the distance to its nearest vertical one
@@ -42,7 +43,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .augment import AugConfig, make_batch
+from .augment import AugConfig, photometric, sample_crops
 from .data import dataset_tag, list_samples, read_dataset_info
 from .model import count_flops
 from .train_marknet import load_images
@@ -68,32 +69,37 @@ def _find_grid(obj):
     return None
 
 
-def diameter_fraction(root: Path | str) -> tuple[float, str]:
-    """dot diameter / pitch of the sensor a dataset was rendered with, and where it was read from:
-    ROOT/dataset.json, else the first experiment's meta.json, else the reference sensor's 0.5."""
-    root = Path(root)
-    sources = [root / "dataset.json"]
-    for split in ("train", "val", "test"):
-        d = root / split
-        if d.is_dir():
-            exps = sorted(p for p in d.iterdir() if p.is_dir())
-            if exps:
-                sources.append(exps[0] / "meta.json")
-    for src in sources:
-        if not src.exists():
-            continue
+def _fraction_from(info) -> float | None:
+    g = _find_grid(info)
+    if g is None:
+        return None
+    try:
+        frac = float(g["dot_diameter_mm"]) / float(g["pitch_mm"])
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return frac if 0.0 < frac < 1.0 else None
+
+
+def diameter_fraction(exp_dir: Path | str) -> tuple[float, str]:
+    """dot diameter / pitch of the sensor an experiment was rendered with, and where it was read
+    from: EXP/meta.json (the simulator writes the sensor description there; variants differ), else
+    ROOT/dataset.json, else the reference sensor's 0.5."""
+    exp_dir = Path(exp_dir)
+    meta = exp_dir / "meta.json"
+    if meta.exists():
         try:
-            info = read_dataset_info(root) if src.name == "dataset.json" else json.loads(src.read_text())
+            frac = _fraction_from(json.loads(meta.read_text()))
         except (OSError, ValueError):
-            continue
-        g = _find_grid(info)
-        if g is not None:
-            try:
-                frac = float(g["dot_diameter_mm"]) / float(g["pitch_mm"])
-            except (TypeError, ValueError, ZeroDivisionError):
-                continue
-            if 0.0 < frac < 1.0:
-                return frac, str(src)
+            frac = None
+        if frac is not None:
+            return frac, str(meta)
+    root = exp_dir.parent.parent
+    try:
+        frac = _fraction_from(read_dataset_info(root))
+    except ValueError:
+        frac = None
+    if frac is not None:
+        return frac, str(root / "dataset.json")
     return DEFAULT_DIAMETER_FRAC, "default (reference sensor 0.4 mm / 0.8 mm)"
 
 
@@ -122,14 +128,16 @@ def marker_boxes(points: np.ndarray, diameter_frac: float, fallback_px: float = 
     return out * diameter_frac
 
 
-def canonical_boxes(points_list, image_sizes, input_hw, diameter_frac: float, max_boxes: int = 200_000,
+def canonical_boxes(points_list, image_sizes, input_hw, diameter_frac, max_boxes: int = 200_000,
                     seed: int = 0) -> np.ndarray:
-    """Training boxes (w, h) in network input pixels of whole images resized to ``input_hw``."""
+    """Training boxes (w, h) in network input pixels of whole images resized to ``input_hw``;
+    ``diameter_frac`` is one value or one per image."""
     rng = np.random.default_rng(seed)
+    fracs = np.broadcast_to(np.asarray(diameter_frac, np.float64), (len(points_list),))
     out = []
-    for pts, (h_img, w_img) in zip(points_list, image_sizes):
+    for pts, (h_img, w_img), frac in zip(points_list, image_sizes, fracs):
         s = np.array([input_hw[1] / w_img, input_hw[0] / h_img])
-        out.append(marker_boxes(np.asarray(pts, np.float64) * s, diameter_frac))
+        out.append(marker_boxes((np.asarray(pts, np.float64) + 0.5) * s, frac))
     wh = np.concatenate(out) if out else np.zeros((0, 2))
     wh = wh[np.isfinite(wh).all(1)]
     if len(wh) > max_boxes:
@@ -310,13 +318,21 @@ def train(args, log=print) -> Path:
     samples, images, points, pitches = load_images(samples, args.max_images, rng, log, max_gb=args.max_gb)
     log(f"train images {len(images)}, markers {sum(len(p) for p in points)}, "
         f"median pitch {np.nanmedian(pitches):.2f} px")
-    frac, frac_src = diameter_fraction(args.data)
+    cache: dict = {}
+    for smp in samples:
+        exp_dir = smp.image_path.parent.parent
+        if exp_dir not in cache:
+            cache[exp_dir] = diameter_fraction(exp_dir)
+    fracs = np.array([cache[smp.image_path.parent.parent][0] for smp in samples])
     if args.diameter_frac is not None:
-        frac, frac_src = args.diameter_frac, "--diameter-frac"
-    log(f"marker diameter = {frac:.3f} x local pitch ({frac_src})")
+        fracs[:] = args.diameter_frac
+    sources = sorted({src for _, src in cache.values()})
+    log(f"marker diameter = dot/pitch x local spacing; dot/pitch per experiment: min {fracs.min():.3f} median "
+        f"{np.median(fracs):.3f} max {fracs.max():.3f} ({len(cache)} experiments; read from "
+        f"{sources[0] if len(sources) == 1 else str(len(sources)) + ' files'})")
     strides = tuple(int(s) for s in args.strides.split(","))
     input_hw = (args.input_size, args.input_size)
-    anchors, fit = fit_anchors(points, images, input_hw, frac, len(strides), args.anchors_per_head, args.seed, log)
+    anchors, fit = fit_anchors(points, images, input_hw, fracs, len(strides), args.anchors_per_head, args.seed, log)
     model = YoloV3(anchors, strides=strides, width=args.width)
     log(f"YOLOv3 strides {strides} anchors/head {args.anchors_per_head} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
@@ -342,8 +358,11 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac_done, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng)
-        boxes = [marker_boxes(lab, frac) for lab in labels]
+        # augment.make_batch, keeping the image indices (each sensor has its own dot/pitch ratio).
+        idx = rng.integers(0, len(images), args.batch)
+        x, labels = sample_crops(images, points, pitches, idx, cfg, rng)
+        x = photometric(x, cfg, rng)
+        boxes = [marker_boxes(lab, fracs[i]) for lab, i in zip(labels, idx)]
         x = x.contiguous(memory_format=torch.channels_last)
         maps = model.head_maps(x)
         tg = build_targets(labels, boxes, [m.shape[1:3] for m in maps], strides, anchors_t.numpy(),
@@ -374,8 +393,8 @@ def train(args, log=print) -> Path:
         "train_seconds": round(train_s, 1),
         "steps": step,
         "threads": args.threads,
-        "diameter_frac": frac,
-        "diameter_frac_source": frac_src,
+        "diameter_frac": {"min": float(fracs.min()), "median": float(np.median(fracs)), "max": float(fracs.max())},
+        "diameter_frac_source": sources,
         "anchor_fit": fit,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "aug": dataclasses.asdict(cfg),

@@ -40,6 +40,20 @@ def test_marker_boxes_follow_the_local_lattice_spacing_per_axis():
     np.testing.assert_allclose(yolo_train.marker_boxes(pts[:5], 0.5), np.tile([5.0, 5.0], (5, 1)))
 
 
+def test_dot_to_pitch_ratio_is_read_per_experiment(tmp_path):
+    exp = tmp_path / "train" / "exp_0000"
+    exp.mkdir(parents=True)
+    (exp / "meta.json").write_text(json.dumps({"sensor": {"grid": {"pitch_mm": 1.0, "dot_diameter_mm": 0.35}}}))
+    frac, src = yolo_train.diameter_fraction(exp)
+    assert frac == pytest.approx(0.35) and src.endswith("meta.json")
+    other = tmp_path / "train" / "exp_0001"
+    other.mkdir()
+    (other / "meta.json").write_text("{}")
+    assert yolo_train.diameter_fraction(other)[0] == yolo_train.DEFAULT_DIAMETER_FRAC
+    (tmp_path / "dataset.json").write_text(json.dumps({"grid": {"pitch_mm": 2.0, "dot_diameter_mm": 0.8}}))
+    assert yolo_train.diameter_fraction(other)[0] == pytest.approx(0.4)
+
+
 def test_kmeans_recovers_two_box_shapes():
     rng = np.random.default_rng(0)
     wh = np.concatenate([rng.normal([4, 6], 0.05, (200, 2)), rng.normal([8, 8], 0.05, (100, 2))])
