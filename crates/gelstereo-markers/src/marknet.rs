@@ -195,7 +195,6 @@ pub struct Marknet {
     contract: MarknetContract,
     post: PostProcess,
     mre: Option<Mre>,
-    scaled: Mat,
     resized: Mat,
     input: Vec<f32>,
     lut: [f32; 256],
@@ -232,7 +231,6 @@ impl Marknet {
             post: contract.postprocess,
             contract,
             mre: None,
-            scaled: Mat::default(),
             resized: Mat::default(),
             input: Vec::new(),
             lut,
@@ -285,9 +283,11 @@ impl Marknet {
         Ok(())
     }
 
-    /// Converts `image` to RGB f32 in [0, 1], resizes it to the network input and writes it into batch
-    /// slot `slot` of the input buffer (planar RGB). The order (scale to [0, 1], then a float bilinear
-    /// resize) is the trainer's, so both sides feed the network the same numbers.
+    /// Resizes `image` to the network input (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
+    /// centres, no antialiasing) and writes it as planar RGB f32 in [0, 1] into batch slot `slot`.
+    ///
+    /// The trainer divides by 255 before resizing; resizing the 8-bit image first differs by at most
+    /// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
     fn preprocess(&mut self, image: &Mat, slot: usize) -> Result<ImageSize> {
         let size = check_image(image)?;
         self.check_size(size)?;
@@ -295,61 +295,70 @@ impl Marknet {
             self.contract.input_width as i32,
             self.contract.input_height as i32,
         );
+        let src: &Mat = if image.cols() == iw && image.rows() == ih {
+            image
+        } else {
+            imgproc::resize(
+                image,
+                &mut self.resized,
+                Size::new(iw, ih),
+                0.0,
+                0.0,
+                imgproc::INTER_LINEAR,
+            )
+            .map_err(cv_err("resize to the network input"))?;
+            &self.resized
+        };
+        let owned;
+        let src = if src.is_continuous() {
+            src
+        } else {
+            owned = src
+                .try_clone()
+                .map_err(cv_err("copy of a non-continuous image"))?;
+            &owned
+        };
+        let bytes = src.data_bytes().map_err(cv_err("image data"))?;
         let hw = (iw * ih) as usize;
         let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
         let (r, rest) = plane.split_at_mut(hw);
         let (g, b) = rest.split_at_mut(hw);
-        let channels = image.channels() as usize;
-        if image.cols() == iw && image.rows() == ih {
-            // No resize: straight from the 8-bit pixels through a lookup table.
-            let owned;
-            let src = if image.is_continuous() {
-                image
-            } else {
-                owned = image
-                    .try_clone()
-                    .map_err(cv_err("copy of a non-continuous image"))?;
-                &owned
-            };
-            let bytes = src.data_bytes().map_err(cv_err("image data"))?;
-            let lut = &self.lut;
-            for (i, px) in bytes.chunks_exact(channels).take(hw).enumerate() {
-                if channels == 1 {
-                    let v = lut[usize::from(px[0])];
+        let lut = &self.lut;
+        match src.channels() {
+            1 => {
+                for (i, &v) in bytes.iter().take(hw).enumerate() {
+                    let v = lut[usize::from(v)];
                     (r[i], g[i], b[i]) = (v, v, v);
-                } else {
-                    (b[i], g[i], r[i]) = (
+                }
+            }
+            3 => {
+                for (((px, r), g), b) in bytes
+                    .chunks_exact(3)
+                    .zip(r.iter_mut())
+                    .zip(g.iter_mut())
+                    .zip(b.iter_mut())
+                {
+                    (*b, *g, *r) = (
                         lut[usize::from(px[0])],
                         lut[usize::from(px[1])],
                         lut[usize::from(px[2])],
                     );
                 }
             }
-            return Ok(size);
-        }
-        image
-            .convert_to(&mut self.scaled, opencv::core::CV_32F, 1.0 / 255.0, 0.0)
-            .map_err(cv_err("conversion to float"))?;
-        imgproc::resize(
-            &self.scaled,
-            &mut self.resized,
-            Size::new(iw, ih),
-            0.0,
-            0.0,
-            imgproc::INTER_LINEAR,
-        )
-        .map_err(cv_err("resize to the network input"))?;
-        // One float per element: view the interleaved channels as a single-channel matrix.
-        let flat = self
-            .resized
-            .reshape(1, 0)
-            .map_err(cv_err("reshape of the resized image"))?;
-        let values = flat.data_typed::<f32>().map_err(cv_err("resized data"))?;
-        for (i, px) in values.chunks_exact(channels).take(hw).enumerate() {
-            if channels == 1 {
-                (r[i], g[i], b[i]) = (px[0], px[0], px[0]);
-            } else {
-                (b[i], g[i], r[i]) = (px[0], px[1], px[2]);
+            n => {
+                let n = n as usize;
+                for (((px, r), g), b) in bytes
+                    .chunks_exact(n)
+                    .zip(r.iter_mut())
+                    .zip(g.iter_mut())
+                    .zip(b.iter_mut())
+                {
+                    (*b, *g, *r) = (
+                        lut[usize::from(px[0])],
+                        lut[usize::from(px[1])],
+                        lut[usize::from(px[2])],
+                    );
+                }
             }
         }
         Ok(size)

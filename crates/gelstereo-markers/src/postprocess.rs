@@ -124,24 +124,112 @@ fn median(values: &mut [f64]) -> Option<f64> {
     })
 }
 
+/// Points bucketed into a uniform grid (compressed rows: the points of cell k are
+/// `order[start[k]..start[k + 1]]`), for neighbour searches in 2-D.
+struct PointGrid<'a> {
+    points: &'a [Point2],
+    min: (f64, f64),
+    cell_px: f64,
+    cols: usize,
+    rows: usize,
+    start: Vec<usize>,
+    order: Vec<usize>,
+}
+
+impl<'a> PointGrid<'a> {
+    /// About one point per cell on average (cell side = sqrt(area / n)).
+    fn new(points: &'a [Point2]) -> Self {
+        let (mut x0, mut y0, mut x1, mut y1) =
+            (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for p in points {
+            x0 = x0.min(p.x);
+            y0 = y0.min(p.y);
+            x1 = x1.max(p.x);
+            y1 = y1.max(p.y);
+        }
+        let (w, h) = ((x1 - x0).max(1e-6), (y1 - y0).max(1e-6));
+        let n = points.len().max(1) as f64;
+        let mut cell_px = (w * h / n).sqrt().max(w.max(h) / 1024.0);
+        if !cell_px.is_finite() || cell_px <= 0.0 {
+            cell_px = 1.0;
+        }
+        let cols = (w / cell_px) as usize + 1;
+        let rows = (h / cell_px) as usize + 1;
+        let cell_of = |p: &Point2| -> usize {
+            let cx = (((p.x - x0) / cell_px) as usize).min(cols - 1);
+            let cy = (((p.y - y0) / cell_px) as usize).min(rows - 1);
+            cy * cols + cx
+        };
+        let mut start = vec![0usize; cols * rows + 1];
+        for p in points {
+            start[cell_of(p) + 1] += 1;
+        }
+        for k in 0..cols * rows {
+            start[k + 1] += start[k];
+        }
+        let mut fill = start.clone();
+        let mut order = vec![0usize; points.len()];
+        for (i, p) in points.iter().enumerate() {
+            let k = cell_of(p);
+            order[fill[k]] = i;
+            fill[k] += 1;
+        }
+        Self {
+            points,
+            min: (x0, y0),
+            cell_px,
+            cols,
+            rows,
+            start,
+            order,
+        }
+    }
+
+    /// Distance from `points[i]` to its nearest other point (`None` if it is alone).
+    fn nearest_other_px(&self, i: usize) -> Option<f64> {
+        let p = self.points[i];
+        let cx = (((p.x - self.min.0) / self.cell_px) as usize).min(self.cols - 1) as isize;
+        let cy = (((p.y - self.min.1) / self.cell_px) as usize).min(self.rows - 1) as isize;
+        let mut best = f64::INFINITY;
+        let max_ring = self.cols.max(self.rows) as isize;
+        for ring in 0..=max_ring {
+            for gy in cy - ring..=cy + ring {
+                if gy < 0 || gy >= self.rows as isize {
+                    continue;
+                }
+                let on_edge_row = gy == cy - ring || gy == cy + ring;
+                let step = if on_edge_row { 1 } else { (2 * ring).max(1) };
+                let mut gx = cx - ring;
+                while gx <= cx + ring {
+                    if gx >= 0 && gx < self.cols as isize {
+                        let k = gy as usize * self.cols + gx as usize;
+                        for &j in &self.order[self.start[k]..self.start[k + 1]] {
+                            if j != i {
+                                let q = self.points[j];
+                                best = best.min((q.x - p.x) * (q.x - p.x) + (q.y - p.y) * (q.y - p.y));
+                            }
+                        }
+                    }
+                    gx += step;
+                }
+            }
+            // Points in the next ring are at least `ring` cells away.
+            if best.is_finite() && best.sqrt() <= ring as f64 * self.cell_px {
+                break;
+            }
+        }
+        best.is_finite().then(|| best.sqrt())
+    }
+}
+
 /// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
 pub fn median_nearest_neighbour_px(points: &[Point2]) -> Option<f64> {
     if points.len() < 2 {
         return None;
     }
-    let coords: Vec<[f64; 2]> = points.iter().map(|p| [p.x, p.y]).collect();
-    let tree: ImmutableKdTree<f64, 2> = ImmutableKdTree::new_from_slice(&coords).ok()?;
-    let two = std::num::NonZero::new(2usize)?;
-    let mut nn: Vec<f64> = coords
-        .iter()
-        .enumerate()
-        .filter_map(|(i, q)| {
-            let found = tree.query(q).nearest_n::<SquaredEuclidean<f64>>(two).execute();
-            found
-                .iter()
-                .find(|r| r.item as usize != i)
-                .map(|r| r.distance.sqrt())
-        })
+    let grid = PointGrid::new(points);
+    let mut nn: Vec<f64> = (0..points.len())
+        .filter_map(|i| grid.nearest_other_px(i))
         .collect();
     median(&mut nn)
 }
@@ -167,36 +255,38 @@ pub fn deduplicate(candidates: &mut Vec<Detection>, radius_px: f64) {
     if radius_px <= 0.0 || !radius_px.is_finite() || candidates.len() < 2 {
         return;
     }
-    // Uniform grid of cell size = radius: a conflict can only be in the 3x3 neighbouring cells.
-    let (min_x, min_y) = candidates
-        .iter()
-        .fold((f64::INFINITY, f64::INFINITY), |(x, y), d| {
-            (x.min(d.position.x), y.min(d.position.y))
-        });
-    let cell = |p: Point2| {
-        (
-            ((p.x - min_x) / radius_px) as i64,
-            ((p.y - min_y) / radius_px) as i64,
-        )
-    };
-    let mut grid: std::collections::HashMap<(i64, i64), Vec<Point2>> = std::collections::HashMap::new();
+    // Dense uniform grid of cell size = radius over the candidates' extent: a conflict can only be in
+    // the 3x3 neighbouring cells. Each cell keeps the positions already accepted in it.
+    let (mut min_x, mut min_y, mut max_x, mut max_y) =
+        (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for d in candidates.iter() {
+        min_x = min_x.min(d.position.x);
+        min_y = min_y.min(d.position.y);
+        max_x = max_x.max(d.position.x);
+        max_y = max_y.max(d.position.y);
+    }
+    // Cap the grid size: a radius far below the extent (a degenerate pitch) falls back to coarser cells,
+    // which only costs speed (cells bigger than the radius are still correct).
+    let cell_px = radius_px.max((max_x - min_x).max(max_y - min_y) / 256.0);
+    let cols = ((max_x - min_x) / cell_px) as usize + 1;
+    let rows = ((max_y - min_y) / cell_px) as usize + 1;
+    let mut grid: Vec<Vec<Point2>> = vec![Vec::new(); cols * rows];
     let r2 = radius_px * radius_px;
     candidates.retain(|d| {
-        let (cx, cy) = cell(d.position);
-        for nx in cx - 1..=cx + 1 {
-            for ny in cy - 1..=cy + 1 {
-                if let Some(kept) = grid.get(&(nx, ny)) {
-                    let clash = kept.iter().any(|k| {
-                        let (dx, dy) = (k.x - d.position.x, k.y - d.position.y);
-                        dx * dx + dy * dy < r2
-                    });
-                    if clash {
-                        return false;
-                    }
+        let cx = ((d.position.x - min_x) / cell_px) as usize;
+        let cy = ((d.position.y - min_y) / cell_px) as usize;
+        for ny in cy.saturating_sub(1)..=(cy + 1).min(rows - 1) {
+            for nx in cx.saturating_sub(1)..=(cx + 1).min(cols - 1) {
+                let clash = grid[ny * cols + nx].iter().any(|k| {
+                    let (dx, dy) = (k.x - d.position.x, k.y - d.position.y);
+                    dx * dx + dy * dy < r2
+                });
+                if clash {
+                    return false;
                 }
             }
         }
-        grid.entry((cx, cy)).or_default().push(d.position);
+        grid[cy * cols + cx].push(d.position);
         true
     });
 }
@@ -368,6 +458,34 @@ mod tests {
         assert_eq!(c.len(), 1);
         assert!((c[0] - 0.41).abs() < 1e-6);
         assert_eq!(decode(&raw, &g, 0.1).len(), 2, "0.1 itself is not above conf_low");
+    }
+
+    /// The grid search against brute force on scattered points (seeded, with duplicates and clusters).
+    #[test]
+    fn nearest_neighbours_match_brute_force() {
+        let mut state = 7u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for n in [2usize, 3, 17, 400] {
+            let mut pts: Vec<Point2> = (0..n)
+                .map(|_| Point2::new(640.0 * rnd(), 30.0 * rnd() * rnd()))
+                .collect();
+            pts.push(pts[0]);
+            pts.push(Point2::new(pts[1].x + 0.01, pts[1].y));
+            let grid = PointGrid::new(&pts);
+            for i in 0..pts.len() {
+                let brute = (0..pts.len())
+                    .filter(|&j| j != i)
+                    .map(|j| pts[i].distance(pts[j]))
+                    .fold(f64::INFINITY, f64::min);
+                let got = grid.nearest_other_px(i).unwrap();
+                assert!((got - brute).abs() < 1e-12, "n={n} i={i}: {got} vs {brute}");
+            }
+        }
     }
 
     #[test]

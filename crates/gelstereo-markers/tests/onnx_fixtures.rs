@@ -221,6 +221,7 @@ fn onnx_runtime_pipeline_matches_python() {
             .zip(&want_raw)
             .map(|(a, b)| (f64::from(*a) - b).abs())
             .fold(0.0, f64::max);
+        eprintln!("{name}: worst raw difference {worst}");
         assert!(worst <= tol_raw, "{name}: raw differs by {worst} > {tol_raw}");
         let found = m.detect(&img).unwrap();
         assert_same(
