@@ -22,6 +22,7 @@
 //!
 //! See `docs/matching.md` for the method and its measured accuracy.
 
+pub mod eval;
 mod grow;
 mod lattice;
 mod reconstruct;
@@ -121,6 +122,9 @@ pub enum Error {
         /// What went wrong, with the figures.
         reason: String,
     },
+    /// A ground-truth table could not be read (file, line, column and expectation named).
+    #[error("ground truth: {0}")]
+    Table(#[from] gelstereo_core::Error),
     /// The stereo geometry is unusable (invalid rig, degenerate baseline).
     #[error("stereo geometry: {0}")]
     Geometry(#[from] gelstereo_geometry::Error),
