@@ -32,6 +32,10 @@ pub struct Args {
     /// Half-size of the cornerSubPix window, px (keep it below half a square in the image).
     #[arg(long, default_value_t = 5)]
     subpix_window: i32,
+    /// Corner detector: classic (findChessboardCorners + cornerSubPix) or sb (findChessboardCornersSB,
+    /// more robust to blur and noise).
+    #[arg(long, default_value = "classic")]
+    detector: String,
     /// Also write the figures (errors, pairs used, rejected images) as JSON to this file.
     #[arg(long, value_name = "FILE.json")]
     report: Option<PathBuf>,
@@ -65,6 +69,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let options = CalibrationOptions {
         distortion_coeffs: args.distortion,
         subpix_half_window_px: args.subpix_window,
+        detector: args.detector.parse()?,
         ..Default::default()
     };
     let left = gelstereo_io::images::list_images(&args.left_dir)?;
@@ -286,6 +291,8 @@ mod tests {
                 out: out_path.to_string_lossy().into_owned(),
                 distortion: 5,
                 subpix_window: 5,
+                // Both detectors: classic for the YAML, sector-based for the mrcal pair.
+                detector: if out == "models" { "sb" } else { "classic" }.into(),
                 report: Some(dir.path().join("report.json")),
                 left_dir: dir.path().join("left"),
                 right_dir: dir.path().join("right"),
@@ -325,6 +332,7 @@ mod tests {
             out: out.into(),
             distortion: 5,
             subpix_window: 5,
+            detector: "classic".into(),
             report: None,
             left_dir: dir.path().join("l"),
             right_dir: dir.path().join("r"),
@@ -335,5 +343,9 @@ mod tests {
         assert!(e.contains("x.json") && e.contains(".yaml"), "{e}");
         let e = run(&args("9x6", "x.yaml")).unwrap_err().to_string();
         assert!(e.contains("no image pairs"), "{e}");
+        let mut a = args("9x6", "x.yaml");
+        a.detector = "fancy".into();
+        let e = run(&a).unwrap_err().to_string();
+        assert!(e.contains("fancy") && e.contains("classic or sb"), "{e}");
     }
 }

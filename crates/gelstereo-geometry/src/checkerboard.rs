@@ -93,6 +93,30 @@ impl Board {
     }
 }
 
+/// Which OpenCV corner detector [`find_corners`] uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CornerDetector {
+    /// `findChessboardCorners` (adaptive threshold, normalised image) refined by `cornerSubPix`.
+    #[default]
+    Classic,
+    /// `findChessboardCornersSB` (Duda & Frese, "Accurate Detection and Localization of Checkerboard
+    /// Corners for Calibration", BMVC 2018) with `CALIB_CB_ACCURACY`: more robust to blur and noise.
+    SectorBased,
+}
+
+impl std::str::FromStr for CornerDetector {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "classic" => Ok(Self::Classic),
+            "sb" => Ok(Self::SectorBased),
+            other => Err(Error::Calibration(format!(
+                "unknown corner detector '{other}': expected classic or sb"
+            ))),
+        }
+    }
+}
+
 /// Settings of [`find_corners`] and [`calibrate_stereo`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CalibrationOptions {
@@ -105,6 +129,8 @@ pub struct CalibrationOptions {
     /// The fewest usable stereo pairs. Default 5: each view of a plane gives 8 constraints, and a
     /// handful of varied poses are needed for a stable focal length and distortion.
     pub min_pairs: usize,
+    /// The corner detector. Default [`CornerDetector::Classic`], OpenCV's long-standing one.
+    pub detector: CornerDetector,
 }
 
 impl Default for CalibrationOptions {
@@ -113,6 +139,7 @@ impl Default for CalibrationOptions {
             distortion_coeffs: 5,
             subpix_half_window_px: 5,
             min_pairs: 5,
+            detector: CornerDetector::Classic,
         }
     }
 }
@@ -131,21 +158,47 @@ pub fn find_corners(image: &Mat, board: &Board, options: &CalibrationOptions) ->
         g
     };
     let mut corners: Vector<Point2f> = Vector::new();
-    let flags = opencv::calib3d::CALIB_CB_ADAPTIVE_THRESH | opencv::calib3d::CALIB_CB_NORMALIZE_IMAGE;
-    let found = opencv::calib3d::find_chessboard_corners(&gray, board.pattern_size()?, &mut corners, flags)
-        .map_err(cv_err("findChessboardCorners"))?;
-    if !found || corners.len() != board.corner_count() {
-        return Ok(None);
+    match options.detector {
+        CornerDetector::Classic => {
+            let flags = opencv::calib3d::CALIB_CB_ADAPTIVE_THRESH | opencv::calib3d::CALIB_CB_NORMALIZE_IMAGE;
+            let found =
+                opencv::calib3d::find_chessboard_corners(&gray, board.pattern_size()?, &mut corners, flags)
+                    .map_err(cv_err("findChessboardCorners"))?;
+            if !found || corners.len() != board.corner_count() {
+                return Ok(None);
+            }
+            let w = options.subpix_half_window_px.max(1);
+            let criteria = TermCriteria::new(
+                (TermCriteria_Type::COUNT as i32) | (TermCriteria_Type::EPS as i32),
+                100,
+                1e-6,
+            )
+            .map_err(cv_err("TermCriteria"))?;
+            opencv::imgproc::corner_sub_pix(
+                &gray,
+                &mut corners,
+                Size::new(w, w),
+                Size::new(-1, -1),
+                criteria,
+            )
+            .map_err(cv_err("cornerSubPix"))?;
+        }
+        CornerDetector::SectorBased => {
+            let flags = opencv::calib3d::CALIB_CB_NORMALIZE_IMAGE
+                | opencv::calib3d::CALIB_CB_EXHAUSTIVE
+                | opencv::calib3d::CALIB_CB_ACCURACY;
+            let found = opencv::calib3d::find_chessboard_corners_sb(
+                &gray,
+                board.pattern_size()?,
+                &mut corners,
+                flags,
+            )
+            .map_err(cv_err("findChessboardCornersSB"))?;
+            if !found || corners.len() != board.corner_count() {
+                return Ok(None);
+            }
+        }
     }
-    let w = options.subpix_half_window_px.max(1);
-    let criteria = TermCriteria::new(
-        (TermCriteria_Type::COUNT as i32) | (TermCriteria_Type::EPS as i32),
-        100,
-        1e-6,
-    )
-    .map_err(cv_err("TermCriteria"))?;
-    opencv::imgproc::corner_sub_pix(&gray, &mut corners, Size::new(w, w), Size::new(-1, -1), criteria)
-        .map_err(cv_err("cornerSubPix"))?;
     let mut pts: Vec<Point2> = corners
         .iter()
         .map(|p| Point2::new(f64::from(p.x), f64::from(p.y)))

@@ -9,7 +9,7 @@ use std::path::Path;
 use gelstereo_core::Point2;
 use gelstereo_geometry::checkerboard::{RayGrid, calibrate_stereo, find_corners, render_view};
 use gelstereo_geometry::{
-    Board, CalibrationOptions, StereoCorners, StereoRig, TriangulationConfig, Triangulator,
+    Board, CalibrationOptions, CornerDetector, StereoCorners, StereoRig, TriangulationConfig, Triangulator,
 };
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -149,6 +149,46 @@ fn calibration_recovers_the_rendering_rig() {
     }
     assert!(dt < 0.05 && dr < 0.1, "{dt} {dr}");
     assert!(rmse3 < 0.03, "{rmse3}");
+}
+
+/// Both detectors on the same renders: corner accuracy against the true projections.
+#[test]
+fn corner_detectors_are_accurate() {
+    let truth = rig();
+    let board = Board::parse("9x6", 1.5).unwrap();
+    let grid = RayGrid::new(&truth.left);
+    for detector in [CornerDetector::Classic, CornerDetector::SectorBased] {
+        let options = CalibrationOptions {
+            detector,
+            ..Default::default()
+        };
+        let (mut e2, mut n, mut worst, mut bias) = (0.0, 0usize, 0.0f64, (0.0, 0.0));
+        for pose in poses(&truth, &board, 4, 3) {
+            let img = render_view(&grid, &board, &pose).unwrap();
+            let found = find_corners(&img, &board, &options).unwrap().unwrap();
+            for (p, q) in board.object_points().iter().zip(&found) {
+                let t = truth.left.project(&(pose * p)).unwrap();
+                let e = t.distance(*q);
+                bias.0 += q.x - t.x;
+                bias.1 += q.y - t.y;
+                e2 += e * e;
+                n += 1;
+                worst = worst.max(e);
+            }
+        }
+        let rms = (e2 / n as f64).sqrt();
+        let bias = (bias.0 / n as f64, bias.1 / n as f64);
+        eprintln!(
+            "{detector:?}: corners vs truth {rms:.4} px RMS, worst {worst:.4} px, mean offset ({:.4}, {:.4}) px ({n} corners)",
+            bias.0, bias.1
+        );
+        // A convention error (pixel centre vs corner) would show as a ~0.5 px mean offset.
+        assert!(
+            bias.0.abs() < 0.05 && bias.1.abs() < 0.05,
+            "{detector:?}: {bias:?}"
+        );
+        assert!(rms < 0.15 && worst < 0.6, "{detector:?}: {rms} {worst}");
+    }
 }
 
 #[test]
