@@ -340,6 +340,40 @@ mod tests {
         assert_eq!(d[6].1, Value::Bool(true));
     }
 
+    /// Random texts over the literal alphabet, and random edits of a real model: parse returns
+    /// Ok or Err, never panics; deep nesting is refused.
+    #[test]
+    fn never_panics_on_random_text() {
+        let alphabet: &[u8] = b"{}[](),:'\"#\\\n -+.eE0123456789abNTFrx_";
+        let model =
+            "{ 'lensmodel': 'LENSMODEL_OPENCV4', 'intrinsics': [ 1, 2.5, -3e-2, 4,],\n 'b': b'x' b'y',}";
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for i in 0..20_000 {
+            let text: Vec<u8> = if i % 2 == 0 {
+                let n = (next() % 40) as usize;
+                (0..n)
+                    .map(|_| alphabet[(next() % alphabet.len() as u64) as usize])
+                    .collect()
+            } else {
+                let mut t = model.as_bytes().to_vec();
+                for _ in 0..1 + next() % 3 {
+                    let at = (next() % t.len() as u64) as usize;
+                    t[at] = alphabet[(next() % alphabet.len() as u64) as usize];
+                }
+                t
+            };
+            let _ = parse(&String::from_utf8_lossy(&text));
+        }
+        let deep = format!("{}1{}", "[".repeat(100), "]".repeat(100));
+        assert!(parse(&deep).unwrap_err().message.contains("nesting"));
+    }
+
     #[test]
     fn rejects_bad_text_with_line() {
         for (text, line) in [
