@@ -70,6 +70,36 @@ fn accepted_opencv_files() {
     );
 }
 
+/// OpenCV's stereo_calib sample writes intrinsics.yml (M1 D1 M2 D2) and extrinsics.yml (R T R1 R2
+/// P1 P2 Q) and no image size: read together, with the size from a third file.
+#[test]
+fn stereo_calib_sample_files() {
+    let (i, e) = (
+        data("stereo_calib_intrinsics.yml"),
+        data("stereo_calib_extrinsics.yml"),
+    );
+    let spec = format!("{},{}", i.display(), e.display());
+    let err = StereoRig::load(&spec).unwrap_err().to_string();
+    assert!(
+        err.contains("image_width and image_height") && err.contains("stereo_calib"),
+        "{err}"
+    );
+    assert!(
+        err.contains("stereo_calib_intrinsics.yml") && err.contains("stereo_calib_extrinsics.yml"),
+        "{err}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let size = dir.path().join("size.yml");
+    std::fs::write(&size, "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n").unwrap();
+    let rig = StereoRig::load(&format!("{spec},{}", size.display())).unwrap();
+    let yaml = StereoRig::read_opencv(data("opencv8.yaml")).unwrap();
+    assert_eq!(intrinsics(&rig.left), K1);
+    assert_eq!(rig.right.distortion.coeffs, D8_2[..5]);
+    assert_eq!(rig.right_from_left, yaml.right_from_left);
+    // Several OpenCV files are for reading only.
+    assert!(matches!(rig.save(&spec), Err(Error::UnknownFormat { .. })));
+}
+
 #[test]
 fn accepted_mrcal_files() {
     let yaml = StereoRig::read_opencv(data("opencv8.yaml")).unwrap();

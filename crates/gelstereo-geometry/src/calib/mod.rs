@@ -3,6 +3,8 @@
 //! [`StereoRig::load`] and [`StereoRig::save`] pick the format from the path:
 //! - `*.yaml`, `*.yml`, `*.xml`: OpenCV FileStorage ([`StereoRig::read_opencv`]);
 //! - `LEFT.cameramodel,RIGHT.cameramodel` (two paths joined by a comma): a mrcal pair;
+//! - `A.yml,B.yml` (OpenCV files joined by a comma): keys read from either, e.g. the
+//!   `intrinsics.yml,extrinsics.yml` of OpenCV's stereo_calib sample (reading only);
 //! - a directory: the mrcal pair `DIR/left.cameramodel` and `DIR/right.cameramodel`.
 
 mod mrcal;
@@ -21,6 +23,8 @@ pub enum CalibrationPath {
     OpenCvYaml(PathBuf),
     /// An OpenCV FileStorage XML file.
     OpenCvXml(PathBuf),
+    /// Several OpenCV FileStorage files read together (keys from the first file that has them).
+    OpenCvFiles(Vec<PathBuf>),
     /// A pair of mrcal `.cameramodel` files.
     Mrcal {
         /// The left camera's model (the reference frame).
@@ -31,18 +35,28 @@ pub enum CalibrationPath {
 }
 
 impl CalibrationPath {
-    /// Decides the format: `.yaml`/`.yml`/`.xml` (any case) are OpenCV; `A,B` is a mrcal pair; an
-    /// existing directory, or a path without an extension, is a directory holding `left.cameramodel`
-    /// and `right.cameramodel`.
+    /// Decides the format: `.yaml`/`.yml`/`.xml` (any case) are OpenCV; `A,B` is a mrcal pair when
+    /// both are `.cameramodel`, several OpenCV files when all are `.yaml`/`.yml`/`.xml`; an existing
+    /// directory, or a path without an extension, is a directory holding `left.cameramodel` and
+    /// `right.cameramodel`.
     pub fn parse(spec: &str) -> Result<Self> {
-        if let Some((l, r)) = spec.split_once(',') {
-            let (l, r) = (PathBuf::from(l.trim()), PathBuf::from(r.trim()));
-            let is_model = |p: &Path| {
+        if spec.contains(',') {
+            let parts: Vec<PathBuf> = spec.split(',').map(|p| PathBuf::from(p.trim())).collect();
+            let has_ext = |p: &Path, exts: &[&str]| {
                 p.extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("cameramodel"))
+                    .is_some_and(|e| exts.iter().any(|x| e.eq_ignore_ascii_case(x)))
             };
-            if is_model(&l) && is_model(&r) {
-                return Ok(Self::Mrcal { left: l, right: r });
+            if let [l, r] = parts.as_slice()
+                && has_ext(l, &["cameramodel"])
+                && has_ext(r, &["cameramodel"])
+            {
+                return Ok(Self::Mrcal {
+                    left: l.clone(),
+                    right: r.clone(),
+                });
+            }
+            if parts.iter().all(|p| has_ext(p, &["yaml", "yml", "xml"])) {
+                return Ok(Self::OpenCvFiles(parts));
             }
             return Err(Error::UnknownFormat {
                 path: spec.to_owned(),
@@ -69,6 +83,10 @@ impl StereoRig {
     pub fn load(spec: &str) -> Result<StereoRig> {
         match CalibrationPath::parse(spec)? {
             CalibrationPath::OpenCvYaml(p) | CalibrationPath::OpenCvXml(p) => StereoRig::read_opencv(p),
+            CalibrationPath::OpenCvFiles(files) => {
+                let paths: Vec<&Path> = files.iter().map(PathBuf::as_path).collect();
+                StereoRig::read_opencv_files(&paths)
+            }
             CalibrationPath::Mrcal { left, right } => StereoRig::read_mrcal(left, right),
         }
     }
@@ -79,6 +97,9 @@ impl StereoRig {
         match CalibrationPath::parse(spec)? {
             CalibrationPath::OpenCvYaml(p) => self.write_opencv_yaml(p),
             CalibrationPath::OpenCvXml(p) => self.write_opencv_xml(p),
+            CalibrationPath::OpenCvFiles(_) => Err(Error::UnknownFormat {
+                path: format!("{spec} (several OpenCV files are for reading only; write one .yaml)"),
+            }),
             CalibrationPath::Mrcal { left, right } => {
                 for p in [&left, &right] {
                     if let Some(dir) = p.parent().filter(|d| !d.as_os_str().is_empty()) {

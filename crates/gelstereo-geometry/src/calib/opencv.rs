@@ -5,8 +5,10 @@
 //! a 3x3 rotation matrix (a 3-vector is read as a Rodrigues vector), `T` a 3-vector in mm,
 //! `p_in_right = R p_in_left + T`. The image size may also be given as `image_size` or
 //! `imageSize` = `[width, height]`. Other keys (`E`, `F`, `R1`, `P1`, `Q`, ...) are ignored.
+//! [`StereoRig::read_opencv_files`] reads keys spread over several files (the stereo_calib sample
+//! writes `intrinsics.yml` and `extrinsics.yml`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use gelstereo_core::ImageSize;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -118,17 +120,71 @@ fn numbers(n: &FileNode, path: &Path, key: &str) -> Result<Numbers> {
     Err(bad(kind))
 }
 
-fn required(fs: &FileStorage, path: &Path, keys: &[&str], expected: &str) -> Result<(String, Numbers)> {
-    for key in keys {
-        if let Some(n) = node(fs, path, key)? {
-            return Ok(((*key).to_owned(), numbers(&n, path, key)?));
+/// The files a calibration is read from; a key is taken from the first file that has it.
+struct Sources {
+    files: Vec<(PathBuf, FileStorage)>,
+}
+
+impl Sources {
+    fn open(paths: &[&Path]) -> Result<Sources> {
+        let mut files = Vec::new();
+        for path in paths {
+            std::fs::metadata(path).map_err(|source| Error::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            let name = path.to_string_lossy().into_owned();
+            let fs =
+                FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
+                    Error::Syntax {
+                        path: path.to_path_buf(),
+                        line: 0,
+                        message: format!("OpenCV FileStorage cannot parse it: {e}"),
+                    }
+                })?;
+            if !fs.is_opened().map_err(cv("FileStorage::isOpened"))? {
+                return Err(Error::Syntax {
+                    path: path.to_path_buf(),
+                    line: 0,
+                    message: "OpenCV FileStorage could not open it".to_owned(),
+                });
+            }
+            files.push((path.to_path_buf(), fs));
+        }
+        Ok(Sources { files })
+    }
+
+    /// All the files, for errors about a key none of them has.
+    fn all_paths(&self) -> PathBuf {
+        let names: Vec<String> = self.files.iter().map(|(p, _)| p.display().to_string()).collect();
+        PathBuf::from(names.join(" + "))
+    }
+
+    /// The first file holding the first of `keys` found: (file, key, node).
+    fn find(&self, keys: &[&str]) -> Result<Option<(PathBuf, String, FileNode)>> {
+        for key in keys {
+            for (path, fs) in &self.files {
+                if let Some(n) = node(fs, path, key)? {
+                    return Ok(Some((path.clone(), (*key).to_owned(), n)));
+                }
+            }
+        }
+        Ok(None)
+    }
+
+    fn required(&self, keys: &[&str], expected: &str) -> Result<(PathBuf, String, Numbers)> {
+        match self.find(keys)? {
+            Some((path, key, n)) => {
+                let numbers = numbers(&n, &path, &key)?;
+                Ok((path, key, numbers))
+            }
+            None => Err(Error::MissingKey {
+                path: self.all_paths(),
+                key: keys.join(" or "),
+                expected: expected.to_owned(),
+            }),
         }
     }
-    Err(Error::MissingKey {
-        path: path.to_path_buf(),
-        key: keys.join(" or "),
-        expected: expected.to_owned(),
-    })
 }
 
 fn check_finite(path: &Path, key: &str, m: &Numbers) -> Result<()> {
@@ -200,8 +256,8 @@ fn distortion(path: &Path, key: &str, m: &Numbers) -> Result<Distortion> {
     })
 }
 
-fn image_size(fs: &FileStorage, path: &Path) -> Result<ImageSize> {
-    let as_u32 = |key: &str, v: f64| -> Result<u32> {
+fn image_size(src: &Sources) -> Result<ImageSize> {
+    let as_u32 = |path: &Path, key: &str, v: f64| -> Result<u32> {
         if v.fract() == 0.0 && v >= 1.0 && v <= f64::from(u32::MAX) {
             // Checked above: a positive whole number that fits.
             #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
@@ -215,49 +271,46 @@ fn image_size(fs: &FileStorage, path: &Path) -> Result<ImageSize> {
             })
         }
     };
-    let w = node(fs, path, "image_width")?;
-    let h = node(fs, path, "image_height")?;
-    if let (Some(w), Some(h)) = (w, h) {
-        let (wn, hn) = (
-            numbers(&w, path, "image_width")?,
-            numbers(&h, path, "image_height")?,
-        );
-        for (key, n) in [("image_width", &wn), ("image_height", &hn)] {
-            if n.data.len() != 1 {
-                return Err(Error::BadValue {
-                    path: path.to_path_buf(),
-                    key: key.to_owned(),
-                    expected: "a single integer".to_owned(),
-                    found: n.shape(),
-                });
-            }
-        }
-        return Ok(ImageSize {
-            width: as_u32("image_width", wn.data[0])?,
-            height: as_u32("image_height", hn.data[0])?,
-        });
-    }
-    for key in ["image_size", "imageSize"] {
-        if let Some(n) = node(fs, path, key)? {
-            let n = numbers(&n, path, key)?;
-            if n.data.len() != 2 {
-                return Err(Error::BadValue {
-                    path: path.to_path_buf(),
-                    key: key.to_owned(),
-                    expected: "[width, height]".to_owned(),
-                    found: n.shape(),
-                });
-            }
-            return Ok(ImageSize {
-                width: as_u32(key, n.data[0])?,
-                height: as_u32(key, n.data[1])?,
+    let single = |path: &Path, key: &str, n: &FileNode| -> Result<u32> {
+        let v = numbers(n, path, key)?;
+        if v.data.len() != 1 {
+            return Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: key.to_owned(),
+                expected: "a single integer".to_owned(),
+                found: v.shape(),
             });
         }
+        as_u32(path, key, v.data[0])
+    };
+    if let (Some((wp, wk, wn)), Some((hp, hk, hn))) =
+        (src.find(&["image_width"])?, src.find(&["image_height"])?)
+    {
+        return Ok(ImageSize {
+            width: single(&wp, &wk, &wn)?,
+            height: single(&hp, &hk, &hn)?,
+        });
+    }
+    if let Some((path, key, n)) = src.find(&["image_size", "imageSize"])? {
+        let n = numbers(&n, &path, &key)?;
+        if n.data.len() != 2 {
+            return Err(Error::BadValue {
+                path,
+                key,
+                expected: "[width, height]".to_owned(),
+                found: n.shape(),
+            });
+        }
+        return Ok(ImageSize {
+            width: as_u32(&path, &key, n.data[0])?,
+            height: as_u32(&path, &key, n.data[1])?,
+        });
     }
     Err(Error::MissingKey {
-        path: path.to_path_buf(),
+        path: src.all_paths(),
         key: "image_width and image_height".to_owned(),
-        expected: "the calibrated image size in pixels, two integers (or image_size: [width, height])"
+        expected: "the calibrated image size in pixels, two integers (or image_size: [width, height]); \
+                   OpenCV's stereo_calib sample does not write it: add it"
             .to_owned(),
     })
 }
@@ -267,36 +320,26 @@ impl StereoRig {
     ///
     /// Errors name the file, the key and the expected against the actual shape.
     pub fn read_opencv(path: impl AsRef<Path>) -> Result<StereoRig> {
-        let path = path.as_ref();
-        std::fs::metadata(path).map_err(|source| Error::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let name = path.to_string_lossy().into_owned();
-        let fs = FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
-            Error::Syntax {
-                path: path.to_path_buf(),
-                line: 0,
-                message: format!("OpenCV FileStorage cannot parse it: {e}"),
-            }
-        })?;
-        if !fs.is_opened().map_err(cv("FileStorage::isOpened"))? {
-            return Err(Error::Syntax {
-                path: path.to_path_buf(),
-                line: 0,
-                message: "OpenCV FileStorage could not open it".to_owned(),
-            });
-        }
+        Self::read_opencv_files(&[path.as_ref()])
+    }
+
+    /// Reads a stereo calibration whose keys are spread over several OpenCV FileStorage files, e.g.
+    /// the `intrinsics.yml` and `extrinsics.yml` of OpenCV's stereo_calib sample (with the image
+    /// size added). Each key is taken from the first file that has it.
+    pub fn read_opencv_files(paths: &[&Path]) -> Result<StereoRig> {
+        let src = Sources::open(paths)?;
+        let first = paths.first().map(|p| p.to_path_buf()).unwrap_or_default();
         let mut cams = Vec::new();
         for (k, m, d) in [("K1", "M1", "D1"), ("K2", "M2", "D2")] {
-            let (kkey, kn) = required(&fs, path, &[k, m], "the 3x3 camera matrix")?;
-            let (fx, fy, cx, cy) = camera_matrix(path, &kkey, &kn)?;
-            let (dkey, dn) = required(&fs, path, &[d], "the distortion coefficients (OpenCV order)")?;
-            let distortion = distortion(path, &dkey, &dn)?;
+            let (kpath, kkey, kn) = src.required(&[k, m], "the 3x3 camera matrix")?;
+            let (fx, fy, cx, cy) = camera_matrix(&kpath, &kkey, &kn)?;
+            let (dpath, dkey, dn) = src.required(&[d], "the distortion coefficients (OpenCV order)")?;
+            let distortion = distortion(&dpath, &dkey, &dn)?;
             cams.push((fx, fy, cx, cy, distortion));
         }
-        let size = image_size(&fs, path)?;
-        let (_, rn) = required(&fs, path, &["R"], "the 3x3 rotation right_from_left")?;
+        let size = image_size(&src)?;
+        let (rpath, _, rn) = src.required(&["R"], "the 3x3 rotation right_from_left")?;
+        let path = rpath.as_path();
         check_finite(path, "R", &rn)?;
         let rotation = if rn.rows == 3 && rn.cols == 3 {
             let m = Matrix3::from_row_slice(&rn.data);
@@ -320,7 +363,8 @@ impl StereoRig {
                 found: rn.shape(),
             });
         };
-        let (_, tn) = required(&fs, path, &["T"], "the translation right_from_left, mm")?;
+        let (tpath, _, tn) = src.required(&["T"], "the translation right_from_left, mm")?;
+        let path = tpath.as_path();
         check_finite(path, "T", &tn)?;
         if !(tn.is_vector() && tn.data.len() == 3) {
             return Err(Error::BadValue {
@@ -356,7 +400,7 @@ impl StereoRig {
             right_from_left: Isometry3::from_parts(translation, rotation),
         };
         rig.validate().map_err(|e| Error::BadValue {
-            path: path.to_path_buf(),
+            path: first.clone(),
             key: "K1/D1/K2/D2/R/T".to_owned(),
             expected: "a valid stereo calibration".to_owned(),
             found: e.to_string(),

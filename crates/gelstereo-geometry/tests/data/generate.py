@@ -65,6 +65,17 @@ write_fs("opencv8.yaml", ("K1", "K2"), D8_1, D8_2)
 write_fs("opencv5.xml", ("K1", "K2"), D8_1[:5], D8_2[:5])
 write_fs("stereo_calib_m1m2.yml", ("M1", "M2"), D12_1, D12_2)
 
+# The two files OpenCV's samples/cpp/stereo_calib.cpp writes, with its key names (no image size).
+fs = cv2.FileStorage("stereo_calib_intrinsics.yml", cv2.FILE_STORAGE_WRITE)
+for key, value in [("M1", K1), ("D1", D8_1[:5].reshape(1, -1)), ("M2", K2), ("D2", D8_2[:5].reshape(1, -1))]:
+    fs.write(key, value)
+fs.release()
+R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(K1, D8_1[:5], K2, D8_2[:5], (W, H), R, T, alpha=-1)
+fs = cv2.FileStorage("stereo_calib_extrinsics.yml", cv2.FILE_STORAGE_WRITE)
+for key, value in [("R", R), ("T", T), ("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)]:
+    fs.write(key, value)
+fs.release()
+
 
 def model(lensmodel, K, D, rt):
     intr = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], D])
