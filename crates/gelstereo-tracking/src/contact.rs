@@ -245,7 +245,10 @@ impl ReferenceSurface {
             displacement[k] = Some(d);
             depth[k] = Some(-d.dot(&nrm));
         }
-        let (peak_index, marker_max) = depth
+        // Contact is decided on the 3 x 3 mean of the depth, so that single noisy markers do not make
+        // one; the deepest point is then refined on the raw depths around the smoothed peak.
+        let smooth = smooth3(self.shape, &depth);
+        let (peak_index, smooth_max) = smooth
             .iter()
             .enumerate()
             .filter_map(|(k, d)| d.map(|d| (k, d)))
@@ -253,11 +256,12 @@ impl ReferenceSurface {
                 (None, 0.0f64),
                 |(bk, bd), (k, d)| if d > bd { (Some(k), d) } else { (bk, bd) },
             );
+        let contact = smooth_max > config.min_depth_mm;
+        let marker_max = peak_index.and_then(|k| depth[k]).unwrap_or(0.0).max(smooth_max);
         let max_depth = match (config.refine_peak, peak_index) {
-            (true, Some(k)) => refine_peak(self.shape, &depth, k).unwrap_or(marker_max),
+            (true, Some(k)) => refine_peak(self.shape, &depth, k).map_or(marker_max, |z| z.max(smooth_max)),
             _ => marker_max,
         };
-        let contact = max_depth > config.min_depth_mm;
         let mut area = 0.0;
         let mut moment = Vector3::zeros();
         let mut ref_area = 0.0;
@@ -349,6 +353,30 @@ pub struct ContactFrame {
 fn index_of(shape: GridShape, k: usize) -> Option<GridIndex> {
     let cols = usize::from(shape.cols);
     (k < shape.count()).then(|| GridIndex::new((k / cols) as u16, (k % cols) as u16))
+}
+
+/// Mean of each marker's value and its present 8-neighbours' (`None` where the marker has none).
+fn smooth3(shape: GridShape, v: &[Option<f64>]) -> Vec<Option<f64>> {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let mut out = vec![None; v.len()];
+    for r in 0..rows {
+        for c in 0..cols {
+            if v[r * cols + c].is_none() {
+                continue;
+            }
+            let (mut sum, mut n) = (0.0, 0.0);
+            for rr in r.saturating_sub(1)..=(r + 1).min(rows - 1) {
+                for cc in c.saturating_sub(1)..=(c + 1).min(cols - 1) {
+                    if let Some(x) = v[rr * cols + cc] {
+                        sum += x;
+                        n += 1.0;
+                    }
+                }
+            }
+            out[r * cols + c] = Some(sum / n);
+        }
+    }
+    out
 }
 
 /// Median distance between 4-connected lattice neighbours, mm.

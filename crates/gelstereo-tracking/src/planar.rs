@@ -92,6 +92,8 @@ pub struct PlanarFrame {
     pub centroid_mm: Option<[f64; 2]>,
     /// Number of markers in the contact region.
     pub contact_markers: usize,
+    /// Whether each marker (tracker order) lies in the contact region.
+    pub in_contact: Vec<bool>,
     /// Mean displacement of the contact markers, px.
     pub shear_px: [f64; 2],
     /// Share of contact markers on the displacement plateau.
@@ -152,6 +154,7 @@ impl PlanarDetector {
             contact_area_mm2: 0.0,
             centroid_mm: None,
             contact_markers: 0,
+            in_contact: vec![false; disp.len()],
             shear_px: [0.0; 2],
             stick_fraction: 1.0,
             drift_px: 0.0,
@@ -165,12 +168,14 @@ impl PlanarDetector {
         let (mut mx, mut my, mut mw) = (0.0, 0.0, 0.0);
         let (mut cx, mut cy) = (0.0, 0.0);
         let mut members = Vec::new();
+        let mut in_contact = vec![false; disp.len()];
         for (k, d) in disp.iter().enumerate() {
             let Some(d) = d else { continue };
             let m = d[0].hypot(d[1]);
             if m <= threshold {
                 continue;
             }
+            in_contact[k] = true;
             members.push(*d);
             sx += d[0];
             sy += d[1];
@@ -194,6 +199,7 @@ impl PlanarDetector {
             contact_area_mm2: c.pitch_mm.map_or(0.0, |p| n as f64 * p * p),
             centroid_mm: scale.map(|s| [s * cx / n as f64, s * cy / n as f64]),
             contact_markers: n,
+            in_contact,
             shear_px: shear,
             stick_fraction: 1.0,
             drift_px: 0.0,

@@ -16,7 +16,7 @@ use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
 use crate::tracker::{TrackFrame, Tracker, TrackerConfig};
 
 /// All settings of a session.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SessionConfig {
     /// The per-view tracker.
     pub tracker: TrackerConfig,
@@ -26,6 +26,24 @@ pub struct SessionConfig {
     pub slip: SlipConfig,
     /// Contact and slip of mono sensors.
     pub planar: PlanarConfig,
+    /// Threshold of the normalised median test on the 3-D displacement field (2, as recommended by
+    /// Westerweel & Scarano 2005).
+    pub outlier_threshold: f64,
+    /// Noise level of the median test, mm (about twice the triangulation noise of the reference rig).
+    pub outlier_noise_mm: f64,
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        Self {
+            tracker: TrackerConfig::default(),
+            contact: ContactConfig::default(),
+            slip: SlipConfig::default(),
+            planar: PlanarConfig::default(),
+            outlier_threshold: 2.0,
+            outlier_noise_mm: 0.02,
+        }
+    }
 }
 
 /// One tracked stereo frame.
@@ -43,6 +61,9 @@ pub struct StereoFrame {
     pub contact: ContactFrame,
     /// Slip signals.
     pub slip: SlipFrame,
+    /// Reprojection error of each triangulated marker (the larger of the two views), px, dense
+    /// over the lattice; `None` where the marker was not triangulated in this frame.
+    pub reprojection_px: Vec<Option<f64>>,
 }
 
 /// Tracks a stereo recording from its reference frame on.
@@ -179,14 +200,23 @@ impl StereoSession {
             }
         }
         let mut current: Vec<Option<[f64; 3]>> = vec![None; n];
+        let mut reprojection_px = vec![None; n];
         for lin in 0..n {
             if let (Some(l), Some(r)) = (px[lin].0, px[lin].1)
                 && let Ok(t) = self.triangulator.triangulate(l, r)
             {
                 let p = t.p_in_left_mm;
                 current[lin] = Some([p.x, p.y, p.z]);
+                reprojection_px[lin] = Some(t.max_reprojection_error_px());
             }
         }
+        reject_outliers(
+            self.shape,
+            &self.reference_mm,
+            &mut current,
+            self.config.outlier_threshold,
+            self.config.outlier_noise_mm,
+        );
         let measured: Vec<bool> = current.iter().map(Option::is_some).collect();
         // Markers without a 3-D point take their reference plus the mean 3-D displacement of their
         // measured 8-neighbours.
@@ -240,6 +270,7 @@ impl StereoSession {
             right: rf,
             contact,
             slip,
+            reprojection_px,
         })
     }
 
@@ -270,6 +301,63 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
         slip: SlipState::NoContact,
     };
     (markers, summary)
+}
+
+/// The normalised median test of particle image velocimetry (Westerweel & Scarano, "Universal outlier
+/// detection for PIV data", Exp. Fluids 39, 2005) on the 3-D displacement field: a marker whose
+/// displacement differs from the median of its measured 8-neighbours by more than `threshold` x
+/// (the neighbours' median residual + `noise_mm`) is dropped (then predicted from its neighbours).
+/// Needs at least 3 measured neighbours.
+fn reject_outliers(
+    shape: GridShape,
+    reference: &[Option<[f64; 3]>],
+    current: &mut [Option<[f64; 3]>],
+    threshold: f64,
+    noise_mm: f64,
+) {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let disp: Vec<Option<Vector3<f64>>> = current
+        .iter()
+        .zip(reference)
+        .map(|(c, r)| match (c, r) {
+            (Some(c), Some(r)) => Some(Vector3::from(*c) - Vector3::from(*r)),
+            _ => None,
+        })
+        .collect();
+    let mut drop = Vec::new();
+    let mut neigh: Vec<Vector3<f64>> = Vec::with_capacity(8);
+    for r in 0..rows {
+        for c in 0..cols {
+            let k = r * cols + c;
+            let Some(d) = disp[k] else { continue };
+            neigh.clear();
+            for dr in -1i64..=1 {
+                for dc in -1i64..=1 {
+                    let (rr, cc) = (r as i64 + dr, c as i64 + dc);
+                    if (dr == 0 && dc == 0) || rr < 0 || cc < 0 || rr >= rows as i64 || cc >= cols as i64 {
+                        continue;
+                    }
+                    if let Some(v) = disp[rr as usize * cols + cc as usize] {
+                        neigh.push(v);
+                    }
+                }
+            }
+            if neigh.len() < 3 {
+                continue;
+            }
+            let med = Vector3::from_fn(|i, _| {
+                crate::tracker::median(neigh.iter().map(|v| v[i]).collect()).unwrap_or(0.0)
+            });
+            let spread =
+                crate::tracker::median(neigh.iter().map(|v| (v - med).norm()).collect()).unwrap_or(0.0);
+            if (d - med).norm() > threshold * (spread + noise_mm) {
+                drop.push(k);
+            }
+        }
+    }
+    for k in drop {
+        current[k] = None;
+    }
 }
 
 /// Dense positions where missing entries with a reference take the reference plus the mean

@@ -1,0 +1,1029 @@
+//! `gelstereo track`: the whole pipeline over a recording: localization in each view, grid indexing
+//! of the reference frame, tracking, triangulation, displacement, contact geometry and slip. Writes
+//! `OUT/markers.csv` and `OUT/frames.csv` (DESIGN.md contracts), per-frame PLY clouds and meshes
+//! (`OUT/ply/`), overlay PNGs with displacement arrows (`OUT/overlays/`) and plots (`OUT/plots/`).
+//! The work is `gelstereo_tracking::{StereoSession, MonoSession}`; this is input handling and output.
+//!
+//! Also `gelstereo track --bench`: per-stage medians of the stereo pipeline in latency mode (one frame
+//! at a time) and throughput mode (rayon across frames).
+
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
+use gelstereo_core::{
+    Detection, FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, MarkerStatus, Point2, SlipState,
+    StereoPair,
+};
+use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
+use gelstereo_io::images::{self, StereoRecording};
+use gelstereo_io::plot::{self, LinePlot};
+use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
+use gelstereo_io::video::{self, VideoFrames};
+use gelstereo_markers::{Localizer, Method};
+use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
+use gelstereo_tracking::{ContactFrame, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows};
+use indicatif::{ProgressBar, ProgressStyle};
+use opencv::core::{Mat, MatTraitConst, Point, Scalar};
+use opencv::imgproc;
+use rayon::prelude::*;
+
+use crate::cmd_detect::LocalizerArgs;
+
+/// Arguments of `gelstereo track`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Stereo calibration (OpenCV YAML/XML, or a folder / pair of mrcal .cameramodel files); default:
+    /// the recording's calib.yaml. Needed for stereo input, ignored for mono.
+    #[arg(long, value_name = "FILE")]
+    calib: Option<String>,
+    /// Output folder (created): markers.csv, frames.csv, ply/, overlays/, plots/.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Localization method: blob, marknet or marknet-mre (default: marknet-mre when its models are
+    /// installed, else blob).
+    #[arg(long)]
+    method: Option<Method>,
+    /// Marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
+    #[arg(long, value_name = "ROWSxCOLS")]
+    grid: Option<String>,
+    /// Read frames from camera N (live) instead of a recording.
+    #[arg(long, value_name = "N")]
+    camera: Option<i32>,
+    /// Treat the video or camera frames as side-by-side stereo (left half, right half).
+    #[arg(long)]
+    side_by_side: bool,
+    /// Track a stereo recording's left view only, as a mono sensor.
+    #[arg(long)]
+    mono: bool,
+    /// Mirror this many pixels around each image border before localizing (mono input), so markers
+    /// cut by the border are found (their centres are then biased towards the border).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pad_border: i32,
+    /// Marker pitch of a mono sensor, mm (to report contact area and centroid in mm).
+    #[arg(long, value_name = "MM")]
+    pitch_mm: Option<f64>,
+    /// Gel thickness, mm (width of the layer response used for the contact region); default: the
+    /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
+    #[arg(long, value_name = "MM")]
+    gel_thickness_mm: Option<f64>,
+    /// Re-zero the reference at these frames (comma separated): drift correction.
+    #[arg(long, value_delimiter = ',', value_name = "FRAME")]
+    rezero_at: Vec<u32>,
+    /// Stop after this many frames.
+    #[arg(long)]
+    max_frames: Option<usize>,
+    /// Write an overlay PNG every N frames (0: none).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    overlay_every: usize,
+    /// Length factor of the displacement arrows in the overlays.
+    #[arg(long, default_value_t = 3.0)]
+    arrow_scale: f64,
+    /// Do not write PLY files.
+    #[arg(long)]
+    no_ply: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+    /// Benchmark the stereo pipeline on the recording instead of writing outputs: per-stage medians,
+    /// latency mode and throughput mode.
+    #[arg(long)]
+    bench: bool,
+    /// Frames timed per mode with --bench.
+    #[arg(long, default_value_t = 40)]
+    bench_frames: usize,
+    #[command(flatten)]
+    localizer: LocalizerArgs,
+    /// A stereo recording (folder with left/ and right/), a folder of images (mono), or a video file.
+    #[arg(value_name = "RECORDING|VIDEO")]
+    input: Option<PathBuf>,
+}
+
+/// One frame of input.
+enum Frame {
+    Stereo(StereoPair<Mat>),
+    Mono(Mat),
+}
+
+/// Where frames come from.
+enum Source {
+    Stereo(StereoRecording),
+    Left(StereoRecording),
+    Images(Vec<PathBuf>),
+    Video {
+        frames: VideoFrames,
+        side_by_side: bool,
+        failures: usize,
+    },
+    Camera {
+        capture: opencv::videoio::VideoCapture,
+        side_by_side: bool,
+        index: i32,
+    },
+}
+
+impl Source {
+    fn is_stereo(&self) -> bool {
+        match self {
+            Source::Stereo(_) => true,
+            Source::Left(_) | Source::Images(_) => false,
+            Source::Video { side_by_side, .. } | Source::Camera { side_by_side, .. } => *side_by_side,
+        }
+    }
+
+    fn len_hint(&self) -> Option<usize> {
+        match self {
+            Source::Stereo(r) | Source::Left(r) => Some(r.len()),
+            Source::Images(v) => Some(v.len()),
+            Source::Video { frames, .. } => Some(frames.declared_frame_count()).filter(|n| *n > 0),
+            Source::Camera { .. } => None,
+        }
+    }
+
+    /// Frame `k`: `None` at the end, `Some(Err)` for a frame that cannot be read (flagged).
+    fn next(&mut self, k: usize) -> Option<anyhow::Result<Frame>> {
+        match self {
+            Source::Stereo(r) => r
+                .read(k)
+                .map(|p| p.map(Frame::Stereo).map_err(anyhow::Error::from)),
+            Source::Left(r) => {
+                let paths = r.paths(k)?;
+                Some(
+                    images::read_image(&paths.left)
+                        .map(Frame::Mono)
+                        .map_err(anyhow::Error::from),
+                )
+            }
+            Source::Images(v) => {
+                let p = v.get(k)?;
+                Some(
+                    images::read_image(p)
+                        .map(Frame::Mono)
+                        .map_err(anyhow::Error::from),
+                )
+            }
+            Source::Video {
+                frames,
+                side_by_side,
+                failures,
+            } => {
+                match frames.next_frame() {
+                    Ok(None) => None,
+                    Ok(Some((_, m))) => {
+                        *failures = 0;
+                        Some(if *side_by_side {
+                            video::split_side_by_side(&m, frames.path())
+                                .map(Frame::Stereo)
+                                .map_err(anyhow::Error::from)
+                        } else {
+                            Ok(Frame::Mono(m))
+                        })
+                    }
+                    Err(e) => {
+                        *failures += 1;
+                        // Give up after five unreadable frames in a row (a broken stream).
+                        if *failures > 5 { None } else { Some(Err(e.into())) }
+                    }
+                }
+            }
+            Source::Camera {
+                capture,
+                side_by_side,
+                index,
+            } => {
+                use opencv::prelude::VideoCaptureTrait;
+                let mut m = Mat::default();
+                match capture.read(&mut m) {
+                    Ok(true) if !m.empty() => Some(if *side_by_side {
+                        video::split_side_by_side(&m, Path::new(&format!("camera {index}")))
+                            .map(Frame::Stereo)
+                            .map_err(anyhow::Error::from)
+                    } else {
+                        Ok(Frame::Mono(m))
+                    }),
+                    Ok(_) => None,
+                    Err(e) => Some(Err(anyhow::anyhow!("camera {index}: {e}"))),
+                }
+            }
+        }
+    }
+}
+
+fn open_source(args: &Args) -> anyhow::Result<Source> {
+    if let Some(index) = args.camera {
+        if args.input.is_some() {
+            bail!("give either --camera N or a RECORDING|VIDEO, not both");
+        }
+        let capture = opencv::videoio::VideoCapture::new(index, opencv::videoio::CAP_ANY)
+            .with_context(|| format!("cannot open camera {index}"))?;
+        use opencv::prelude::VideoCaptureTraitConst;
+        if !capture.is_opened().unwrap_or(false) {
+            bail!("camera {index} cannot be opened (no such device, or it is busy)");
+        }
+        return Ok(Source::Camera {
+            capture,
+            side_by_side: args.side_by_side,
+            index,
+        });
+    }
+    let Some(input) = &args.input else {
+        bail!(
+            "no input: give a stereo recording (left/ and right/), a folder of images, a video file, or --camera N"
+        );
+    };
+    if input.is_dir() {
+        if images::is_stereo_recording(input) {
+            let rec = StereoRecording::open(input)?;
+            return Ok(if args.mono {
+                Source::Left(rec)
+            } else {
+                Source::Stereo(rec)
+            });
+        }
+        let files = images::list_images(input)?;
+        if files.is_empty() {
+            bail!(
+                "{}: holds no images (expected left/ and right/, or {} files)",
+                input.display(),
+                images::IMAGE_EXTENSIONS.join("/")
+            );
+        }
+        return Ok(Source::Images(files));
+    }
+    if !input.exists() {
+        bail!("{}: no such file or folder", input.display());
+    }
+    if video::has_video_extension(input) {
+        return Ok(Source::Video {
+            frames: VideoFrames::open(input)?,
+            side_by_side: args.side_by_side,
+            failures: 0,
+        });
+    }
+    bail!(
+        "{}: expected a stereo recording folder, a folder of images or a video ({})",
+        input.display(),
+        video::VIDEO_EXTENSIONS.join("/")
+    )
+}
+
+fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
+    let (r, c) = text
+        .split_once(['x', 'X'])
+        .with_context(|| format!("--grid '{text}': expected ROWSxCOLS, e.g. 23x23"))?;
+    let rows: u16 = r
+        .trim()
+        .parse()
+        .with_context(|| format!("--grid '{text}': rows must be a number"))?;
+    let cols: u16 = c
+        .trim()
+        .parse()
+        .with_context(|| format!("--grid '{text}': columns must be a number"))?;
+    if rows < 2 || cols < 2 {
+        bail!("--grid '{text}': expected at least 2x2 markers");
+    }
+    Ok(GridShape { rows, cols })
+}
+
+/// The recording's sensor description (`meta.json` of a simulated recording): grid and gel thickness.
+fn meta(input: Option<&Path>) -> (Option<GridShape>, Option<f64>) {
+    let Some(dir) = input.filter(|p| p.is_dir()) else {
+        return (None, None);
+    };
+    let Ok(text) = std::fs::read_to_string(dir.join("meta.json")) else {
+        return (None, None);
+    };
+    let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return (None, None);
+    };
+    let grid = (|| {
+        let rows = u16::try_from(v.get("grid")?.get("rows")?.as_u64()?).ok()?;
+        let cols = u16::try_from(v.get("grid")?.get("cols")?.as_u64()?).ok()?;
+        Some(GridShape { rows, cols })
+    })();
+    let thickness = v
+        .get("sensor")
+        .and_then(|s| s.get("gel"))
+        .and_then(|g| g.get("thickness_mm"))
+        .and_then(|t| t.as_f64());
+    (grid, thickness)
+}
+
+fn choose_method(args: &Args) -> Method {
+    args.method.unwrap_or_else(|| match args.localizer.config() {
+        Ok(c) if c.marknet_path.is_file() && c.mre_path.is_file() => Method::MarknetMre,
+        _ => Method::Blob,
+    })
+}
+
+fn size_of(m: &Mat) -> ImageSize {
+    ImageSize {
+        width: m.cols().max(0) as u32,
+        height: m.rows().max(0) as u32,
+    }
+}
+
+fn points(d: &[Detection]) -> Vec<Point2> {
+    d.iter().map(|d| d.position).collect()
+}
+
+/// Localizes `image`, first mirroring `pad` pixels around its border when `pad > 0`.
+fn detect_padded(loc: &mut dyn Localizer, image: &Mat, pad: i32) -> anyhow::Result<Vec<Detection>> {
+    if pad <= 0 {
+        return Ok(loc.detect(image)?);
+    }
+    let mut padded = Mat::default();
+    opencv::core::copy_make_border(
+        image,
+        &mut padded,
+        pad,
+        pad,
+        pad,
+        pad,
+        opencv::core::BORDER_REFLECT,
+        Scalar::all(0.0),
+    )
+    .context("padding the image border")?;
+    let (w, h) = (f64::from(image.cols()), f64::from(image.rows()));
+    let p = f64::from(pad);
+    Ok(loc
+        .detect(&padded)?
+        .into_iter()
+        .map(|mut d| {
+            d.position = Point2::new(d.position.x - p, d.position.y - p);
+            d
+        })
+        // Keep markers whose centre lies within half a pad of the image.
+        .filter(|d| {
+            d.position.x > -0.5 * p
+                && d.position.y > -0.5 * p
+                && d.position.x < w - 1.0 + 0.5 * p
+                && d.position.y < h - 1.0 + 0.5 * p
+        })
+        .collect())
+}
+
+/// Output files, written as frames arrive.
+struct Outputs {
+    dir: PathBuf,
+    markers: std::io::BufWriter<std::fs::File>,
+    frames: std::io::BufWriter<std::fs::File>,
+    history: Vec<FrameSummary>,
+    line: String,
+}
+
+impl Outputs {
+    fn create(dir: &Path) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let open = |name: &str| -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
+            let p = dir.join(name);
+            Ok(std::io::BufWriter::new(
+                std::fs::File::create(&p).with_context(|| format!("cannot create {}", p.display()))?,
+            ))
+        };
+        let mut out = Self {
+            dir: dir.to_path_buf(),
+            markers: open("markers.csv")?,
+            frames: open("frames.csv")?,
+            history: Vec::new(),
+            line: String::new(),
+        };
+        writeln!(out.markers, "{}", MARKER_COLUMNS.join(","))?;
+        writeln!(out.frames, "{}", FRAME_COLUMNS.join(","))?;
+        Ok(out)
+    }
+
+    fn rows(&mut self, markers: &[MarkerRecord], summary: &FrameSummary) -> anyhow::Result<()> {
+        self.line.clear();
+        for m in markers {
+            m.write_csv(&mut self.line);
+            self.line.push('\n');
+        }
+        self.markers
+            .write_all(self.line.as_bytes())
+            .context("cannot write markers.csv")?;
+        self.line.clear();
+        summary.write_csv(&mut self.line);
+        self.line.push('\n');
+        self.frames
+            .write_all(self.line.as_bytes())
+            .context("cannot write frames.csv")?;
+        self.history.push(summary.clone());
+        Ok(())
+    }
+
+    fn finish(mut self, stereo: bool) -> anyhow::Result<Vec<FrameSummary>> {
+        self.markers.flush().context("cannot write markers.csv")?;
+        self.frames.flush().context("cannot write frames.csv")?;
+        let h = &self.history;
+        let x = |f: &FrameSummary| f64::from(f.frame);
+        let area: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f.contact_area_mm2)).collect();
+        plot::write(
+            &self.dir.join("plots/contact_area.png"),
+            &LinePlot::new("contact area", "frame", "mm^2").with_series("contact area", [200, 80, 0], area),
+        )?;
+        if stereo {
+            let depth: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f.max_depth_mm)).collect();
+            plot::write(
+                &self.dir.join("plots/max_depth.png"),
+                &LinePlot::new("largest indentation depth", "frame", "mm").with_series(
+                    "max depth",
+                    [0, 120, 220],
+                    depth,
+                ),
+            )?;
+        }
+        let slip: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f64::from(slip_level(f.slip)))).collect();
+        let cats = [
+            SlipState::NoContact,
+            SlipState::Stick,
+            SlipState::PartialSlip,
+            SlipState::GrossSlip,
+        ]
+        .map(|s| s.as_str().to_owned())
+        .to_vec();
+        plot::write(
+            &self.dir.join("plots/slip.png"),
+            &LinePlot {
+                categories: cats,
+                ..LinePlot::new("slip state", "frame", "")
+            }
+            .with_series("slip", [40, 40, 200], slip),
+        )?;
+        Ok(self.history)
+    }
+}
+
+fn slip_level(s: SlipState) -> u8 {
+    match s {
+        SlipState::NoContact => 0,
+        SlipState::Stick => 1,
+        SlipState::PartialSlip => 2,
+        SlipState::GrossSlip => 3,
+    }
+}
+
+/// Writes the marker cloud and the deformed mesh of a stereo frame.
+fn write_ply(
+    dir: &Path,
+    frame: u32,
+    session: &StereoSession,
+    contact: &ContactFrame,
+    reprojection: &[Option<f64>],
+) -> anyhow::Result<()> {
+    let shape = session.shape();
+    let cloud: Vec<MarkerPoint> = shape
+        .indices()
+        .enumerate()
+        .filter_map(|(k, index)| {
+            let p = contact.positions_mm[k]?;
+            Some(MarkerPoint {
+                index,
+                position_mm: [p.x, p.y, p.z],
+                reprojection_error_px: reprojection[k].unwrap_or(0.0),
+            })
+        })
+        .collect();
+    let comment = format!("frame {frame}; reprojection_error 0 for markers predicted from their neighbours");
+    write_marker_cloud(&dir.join(format!("cloud_{frame:06}.ply")), &cloud, &comment)?;
+    let mut vertex_of = vec![u32::MAX; shape.count()];
+    let mut mesh = TriangleMesh::default();
+    let names = [
+        "depth_mm",
+        "displacement_mm",
+        "dX_mm",
+        "dY_mm",
+        "dZ_mm",
+        "load_mm",
+        "in_contact",
+    ];
+    let mut props: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
+    for (k, p) in contact.positions_mm.iter().enumerate() {
+        let Some(p) = p else { continue };
+        vertex_of[k] = mesh.vertices_mm.len() as u32;
+        mesh.vertices_mm.push([p.x, p.y, p.z]);
+        let d = contact.displacement_mm[k].unwrap_or_default();
+        let vals = [
+            contact.depth_mm[k].unwrap_or(0.0),
+            d.norm(),
+            d.x,
+            d.y,
+            d.z,
+            contact.load_mm.get(k).copied().unwrap_or(0.0),
+            f64::from(u8::from(contact.in_contact[k])),
+        ];
+        for (v, list) in vals.iter().zip(props.iter_mut()) {
+            list.push(*v as f32);
+        }
+    }
+    for t in session.surface().triangles() {
+        let f = t.map(|i| vertex_of[i as usize]);
+        if f.iter().all(|v| *v != u32::MAX) {
+            mesh.faces.push(f);
+        }
+    }
+    mesh.properties = names
+        .iter()
+        .zip(props)
+        .map(|(n, values)| VertexProperty {
+            name: (*n).to_owned(),
+            values,
+        })
+        .collect();
+    write_mesh(
+        &dir.join(format!("mesh_{frame:06}.ply")),
+        &mesh,
+        &format!("frame {frame}; deformed marker surface"),
+    )?;
+    Ok(())
+}
+
+/// Draws displacement arrows (reference -> current, scaled) and the contact markers onto `image`.
+fn overlay(
+    image: &Mat,
+    reference: &[Point2],
+    track: &TrackFrame,
+    in_contact: &dyn Fn(usize) -> bool,
+    scale: f64,
+    caption: &str,
+) -> anyhow::Result<Mat> {
+    let mut out = Mat::default();
+    if image.channels() == 1 {
+        imgproc::cvt_color(image, &mut out, imgproc::COLOR_GRAY2BGR, 0)?;
+    } else {
+        out = image.try_clone()?;
+    }
+    let pt = |p: Point2| Point::new(p.x.round() as i32, p.y.round() as i32);
+    for (k, m) in track.markers.iter().enumerate() {
+        let Some(p) = m.position_px else { continue };
+        let r = reference[k];
+        let tip = Point2::new(r.x + scale * (p.x - r.x), r.y + scale * (p.y - r.y));
+        let color = match m.status {
+            MarkerStatus::Tracked => Scalar::new(0.0, 200.0, 0.0, 0.0),
+            MarkerStatus::Predicted => Scalar::new(0.0, 160.0, 255.0, 0.0),
+            MarkerStatus::Lost => Scalar::new(0.0, 0.0, 255.0, 0.0),
+        };
+        if in_contact(k) {
+            imgproc::circle(
+                &mut out,
+                pt(p),
+                5,
+                Scalar::new(0.0, 0.0, 255.0, 0.0),
+                1,
+                imgproc::LINE_AA,
+                0,
+            )?;
+        }
+        imgproc::arrowed_line(&mut out, pt(r), pt(tip), color, 1, imgproc::LINE_AA, 0, 0.25)?;
+    }
+    imgproc::put_text(
+        &mut out,
+        caption,
+        Point::new(6, 16),
+        imgproc::FONT_HERSHEY_SIMPLEX,
+        0.45,
+        Scalar::new(0.0, 0.0, 0.0, 0.0),
+        3,
+        imgproc::LINE_AA,
+        false,
+    )?;
+    imgproc::put_text(
+        &mut out,
+        caption,
+        Point::new(6, 16),
+        imgproc::FONT_HERSHEY_SIMPLEX,
+        0.45,
+        Scalar::new(255.0, 255.0, 255.0, 0.0),
+        1,
+        imgproc::LINE_AA,
+        false,
+    )?;
+    Ok(out)
+}
+
+enum Session {
+    Stereo(Box<StereoSession>),
+    Mono(Box<MonoSession>),
+}
+
+impl Session {
+    fn ids(&self) -> &[GridIndex] {
+        match self {
+            Session::Stereo(s) => s.ids(),
+            Session::Mono(s) => s.tracker().ids(),
+        }
+    }
+}
+
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    if args.bench {
+        return bench(args);
+    }
+    let Some(out_dir) = &args.out else {
+        bail!("--out DIR is required (where markers.csv, frames.csv, ply/, overlays/ and plots/ go)")
+    };
+    let mut source = open_source(args)?;
+    let stereo = source.is_stereo();
+    let (meta_grid, meta_thickness) = meta(args.input.as_deref());
+    let shape = match &args.grid {
+        Some(g) => parse_grid(g)?,
+        None => meta_grid.unwrap_or(GridShape::REFERENCE),
+    };
+    let rig = if stereo {
+        let spec = match (&args.calib, &args.input) {
+            (Some(c), _) => c.clone(),
+            (None, Some(dir)) if dir.join("calib.yaml").is_file() => {
+                dir.join("calib.yaml").display().to_string()
+            }
+            _ => bail!("stereo input needs --calib FILE (or a calib.yaml in the recording)"),
+        };
+        Some(StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?)
+    } else {
+        None
+    };
+    let mut config = SessionConfig::default();
+    if let Some(t) = args.gel_thickness_mm.or(meta_thickness) {
+        config.contact.gel_thickness_mm = t;
+    }
+    config.planar.pitch_mm = args.pitch_mm;
+    let method = choose_method(args);
+    let mut localizer = args.localizer.localizer(method)?;
+    let outputs = Outputs::create(out_dir)?;
+    let ply_dir = out_dir.join("ply");
+    let overlay_dir = out_dir.join("overlays");
+    if !args.no_ply && stereo {
+        std::fs::create_dir_all(&ply_dir).with_context(|| format!("cannot create {}", ply_dir.display()))?;
+    }
+    let progress = if args.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(source.len_hint().unwrap_or(0) as u64)
+    };
+    progress.set_style(
+        ProgressStyle::with_template("{spinner} track [{bar:30}] {pos}/{len} frames {per_sec} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut outputs = outputs;
+    let mut session: Option<Session> = None;
+    let mut reference_size: Option<ImageSize> = None;
+    let mut pending_flagged: Vec<(u32, String)> = Vec::new();
+    let mut warnings: Vec<String> = Vec::new();
+    let mut latest_contact: Option<ContactFrame> = None;
+    let started = Instant::now();
+    let mut k = 0usize;
+    let (mut tracked_total, mut visible_total) = (0usize, 0usize);
+    while args.max_frames.is_none_or(|m| k < m) {
+        let Some(next) = source.next(k) else { break };
+        let frame_no = k as u32;
+        k += 1;
+        progress.inc(1);
+        // Read and localize; any failure flags the frame.
+        let detected: anyhow::Result<(Frame, StereoPair<Vec<Detection>>)> = (|| {
+            let frame = next?;
+            match &frame {
+                Frame::Stereo(pair) => {
+                    let size = size_of(&pair.left);
+                    if size_of(&pair.right) != size {
+                        bail!(
+                            "left and right images differ in size ({}x{} vs {}x{})",
+                            size.width,
+                            size.height,
+                            pair.right.cols(),
+                            pair.right.rows()
+                        );
+                    }
+                    if let Some(r) = &rig {
+                        r.check_image_sizes(size, size)
+                            .context("the frame does not match the calibration")?;
+                    }
+                    check_size(&mut reference_size, size)?;
+                    let d = localizer.detect_stereo(pair)?;
+                    Ok((frame, d))
+                }
+                Frame::Mono(m) => {
+                    check_size(&mut reference_size, size_of(m))?;
+                    let d = detect_padded(localizer.as_mut(), m, args.pad_border)?;
+                    Ok((frame, StereoPair::new(d, Vec::new())))
+                }
+            }
+        })();
+        let (frame, dets) = match detected {
+            Ok(x) => x,
+            Err(e) => {
+                let msg = format!("frame {frame_no}: {e:#}");
+                progress.suspend(|| eprintln!("warning: {msg}; frame written as lost / no contact"));
+                match &session {
+                    Some(s) => {
+                        let (m, f) = flagged_rows(s.ids(), frame_no);
+                        outputs.rows(&m, &f)?;
+                    }
+                    None => pending_flagged.push((frame_no, msg.clone())),
+                }
+                warnings.push(msg);
+                continue;
+            }
+        };
+        if session.is_none() {
+            // The first good frame is the reference (no contact): index it.
+            let started = match (&frame, &rig) {
+                (Frame::Stereo(_), Some(rig)) => StereoLattice::from_reference(
+                    rig,
+                    &dets.left,
+                    &dets.right,
+                    shape,
+                    StereoConfig::default(),
+                )
+                .map_err(anyhow::Error::from)
+                .and_then(|lat| {
+                    let l: Vec<(GridIndex, Point2)> = lat.left().reference_view().markers().collect();
+                    let r: Vec<(GridIndex, Point2)> = lat.right().reference_view().markers().collect();
+                    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+                    Ok(Session::Stereo(Box::new(StereoSession::new(
+                        shape,
+                        &l,
+                        &r,
+                        tri,
+                        config.clone(),
+                    )?)))
+                }),
+                _ => ReferenceLattice::from_detections(&dets.left, shape, IndexingConfig::default())
+                    .map_err(anyhow::Error::from)
+                    .and_then(|lat| {
+                        let l: Vec<(GridIndex, Point2)> = lat.reference_view().markers().collect();
+                        Ok(Session::Mono(Box::new(MonoSession::new(
+                            shape,
+                            &l,
+                            config.clone(),
+                        )?)))
+                    }),
+            };
+            match started {
+                Ok(s) => {
+                    for (f, _) in pending_flagged.drain(..) {
+                        let (m, fs) = flagged_rows(s.ids(), f);
+                        outputs.rows(&m, &fs)?;
+                    }
+                    progress.suspend(|| {
+                        eprintln!(
+                            "reference frame {frame_no}: {} markers indexed on the {}x{} lattice ({method})",
+                            s.ids().len(),
+                            shape.rows,
+                            shape.cols
+                        )
+                    });
+                    session = Some(s);
+                }
+                Err(e) => {
+                    let msg = format!("frame {frame_no}: cannot index the reference lattice: {e:#}");
+                    progress.suspend(|| eprintln!("warning: {msg}; trying the next frame"));
+                    pending_flagged.push((frame_no, msg.clone()));
+                    warnings.push(msg);
+                    continue;
+                }
+            }
+        }
+        let Some(s) = session.as_mut() else { continue };
+        if args.rezero_at.contains(&frame_no) {
+            match s {
+                Session::Stereo(st) => {
+                    if let Some(c) = &latest_contact {
+                        st.rezero(c)?;
+                    }
+                }
+                Session::Mono(m) => m.rezero(),
+            }
+            progress.suspend(|| eprintln!("frame {frame_no}: reference re-zeroed"));
+        }
+        let write_overlay = args.overlay_every > 0 && (frame_no as usize).is_multiple_of(args.overlay_every);
+        match (s, &frame) {
+            (Session::Stereo(st), Frame::Stereo(pair)) => {
+                let reference: Vec<Point2> = st.left().reference_px().to_vec();
+                let out = st.track(frame_no, &points(&dets.left), &points(&dets.right))?;
+                outputs.rows(&out.markers, &out.summary)?;
+                tracked_total += out.left.count(MarkerStatus::Tracked);
+                visible_total += out.left.markers.len();
+                if !args.no_ply {
+                    write_ply(&ply_dir, frame_no, st, &out.contact, &out.reprojection_px)?;
+                }
+                if write_overlay {
+                    let lin: Vec<usize> = st
+                        .left()
+                        .ids()
+                        .iter()
+                        .map(|i| shape.linear(*i).unwrap_or(0))
+                        .collect();
+                    let caption = caption(&out.summary);
+                    let img = overlay(
+                        &pair.left,
+                        &reference,
+                        &out.left,
+                        &|k| out.contact.in_contact[lin[k]],
+                        args.arrow_scale,
+                        &caption,
+                    )?;
+                    images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &img)?;
+                }
+                latest_contact = Some(out.contact);
+            }
+            (Session::Mono(m), Frame::Mono(img)) => {
+                let reference: Vec<Point2> = m.tracker().reference_px().to_vec();
+                let out = m.track(frame_no, &points(&dets.left))?;
+                outputs.rows(&out.markers, &out.summary)?;
+                tracked_total += out.track.count(MarkerStatus::Tracked);
+                visible_total += out.track.markers.len();
+                if write_overlay {
+                    let in_contact = out.planar.in_contact.clone();
+                    let caption = caption(&out.summary);
+                    let drawn = overlay(
+                        img,
+                        &reference,
+                        &out.track,
+                        &|k| in_contact.get(k).copied().unwrap_or(false),
+                        args.arrow_scale,
+                        &caption,
+                    )?;
+                    images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &drawn)?;
+                }
+            }
+            _ => bail!("frame {frame_no}: a mono frame in a stereo session or the reverse"),
+        }
+    }
+    progress.finish_and_clear();
+    if session.is_none() {
+        bail!(
+            "no frame could be indexed as the reference lattice ({} frames read): {}",
+            k,
+            warnings.last().map_or("no frames", String::as_str)
+        );
+    }
+    let history = outputs.finish(stereo)?;
+    let secs = started.elapsed().as_secs_f64();
+    let contact = history.iter().filter(|f| f.contact).count();
+    let slip = history
+        .iter()
+        .filter(|f| matches!(f.slip, SlipState::PartialSlip | SlipState::GrossSlip))
+        .count();
+    eprintln!(
+        "{} frames in {secs:.1} s ({:.1} frames/s): {:.2} % of marker-frames tracked in the left view, {contact} frames in contact, {slip} slipping, {} flagged; outputs in {}",
+        history.len(),
+        history.len() as f64 / secs.max(1e-9),
+        100.0 * tracked_total as f64 / visible_total.max(1) as f64,
+        warnings.len(),
+        out_dir.display()
+    );
+    Ok(())
+}
+
+fn caption(s: &FrameSummary) -> String {
+    format!(
+        "frame {} {} area {:.2} mm2 depth {:.3} mm",
+        s.frame,
+        s.slip.as_str(),
+        s.contact_area_mm2,
+        s.max_depth_mm
+    )
+}
+
+fn check_size(reference: &mut Option<ImageSize>, size: ImageSize) -> anyhow::Result<()> {
+    match reference {
+        Some(r) if *r != size => bail!(
+            "image size {}x{} differs from the first frame's {}x{}",
+            size.width,
+            size.height,
+            r.width,
+            r.height
+        ),
+        Some(_) => Ok(()),
+        None => {
+            *reference = Some(size);
+            Ok(())
+        }
+    }
+}
+
+/// Median of a list of durations in ms.
+fn median_ms(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// `gelstereo track --bench`: per-stage medians (latency mode) and throughput across frames.
+fn bench(args: &Args) -> anyhow::Result<()> {
+    let Some(input) = &args.input else {
+        bail!("--bench needs a stereo RECORDING")
+    };
+    if !images::is_stereo_recording(input) {
+        bail!(
+            "{}: --bench needs a stereo recording (left/ and right/)",
+            input.display()
+        );
+    }
+    let rec = StereoRecording::open(input)?;
+    let spec = match &args.calib {
+        Some(c) => c.clone(),
+        None => input.join("calib.yaml").display().to_string(),
+    };
+    let rig = StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?;
+    let (meta_grid, meta_thickness) = meta(Some(input));
+    let shape = match &args.grid {
+        Some(g) => parse_grid(g)?,
+        None => meta_grid.unwrap_or(GridShape::REFERENCE),
+    };
+    let mut config = SessionConfig::default();
+    if let Some(t) = args.gel_thickness_mm.or(meta_thickness) {
+        config.contact.gel_thickness_mm = t;
+    }
+    let method = choose_method(args);
+    let n = args.bench_frames.clamp(2, rec.len());
+    let frames: Vec<StereoPair<Mat>> = (0..n)
+        .map(|k| rec.read(k).into_iter().flatten().next())
+        .collect::<Option<Vec<_>>>()
+        .context("cannot read the recording's frames")?;
+    let mut localizer = args.localizer.localizer(method)?;
+    let d0 = localizer.detect_stereo(&frames[0])?;
+    let lattice = StereoLattice::from_reference(&rig, &d0.left, &d0.right, shape, StereoConfig::default())?;
+    let l: Vec<(GridIndex, Point2)> = lattice.left().reference_view().markers().collect();
+    let r: Vec<(GridIndex, Point2)> = lattice.right().reference_view().markers().collect();
+    let make = || -> anyhow::Result<StereoSession> {
+        Ok(StereoSession::new(
+            shape,
+            &l,
+            &r,
+            Triangulator::new(rig.clone(), TriangulationConfig::default())?,
+            config.clone(),
+        )?)
+    };
+    // Latency: one frame at a time, stages timed separately.
+    let mut session = make()?;
+    let (mut t_detect, mut t_track, mut t_total) = (Vec::new(), Vec::new(), Vec::new());
+    for (k, pair) in frames.iter().enumerate() {
+        let t0 = Instant::now();
+        let d = localizer.detect_stereo(pair)?;
+        let t1 = Instant::now();
+        session.track(k as u32, &points(&d.left), &points(&d.right))?;
+        let t2 = Instant::now();
+        t_detect.push((t1 - t0).as_secs_f64() * 1e3);
+        t_track.push((t2 - t1).as_secs_f64() * 1e3);
+        t_total.push((t2 - t0).as_secs_f64() * 1e3);
+    }
+    // Tracking stages alone on the detections, repeated for stable medians.
+    let dets: Vec<StereoPair<Vec<Point2>>> = frames
+        .iter()
+        .map(|p| {
+            localizer
+                .detect_stereo(p)
+                .map(|d| StereoPair::new(points(&d.left), points(&d.right)))
+        })
+        .collect::<Result<_, _>>()?;
+    // Throughput: localization of all frames in parallel (one localizer per rayon worker), then the
+    // sequential tracking (a recurrence over frames) on the results.
+    let t0 = Instant::now();
+    let detected: Vec<StereoPair<Vec<Point2>>> = frames
+        .par_iter()
+        .map_init(
+            || args.localizer.localizer(method),
+            |loc, pair| -> anyhow::Result<StereoPair<Vec<Point2>>> {
+                let loc = loc.as_mut().map_err(|e| anyhow::anyhow!("{e:#}"))?;
+                let d = loc.detect_stereo(pair)?;
+                Ok(StereoPair::new(points(&d.left), points(&d.right)))
+            },
+        )
+        .collect::<anyhow::Result<_>>()?;
+    let mut s2 = make()?;
+    for (k, d) in detected.iter().enumerate() {
+        s2.track(k as u32, &d.left, &d.right)?;
+    }
+    let throughput = n as f64 / t0.elapsed().as_secs_f64();
+    let mut s3 = make()?;
+    let t0 = Instant::now();
+    for (k, d) in dets.iter().enumerate() {
+        s3.track(k as u32, &d.left, &d.right)?;
+    }
+    let track_only = n as f64 / t0.elapsed().as_secs_f64();
+    let size = size_of(&frames[0].left);
+    let mut report = String::new();
+    let _ = writeln!(
+        report,
+        "stereo pipeline on {} ({n} frames of {}x{}, {method}, {} threads)",
+        input.display(),
+        size.width,
+        size.height,
+        rayon::current_num_threads()
+    );
+    let _ = writeln!(
+        report,
+        "latency mode (median per stereo frame): localization {:.2} ms, tracking+triangulation+contact+slip {:.2} ms, whole {:.2} ms",
+        median_ms(t_detect),
+        median_ms(t_track),
+        median_ms(t_total)
+    );
+    let _ = writeln!(
+        report,
+        "throughput mode (rayon across frames): {throughput:.0} stereo frames/s; tracking stages alone {track_only:.0} frames/s"
+    );
+    print!("{report}");
+    Ok(())
+}
