@@ -31,6 +31,12 @@ pub struct Args {
     /// Folder for table1.csv and table1.json (default: eval-<split> in the current folder).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Only experiments of this sensor (the `sensor` of DIR/dataset.json, e.g. `gelstereo-reference`).
+    #[arg(long, value_name = "NAME")]
+    sensor: Option<String>,
+    /// SimpleBlobDetector parameters that define the hard split (`tuned`, `default` or a JSON file).
+    #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
+    hard_blob_params: String,
     /// Evaluate at most this many frames per experiment (evenly spaced; 0 = all).
     #[arg(long, default_value_t = 0)]
     frames_per_experiment: usize,
@@ -101,6 +107,34 @@ fn read_experiment(dir: &Path) -> anyhow::Result<Vec<FrameTruth>> {
         .collect())
 }
 
+/// The experiment folder names of `sensor` according to DIR/dataset.json.
+fn experiments_of_sensor(dataset: &Path, sensor: &str) -> anyhow::Result<Vec<String>> {
+    let path = dataset.join("dataset.json");
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("cannot read {} (needed by --sensor)", path.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+    let Some(list) = json["experiments"].as_array() else {
+        bail!("{}: 'experiments': expected a list", path.display());
+    };
+    let names: Vec<String> = list
+        .iter()
+        .filter(|e| e["sensor"].as_str() == Some(sensor))
+        .filter_map(|e| e["name"].as_str().map(str::to_owned))
+        .collect();
+    if names.is_empty() {
+        let mut known: Vec<&str> = list.iter().filter_map(|e| e["sensor"].as_str()).collect();
+        known.sort_unstable();
+        known.dedup();
+        bail!(
+            "{}: no experiment of sensor '{sensor}' (sensors: {})",
+            path.display(),
+            known.join(", ")
+        );
+    }
+    Ok(names)
+}
+
 fn pct(v: Option<f64>) -> String {
     v.map_or_else(|| "/".to_owned(), |v| format!("{:.2}%", 100.0 * v))
 }
@@ -132,12 +166,25 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         })
         .collect();
     experiments.sort();
+    if let Some(sensor) = &args.sensor {
+        let wanted = experiments_of_sensor(&args.dataset, sensor)?;
+        experiments.retain(|e| {
+            e.file_name()
+                .is_some_and(|n| wanted.iter().any(|w| w == &n.to_string_lossy()))
+        });
+    }
     if experiments.is_empty() {
-        bail!("{}: no exp_NNNN folders", split_dir.display());
+        bail!(
+            "{}: no exp_NNNN folders{}",
+            split_dir.display(),
+            args.sensor
+                .as_ref()
+                .map_or(String::new(), |s| format!(" of sensor '{s}'"))
+        );
     }
 
     // The hard split is defined by the TUNED blob baseline, whatever --blob-params says for the blob row.
-    let mut tuned_blob = BlobLocalizer::new(LocalizerArgs::blob("tuned")?)?;
+    let mut tuned_blob = BlobLocalizer::new(LocalizerArgs::blob(&args.hard_blob_params)?)?;
     let mut localizers: Vec<Box<dyn Localizer>> = methods
         .iter()
         .map(|m| args.localizer.localizer(*m))
@@ -223,8 +270,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     let _ = writeln!(
         text,
-        "match radius r = {} x GT pitch: median {r_med:.2} px (range {r_min:.2}-{r_max:.2}); loss in px^2; hard = missed by tuned blob",
-        metrics::RADIUS_PITCH_FRACTION
+        "match radius r = {} x GT pitch: median {r_med:.2} px (range {r_min:.2}-{r_max:.2}); loss in px^2; hard = missed by blob ({}){}",
+        metrics::RADIUS_PITCH_FRACTION,
+        args.hard_blob_params,
+        args.sensor
+            .as_ref()
+            .map_or(String::new(), |s| format!("; sensor {s}"))
     );
     let _ = writeln!(
         text,
@@ -280,6 +331,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         "frames": n_frames,
         "views": n_views,
         "radius_px": {"fraction_of_pitch": metrics::RADIUS_PITCH_FRACTION, "median": r_med, "min": r_min, "max": r_max},
+        "sensor": args.sensor,
+        "hard_blob_params": LocalizerArgs::blob(&args.hard_blob_params)?.to_json(),
         "methods": methods.iter().map(|m| m.as_str()).collect::<Vec<_>>(),
         "marknet": config.marknet_path.display().to_string(),
         "mre": config.mre_path.display().to_string(),

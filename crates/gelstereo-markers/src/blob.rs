@@ -332,6 +332,18 @@ mod tests {
             (shipped.params.min_threshold, shipped.params.max_area),
             (80.0, 200.0)
         );
+        let any = BlobParams::from_json_file(&root.join("data/blob_params_any_polarity.json")).unwrap();
+        assert!(!any.params.filter_by_color && shipped.params.filter_by_color);
+        let same_otherwise = BlobParams {
+            params: SimpleBlobDetector_Params {
+                filter_by_color: true,
+                ..any.params
+            },
+        };
+        assert_eq!(
+            same_otherwise, shipped,
+            "the any-polarity file differs only in filterByColor"
+        );
         let train = root.join("train/gelstereo_train/blob_params.json");
         if train.exists() {
             assert_eq!(

@@ -73,6 +73,12 @@ fn open_session(path: &Path, options: &SessionOptions) -> Result<Opened> {
         .map_err(|e| load(e.to_string()))?
         .with_optimization_level(GraphOptimizationLevel::Level3)
         .map_err(|e| load(e.to_string()))?;
+    // Idle intra-op threads block instead of busy-waiting (ONNX Runtime's default is to spin): on cores
+    // shared with other work, spinning threads steal the cores the next operator needs and latency
+    // gets several times worse; on an otherwise idle machine spinning would save a few percent.
+    builder = builder
+        .with_intra_op_spinning(false)
+        .map_err(|e| load(e.to_string()))?;
     if options.intra_threads > 0 {
         builder = builder
             .with_intra_threads(options.intra_threads)
