@@ -64,6 +64,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             fix: "train/retrain.sh retrains it, or restore data/models/ from git",
         },
         Check {
+            name: "Calibration files",
+            need: Need::Optional,
+            outcome: calibrations(&home.join("calib")),
+            fix: "restore calib/ from git, or write your sensor's with `gelstereo calibrate`",
+        },
+        Check {
             name: "Python training env",
             need: Need::Optional,
             outcome: python_env(&home),
@@ -123,6 +129,41 @@ fn model_summary(path: &Path) -> Result<String, String> {
         ));
     }
     Ok(format!("{} [{}]", path.display(), props.join(", ")))
+}
+
+/// Loads every calibration in `dir` (OpenCV YAML/XML files and a `left/right.cameramodel` mrcal pair)
+/// and summarises each; any that fails to load is the error.
+fn calibrations(dir: &Path) -> Result<String, String> {
+    let entries = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut specs: Vec<String> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .is_some_and(|x| x == "yaml" || x == "yml" || x == "xml")
+        })
+        .map(|p| p.display().to_string())
+        .collect();
+    specs.sort();
+    if dir.join("left.cameramodel").exists() && dir.join("right.cameramodel").exists() {
+        specs.push(dir.display().to_string());
+    }
+    let mut loaded = Vec::new();
+    for spec in &specs {
+        let rig = gelstereo_geometry::StereoRig::load(spec).map_err(|e| e.to_string())?;
+        let baseline_mm = rig.right_from_left.translation.vector.norm();
+        let size = rig.left.image_size;
+        loaded.push(format!(
+            "{spec} ({}x{}, baseline {baseline_mm:.2} mm)",
+            size.width, size.height
+        ));
+    }
+    if loaded.is_empty() {
+        return Err(format!(
+            "no calibration (.yaml, .xml, left/right.cameramodel) in {}",
+            dir.display()
+        ));
+    }
+    Ok(loaded.join("; "))
 }
 
 /// Asks the project's Python environment for its PyTorch and ONNX Runtime versions.
