@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use gelstereo_sim::SensorSpec;
+use gelstereo_sim::checkerboard::write_checkerboard_set;
 use gelstereo_sim::dataset::{DatasetConfig, Randomization, write_dataset};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -32,6 +33,16 @@ pub struct Args {
     /// 40 % of the experiments on random sensor variants: other grids, resolutions, pitches).
     #[arg(long, default_value = "full")]
     randomization: String,
+    /// Instead of gel recordings, write a checkerboard calibration set seen through the sensor's
+    /// cameras: the board's INNER corners, COLSxROWS (as `gelstereo calibrate --board`).
+    #[arg(long, value_name = "COLSxROWS")]
+    checkerboard: Option<String>,
+    /// Checkerboard square side, mm.
+    #[arg(long, default_value_t = 1.5, requires = "checkerboard")]
+    square_mm: f64,
+    /// Number of checkerboard poses (stereo pairs).
+    #[arg(long, default_value_t = 20, requires = "checkerboard")]
+    poses: usize,
     /// Replace a non-empty output folder.
     #[arg(long)]
     force: bool,
@@ -46,6 +57,22 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Some(path) => SensorSpec::load(path)?,
         None => SensorSpec::reference(),
     };
+    if let Some(spec) = &args.checkerboard {
+        let board = gelstereo_geometry::Board::parse(spec, args.square_mm)?;
+        let built = sensor.build()?;
+        let start = Instant::now();
+        write_checkerboard_set(&args.out, &built, &board, args.poses, args.seed, args.force)
+            .with_context(|| format!("writing checkerboard images into {}", args.out.display()))?;
+        eprintln!(
+            "wrote {} checkerboard stereo pairs ({spec} inner corners, {} mm squares) with their true \
+             calibration and corners.csv to {} in {:.1} s",
+            args.poses,
+            args.square_mm,
+            args.out.display(),
+            start.elapsed().as_secs_f64()
+        );
+        return Ok(());
+    }
     let randomization: Randomization = args.randomization.parse()?;
     let config = DatasetConfig {
         experiments: args.experiments,

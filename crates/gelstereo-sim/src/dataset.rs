@@ -10,6 +10,7 @@
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
 use gelstereo_core::{FrameSummary, MarkerRecord, Point2};
@@ -246,7 +247,7 @@ pub struct Simulator {
     pub experiment: Experiment,
     /// Its sensor, built.
     pub sensor: Sensor,
-    optics: StereoOptics,
+    optics: Arc<StereoOptics>,
     layer: Layer,
     rest_left: Vec<Point3<f64>>,
 }
@@ -254,8 +255,13 @@ pub struct Simulator {
 impl Simulator {
     /// Prepares an experiment (camera lookups, layer kernel).
     pub fn new(experiment: Experiment) -> Result<Self> {
+        Self::with_optics(experiment, None)
+    }
+
+    /// Like [`Simulator::new`], reusing camera lookups already built for the same sensor.
+    pub fn with_optics(experiment: Experiment, optics: Option<Arc<StereoOptics>>) -> Result<Self> {
         let sensor = experiment.sensor.build()?;
-        let optics = StereoOptics::new(&sensor);
+        let optics = optics.unwrap_or_else(|| Arc::new(StereoOptics::new(&sensor)));
         let grid = SurfaceGrid::new(&sensor.spec.gel);
         let layer = Layer::new(&sensor.spec.gel, grid);
         let rest_left = sensor
@@ -374,7 +380,16 @@ pub fn markers_header() -> String {
 
 /// Writes one recording into `dir` (which must exist); `progress` is called once per frame.
 pub fn write_recording(dir: &Path, experiment: &Experiment, progress: &(dyn Fn() + Sync)) -> Result<()> {
-    let sim = Simulator::new(experiment.clone())?;
+    write_recording_with(dir, experiment, None, progress)
+}
+
+fn write_recording_with(
+    dir: &Path,
+    experiment: &Experiment,
+    optics: Option<Arc<StereoOptics>>,
+    progress: &(dyn Fn() + Sync),
+) -> Result<()> {
+    let sim = Simulator::with_optics(experiment.clone(), optics)?;
     for v in ["left", "right"] {
         std::fs::create_dir_all(dir.join(v)).map_err(io_err(dir.join(v)))?;
     }
@@ -448,7 +463,7 @@ pub fn begin_output(out: &Path, force: bool) -> Result<PathBuf> {
             Err(e) if out.is_dir() => {
                 return Err(Error::Io {
                     path: out.to_owned(),
-                    source: e,
+                    error: e,
                 });
             }
             Err(_) => true,
@@ -516,10 +531,13 @@ fn write_into(
     experiments: &[Experiment],
     progress: &(dyn Fn() + Sync),
 ) -> Result<DatasetSummary> {
+    // Experiments on the dataset's own sensor share its camera lookups.
+    let shared = Arc::new(StereoOptics::new(&config.sensor.build()?));
     experiments.par_iter().try_for_each(|e| {
         let dir = tmp.join(e.rel_dir());
         std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
-        write_recording(&dir, e, progress)
+        let optics = (e.sensor == config.sensor).then(|| Arc::clone(&shared));
+        write_recording_with(&dir, e, optics, progress)
     })?;
     let mut counts = [0u32; 3];
     let mut frames = [0u64; 3];

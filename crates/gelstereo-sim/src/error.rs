@@ -45,20 +45,20 @@ pub enum Error {
         path: PathBuf,
     },
     /// Reading or writing a file failed at the OS level.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file or folder.
         path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
+        /// The OS error (in the message, not repeated as a cause).
+        error: std::io::Error,
     },
     /// An OpenCV call failed.
-    #[error("OpenCV {context}: {source}")]
+    #[error("OpenCV {context}: {error}")]
     OpenCv {
         /// What we were doing.
         context: String,
-        /// OpenCV's error.
-        source: opencv::Error,
+        /// OpenCV's error (in the message, not repeated as a cause).
+        error: opencv::Error,
     },
     /// PNG encoding failed.
     #[error("PNG encoding: {0}")]
@@ -73,12 +73,12 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 pub(crate) fn io_err(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Error {
     let path = path.into();
-    move |source| Error::Io { path, source }
+    move |error| Error::Io { path, error }
 }
 
 pub(crate) fn cv_err(context: &str) -> impl FnOnce(opencv::Error) -> Error + '_ {
-    move |source| Error::OpenCv {
+    move |error| Error::OpenCv {
         context: context.to_owned(),
-        source,
+        error,
     }
 }

@@ -13,10 +13,12 @@
 //!
 //! # Pipeline
 //! [`sensor`] (file) -> [`motion`] script of an [`indenter`] -> [`physics::deform`] per frame ->
-//! [`render`] both views -> [`dataset`] on disk.
+//! [`render`] both views -> [`dataset`] on disk. [`checkerboard`] renders calibration targets
+//! through the same cameras.
 
 pub mod appearance;
 pub mod calibration;
+pub mod checkerboard;
 pub mod dataset;
 pub mod error;
 pub mod indenter;

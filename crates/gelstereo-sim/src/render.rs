@@ -458,14 +458,15 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
     }
     if app.noise > 0.0 {
         let buf = out.data_bytes_mut().map_err(cv_err("image buffer"))?;
-        // Uniform noise of standard deviation `noise` (sqrt(12) * sigma wide), 4 samples per hash.
-        let amp = app.noise * 12f32.sqrt() / 65536.0;
+        // Uniform noise of standard deviation `noise` (sqrt(12) * sigma wide), in 8-bit fixed
+        // point: byte b of a hash gives (2b - 255) / 512 * sqrt(12) * sigma, 8 samples per hash.
+        let k = (12f32.sqrt() * app.noise / 512.0 * 256.0).round() as i32;
         let seed = job.seed;
-        for (k, chunk) in buf.chunks_mut(4).enumerate() {
-            let r = splitmix(seed ^ (k as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
-            for (m, v) in chunk.iter_mut().enumerate() {
-                let u = ((r >> (16 * m)) & 0xFFFF) as f32 - 32767.5;
-                *v = (f32::from(*v) + u * amp + 0.5).max(0.0) as u8;
+        for (i, chunk) in buf.chunks_mut(8).enumerate() {
+            let r = splitmix(seed ^ (i as u64).wrapping_mul(0x2545_F491_4F6C_DD1D)).to_le_bytes();
+            for (v, b) in chunk.iter_mut().zip(r) {
+                let d = ((2 * i32::from(b) - 255) * k + 128) >> 8;
+                *v = (i32::from(*v) + d).clamp(0, 255) as u8;
             }
         }
     }
