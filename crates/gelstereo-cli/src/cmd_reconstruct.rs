@@ -11,16 +11,13 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use gelstereo_core::table::MARKER_COLUMNS;
-use gelstereo_core::{
-    CsvTable, Detection, GridIndex, GridShape, ImageSize, MarkerRecord, Point2, StereoPair,
-};
+use gelstereo_core::{Detection, GridShape, ImageSize, Point2, StereoPair};
 use gelstereo_geometry::{StereoRig, TriangulationConfig};
 use gelstereo_io::images;
 use gelstereo_io::ply::{MarkerPoint, write_marker_cloud};
 use gelstereo_markers::{Localizer, Method};
-use gelstereo_matching::{
-    FrameReconstruction, IndexingConfig, StereoConfig, StereoPrior, StereoReconstructor,
-};
+use gelstereo_matching::eval::{Counts, Evaluation, GroundTruth};
+use gelstereo_matching::{IndexingConfig, StereoConfig, StereoPrior, StereoReconstructor};
 use opencv::prelude::MatTraitConst;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -43,6 +40,11 @@ pub struct Args {
     /// alone. The positions go through the same indexing as detections do (their ids are not used).
     #[arg(long)]
     from_ground_truth: bool,
+    #[command(flatten)]
+    perturb: Perturbation,
+    /// Seed of the --gt-* perturbations.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
     /// Marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
     #[arg(long, value_name = "ROWSxCOLS")]
     grid: Option<String>,
@@ -73,6 +75,77 @@ pub struct Args {
     inputs: Vec<PathBuf>,
 }
 
+/// Imperfections added to ground-truth positions (with --from-ground-truth), to measure how
+/// indexing and pairing hold up under a localizer's noise, misses and false detections.
+#[derive(clap::Args, Debug, Clone, Copy)]
+struct Perturbation {
+    /// Gaussian noise added to each ground-truth coordinate, px (standard deviation).
+    #[arg(long, default_value_t = 0.0)]
+    gt_noise_px: f64,
+    /// Fraction of ground-truth markers dropped at random in each view.
+    #[arg(long, default_value_t = 0.0)]
+    gt_missing: f64,
+    /// Spurious detections added per view, uniformly over the markers' bounding box.
+    #[arg(long, default_value_t = 0)]
+    gt_dust: usize,
+}
+
+/// SplitMix64 (Steele, Lea & Flood 2014): a small seeded generator for the perturbations.
+struct SplitMix64(u64);
+
+impl SplitMix64 {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [0, 1).
+    fn uniform(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Standard normal (Box-Muller).
+    fn normal(&mut self) -> f64 {
+        let u1 = self.uniform().max(1e-300);
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * self.uniform()).cos()
+    }
+}
+
+fn perturb(dets: Vec<Detection>, p: &Perturbation, rng: &mut SplitMix64) -> Vec<Detection> {
+    if p.gt_noise_px == 0.0 && p.gt_missing == 0.0 && p.gt_dust == 0 {
+        return dets;
+    }
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for d in &dets {
+        (x0, y0) = (x0.min(d.position.x), y0.min(d.position.y));
+        (x1, y1) = (x1.max(d.position.x), y1.max(d.position.y));
+    }
+    let mut out: Vec<Detection> = Vec::with_capacity(dets.len() + p.gt_dust);
+    for d in dets {
+        if rng.uniform() < p.gt_missing {
+            continue;
+        }
+        let position = Point2::new(
+            d.position.x + p.gt_noise_px * rng.normal(),
+            d.position.y + p.gt_noise_px * rng.normal(),
+        );
+        out.push(Detection { position, ..d });
+    }
+    if x1 >= x0 {
+        for _ in 0..p.gt_dust {
+            let position = Point2::new(x0 + (x1 - x0) * rng.uniform(), y0 + (y1 - y0) * rng.uniform());
+            out.push(Detection {
+                position,
+                confidence: 1.0,
+            });
+        }
+    }
+    out
+}
+
 /// One stereo frame of the input.
 struct FrameInput {
     /// Frame number written to markers.csv.
@@ -85,66 +158,6 @@ enum FrameSource {
     Images(StereoPair<PathBuf>),
     /// Ground-truth 2-D positions (left, right).
     Truth(StereoPair<Vec<Detection>>),
-}
-
-/// Ground truth of one marker in one frame of a simulated recording.
-#[derive(Debug, Clone, Copy)]
-struct TruthMarker {
-    left_px: Option<Point2>,
-    right_px: Option<Point2>,
-    position_mm: Option<[f64; 3]>,
-    in_contact: bool,
-}
-
-/// A simulated recording's ground truth: per frame, per index.
-struct Truth {
-    frames: BTreeMap<u32, BTreeMap<GridIndex, TruthMarker>>,
-    contact_frames: BTreeMap<u32, bool>,
-}
-
-fn read_truth(dir: &Path) -> anyhow::Result<Truth> {
-    let path = dir.join("markers.csv");
-    let table = CsvTable::read(&path).with_context(|| {
-        format!(
-            "--from-ground-truth / --evaluate need the simulator's {}",
-            path.display()
-        )
-    })?;
-    table
-        .require(&["visible_left", "visible_right", "in_contact"])
-        .with_context(|| {
-            format!(
-                "{}: not a simulated recording's ground truth (visible_left/visible_right/in_contact)",
-                path.display()
-            )
-        })?;
-    let mut frames: BTreeMap<u32, BTreeMap<GridIndex, TruthMarker>> = BTreeMap::new();
-    for row in 0..table.len() {
-        let rec = MarkerRecord::from_table(&table, row)?;
-        let flag = |c: &str| -> anyhow::Result<bool> { Ok(table.value::<u8>(row, c, "0 or 1")? == 1) };
-        let (vis_left, vis_right) = (flag("visible_left")?, flag("visible_right")?);
-        let m = TruthMarker {
-            left_px: rec.left_px.filter(|_| vis_left),
-            right_px: rec.right_px.filter(|_| vis_right),
-            position_mm: rec.position_mm,
-            in_contact: flag("in_contact")?,
-        };
-        frames.entry(rec.frame).or_default().insert(rec.index, m);
-    }
-    let mut contact_frames = BTreeMap::new();
-    let fpath = dir.join("frames.csv");
-    if fpath.exists() {
-        let ft = CsvTable::read(&fpath)?;
-        for row in 0..ft.len() {
-            let frame: u32 = ft.value(row, "frame", "a frame number")?;
-            let contact: u8 = ft.value(row, "contact", "0 or 1")?;
-            contact_frames.insert(frame, contact == 1);
-        }
-    }
-    Ok(Truth {
-        frames,
-        contact_frames,
-    })
 }
 
 fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
@@ -250,7 +263,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .context("the recording's meta.json image size does not match the calibration")?;
     }
     let truth = match (&recording, args.from_ground_truth || args.evaluate) {
-        (Some(dir), true) => Some(read_truth(dir)?),
+        (Some(dir), true) => Some(GroundTruth::read(dir).with_context(|| {
+            format!(
+                "--from-ground-truth / --evaluate need the simulator's ground truth in {}",
+                dir.display()
+            )
+        })?),
         (None, true) => {
             bail!("--from-ground-truth and --evaluate need a simulated RECORDING folder, not LEFT RIGHT")
         }
@@ -272,11 +290,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         confidence: 1.0,
                     })
                 };
+                let mut rng = SplitMix64(args.seed ^ (u64::from(frame) << 32));
+                let left: Vec<Detection> = markers.values().filter_map(|m| det(m.left_px)).collect();
+                let right: Vec<Detection> = markers.values().filter_map(|m| det(m.right_px)).collect();
                 FrameInput {
                     frame,
                     source: FrameSource::Truth(StereoPair::new(
-                        markers.values().filter_map(|m| det(m.left_px)).collect(),
-                        markers.values().filter_map(|m| det(m.right_px)).collect(),
+                        perturb(left, &args.perturb, &mut rng),
+                        perturb(right, &args.perturb, &mut rng),
                     )),
                 }
             })
@@ -380,7 +401,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     csv.push('\n');
     let mut prior: Option<StereoPrior> = None;
     let (mut localize_ms, mut match_ms, mut reconstructed, mut paired_rejected) = (0.0, 0.0, 0usize, 0usize);
-    let mut results: Vec<(u32, FrameReconstruction)> = Vec::with_capacity(frames.len());
+    let mut evaluation = Evaluation::default();
+    let r_px = StereoPair::new(
+        0.25 * reconstructor.lattice().left().pitch_px(),
+        0.25 * reconstructor.lattice().right().pitch_px(),
+    );
     for input in &frames {
         let (dets, loc_ms) = detect(input)?;
         localize_ms += loc_ms;
@@ -417,7 +442,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             let path = ply_dir.join(format!("{:06}.ply", input.frame));
             write_marker_cloud(&path, &points, &format!("frame {}", input.frame))?;
         }
-        results.push((input.frame, rec));
+        if let Some(truth) = truth.as_ref().filter(|_| args.evaluate) {
+            evaluation.add_frame(truth, input.frame, &rec, &r_px);
+        }
     }
     let csv_path = args.out.join("markers.csv");
     std::fs::write(&csv_path, csv).with_context(|| format!("cannot write {}", csv_path.display()))?;
@@ -440,14 +467,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
     );
     if args.evaluate {
-        let Some(truth) = &truth else {
-            bail!("--evaluate needs a simulated RECORDING")
-        };
-        let pitch = StereoPair::new(
-            reconstructor.lattice().left().pitch_px(),
-            reconstructor.lattice().right().pitch_px(),
-        );
-        let report = evaluate(truth, &results, pitch, match_ms / n);
+        let report = evaluation_json(&evaluation, &r_px, match_ms / n);
         let path = args.out.join("evaluation.json");
         let text = serde_json::to_string_pretty(&report).context("cannot format the evaluation")?;
         std::fs::write(&path, text + "\n").with_context(|| format!("cannot write {}", path.display()))?;
@@ -456,171 +476,31 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Counts behind one row of the evaluation.
-#[derive(Default, Clone, Copy)]
-struct Counts {
-    visible_left: usize,
-    detected_left: usize,
-    index_correct: usize,
-    index_wrong: usize,
-    visible_both: usize,
-    reconstructed: usize,
-    reconstructed_of_visible_both: usize,
-    wrong_pairs: usize,
-    sq_error_mm2: f64,
-    max_error_mm: f64,
-}
-
-impl Counts {
-    fn json(&self) -> serde_json::Value {
-        let frac = |a: usize, b: usize| {
-            if b == 0 {
-                serde_json::Value::Null
-            } else {
-                (a as f64 / b as f64).into()
-            }
-        };
-        let rmse = if self.reconstructed == 0 {
-            serde_json::Value::Null
-        } else {
-            (self.sq_error_mm2 / self.reconstructed as f64).sqrt().into()
-        };
-        serde_json::json!({
-            "markers_visible_left": self.visible_left,
-            "markers_detected_left": self.detected_left,
-            "index_correct": self.index_correct,
-            "index_wrong": self.index_wrong,
-            "index_consistency": frac(self.index_correct, self.detected_left),
-            "markers_visible_both": self.visible_both,
-            "reconstructed": self.reconstructed,
-            "coverage": frac(self.reconstructed_of_visible_both, self.visible_both),
-            "wrong_pairs": self.wrong_pairs,
-            "wrong_pair_rate": frac(self.wrong_pairs, self.reconstructed),
-            "rmse_mm": rmse,
-            "max_error_mm": self.max_error_mm,
-        })
-    }
-}
-
-/// The true index of every left detection: the nearest visible ground-truth marker within `r_px`,
-/// matched one-to-one nearest pairs first (DESIGN.md "Metrics"); `None` for spurious detections.
-fn true_indices(
-    view: &gelstereo_matching::IndexedView,
-    gt: &BTreeMap<GridIndex, TruthMarker>,
-    r_px: f64,
-) -> Vec<Option<GridIndex>> {
-    let mut cand: Vec<(f64, usize, GridIndex)> = Vec::new();
-    for d in 0..view.detection_count() {
-        let Some(p) = view.detection_position(d) else {
-            continue;
-        };
-        for (idx, t) in gt {
-            if let Some(q) = t.left_px {
-                let dist = p.distance(q);
-                if dist <= r_px {
-                    cand.push((dist, d, *idx));
-                }
-            }
-        }
-    }
-    cand.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-    let mut out = vec![None; view.detection_count()];
-    let mut used = std::collections::BTreeSet::new();
-    for (_, d, idx) in cand {
-        if out[d].is_none() && used.insert(idx) {
-            out[d] = Some(idx);
-        }
-    }
-    out
-}
-
-/// DESIGN.md metrics against the simulator's ground truth, with r = 0.25 x pitch (px) per view:
-/// grid-index consistency (of the left detections that are true markers, the fraction given their
-/// true id; `index_wrong` also counts spurious detections that received an id), coverage
-/// (reconstructed / visible in both views), wrong pairs (left or right point farther than r from
-/// the marker's own), 3-D RMSE over the reconstructed markers.
-fn evaluate(
-    truth: &Truth,
-    results: &[(u32, FrameReconstruction)],
-    pitch_px: StereoPair<f64>,
-    match_ms: f64,
-) -> serde_json::Value {
-    let r = StereoPair::new(0.25 * pitch_px.left, 0.25 * pitch_px.right);
-    // [all, contact frames, in-contact markers]
-    let mut c = [Counts::default(); 3];
-    let empty = BTreeMap::new();
-    for (frame, rec) in results {
-        let gt = truth.frames.get(frame).unwrap_or(&empty);
-        let contact_frame = truth.contact_frames.get(frame).copied().unwrap_or(false);
-        let mut add = |in_contact: bool, f: &dyn Fn(&mut Counts)| {
-            f(&mut c[0]);
-            if contact_frame {
-                f(&mut c[1]);
-            }
-            if in_contact {
-                f(&mut c[2]);
-            }
-        };
-        let left = &rec.matched.left;
-        for (d, t) in true_indices(left, gt, r.left).into_iter().enumerate() {
-            let given = left.index_of(d);
-            let in_contact = t.and_then(|t| gt.get(&t)).is_some_and(|m| m.in_contact);
-            match (t, given) {
-                (Some(t), Some(g)) if t == g => add(in_contact, &|c| {
-                    c.detected_left += 1;
-                    c.index_correct += 1;
-                }),
-                (Some(_), Some(_)) => add(in_contact, &|c| {
-                    c.detected_left += 1;
-                    c.index_wrong += 1;
-                }),
-                (Some(_), None) => add(in_contact, &|c| c.detected_left += 1),
-                (None, Some(_)) => add(false, &|c| c.index_wrong += 1),
-                (None, None) => {}
-            }
-        }
-        for m in &rec.markers {
-            let t = gt.get(&m.index);
-            let in_contact = t.is_some_and(|t| t.in_contact);
-            let t_left = t.and_then(|t| t.left_px);
-            let t_right = t.and_then(|t| t.right_px);
-            if t_left.is_some() {
-                add(in_contact, &|c| c.visible_left += 1);
-            }
-            if t_left.is_some() && t_right.is_some() {
-                add(in_contact, &|c| c.visible_both += 1);
-            }
-            if let (Some(pos), Some(right)) = (m.position_mm, m.right_px) {
-                let right_ok = t_right.is_some_and(|q| right.distance(q) <= r.right);
-                let left_ok = t_left
-                    .zip(m.left_px)
-                    .is_some_and(|(q, p)| p.distance(q) <= r.left);
-                let err = t.and_then(|t| t.position_mm).map(|g| {
-                    ((pos[0] - g[0]).powi(2) + (pos[1] - g[1]).powi(2) + (pos[2] - g[2]).powi(2)).sqrt()
-                });
-                add(in_contact, &|c| {
-                    c.reconstructed += 1;
-                    if t_left.is_some() && t_right.is_some() {
-                        c.reconstructed_of_visible_both += 1;
-                    }
-                    if !(right_ok && left_ok) {
-                        c.wrong_pairs += 1;
-                    }
-                    if let Some(e) = err {
-                        c.sq_error_mm2 += e * e;
-                        c.max_error_mm = c.max_error_mm.max(e);
-                    }
-                });
-            }
-        }
-    }
+fn counts_json(c: &Counts) -> serde_json::Value {
     serde_json::json!({
-        "frames": results.len(),
-        "r_px": { "left": r.left, "right": r.right },
+        "markers_visible_left": c.visible_left,
+        "markers_detected_left": c.detected_left,
+        "index_correct": c.index_correct,
+        "index_wrong": c.index_wrong,
+        "index_consistency": c.index_consistency(),
+        "markers_visible_both": c.visible_both,
+        "reconstructed": c.reconstructed,
+        "coverage": c.coverage(),
+        "wrong_pairs": c.wrong_pairs,
+        "wrong_pair_rate": c.wrong_pair_rate(),
+        "rmse_mm": c.rmse_mm(),
+        "max_error_mm": c.max_error_mm,
+    })
+}
+
+fn evaluation_json(e: &Evaluation, r_px: &StereoPair<f64>, match_ms: f64) -> serde_json::Value {
+    serde_json::json!({
+        "frames": e.frames,
+        "r_px": { "left": r_px.left, "right": r_px.right },
         "matching_ms_per_frame": match_ms,
-        "all": c[0].json(),
-        "contact_frames": c[1].json(),
-        "in_contact_markers": c[2].json(),
+        "all": counts_json(&e.all),
+        "contact_frames": counts_json(&e.contact_frames),
+        "in_contact_markers": counts_json(&e.in_contact_markers),
     })
 }
 
