@@ -392,7 +392,12 @@ fn stereo_errors_name_the_problem() {
 /// This thread's CPU time, ns (Linux `/proc/thread-self/schedstat`): on a shared, oversubscribed
 /// machine wall time mostly measures the other processes.
 fn thread_cpu_ns() -> Option<u64> {
-    std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
 }
 
 /// Best-of-5 time of `f` per frame, ms: thread CPU time where the OS reports it, else wall time.
