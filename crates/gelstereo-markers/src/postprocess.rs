@@ -96,11 +96,15 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
             let base = (gy * g.grid_x + gx) * cell_values;
             for slot in raw[base..base + cell_values].chunks_exact(3) {
                 let c = sigmoid(slot[2]);
-                if c <= min_confidence {
+                // NaN (a broken model) is dropped too: it must not inject non-finite candidates.
+                if c.is_nan() || c <= min_confidence {
                     continue;
                 }
                 let x_in = (f64::from(sigmoid(slot[0])) + gx as f64) * g.stride;
                 let y_in = (f64::from(sigmoid(slot[1])) + gy as f64) * g.stride;
+                if !(x_in.is_finite() && y_in.is_finite()) {
+                    continue;
+                }
                 out.push(Detection {
                     position: Point2::new(x_in * g.scale_x - 0.5, y_in * g.scale_y - 0.5),
                     confidence: c,
@@ -440,6 +444,13 @@ mod tests {
         assert!(
             decode(&raw[..5], &g, 0.1).is_empty(),
             "short input decodes to nothing"
+        );
+        let mut broken = raw.clone();
+        broken[base] = f32::NAN;
+        broken[2] = f32::NAN;
+        assert!(
+            decode(&broken, &g, 0.1).is_empty(),
+            "NaN logits give no candidates"
         );
     }
 
