@@ -159,6 +159,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             not_found.join(", ")
         );
     }
+    if args.distortion == 12 {
+        eprintln!(
+            "warning: the 12-coefficient model's thin-prism terms trade off with the principal point \
+             unless the boards cover the whole image; compare with --distortion 5 or 8"
+        );
+    }
     let report = calibrate_stereo(&board, image_size, &views, &options).with_context(|| {
         format!(
             "calibrating from {} and {}",

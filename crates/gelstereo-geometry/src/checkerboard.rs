@@ -122,6 +122,8 @@ impl std::str::FromStr for CornerDetector {
 pub struct CalibrationOptions {
     /// Distortion coefficients to estimate: 4 (`CALIB_FIX_K3`), 5 (OpenCV's default model),
     /// 8 (`CALIB_RATIONAL_MODEL`) or 12 (`+ CALIB_THIN_PRISM_MODEL`). Default 5, OpenCV's default.
+    /// The 12-coefficient model's thin-prism terms trade off with the principal point and the
+    /// tangential terms unless the views cover the whole image: check the 3-D result before using it.
     pub distortion_coeffs: usize,
     /// Half-size of the `cornerSubPix` search window, px. Default 5 (OpenCV's samples use 5 or 11);
     /// it must stay below half a square's size in the image.
@@ -306,8 +308,8 @@ pub fn calibrate_stereo(
     let size = Size::new(w, h);
     let criteria = TermCriteria::new(
         (TermCriteria_Type::COUNT as i32) | (TermCriteria_Type::EPS as i32),
-        200,
-        1e-12,
+        60,
+        1e-10,
     )
     .map_err(cv_err("TermCriteria"))?;
     let mono = |img: &Vector<Vector<Point2f>>, which: &str| -> Result<(Mat, Mat, f64)> {

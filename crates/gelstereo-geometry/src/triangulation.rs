@@ -439,7 +439,9 @@ fn mid2(f0: &Vector3<f64>, f1: &Vector3<f64>, t: &Vector3<f64>) -> Result<Vector
     let l0 = f1.cross(t).norm() / s;
     let l1 = f0.cross(t).norm() / s;
     if !(l0.is_finite() && l1.is_finite()) {
-        return Err(Rejection::ParallelRays { angle_rad: s.asin() });
+        return Err(Rejection::ParallelRays {
+            angle_rad: s.atan2(f0.dot(&f1)).abs(),
+        });
     }
     let gap = |s0: f64, s1: f64| (t + f1 * (s1 * l1) - f0 * (s0 * l0)).norm_squared();
     let pp = gap(1.0, 1.0);
