@@ -88,6 +88,15 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+    /// Use the ground-truth 2-D marker positions of a simulated RECORDING (its markers.csv, markers
+    /// visible in each view) instead of a localizer: measures indexing, tracking, triangulation,
+    /// contact and slip alone. Ids are not taken from the truth: the positions are indexed and
+    /// tracked like detections.
+    #[arg(long)]
+    from_ground_truth: bool,
+    /// With --from-ground-truth: add Gaussian noise of this standard deviation to each coordinate, px.
+    #[arg(long, default_value_t = 0.0, value_name = "PX")]
+    gt_noise_px: f64,
     /// Benchmark the stereo pipeline on the recording instead of writing outputs: per-stage medians,
     /// latency mode and throughput mode.
     #[arg(long)]
@@ -651,6 +660,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config.planar.pitch_mm = args.pitch_mm;
     let method = choose_method(args);
     let mut localizer = args.localizer.localizer(method)?;
+    let truth = if args.from_ground_truth {
+        let Some(dir) = args.input.as_deref().filter(|p| p.join("markers.csv").is_file()) else {
+            bail!("--from-ground-truth needs a simulated recording with a markers.csv");
+        };
+        Some(ground_truth(dir, args.gt_noise_px)?)
+    } else {
+        None
+    };
     let outputs = Outputs::create(out_dir)?;
     let ply_dir = out_dir.join("ply");
     let overlay_dir = out_dir.join("overlays");
@@ -700,12 +717,24 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                             .context("the frame does not match the calibration")?;
                     }
                     check_size(&mut reference_size, size)?;
-                    let d = localizer.detect_stereo(pair)?;
+                    let d = match &truth {
+                        Some(t) => t
+                            .get(frame_no as usize)
+                            .cloned()
+                            .with_context(|| format!("no ground truth for frame {frame_no}"))?,
+                        None => localizer.detect_stereo(pair)?,
+                    };
                     Ok((frame, d))
                 }
                 Frame::Mono(m) => {
                     check_size(&mut reference_size, size_of(m))?;
-                    let d = detect_padded(localizer.as_mut(), m, args.pad_border)?;
+                    let d = match &truth {
+                        Some(t) => t
+                            .get(frame_no as usize)
+                            .map(|p| p.left.clone())
+                            .with_context(|| format!("no ground truth for frame {frame_no}"))?,
+                        None => detect_padded(localizer.as_mut(), m, args.pad_border)?,
+                    };
                     Ok((frame, StereoPair::new(d, Vec::new())))
                 }
             }
@@ -875,6 +904,59 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         out_dir.display()
     );
     Ok(())
+}
+
+/// Per frame, the ground-truth positions of the markers visible in each view (with Gaussian noise of
+/// `noise_px`, seeded, when > 0), in a shuffled-free but id-free form: sorted by y then x like a
+/// localizer's output.
+fn ground_truth(dir: &Path, noise_px: f64) -> anyhow::Result<Vec<StereoPair<Vec<Detection>>>> {
+    let path = dir.join("markers.csv");
+    let table = gelstereo_core::CsvTable::read(&path)?;
+    table.require(&[
+        "frame",
+        "x_left",
+        "y_left",
+        "x_right",
+        "y_right",
+        "visible_left",
+        "visible_right",
+    ])?;
+    let mut out: Vec<StereoPair<Vec<Detection>>> = Vec::new();
+    // xorshift + Box-Muller: reproducible noise without another dependency.
+    let mut state: u64 = 0x2545_F491_4F6C_DD1D;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    let mut gauss = move || (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
+    for r in 0..table.len() {
+        let m = MarkerRecord::from_table(&table, r)?;
+        let f = m.frame as usize;
+        if out.len() <= f {
+            out.resize(f + 1, StereoPair::default());
+        }
+        for (px, col, list) in [(m.left_px, "visible_left", 0), (m.right_px, "visible_right", 1)] {
+            if let (Some(p), "1") = (px, table.cell(r, col)?) {
+                let p = Point2::new(p.x + noise_px * gauss(), p.y + noise_px * gauss());
+                let d = Detection {
+                    position: p,
+                    confidence: 1.0,
+                };
+                if list == 0 {
+                    out[f].left.push(d)
+                } else {
+                    out[f].right.push(d)
+                }
+            }
+        }
+    }
+    for pair in &mut out {
+        gelstereo_markers::sort_detections(&mut pair.left);
+        gelstereo_markers::sort_detections(&mut pair.right);
+    }
+    Ok(out)
 }
 
 fn caption(s: &FrameSummary) -> String {

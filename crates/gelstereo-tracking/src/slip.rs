@@ -89,16 +89,22 @@ pub struct SlipFrame {
     pub shear_mm: Vector3<f64>,
     /// Share of contact markers on the displacement plateau (1 without shear).
     pub stick_fraction: f64,
-    /// Drift of the contact's material centroid since the last contact frame, along the shear, mm.
+    /// Drift of the contact's material centroid per frame (over the last two contact frames), along
+    /// the shear, mm.
     pub drift_mm: f64,
 }
 
-/// Classifies frames one after the other (it keeps the previous frame's material centroid).
+/// Classifies frames one after the other (it keeps the material centroids of the last frames).
 #[derive(Debug, Clone, Default)]
 pub struct SlipDetector {
     config: SlipConfig,
-    previous_material_mm: Option<Point3<f64>>,
+    /// Material centroids of the last frames in contact, oldest first (at most `DRIFT_WINDOW + 1`).
+    history: std::collections::VecDeque<Point3<f64>>,
 }
+
+/// Frames over which the drift is measured (its per-frame value is averaged over them, which
+/// divides the noise of the centroid by about this factor).
+const DRIFT_WINDOW: usize = 2;
 
 impl SlipDetector {
     /// A detector with `config`.
@@ -106,19 +112,19 @@ impl SlipDetector {
         config.validate()?;
         Ok(Self {
             config,
-            previous_material_mm: None,
+            history: std::collections::VecDeque::new(),
         })
     }
 
     /// Forgets the history (after re-zeroing the reference).
     pub fn reset(&mut self) {
-        self.previous_material_mm = None;
+        self.history.clear();
     }
 
     /// Classifies the next frame.
     pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
-        let previous = self.previous_material_mm.take();
         if !frame.contact {
+            self.history.clear();
             return SlipFrame {
                 state: SlipState::NoContact,
                 shear_mm: Vector3::zeros(),
@@ -126,7 +132,14 @@ impl SlipDetector {
                 drift_mm: 0.0,
             };
         }
-        self.previous_material_mm = frame.material_centroid_mm;
+        let oldest = self.history.front().copied();
+        let span = self.history.len();
+        if let Some(c) = frame.material_centroid_mm {
+            self.history.push_back(c);
+            if self.history.len() > DRIFT_WINDOW {
+                self.history.pop_front();
+            }
+        }
         let normals = surface.normals();
         let mut tangential = Vec::new();
         for (k, d) in frame.displacement_mm.iter().enumerate() {
@@ -160,8 +173,8 @@ impl SlipDetector {
         let tol = (self.config.plateau_tolerance * top.abs()).max(self.config.plateau_min_mm);
         let on_plateau = along.iter().filter(|&&p| p >= top - tol).count();
         let stick_fraction = on_plateau as f64 / along.len() as f64;
-        let drift = match (previous, frame.material_centroid_mm) {
-            (Some(a), Some(b)) => (b - a).dot(&dir),
+        let drift = match (oldest, frame.material_centroid_mm) {
+            (Some(a), Some(b)) if span > 0 => (b - a).dot(&dir) / span as f64,
             _ => 0.0,
         };
         let state = if drift > self.config.drift_mm_per_frame {
