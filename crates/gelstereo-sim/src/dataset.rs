@@ -207,7 +207,11 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
             };
             let ref_width = 22.0 * 0.8;
             let width = f64::from(sensor.grid.rows.min(sensor.grid.cols) - 1) * sensor.grid.pitch_mm;
-            let scale = (width / ref_width).clamp(0.3, 3.0);
+            // Indenters scale with the lattice, but never below what the physics grid resolves
+            // (the reference sensor's 0.4 mm cells).
+            let scale = (width / ref_width)
+                .max(sensor.gel.grid_spacing_mm / 0.4)
+                .clamp(0.3, 3.0);
             let shape = SHAPES[(index as usize + shape_offset) % SHAPES.len()];
             let indenter = Indenter::random(shape, scale, &mut rng).unwrap_or(Indenter::Sphere {
                 radius_mm: 4.0 * scale,

@@ -270,7 +270,7 @@ impl Indenter {
                     .collect();
                 Self::Text {
                     text,
-                    height_mm: u(2.5, 4.0),
+                    height_mm: u(3.0, 5.0),
                 }
             }
             "bumpy" => {
@@ -402,9 +402,9 @@ impl Indenter {
                         d = d.min(sd_segment(u, v, [s[0] + ox, s[1]], [s[2] + ox, s[3]]));
                     }
                 }
-                // Strokes 0.14 letter-heights wide; letters stand 0.5 mm proud of the stamp, whose
+                // Strokes 0.2 letter-heights wide (0.6-1 mm, resolved by the physics grid); letters stand 0.5 mm proud of the stamp, whose
                 // edge is well outside the letters.
-                let stroke = (d - 0.07) * height_mm;
+                let stroke = (d - 0.1) * height_mm;
                 let stamp =
                     fillet((x.abs() - 0.5 * (n * advance + 0.6) * height_mm).max(y.abs() - 0.8 * height_mm));
                 fillet(stroke).min(0.5) + stamp
