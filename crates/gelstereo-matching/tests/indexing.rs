@@ -517,3 +517,73 @@ fn reconstruction_recovers_the_exact_3d_lattice_from_exact_projections() {
         );
     }
 }
+
+#[test]
+fn evaluation_counts_coverage_wrong_pairs_and_wrong_ids() {
+    use gelstereo_core::StereoPair;
+    use gelstereo_geometry::TriangulationConfig;
+    use gelstereo_matching::StereoReconstructor;
+    use gelstereo_matching::eval::{Evaluation, GroundTruth, TruthMarker};
+    let rig = rig(-4.0, 1.5);
+    let (l0, r0) = stereo_frame(&rig, &Deformation::NONE, CLEAN, 1);
+    let rec = StereoReconstructor::new(
+        &rig,
+        &l0.detections,
+        &r0.detections,
+        SHAPE,
+        StereoConfig::default(),
+        TriangulationConfig::default(),
+    )
+    .unwrap();
+    let def = hard_contact(4);
+    let (l, r) = stereo_frame(&rig, &def, CLEAN, 4);
+    let pts = markers_mm(&def);
+    let mut truth = GroundTruth::default();
+    let frame = truth.frames.entry(7).or_default();
+    for (n, idx) in SHAPE.indices().enumerate() {
+        let (lp, rp) = rig.project(&pts[n]).unwrap();
+        frame.insert(
+            idx,
+            TruthMarker {
+                left_px: Some(lp),
+                right_px: Some(rp),
+                position_mm: Some([pts[n].x, pts[n].y, pts[n].z]),
+                in_contact: n == 0,
+            },
+        );
+    }
+    truth.contact.insert(7, true);
+    let r_px = StereoPair::new(3.5, 3.5);
+    let mut good = rec.reconstruct(&l.detections, &r.detections, None).unwrap();
+    let mut e = Evaluation::default();
+    e.add_frame(&truth, 7, &good, &r_px);
+    assert_eq!(
+        (e.all.reconstructed, e.all.wrong_pairs, e.all.index_wrong),
+        (529, 0, 0)
+    );
+    assert_eq!(
+        (e.all.coverage(), e.all.index_consistency()),
+        (Some(1.0), Some(1.0))
+    );
+    assert!(e.all.rmse_mm().unwrap() < 1e-6);
+    assert_eq!(
+        (e.contact_frames.reconstructed, e.in_contact_markers.reconstructed),
+        (529, 1)
+    );
+
+    // Swap two markers' right points: two wrong pairs with large 3-D errors; drop one position:
+    // coverage falls by one marker.
+    let (a, b) = (good.markers[30].right_px, good.markers[31].right_px);
+    good.markers[30].right_px = b;
+    good.markers[31].right_px = a;
+    good.markers[30].position_mm = Some([0.0, 0.0, 30.0]);
+    good.markers[40].position_mm = None;
+    let mut e = Evaluation::default();
+    e.add_frame(&truth, 7, &good, &r_px);
+    assert_eq!((e.all.reconstructed, e.all.wrong_pairs), (528, 2));
+    assert_eq!(e.all.reconstructed_of_visible_both, 528);
+    assert!(e.all.max_error_mm > 1.0);
+    let mut twice = e;
+    twice.merge(&e);
+    assert_eq!((twice.frames, twice.all.wrong_pairs), (2, 4));
+}
