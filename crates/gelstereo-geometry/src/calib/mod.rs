@@ -7,8 +7,8 @@
 //!   `intrinsics.yml,extrinsics.yml` of OpenCV's stereo_calib sample (reading only);
 //! - a directory: the mrcal pair `DIR/left.cameramodel` and `DIR/right.cameramodel`.
 
-mod mrcal;
-mod opencv;
+pub mod mrcal;
+pub mod opencv;
 pub(crate) mod pyliteral;
 
 use std::path::{Path, PathBuf};
