@@ -69,8 +69,9 @@ pub struct Args {
     evaluate: bool,
     #[command(flatten)]
     localizer: LocalizerArgs,
-    /// A stereo recording (folder with left/ and right/), or LEFT RIGHT: two images (one stereo
-    /// frame) or two folders of images with matching names.
+    /// A stereo recording (folder with left/ and right/), a side-by-side stereo video (left half,
+    /// right half), or LEFT RIGHT: two images (one stereo frame) or two folders of images with
+    /// matching names.
     #[arg(value_name = "RECORDING | LEFT RIGHT", num_args = 1..=2, required = true)]
     inputs: Vec<PathBuf>,
 }
@@ -156,8 +157,9 @@ struct FrameInput {
 
 enum FrameSource {
     Images(StereoPair<PathBuf>),
-    /// Ground-truth 2-D positions (left, right).
-    Truth(StereoPair<Vec<Detection>>),
+    /// Detections known beforehand: ground-truth 2-D positions, or a video frame localized while
+    /// the video was read.
+    Given(StereoPair<Vec<Detection>>),
 }
 
 fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
@@ -245,6 +247,43 @@ fn image_size(m: &opencv::core::Mat) -> ImageSize {
     }
 }
 
+/// Localizes every frame of a side-by-side stereo video (left half, right half); adds the time spent
+/// to `localize_ms`.
+fn localize_video(
+    path: &Path,
+    rig: &StereoRig,
+    args: &Args,
+    localize_ms: &mut f64,
+) -> anyhow::Result<Vec<FrameInput>> {
+    if args.from_ground_truth {
+        bail!("--from-ground-truth needs a simulated RECORDING folder, not a video");
+    }
+    let mut localizer = args.localizer.localizer(args.method)?;
+    let mut video = gelstereo_io::video::VideoFrames::open(path)?;
+    let mut frames = Vec::new();
+    while let Some((index, frame)) = video.next_frame()? {
+        let pair = gelstereo_io::video::split_side_by_side(&frame, path)?;
+        rig.check_image_sizes(image_size(&pair.left), image_size(&pair.right))
+            .with_context(|| {
+                format!(
+                    "{} frame {index}: the halves do not match the calibration '{}'",
+                    path.display(),
+                    args.calib
+                )
+            })?;
+        let t = Instant::now();
+        let found = localizer
+            .detect_stereo(&pair)
+            .with_context(|| format!("localizing {} frame {index}", path.display()))?;
+        *localize_ms += t.elapsed().as_secs_f64() * 1e3;
+        frames.push(FrameInput {
+            frame: u32::try_from(index).context("too many frames")?,
+            source: FrameSource::Given(found),
+        });
+    }
+    Ok(frames)
+}
+
 /// Runs `gelstereo reconstruct`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let rig = StereoRig::load(&args.calib)
@@ -276,6 +315,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
 
     // The frames.
+    let mut video_localize_ms = 0.0;
     let frames: Vec<FrameInput> = if args.from_ground_truth {
         let Some(truth) = &truth else {
             bail!("--from-ground-truth needs a simulated RECORDING")
@@ -295,13 +335,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 let right: Vec<Detection> = markers.values().filter_map(|m| det(m.right_px)).collect();
                 FrameInput {
                     frame,
-                    source: FrameSource::Truth(StereoPair::new(
+                    source: FrameSource::Given(StereoPair::new(
                         perturb(left, &args.perturb, &mut rng),
                         perturb(right, &args.perturb, &mut rng),
                     )),
                 }
             })
             .collect()
+    } else if let [video] = args.inputs.as_slice()
+        && video.is_file()
+        && gelstereo_io::video::has_video_extension(video)
+    {
+        localize_video(video, &rig, args, &mut video_localize_ms)?
     } else {
         let pairs = match args.inputs.as_slice() {
             [dir] => {
@@ -310,7 +355,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             }
             [l, r] if l.is_dir() && r.is_dir() => paired_folders(l, r)?,
             [l, r] => vec![StereoPair::new(l.clone(), r.clone())],
-            _ => bail!("give a stereo RECORDING folder, or LEFT RIGHT"),
+            _ => bail!("give a stereo RECORDING folder, a side-by-side stereo video, or LEFT RIGHT"),
         };
         pairs
             .into_iter()
@@ -334,14 +379,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
     };
 
-    let mut localizer: Option<Box<dyn Localizer>> = if args.from_ground_truth {
+    let needs_localizer = frames.iter().any(|f| matches!(f.source, FrameSource::Images(_)));
+    let mut localizer: Option<Box<dyn Localizer>> = if !needs_localizer {
         None
     } else {
         Some(args.localizer.localizer(args.method)?)
     };
     let mut detect = |input: &FrameInput| -> anyhow::Result<(StereoPair<Vec<Detection>>, f64)> {
         match (&input.source, localizer.as_mut()) {
-            (FrameSource::Truth(d), _) => Ok((d.clone(), 0.0)),
+            (FrameSource::Given(d), _) => Ok((d.clone(), 0.0)),
             (FrameSource::Images(paths), Some(loc)) => {
                 let read =
                     |p: &PathBuf| images::read_image(p).with_context(|| format!("frame {}", input.frame));
@@ -400,7 +446,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut csv = MARKER_COLUMNS.join(",");
     csv.push('\n');
     let mut prior: Option<StereoPrior> = None;
-    let (mut localize_ms, mut match_ms, mut reconstructed, mut paired_rejected) = (0.0, 0.0, 0usize, 0usize);
+    let (mut localize_ms, mut match_ms, mut reconstructed, mut paired_rejected) =
+        (video_localize_ms, 0.0, 0usize, 0usize);
     let mut evaluation = Evaluation::default();
     let r_px = StereoPair::new(
         0.25 * reconstructor.lattice().left().pitch_px(),

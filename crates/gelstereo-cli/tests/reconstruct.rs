@@ -275,3 +275,46 @@ fn reconstruct_runs_the_blob_localizer_on_one_stereo_pair() {
     assert!(cloud.len() >= 500, "{} markers", cloud.len());
     assert!(cloud.iter().all(|p| p.reprojection_error_px <= 2.0));
 }
+
+#[test]
+fn reconstruct_reads_a_side_by_side_stereo_video() {
+    use opencv::core::{Mat, Size, Vector};
+    use opencv::prelude::*;
+    use opencv::{core, imgcodecs, videoio};
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = simulate(tmp.path());
+    let video = tmp.path().join("sbs.avi");
+    let fourcc = videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
+    let mut writer = videoio::VideoWriter::new(s(&video), fourcc, 10.0, Size::new(1280, 480), true).unwrap();
+    assert!(writer.is_opened().unwrap());
+    for f in 0..3 {
+        let read = |side: &str| {
+            imgcodecs::imread(
+                s(&rec.join(format!("{side}/{f:06}.png"))),
+                imgcodecs::IMREAD_COLOR,
+            )
+            .unwrap()
+        };
+        let mut both = Mat::default();
+        let halves: Vector<Mat> = Vector::from_iter([read("left"), read("right")]);
+        core::hconcat(&halves, &mut both).unwrap();
+        writer.write(&both).unwrap();
+    }
+    writer.release().unwrap();
+    let out = tmp.path().join("video");
+    ok(&[
+        "reconstruct",
+        "--method",
+        "blob",
+        "--calib",
+        s(&rec.join("calib.yaml")),
+        "--out",
+        s(&out),
+        s(&video),
+    ]);
+    let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 3 * 529);
+    // MJPG compression moves the blobs a little; nearly every marker is still reconstructed.
+    let cloud = gelstereo_io::ply::read_marker_cloud(&out.join("ply/000002.ply")).unwrap();
+    assert!(cloud.len() >= 500, "{} markers", cloud.len());
+}
