@@ -7,6 +7,21 @@
 //! [`cv`] (conversions to and from OpenCV matrices), [`triangulation`] (mid-point, Lee-Civera Mid2,
 //! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`checkerboard`] (stereo
 //! checkerboard calibration with OpenCV).
+//!
+//! ```
+//! use gelstereo_geometry::nalgebra::Point3;
+//! use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
+//!
+//! // OpenCV YAML/XML, "left.cameramodel,right.cameramodel" or a folder holding that mrcal pair.
+//! let rig = StereoRig::load(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/opencv8.yaml"))?;
+//! let marker = Point3::new(1.0, -2.0, 25.0); // mm, left camera frame
+//! let (left_px, right_px) = rig.project(&marker).expect("in front of both cameras");
+//! let triangulator = Triangulator::new(rig, TriangulationConfig::default())?;
+//! let found = triangulator.triangulate(left_px, right_px).expect("a consistent pair");
+//! assert!((found.p_in_left_mm - marker).norm() < 1e-9);
+//! assert!(found.max_reprojection_error_px() < 1e-9);
+//! # Ok::<(), gelstereo_geometry::Error>(())
+//! ```
 
 pub mod calib;
 pub mod camera;
