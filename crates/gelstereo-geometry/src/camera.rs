@@ -431,6 +431,38 @@ mod tests {
     }
 
     #[test]
+    fn invalid_parameters_are_named() {
+        let bad = |f: &dyn Fn(&mut Camera)| {
+            let mut c = cam(vec![0.0; 5]);
+            f(&mut c);
+            c.validate().unwrap_err().to_string()
+        };
+        assert!(bad(&|c| c.fx = 0.0).contains("fx = 0"));
+        assert!(bad(&|c| c.fy = f64::NAN).contains("fy"));
+        assert!(bad(&|c| c.cx = f64::INFINITY).contains("cx"));
+        assert!(bad(&|c| c.image_size.height = 0).contains("image_height"));
+        assert!(bad(&|c| c.distortion.coeffs[2] = f64::NAN).contains("p1"));
+        assert!(bad(&|c| c.distortion.coeffs.push(0.0)).contains("6 coefficients"));
+        let rig = StereoRig {
+            left: cam(vec![]),
+            right: cam(vec![]),
+            right_from_left: Isometry3::translation(0.0, 0.0, 0.0),
+        };
+        assert!(rig.validate().unwrap_err().to_string().contains("baseline"));
+        let rig = StereoRig {
+            right_from_left: Isometry3::translation(f64::NAN, 0.0, 0.0),
+            ..rig
+        };
+        assert!(rig.validate().unwrap_err().to_string().contains("finite"));
+        // A NaN pixel has no ray.
+        assert!(
+            cam(vec![-0.2, 0.0, 0.0, 0.0])
+                .ray(Point2::new(f64::NAN, 3.0))
+                .is_none()
+        );
+    }
+
+    #[test]
     fn image_size_mismatch_is_named() {
         let c = cam(vec![]);
         let e = c
