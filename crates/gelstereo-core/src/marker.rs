@@ -75,7 +75,10 @@ impl<T> StereoPair<T> {
 
     /// Applies `f` to both views.
     pub fn map<U>(self, mut f: impl FnMut(T) -> U) -> StereoPair<U> {
-        StereoPair { left: f(self.left), right: f(self.right) }
+        StereoPair {
+            left: f(self.left),
+            right: f(self.right),
+        }
     }
 }
 
@@ -149,7 +152,12 @@ mod tests {
 
     #[test]
     fn names_round_trip_and_unknown_names_are_reported() {
-        for s in [SlipState::NoContact, SlipState::Stick, SlipState::PartialSlip, SlipState::GrossSlip] {
+        for s in [
+            SlipState::NoContact,
+            SlipState::Stick,
+            SlipState::PartialSlip,
+            SlipState::GrossSlip,
+        ] {
             assert_eq!(s.as_str().parse::<SlipState>().unwrap(), s);
         }
         for s in [MarkerStatus::Tracked, MarkerStatus::Predicted, MarkerStatus::Lost] {

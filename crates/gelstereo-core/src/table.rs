@@ -10,13 +10,20 @@ use crate::{Error, GridIndex, MarkerStatus, Point2, Result, SlipState};
 
 /// Columns of `markers.csv`, in order.
 pub const MARKER_COLUMNS: [&str; 14] = [
-    "frame", "row", "col", "x_left", "y_left", "x_right", "y_right", "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm",
-    "dZ_mm", "status",
+    "frame", "row", "col", "x_left", "y_left", "x_right", "y_right", "X_mm", "Y_mm", "Z_mm", "dX_mm",
+    "dY_mm", "dZ_mm", "status",
 ];
 
 /// Columns of `frames.csv`, in order.
-pub const FRAME_COLUMNS: [&str; 7] =
-    ["frame", "contact", "contact_area_mm2", "max_depth_mm", "centroid_X_mm", "centroid_Y_mm", "slip"];
+pub const FRAME_COLUMNS: [&str; 7] = [
+    "frame",
+    "contact",
+    "contact_area_mm2",
+    "max_depth_mm",
+    "centroid_X_mm",
+    "centroid_Y_mm",
+    "slip",
+];
 
 /// One row of `markers.csv`: one marker in one frame.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -91,10 +98,16 @@ impl MarkerRecord {
         };
         let vec3 = |names: [&str; 3]| -> Result<Option<[f64; 3]>> {
             let [a, b, c] = names;
-            Ok(match (table.opt_f64(row, a)?, table.opt_f64(row, b)?, table.opt_f64(row, c)?) {
-                (Some(a), Some(b), Some(c)) => Some([a, b, c]),
-                _ => None,
-            })
+            Ok(
+                match (
+                    table.opt_f64(row, a)?,
+                    table.opt_f64(row, b)?,
+                    table.opt_f64(row, c)?,
+                ) {
+                    (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+                    _ => None,
+                },
+            )
         };
         Ok(Self {
             frame: table.value(row, "frame", "a frame number")?,
@@ -133,7 +146,10 @@ impl FrameSummary {
             contact: contact == 1,
             contact_area_mm2: table.value(row, "contact_area_mm2", "an area in mm^2")?,
             max_depth_mm: table.value(row, "max_depth_mm", "a depth in mm")?,
-            centroid_mm: match (table.opt_f64(row, "centroid_X_mm")?, table.opt_f64(row, "centroid_Y_mm")?) {
+            centroid_mm: match (
+                table.opt_f64(row, "centroid_X_mm")?,
+                table.opt_f64(row, "centroid_Y_mm")?,
+            ) {
                 (Some(x), Some(y)) => Some([x, y]),
                 _ => None,
             },
@@ -154,8 +170,10 @@ pub struct CsvTable {
 impl CsvTable {
     /// Reads `path`, checking that it has a header and that every row has as many cells.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .map_err(|source| Error::Io { path: path.display().to_string(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
         Self::from_text(&path.display().to_string(), &text)
     }
 
@@ -180,7 +198,11 @@ impl CsvTable {
             }
             rows.push(cells);
         }
-        Ok(Self { path: path.to_owned(), header, rows })
+        Ok(Self {
+            path: path.to_owned(),
+            header,
+            rows,
+        })
     }
 
     /// Checks that every column in `columns` is present.
@@ -207,22 +229,33 @@ impl CsvTable {
     }
 
     fn column(&self, name: &str) -> Result<usize> {
-        self.header
-            .iter()
-            .position(|h| h == name)
-            .ok_or_else(|| table_err(&self.path, 1, name, "this column in the header", &self.header.join(",")))
+        self.header.iter().position(|h| h == name).ok_or_else(|| {
+            table_err(
+                &self.path,
+                1,
+                name,
+                "this column in the header",
+                &self.header.join(","),
+            )
+        })
     }
 
     /// The raw text of `column` in data row `row` (0-based).
     pub fn cell(&self, row: usize, column: &str) -> Result<&str> {
         let c = self.column(column)?;
-        Ok(self.rows.get(row).and_then(|r| r.get(c)).map(String::as_str).unwrap_or(""))
+        Ok(self
+            .rows
+            .get(row)
+            .and_then(|r| r.get(c))
+            .map(String::as_str)
+            .unwrap_or(""))
     }
 
     /// Parses a required cell.
     pub fn value<T: std::str::FromStr>(&self, row: usize, column: &str, expected: &str) -> Result<T> {
         let s = self.cell(row, column)?;
-        s.parse().map_err(|_| table_err(&self.path, row + 2, column, expected, s))
+        s.parse()
+            .map_err(|_| table_err(&self.path, row + 2, column, expected, s))
     }
 
     /// Parses an optional number: an empty cell is `None`; NaN and infinities are rejected.
@@ -231,7 +264,13 @@ impl CsvTable {
             "" => Ok(None),
             s => match s.parse::<f64>() {
                 Ok(v) if v.is_finite() => Ok(Some(v)),
-                _ => Err(table_err(&self.path, row + 2, column, "a finite number or an empty cell", s)),
+                _ => Err(table_err(
+                    &self.path,
+                    row + 2,
+                    column,
+                    "a finite number or an empty cell",
+                    s,
+                )),
             },
         }
     }
@@ -262,7 +301,11 @@ mod tests {
             displacement_mm: None,
             status: Some(MarkerStatus::Predicted),
         };
-        let mono = MarkerRecord { frame: 8, left_px: Some(Point2::new(1.0, 2.0)), ..Default::default() };
+        let mono = MarkerRecord {
+            frame: 8,
+            left_px: Some(Point2::new(1.0, 2.0)),
+            ..Default::default()
+        };
         let mut text = MARKER_COLUMNS.join(",");
         for r in [&full, &mono] {
             text.push('\n');
@@ -278,9 +321,14 @@ mod tests {
         let text = format!("{}\n0,1,2,NaN,,,,,,,,,,tracked", MARKER_COLUMNS.join(","));
         let table = CsvTable::from_text("gt/markers.csv", &text).unwrap();
         let err = MarkerRecord::from_table(&table, 0).unwrap_err().to_string();
-        assert!(err.contains("gt/markers.csv:2") && err.contains("x_left") && err.contains("NaN"), "{err}");
+        assert!(
+            err.contains("gt/markers.csv:2") && err.contains("x_left") && err.contains("NaN"),
+            "{err}"
+        );
 
-        let short = CsvTable::from_text("f.csv", "frame,contact\n1").unwrap_err().to_string();
+        let short = CsvTable::from_text("f.csv", "frame,contact\n1")
+            .unwrap_err()
+            .to_string();
         assert!(short.contains("f.csv:2") && short.contains("2 cells"), "{short}");
         let missing = FrameSummary::from_table(&CsvTable::from_text("f.csv", "frame\n1").unwrap(), 0);
         assert!(missing.unwrap_err().to_string().contains("'contact'"));
