@@ -30,7 +30,8 @@ pub struct Args {
     #[arg(long, value_name = "FILE.json")]
     sensor: Option<PathBuf>,
     /// Domain randomisation: off (reference look), appearance (random looks), full (random looks and
-    /// 40 % of the experiments on random sensor variants: other grids, resolutions, pitches).
+    /// 30 % of the experiments on random sensor variants: other grids, resolutions, pitches; 10 % on
+    /// GelSight-Mini-like sensors).
     #[arg(long, default_value = "full")]
     randomization: String,
     /// Instead of gel recordings, write a checkerboard calibration set seen through the sensor's

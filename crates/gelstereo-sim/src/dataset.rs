@@ -28,7 +28,7 @@ use crate::motion::Script;
 use crate::physics::{Layer, SurfaceGrid, deform};
 use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
 use crate::sensor::{Sensor, SensorSpec};
-use crate::variant::random_variant;
+use crate::variant::{random_gelsight_mini_like, random_variant};
 
 /// How much a dataset varies from the reference sensor's look and geometry.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -39,8 +39,9 @@ pub enum Randomization {
     /// The sensor file's geometry, random looks (colours, polarity, lighting, marker size and
     /// contrast, blur, noise, vignetting, JPEG, dust).
     Appearance,
-    /// Random looks, and 40 % of the experiments on random sensor variants (grids 8-30 per side,
-    /// 320x240 to 1280x720, other pitches and dot sizes).
+    /// Random looks, 30 % of the experiments on random sensor variants (grids 8-30 per side,
+    /// 320x240 to 1280x720, other pitches and dot sizes) and 10 % on GelSight-Mini-like sensors
+    /// with GelSight-like looks.
     Full,
 }
 
@@ -196,14 +197,17 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
             let (sensor, appearance) = match config.randomization {
                 Randomization::Off => (config.sensor.clone(), Appearance::reference()),
                 Randomization::Appearance => (config.sensor.clone(), Appearance::random(&mut rng)),
-                Randomization::Full => {
-                    let sensor = if rng.random_bool(0.4) {
-                        random_variant(&config.sensor, &mut rng)
-                    } else {
-                        config.sensor.clone()
-                    };
-                    (sensor, Appearance::random(&mut rng))
-                }
+                Randomization::Full => match rng.random_range(0..10) {
+                    0 => (
+                        random_gelsight_mini_like(&mut rng),
+                        Appearance::random_gelsight_like(&mut rng),
+                    ),
+                    1..=3 => (
+                        random_variant(&config.sensor, &mut rng),
+                        Appearance::random(&mut rng),
+                    ),
+                    _ => (config.sensor.clone(), Appearance::random(&mut rng)),
+                },
             };
             let ref_width = 22.0 * 0.8;
             let width = f64::from(sensor.grid.rows.min(sensor.grid.cols) - 1) * sensor.grid.pitch_mm;

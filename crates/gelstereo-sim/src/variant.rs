@@ -149,6 +149,27 @@ pub fn gelsight_mini_like() -> SensorSpec {
     }
 }
 
+/// [`gelsight_mini_like`] with jitter: pitch in the image +-15 %, dot size +-25 %, grid shift and
+/// size, distortion, camera offsets; always overfilling the 320 x 240 images.
+pub fn random_gelsight_mini_like(rng: &mut impl Rng) -> SensorSpec {
+    let mut s = gelsight_mini_like();
+    let k = rng.random_range(0.85..1.15);
+    s.grid.rows = rng.random_range(9..=11);
+    s.grid.cols = rng.random_range(11..=13);
+    s.grid.dot_diameter_mm = 0.39 * rng.random_range(0.75..1.25);
+    for (c, x) in [(&mut s.cameras.left, -1.0), (&mut s.cameras.right, 1.0)] {
+        c.fx *= k;
+        c.fy = c.fx * rng.random_range(0.99..1.01);
+        c.cx += rng.random_range(-6.0..6.0);
+        c.cy += rng.random_range(-6.0..6.0);
+        c.distortion[0] = rng.random_range(-0.2..0.0);
+        c.position_mm[0] = x * rng.random_range(2.0..4.0);
+        c.look_at_mm = [rng.random_range(-0.5..0.5), rng.random_range(-0.5..0.5), 0.0];
+    }
+    s.name = "gelsight-mini-like-jittered".into();
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -167,5 +188,12 @@ mod tests {
             sizes.insert((v.cameras.image_width, v.grid.rows));
         }
         assert!(sizes.len() > 10);
+        for _ in 0..10 {
+            let v = random_gelsight_mini_like(&mut rng);
+            let s = v.build().unwrap();
+            let seen = s.visible_fraction_at_rest(0.0);
+            assert!((0.4..1.0).contains(&seen), "{seen}");
+            assert!((24.0..38.0).contains(&s.pitch_px()), "{}", s.pitch_px());
+        }
     }
 }
