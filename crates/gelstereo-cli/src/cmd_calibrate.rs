@@ -192,6 +192,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         "epipolar error: RMS {:.4} px, max {:.4} px",
         report.epipolar_rms_px, report.epipolar_max_px
     );
+    let mut worst = report.per_pair.clone();
+    worst.sort_by(|a, b| (b.left_rms_px.max(b.right_rms_px)).total_cmp(&a.left_rms_px.max(a.right_rms_px)));
+    let worst: Vec<String> = worst
+        .iter()
+        .take(3)
+        .map(|p| format!("{} ({:.3} / {:.3} px)", p.name, p.left_rms_px, p.right_rms_px))
+        .collect();
+    println!("worst pairs (left / right RMS): {}", worst.join(", "));
     for (name, c) in [("left", &rig.left), ("right", &rig.right)] {
         println!(
             "{name}: fx {:.3} fy {:.3} cx {:.3} cy {:.3} px, distortion {:?}",
@@ -220,6 +228,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "epipolar_rms_px": report.epipolar_rms_px,
             "epipolar_max_px": report.epipolar_max_px,
             "baseline_mm": rig.baseline_mm(),
+            "per_pair": report
+                .per_pair
+                .iter()
+                .map(|p| serde_json::json!({"name": p.name, "left_rms_px": p.left_rms_px, "right_rms_px": p.right_rms_px}))
+                .collect::<Vec<_>>(),
             "calibration": args.out,
         });
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
@@ -319,6 +332,8 @@ mod tests {
             assert!(report["rms_stereo_px"].as_f64().unwrap() < 0.2, "{report}");
             assert!(report["epipolar_rms_px"].as_f64().unwrap() < 0.2, "{report}");
             assert_eq!(report["board_not_found"][0], "99_blank.png (both)");
+            assert_eq!(report["per_pair"].as_array().unwrap().len(), 8);
+            assert_eq!(report["per_pair"][0]["name"], "00.png");
             // 3-D check: a point on the gel triangulates where it is.
             let p = Point3::new(1.0, -1.0, 25.0);
             let (l, r) = rig.project(&p).unwrap();

@@ -243,6 +243,19 @@ pub struct CalibrationReport {
     pub epipolar_rms_px: f64,
     /// Largest epipolar error of a corner pair, px.
     pub epipolar_max_px: f64,
+    /// RMS reprojection error of each pair in the stereo solve, in the order given.
+    pub per_pair: Vec<PairError>,
+}
+
+/// The reprojection error of one stereo pair in the joint calibration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairError {
+    /// The pair's name ([`StereoCorners::name`]).
+    pub name: String,
+    /// RMS over the left view's corners, px.
+    pub left_rms_px: f64,
+    /// RMS over the right view's corners, px.
+    pub right_rms_px: f64,
 }
 
 fn model_flags(n: usize) -> Result<i32> {
@@ -326,7 +339,8 @@ pub fn calibrate_stereo(
     let (mut k1, mut d1, rms_left_px) = mono(&img_l, "left")?;
     let (mut k2, mut d2, rms_right_px) = mono(&img_r, "right")?;
     let (mut r, mut t, mut e, mut f) = (Mat::default(), Mat::default(), Mat::default(), Mat::default());
-    let rms_stereo_px = opencv::calib3d::stereo_calibrate(
+    let mut per_view = Mat::default();
+    let rms_stereo_px = opencv::calib3d::stereo_calibrate_extended(
         &obj,
         &img_l,
         &img_r,
@@ -339,10 +353,27 @@ pub fn calibrate_stereo(
         &mut t,
         &mut e,
         &mut f,
+        &mut per_view,
         flags | opencv::calib3d::CALIB_USE_INTRINSIC_GUESS,
         criteria,
     )
     .map_err(cv_err("stereoCalibrate"))?;
+    let (pv_rows, pv_cols, pv) = crate::cv::mat_to_rows(&per_view)?;
+    if pv_rows != views.len() || pv_cols != 2 {
+        return Err(Error::Calibration(format!(
+            "stereoCalibrate returned {pv_rows}x{pv_cols} per-view errors for {} pairs",
+            views.len()
+        )));
+    }
+    let per_pair: Vec<PairError> = views
+        .iter()
+        .zip(pv.chunks_exact(2))
+        .map(|(v, e)| PairError {
+            name: v.name.clone(),
+            left_rms_px: e[0],
+            right_rms_px: e[1],
+        })
+        .collect();
     let keep = |d: &Mat| -> Result<Mat> {
         // calibrateCamera returns 5 coefficients with k3 fixed at 0 for the 4-coefficient model.
         let (_, _, mut v) = crate::cv::mat_to_rows(d)?;
@@ -394,6 +425,7 @@ pub fn calibrate_stereo(
         rms_stereo_px,
         epipolar_rms_px,
         epipolar_max_px: max,
+        per_pair,
     })
 }
 

@@ -35,6 +35,8 @@ pub use nalgebra;
 
 pub use calib::CalibrationPath;
 pub use camera::{Camera, Distortion, StereoRig};
-pub use checkerboard::{Board, CalibrationOptions, CalibrationReport, CornerDetector, StereoCorners};
+pub use checkerboard::{
+    Board, CalibrationOptions, CalibrationReport, CornerDetector, PairError, StereoCorners,
+};
 pub use error::{Error, Result};
 pub use triangulation::{Rejection, Triangulated, TriangulationConfig, TriangulationMethod, Triangulator};

@@ -146,6 +146,16 @@ fn calibration_recovers_the_rendering_rig() {
         truth.baseline_mm()
     );
     assert_eq!(report.pairs_used, 12);
+    assert_eq!(report.per_pair.len(), 12);
+    assert_eq!(report.per_pair[3].name, "pose3");
+    assert!(
+        report
+            .per_pair
+            .iter()
+            .all(|p| p.left_rms_px < 0.2 && p.right_rms_px < 0.2),
+        "{:?}",
+        report.per_pair
+    );
     // The renderer's 4 x 4 super-sampling and 8-bit output limit cornerSubPix to ~0.08 px here.
     assert!(corner_rms < 0.15, "{corner_rms}");
     assert!(
