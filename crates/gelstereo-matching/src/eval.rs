@@ -1,6 +1,6 @@
 //! Reconstruction metrics against a simulated recording's ground truth (DESIGN.md "Metrics"):
 //! 3-D RMSE over the reconstructed markers, coverage = reconstructed / visible in both views, wrong
-//! pairs = pairs whose left or right point is farther than r from the marker's own, and grid-index
+//! pairs = pairs whose right-view point is farther than r from the marker's own, and grid-index
 //! consistency. r = 0.25 x the marker pitch in pixels of each view.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -85,7 +85,7 @@ pub struct Counts {
     pub reconstructed: usize,
     /// Reconstructed markers that are visible in both views.
     pub reconstructed_of_visible_both: usize,
-    /// Reconstructed markers whose left or right point is farther than r from the marker's own.
+    /// Reconstructed markers whose right-view point is farther than r from the marker's own.
     pub wrong_pairs: usize,
     /// Sum of squared 3-D errors, mm².
     pub sq_error_mm2: f64,
@@ -216,11 +216,12 @@ impl Evaluation {
             if both {
                 add(in_contact, &|c| c.visible_both += 1);
             }
-            let (Some(pos), Some(right), Some(left)) = (m.position_mm, m.right_px, m.left_px) else {
+            let (Some(pos), Some(right)) = (m.position_mm, m.right_px) else {
                 continue;
             };
-            let pair_ok = t_right.is_some_and(|q| right.distance(q) <= r_px.right)
-                && t_left.is_some_and(|q| left.distance(q) <= r_px.left);
+            // DESIGN.md: a pair is wrong when its right-view point is farther than r from the
+            // marker's own (a misplaced left point shows in the index consistency instead).
+            let pair_ok = t_right.is_some_and(|q| right.distance(q) <= r_px.right);
             let err = t.and_then(|t| t.position_mm).map(|g| {
                 ((pos[0] - g[0]).powi(2) + (pos[1] - g[1]).powi(2) + (pos[2] - g[2]).powi(2)).sqrt()
             });

@@ -292,14 +292,20 @@ impl<'a, F: Fn(usize, usize) -> bool> Grower<'a, F> {
         }
     }
 
-    /// Leave-one-out check of the nodes placed by growth (seeds were checked against their
-    /// neighbours already): unassigns every node whose detection lies farther than the gate from
-    /// the prediction of at least `min_support` assigned neighbours. Returns how many were removed.
-    pub(crate) fn prune_outliers(&mut self, min_support: usize) -> usize {
+    /// Replaces the base positions (e.g. a prior by the reference lattice) keeping the assignment.
+    pub(crate) fn set_base(&mut self, base: &'a [Point2]) {
+        debug_assert_eq!(base.len(), self.rows * self.cols);
+        self.base = base;
+    }
+
+    /// Leave-one-out check of the nodes placed by growth, and of the seeds too with `seeds`:
+    /// unassigns every node whose detection lies farther than the gate from the prediction of at
+    /// least `min_support` assigned neighbours. Returns how many were removed.
+    pub(crate) fn prune_outliers(&mut self, min_support: usize, seeds: bool) -> usize {
         let mut bad = Vec::new();
         for n in 0..self.rows * self.cols {
             let d = self.node_det[n];
-            if d == NONE || !self.grown[n] {
+            if d == NONE || !(seeds || self.grown[n]) {
                 continue;
             }
             if let Some((pred, count)) = self.predict(n)

@@ -401,7 +401,7 @@ pub(crate) fn grow_from_scratch(
     let mut g = Grower::new(rows, cols, &base, &buckets, gate, config.fit_radius, |_, _| true);
     g.assign(rc * cols + cc, seed);
     g.grow();
-    if g.prune_outliers(config.prune_min_support) > 0 {
+    if g.prune_outliers(config.prune_min_support, false) > 0 {
         g.grow();
     }
     Ok(ScratchLattice {
@@ -726,7 +726,14 @@ impl ReferenceLattice {
                 }
             }
             g.grow();
-            if g.prune_outliers(self.config.prune_min_support) > 0 {
+            if g.prune_outliers(self.config.prune_min_support, false) > 0 {
+                g.grow();
+            }
+            // Check every assignment, seeds included, against the REFERENCE lattice geometry:
+            // seeds taken from a prior inherit its errors (a node that slid onto its neighbour's
+            // detection in an earlier frame agrees with the prior but not with its neighbours).
+            g.set_base(&self.nodes);
+            if g.prune_outliers(self.config.prune_min_support, true) > 0 {
                 g.grow();
             }
         }
