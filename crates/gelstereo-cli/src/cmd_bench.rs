@@ -106,6 +106,37 @@ fn load_pairs(args: &Args) -> anyhow::Result<Vec<StereoPair<Mat>>> {
     Ok(pairs)
 }
 
+/// CPU time used so far by all threads of this process (ONNX Runtime's and OpenCV's pools included),
+/// ns, from the scheduler's per-thread accounting (`/proc/self/task/*/schedstat`); `None` where that is
+/// unavailable. Unlike wall time it hardly changes with the machine's load.
+fn process_cpu_ns() -> Option<u64> {
+    let mut total = 0u64;
+    for entry in std::fs::read_dir("/proc/self/task").ok()? {
+        let path = entry.ok()?.path().join("schedstat");
+        let text = std::fs::read_to_string(path).unwrap_or_default();
+        total += text
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(0);
+    }
+    (total > 0).then_some(total)
+}
+
+/// Runs `f`, returning its result, wall time and CPU time (ms; CPU `None` without schedstat), the CPU
+/// time corrected by `overhead_ns` (the cost of the CPU-time reading itself).
+fn timed<T>(overhead_ns: u64, f: impl FnOnce() -> T) -> (T, f64, Option<f64>) {
+    let c0 = process_cpu_ns();
+    let t = Instant::now();
+    let out = f();
+    let wall_ms = t.elapsed().as_secs_f64() * 1e3;
+    let c1 = process_cpu_ns();
+    let cpu_ms = c0
+        .zip(c1)
+        .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6);
+    (out, wall_ms, cpu_ms)
+}
+
 /// Median, 90th percentile and mean of `samples_ms`.
 fn stats(samples_ms: &mut [f64]) -> (f64, f64, f64) {
     samples_ms.sort_by(f64::total_cmp);
@@ -143,48 +174,70 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         args.runs,
         load.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
     );
-    let mut per_view = vec![Vec::with_capacity(args.runs); locs.len()];
-    let mut per_pair = vec![Vec::with_capacity(args.runs); locs.len()];
-    let mut markers = vec![0usize; locs.len()];
+    // The CPU-time reading costs CPU itself: its median over a few empty measurements is subtracted.
+    let mut empty: Vec<u64> = (0..31)
+        .filter_map(|_| {
+            process_cpu_ns()
+                .zip(process_cpu_ns())
+                .map(|(a, b)| b.saturating_sub(a))
+        })
+        .collect();
+    empty.sort_unstable();
+    let overhead_ns = empty.get(empty.len() / 2).copied().unwrap_or(0);
+    let n = locs.len();
+    let (mut per_view, mut per_pair) = (vec![Vec::new(); n], vec![Vec::new(); n]);
+    let (mut cpu_view, mut cpu_pair) = (vec![Vec::new(); n], vec![Vec::new(); n]);
+    let mut markers = vec![0usize; n];
     for run in 0..args.warmup + args.runs {
-        let timed = run >= args.warmup;
+        let counted = run >= args.warmup;
         let view = views[run % views.len()];
         let pair = &pairs[run % pairs.len()];
         for (i, loc) in locs.iter_mut().enumerate() {
-            let t = Instant::now();
-            let found = loc
-                .detect(view)
-                .with_context(|| format!("{} failed", loc.name()))?;
-            let view_ms = t.elapsed().as_secs_f64() * 1e3;
-            let t = Instant::now();
-            let both = loc
-                .detect_stereo(pair)
-                .with_context(|| format!("{} failed", loc.name()))?;
-            let pair_ms = t.elapsed().as_secs_f64() * 1e3;
-            if timed {
+            let (found, view_ms, view_cpu) = timed(overhead_ns, || loc.detect(view));
+            let found = found.with_context(|| format!("{} failed", loc.name()))?;
+            let (both, pair_ms, pair_cpu) = timed(overhead_ns, || loc.detect_stereo(pair));
+            let both = both.with_context(|| format!("{} failed", loc.name()))?;
+            if counted {
                 per_view[i].push(view_ms);
                 per_pair[i].push(pair_ms);
+                cpu_view[i].extend(view_cpu);
+                cpu_pair[i].extend(pair_cpu);
                 markers[i] += found.len() + both.left.len() + both.right.len();
             }
         }
     }
     let view_stats: Vec<_> = per_view.iter_mut().map(|s| stats(s)).collect();
     let pair_stats: Vec<_> = per_pair.iter_mut().map(|s| stats(s)).collect();
+    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+    let cpu_view_med: Vec<Option<f64>> = cpu_view.iter_mut().map(median_of).collect();
+    let cpu_pair_med: Vec<Option<f64>> = cpu_pair.iter_mut().map(median_of).collect();
     let (blob_view, blob_pair) = (view_stats[0].0, pair_stats[0].0);
     let mut text = String::new();
     let _ = writeln!(
         text,
-        "{:<12} {:>10} {:>9} {:>10} {:>10} {:>9} {:>10} {:>9}",
-        "method", "view med", "view p90", "x vs blob", "pair med", "pair p90", "x vs blob", "markers"
+        "{:<12} {:>10} {:>9} {:>9} {:>10} {:>9} {:>9} {:>9} {:>9} {:>10} {:>8}",
+        "method",
+        "view med",
+        "view p90",
+        "x blob",
+        "pair med",
+        "pair p90",
+        "x blob",
+        "view CPU",
+        "pair CPU",
+        "CPU x blob",
+        "markers"
     );
+    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.2} ms"));
     let mut rows = Vec::new();
     for (i, m) in methods.iter().enumerate() {
         let (vm, v90, vmean) = view_stats[i];
         let (pm, p90, pmean) = pair_stats[i];
         let per_image = markers[i] as f64 / (3 * args.runs) as f64;
+        let cpu_ratio = cpu_view_med[0].zip(cpu_view_med[i]).map(|(b, m)| b / m);
         let _ = writeln!(
             text,
-            "{:<12} {:>7.2} ms {:>6.2} ms {:>9.2}x {:>7.2} ms {:>6.2} ms {:>9.2}x {:>9.1}",
+            "{:<12} {:>7.2} ms {:>6.2} ms {:>8.2}x {:>7.2} ms {:>6.2} ms {:>8.2}x {:>9} {:>9} {:>10} {:>8.1}",
             m.as_str(),
             vm,
             v90,
@@ -192,6 +245,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             pm,
             p90,
             blob_pair / pm,
+            ms(cpu_view_med[i]),
+            ms(cpu_pair_med[i]),
+            cpu_ratio.map_or_else(|| "/".to_owned(), |r| format!("{r:.2}x")),
             per_image
         );
         rows.push(json!({
@@ -199,12 +255,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "view_ms": {"median": vm, "p90": v90, "mean": vmean},
             "pair_ms": {"median": pm, "p90": p90, "mean": pmean},
             "speedup_vs_blob": {"view": blob_view / vm, "pair": blob_pair / pm},
+            "cpu_ms": {"view_median": cpu_view_med[i], "pair_median": cpu_pair_med[i]},
             "markers_per_image": per_image,
         }));
     }
     let _ = writeln!(
         text,
-        "x vs blob = blob median / method median (> 1: faster than the blob baseline)"
+        "x vs blob = blob median / method median (> 1: faster than the blob baseline); CPU = process CPU time \
+         of all threads per call (median), which other processes' load hardly changes"
     );
     print!("{text}");
     if let Some(out) = &args.out {
