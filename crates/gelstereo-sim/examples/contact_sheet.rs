@@ -265,7 +265,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if let Some(dir) = out.parent() {
         std::fs::create_dir_all(dir)?;
     }
-    imgcodecs::imwrite(out.to_string_lossy().as_ref(), &sheet, &Vector::new())?;
+    imgcodecs::imwrite(
+        out.to_string_lossy().as_ref(),
+        &sheet,
+        &Vector::<i32>::from_slice(&[imgcodecs::IMWRITE_PNG_COMPRESSION, 9]),
+    )?;
     eprintln!("wrote {}", out.display());
     Ok(())
 }

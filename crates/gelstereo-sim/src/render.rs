@@ -29,6 +29,8 @@ pub struct ViewOptics {
     rays: Vec<[f32; 4]>,
     /// Vignetting radius² (0 centre, 1 corner) per low-res pixel.
     radius2: Vec<f32>,
+    /// Largest ray slope |dx/dz|, |dy/dz| over the pixels.
+    max_slope: f32,
 }
 
 impl ViewOptics {
@@ -66,6 +68,11 @@ impl ViewOptics {
                 radius2.push((0.5 * (dx * dx + dy * dy)) as f32);
             }
         }
+        let max_slope = rays
+            .iter()
+            .filter(|r| r[0] < 1e5)
+            .map(|r| r[2].abs().max(r[3].abs()))
+            .fold(0.0, f32::max);
         Self {
             camera: camera.clone(),
             cam_from_sensor,
@@ -73,6 +80,7 @@ impl ViewOptics {
             lo_h,
             rays,
             radius2,
+            max_slope,
         }
     }
 
@@ -170,6 +178,12 @@ pub fn marker_truth(sensor: &Sensor, optics: &StereoOptics, def: &Deformation) -
 struct Shading {
     tex: Vec<[f32; 5]>,
     fields: Vec<[f32; 3]>,
+    /// Rest-position box (x0, y0, x1, y1, mm) outside which the gel is undisturbed (< 2 um).
+    active: [f32; 4],
+    /// Largest indentation in the frame, mm.
+    max_w: f32,
+    /// Largest tangential displacement, mm.
+    max_u: f32,
 }
 
 fn shading(def: &Deformation, app: &Appearance) -> Shading {
@@ -178,10 +192,24 @@ fn shading(def: &Deformation, app: &Appearance) -> Shading {
     let inv2s = (0.5 / g.spacing_mm) as f32;
     let mut tex = vec![[0.0f32; 5]; n * n];
     let mut fields = vec![[0.0f32; 3]; n * n];
+    let mut active = [f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY];
+    let (mut max_w, mut max_u) = (0.0f32, 0.0f32);
     for j in 0..n {
         for i in 0..n {
             let k = j * n + i;
             fields[k] = [def.w[k], def.ux[k], def.uy[k]];
+            let u = def.ux[k].abs().max(def.uy[k].abs());
+            if def.w[k].abs() > 2e-3 || u > 2e-3 {
+                let [x, y] = g.node(i, j);
+                active = [
+                    active[0].min(x as f32),
+                    active[1].min(y as f32),
+                    active[2].max(x as f32),
+                    active[3].max(y as f32),
+                ];
+                max_w = max_w.max(def.w[k].abs());
+                max_u = max_u.max(u);
+            }
             let gx = if i > 0 && i + 1 < n {
                 (def.w[k + 1] - def.w[k - 1]) * inv2s
             } else {
@@ -206,7 +234,13 @@ fn shading(def: &Deformation, app: &Appearance) -> Shading {
             tex[k] = t;
         }
     }
-    Shading { tex, fields }
+    Shading {
+        tex,
+        fields,
+        active,
+        max_w,
+        max_u,
+    }
 }
 
 #[inline]
@@ -356,13 +390,22 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
     {
         let buf = lo.data_bytes_mut().map_err(cv_err("background buffer"))?;
         let inv_half = (1.0 / job.lattice_half_mm) as f32;
-        let contact = def.contact_area_mm2 > 0.0;
+        // Pixels whose ray meets the rest surface outside the disturbed box (grown by how far the
+        // surface moved and the parallax of the indentation) see undisturbed gel.
+        let m = sh.max_w * o.max_slope + sh.max_u + def.grid.spacing_mm as f32;
+        let a = [
+            sh.active[0] - m,
+            sh.active[1] - m,
+            sh.active[2] + m,
+            sh.active[3] + m,
+        ];
+        let contact = def.contact_area_mm2 > 0.0 && a[0] <= a[2];
         for (k, px) in buf.chunks_exact_mut(3).enumerate() {
             let r = o.rays[k];
             let (mut hx, mut hy) = (r[0], r[1]);
             let mut t = [0.0f32; 5];
             let mut ridge = 0.0;
-            if contact {
+            if contact && hx >= a[0] && hx <= a[2] && hy >= a[1] && hy <= a[3] {
                 let f = sample_n(&def.grid, &sh.fields, hx, hy);
                 let f = sample_n(&def.grid, &sh.fields, r[0] - f[0] * r[2], r[1] - f[0] * r[3]);
                 hx = r[0] - f[0] * r[2];
