@@ -153,6 +153,7 @@ def main(argv=None) -> int:
         samples = [samples[i] for i in keep]
     res = evaluate(samples, runner, load_mre(args.mre, args.threads), post)
     res["split"] = args.split
+    res["max_images"] = args.max_images
     res["marknet_file"] = str(args.marknet)
     res["mre_file"] = str(args.mre) if args.mre else None
     print(format_table(res))

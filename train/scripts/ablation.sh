@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Tables II (S = 13 / 26 / 52, m = 5) and III (m = 1..5, S = 52) of the paper on our data: short runs
 # of EQUAL budget (the same number of optimiser steps and batch size for every configuration), each
-# evaluated Marknet-only (c > 0.2) on the same random subset of the test split.
+# evaluated Marknet-only (c > 0.2) on the same random subset of the test split. Images held in memory:
+# MAX_GB (1.0 GB of the training split, random subset).
 #
 #   train/scripts/ablation.sh DATA_DIR OUT_DIR [STEPS] [TEST_IMAGES]
 set -euo pipefail
@@ -18,7 +19,7 @@ for cfg in "52 5" "26 5" "13 5" "52 1" "52 2" "52 3" "52 4"; do
   name="S$1_m$2"
   if [ ! -f "$OUT/$name.json" ]; then
     "$PY" -m gelstereo_train.train_marknet --data "$DATA" --out "$OUT/$name.pt" --grid "$1" --candidates "$2" \
-      --steps "$STEPS" --log-every-s 120 > "$OUT/$name.train.log" 2>&1
+      --steps "$STEPS" --max-gb "${MAX_GB:-1.0}" --log-every-s 120 > "$OUT/$name.train.log" 2>&1
     "$PY" -m gelstereo_train.evaluate --data "$DATA" --split test --max-images "$NTEST" \
       --marknet "$OUT/$name.pt" --out "$OUT/$name.json" > "$OUT/$name.eval.md" 2>&1
   fi
