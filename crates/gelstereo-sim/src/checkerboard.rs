@@ -142,7 +142,7 @@ fn degrade(img: Mat, look: &TargetLook, seed: u64) -> Result<Mat> {
 /// the gel centre and up to 4 mm nearer or farther, tilted up to 25 degrees, turned up to 15.
 pub fn random_poses(sensor: &Sensor, board: &Board, count: usize, seed: u64) -> Result<Vec<Isometry3<f64>>> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let renderer_free_check = |pose: &Isometry3<f64>| {
+    let fully_visible = |pose: &Isometry3<f64>| {
         let size = sensor.spec.image_size();
         let m = 1.0 * board.square_mm * sensor.pitch_px() / sensor.spec.grid.pitch_mm;
         let inside = |p: Option<Point2>| {
@@ -192,7 +192,7 @@ pub fn random_poses(sensor: &Sensor, board: &Board, count: usize, seed: u64) -> 
         let sensor_from_board = Isometry3::from_parts(Translation3::from(at), tilt)
             * Isometry3::translation(-centre.x, -centre.y, 0.0);
         let pose = sensor.left_from_sensor * sensor_from_board;
-        if renderer_free_check(&pose) {
+        if fully_visible(&pose) {
             poses.push(pose);
         }
     }

@@ -221,78 +221,81 @@ impl Indenter {
     /// A random indenter of shape `name` (one of [`SHAPES`]), sized for a gel about 18 mm wide
     /// (`scale` multiplies all lengths). `None` for an unknown name.
     pub fn random(name: &str, scale: f64, rng: &mut impl Rng) -> Option<Self> {
-        let mut u = |lo: f64, hi: f64| rng.random_range(lo..hi) * scale;
+        let mut draw = |lo: f64, hi: f64| rng.random_range(lo..hi);
+        let len = |mm: f64| mm * scale;
         Some(match name {
             "sphere" => Self::Sphere {
-                radius_mm: [2.0, 3.0, 4.0, 6.0, 8.0][(u(0.0, 5.0) / scale) as usize % 5] * scale,
+                radius_mm: len([2.0, 3.0, 4.0, 6.0, 8.0][draw(0.0, 5.0) as usize % 5]),
             },
             "flat_cylinder" => Self::FlatCylinder {
-                radius_mm: u(1.2, 3.5),
+                radius_mm: len(draw(1.2, 3.5)),
             },
             "side_cylinder" => Self::SideCylinder {
-                radius_mm: u(1.5, 5.0),
-                length_mm: u(6.0, 14.0),
+                radius_mm: len(draw(1.5, 5.0)),
+                length_mm: len(draw(6.0, 14.0)),
             },
             "cube_edge" => Self::CubeEdge {
-                length_mm: u(5.0, 12.0),
+                length_mm: len(draw(5.0, 12.0)),
             },
             "cube_corner" => Self::CubeCorner,
             "cone" => Self::Cone {
-                half_angle_deg: u(35.0, 65.0) / scale,
+                half_angle_deg: draw(35.0, 65.0),
             },
-            "prism" => Self::Prism { side_mm: u(3.5, 7.0) },
+            "prism" => Self::Prism {
+                side_mm: len(draw(3.5, 7.0)),
+            },
             "hexagon" => Self::Hexagon {
-                radius_mm: u(2.0, 4.0),
+                radius_mm: len(draw(2.0, 4.0)),
             },
             "star" => Self::Star {
-                radius_mm: u(3.0, 5.0),
+                radius_mm: len(draw(3.0, 5.0)),
             },
             "cross" => Self::Cross {
-                arm_mm: u(2.5, 4.5),
-                width_mm: u(0.9, 1.6),
+                arm_mm: len(draw(2.5, 4.5)),
+                width_mm: len(draw(0.9, 1.6)),
             },
             "nut" => {
-                let r = u(2.5, 4.5);
+                let r = len(draw(2.5, 4.5));
                 Self::Nut {
                     radius_mm: r,
-                    hole_mm: r * u(0.45, 0.6) / scale,
+                    hole_mm: r * draw(0.45, 0.6),
                 }
             }
             "groove" => Self::Groove {
-                width_mm: u(4.0, 8.0),
-                groove_mm: u(0.8, 2.0),
+                width_mm: len(draw(4.0, 8.0)),
+                groove_mm: len(draw(0.8, 2.0)),
             },
             "text" => {
                 let letters: Vec<char> = TEXT_LETTERS.chars().collect();
-                let n = 1 + (u(0.0, 3.0) / scale) as usize;
+                let n = 1 + draw(0.0, 3.0) as usize;
                 let text = (0..n)
-                    .map(|_| letters[(u(0.0, letters.len() as f64) / scale) as usize % letters.len()])
+                    .map(|_| letters[draw(0.0, letters.len() as f64) as usize % letters.len()])
                     .collect();
                 Self::Text {
                     text,
-                    height_mm: u(3.0, 5.0),
+                    height_mm: len(draw(3.0, 5.0)),
                 }
             }
             "bumpy" => {
-                let n = 6 + (u(0.0, 10.0) / scale) as usize;
+                let n = 6 + draw(0.0, 10.0) as usize;
                 let bumps = (0..n)
                     .map(|_| {
                         [
-                            u(-4.0, 4.0),
-                            u(-4.0, 4.0),
-                            u(0.4, 1.2),
-                            u(0.05, 0.35) / scale * scale,
+                            len(draw(-4.0, 4.0)),
+                            len(draw(-4.0, 4.0)),
+                            len(draw(0.4, 1.2)),
+                            len(draw(0.05, 0.35)),
                         ]
                     })
                     .collect();
                 Self::Bumpy {
-                    radius_mm: u(10.0, 25.0),
+                    radius_mm: len(draw(10.0, 25.0)),
                     bumps,
                 }
             }
             "fingertip" => Self::Fingertip {
-                rx_mm: u(5.0, 7.0),
-                ry_mm: u(7.0, 10.0),
+                rx_mm: len(draw(5.0, 7.0)),
+                ry_mm: len(draw(7.0, 10.0)),
             },
             _ => return None,
         })

@@ -23,7 +23,6 @@
 
 use nalgebra::{Point3, Rotation2, Vector2};
 
-use crate::indenter::Indenter;
 use crate::motion::{Pose, Script};
 use crate::sensor::GelSpec;
 use gelstereo_core::SlipState;
@@ -292,7 +291,7 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
         for i in 0..n {
             let [x, y] = grid.node(i, j);
             let l = rot * (Vector2::new(x, y) - c_mat);
-            pen[j * n + i] = (depth - indenter_height(&script.indenter, l)) as f32;
+            pen[j * n + i] = (depth - script.indenter.height(l.x, l.y)) as f32;
         }
     }
 
@@ -444,14 +443,10 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
     }
 }
 
-#[inline]
-fn indenter_height(ind: &Indenter, l: Vector2<f64>) -> f64 {
-    ind.height(l.x, l.y)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::indenter::Indenter;
     use crate::motion::MotionKind;
     use crate::sensor::SensorSpec;
 

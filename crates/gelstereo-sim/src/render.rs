@@ -548,11 +548,3 @@ pub fn rgb_to_bgr(img: &Mat) -> Result<Mat> {
     imgproc::cvt_color_def(img, &mut out, imgproc::COLOR_RGB2BGR).map_err(cv_err("RGB to BGR"))?;
     Ok(out)
 }
-
-/// The RGB value of pixel (`x`, `y`) of a 3-channel image (tests).
-pub fn rgb_at(img: &Mat, x: usize, y: usize) -> Option<[u8; 3]> {
-    let w = img.cols() as usize;
-    let buf = img.data_bytes().ok()?;
-    let o = (y * w + x) * 3;
-    buf.get(o..o + 3).map(|s| [s[0], s[1], s[2]])
-}
