@@ -245,100 +245,89 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 mod tests {
     use super::*;
     use gelstereo_geometry::StereoRig;
-    use gelstereo_geometry::checkerboard::{RayGrid, render_view};
-    use gelstereo_geometry::nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+    use gelstereo_geometry::nalgebra::Point3;
+    use gelstereo_sim::SensorSpec;
+    use gelstereo_sim::checkerboard::write_checkerboard_set;
 
-    /// The rig used to render: the geometry crate's reference-sensor fixture (OpenCV 5-coefficient).
-    fn truth() -> StereoRig {
-        StereoRig::read_opencv(
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../gelstereo-geometry/tests/data/opencv5.xml"),
-        )
-        .unwrap()
+    /// The simulator's checkerboard set for the reference sensor (rendered through its cameras with
+    /// blur, noise and vignetting, true calibration alongside), plus one pair without a board and one
+    /// left image without a right counterpart.
+    fn simulated_set(dir: &Path, board: &Board, poses: usize) -> StereoRig {
+        let sensor = SensorSpec::reference().build().unwrap();
+        write_checkerboard_set(dir, &sensor, board, poses, 6, false).unwrap();
+        let blank =
+            opencv::core::Mat::new_rows_cols_with_default(480, 640, opencv::core::CV_8UC1, 128.into())
+                .unwrap();
+        for name in ["left/blank.png", "right/blank.png", "left/lonely.png"] {
+            gelstereo_io::images::write_image(&dir.join(name), &blank).unwrap();
+        }
+        StereoRig::load(dir.join("calib.yaml").to_str().unwrap()).unwrap()
     }
 
-    /// Renders board pairs through `rig` into DIR/left and DIR/right (PNG), one image pair with no
-    /// board, and one left image without a right counterpart.
-    fn render_pairs(rig: &StereoRig, board: &Board, dir: &Path) {
-        let (gl, gr) = (RayGrid::new(&rig.left), RayGrid::new(&rig.right));
-        std::fs::create_dir_all(dir.join("left")).unwrap();
-        std::fs::create_dir_all(dir.join("right")).unwrap();
-        let (w, h) = (
-            f64::from(board.inner_cols - 1) * board.square_mm,
-            f64::from(board.inner_rows - 1) * board.square_mm,
-        );
-        for (k, (rx, ry, rz, z)) in [
-            (0.3, 0.0, 0.0, 25.0),
-            (-0.3, 0.1, 0.1, 26.0),
-            (0.0, 0.35, -0.1, 24.0),
-            (0.1, -0.35, 0.2, 27.0),
-            (0.25, 0.25, 0.0, 26.0),
-            (-0.25, -0.25, -0.2, 25.0),
-            (0.2, -0.2, 0.1, 28.0),
-            (-0.2, 0.3, 0.0, 27.5),
-        ]
-        .into_iter()
-        .enumerate()
-        {
-            let rot = UnitQuaternion::from_euler_angles(rx, ry, rz);
-            let pose = Isometry3::from_parts(
-                Translation3::from(Vector3::new(0.0, 0.0, z) - rot * Vector3::new(w / 2.0, h / 2.0, 0.0)),
-                rot,
-            );
-            let l = render_view(&gl, board, &pose).unwrap();
-            let r = render_view(&gr, board, &(rig.right_from_left * pose)).unwrap();
-            gelstereo_io::images::write_image(&dir.join(format!("left/{k:02}.png")), &l).unwrap();
-            gelstereo_io::images::write_image(&dir.join(format!("right/{k:02}.png")), &r).unwrap();
+    /// 3-D RMSE (mm) of points on and around the gel (left frame, 23-26 mm deep) projected through
+    /// `truth` and triangulated with `est`.
+    fn gel_rmse_mm(truth: &StereoRig, est: &StereoRig) -> f64 {
+        let t = gelstereo_geometry::Triangulator::new(est.clone(), Default::default()).unwrap();
+        let (mut sum2, mut n) = (0.0, 0u32);
+        for i in -8..=8 {
+            for j in -8..=8 {
+                for z in [23.0, 24.5, 26.0] {
+                    let p = Point3::new(f64::from(i), f64::from(j), z);
+                    if let Some((l, r)) = truth.project(&p) {
+                        sum2 += (t.triangulate(l, r).unwrap().p_in_left_mm - p).norm_squared();
+                        n += 1;
+                    }
+                }
+            }
         }
-        let far = Isometry3::translation(1000.0, 0.0, 25.0);
-        let blank = render_view(&gl, board, &far).unwrap();
-        gelstereo_io::images::write_image(&dir.join("left/99_blank.png"), &blank).unwrap();
-        gelstereo_io::images::write_image(&dir.join("right/99_blank.png"), &blank).unwrap();
-        gelstereo_io::images::write_image(&dir.join("left/98_lonely.png"), &blank).unwrap();
+        (sum2 / f64::from(n)).sqrt()
     }
 
     #[test]
-    fn calibrates_rendered_boards_and_writes_both_formats() {
-        let rig = truth();
+    fn calibrates_the_simulators_boards_and_writes_both_formats() {
         let board = Board::parse("9x6", 1.5).unwrap();
         let dir = tempfile::tempdir().unwrap();
-        render_pairs(&rig, &board, dir.path());
-        for out in ["calib.yaml", "models"] {
-            let out_path = dir.path().join(out);
+        let set = dir.path().join("set");
+        let truth = simulated_set(&set, &board, 12);
+        // Both detectors: classic for the YAML, sector-based for the mrcal pair.
+        for (out, detector, bound_mm) in [("calib.yaml", "classic", 0.03), ("models", "sb", 0.08)] {
             let args = Args {
                 board: "9x6".into(),
                 square_mm: 1.5,
-                out: out_path.to_string_lossy().into_owned(),
+                out: dir.path().join(out).to_string_lossy().into_owned(),
                 distortion: 5,
                 subpix_window: 5,
-                // Both detectors: classic for the YAML, sector-based for the mrcal pair.
-                detector: if out == "models" { "sb" } else { "classic" }.into(),
+                detector: detector.into(),
                 report: Some(dir.path().join("report.json")),
-                left_dir: dir.path().join("left"),
-                right_dir: dir.path().join("right"),
+                left_dir: set.join("left"),
+                right_dir: set.join("right"),
             };
             run(&args).unwrap();
             let est = StereoRig::load(&args.out).unwrap();
             assert!(
-                (est.baseline_mm() - rig.baseline_mm()).abs() < 0.05,
+                (est.baseline_mm() - truth.baseline_mm()).abs() < 0.02,
                 "{}",
                 est.baseline_mm()
             );
-            assert!((est.left.fx / rig.left.fx - 1.0).abs() < 0.01, "{}", est.left.fx);
+            assert!(
+                (est.left.fx / truth.left.fx - 1.0).abs() < 0.003,
+                "{}",
+                est.left.fx
+            );
             let report: serde_json::Value =
                 serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
                     .unwrap();
-            assert_eq!(report["pairs"], 9);
-            assert_eq!(report["pairs_used"], 8);
-            assert!(report["rms_stereo_px"].as_f64().unwrap() < 0.2, "{report}");
-            assert!(report["epipolar_rms_px"].as_f64().unwrap() < 0.2, "{report}");
-            assert_eq!(report["board_not_found"][0], "99_blank.png (both)");
-            assert_eq!(report["per_pair"].as_array().unwrap().len(), 8);
-            assert_eq!(report["per_pair"][0]["name"], "00.png");
-            // 3-D check: a point on the gel triangulates where it is.
-            let p = Point3::new(1.0, -1.0, 25.0);
-            let (l, r) = rig.project(&p).unwrap();
-            let t = gelstereo_geometry::Triangulator::new(est, Default::default()).unwrap();
-            assert!((t.triangulate(l, r).unwrap().p_in_left_mm - p).norm() < 0.03);
+            assert_eq!(report["pairs"], 13);
+            assert_eq!(report["pairs_used"], 12);
+            assert!(report["rms_stereo_px"].as_f64().unwrap() < 0.15, "{report}");
+            assert!(report["epipolar_rms_px"].as_f64().unwrap() < 0.15, "{report}");
+            assert_eq!(report["board_not_found"][0], "blank.png (both)");
+            assert_eq!(report["unpaired"].as_array().unwrap().len(), 1);
+            assert_eq!(report["per_pair"].as_array().unwrap().len(), 12);
+            assert_eq!(report["per_pair"][0]["name"], "000000.png");
+            let rmse = gel_rmse_mm(&truth, &est);
+            eprintln!("{detector}: gel 3-D RMSE {rmse:.4} mm with the calibrated rig; {report}");
+            assert!(rmse < bound_mm, "{detector}: {rmse}");
         }
     }
 

@@ -5,8 +5,10 @@
 //!
 //! ```text
 //! cargo build --release -p gelstereo-geometry --example ground_truth_check
-//! target/release/examples/ground_truth_check RECORDING...
+//! target/release/examples/ground_truth_check [--calib CALIBRATION] RECORDING...
 //! ```
+//! With `--calib`, that calibration (e.g. one from `gelstereo calibrate`) is used instead of the
+//! recording's own files: the 3-D error then measures the calibration on the gel's markers.
 //! Markers with `visible_left` and `visible_right` = 1 (when those columns exist) are used.
 
 use std::collections::HashMap;
@@ -16,9 +18,17 @@ use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use nalgebra::Point3;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let dirs: Vec<String> = std::env::args().skip(1).collect();
+    let mut dirs: Vec<String> = std::env::args().skip(1).collect();
+    let mut calib = None;
+    if dirs.first().is_some_and(|a| a == "--calib") {
+        if dirs.len() < 2 {
+            return Err("--calib needs a calibration".into());
+        }
+        calib = Some(dirs.remove(1));
+        dirs.remove(0);
+    }
     if dirs.is_empty() {
-        return Err("usage: ground_truth_check RECORDING...".into());
+        return Err("usage: ground_truth_check [--calib CALIBRATION] RECORDING...".into());
     }
     for dir in dirs {
         let text = std::fs::read_to_string(format!("{dir}/markers.csv"))?;
@@ -49,10 +59,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             header.get("visible_left").copied(),
             header.get("visible_right").copied(),
         ];
-        for (name, rig) in [
-            ("calib.yaml", StereoRig::load(&format!("{dir}/calib.yaml"))?),
-            ("mrcal", StereoRig::load(&dir)?),
-        ] {
+        let rigs = match &calib {
+            Some(c) => vec![(c.clone(), StereoRig::load(c)?)],
+            None => vec![
+                (
+                    "calib.yaml".to_owned(),
+                    StereoRig::load(&format!("{dir}/calib.yaml"))?,
+                ),
+                ("mrcal".to_owned(), StereoRig::load(&dir)?),
+            ],
+        };
+        for (name, rig) in rigs {
             let t = Triangulator::new(rig, TriangulationConfig::default())?;
             let (mut sum2, mut n, mut worst, mut rejected, mut worst_px) =
                 (0.0, 0usize, 0.0f64, 0usize, 0.0f64);
