@@ -84,6 +84,8 @@ pub(crate) struct Grower<'a, F: Fn(usize, usize) -> bool> {
     version: Vec<u32>,
     /// Whether a node was assigned by growth (not given as a seed).
     grown: Vec<bool>,
+    /// Fit weight `1 / d⁴` of each offset of the (2 fit_radius + 1)² window, row-major.
+    weights: Vec<f64>,
     heap: BinaryHeap<Candidate>,
 }
 
@@ -111,6 +113,13 @@ impl<'a, F: Fn(usize, usize) -> bool> Grower<'a, F> {
             det_node: vec![NONE; buckets.points().len()],
             version: vec![0; rows * cols],
             grown: vec![false; rows * cols],
+            weights: {
+                let rad = fit_radius.max(1) as i64;
+                (-rad..=rad)
+                    .flat_map(|dr| (-rad..=rad).map(move |dc| (dr * dr + dc * dc) as f64))
+                    .map(|q| if q == 0.0 { 0.0 } else { 1.0 / (q * q) })
+                    .collect()
+            },
             heap: BinaryHeap::new(),
         }
     }
@@ -153,8 +162,7 @@ impl<'a, F: Fn(usize, usize) -> bool> Grower<'a, F> {
                     continue;
                 }
                 let (dc, dr) = ((c - c0) as f64, (r - r0) as f64);
-                let q = dc * dc + dr * dr;
-                let w = 1.0 / (q * q);
+                let w = self.weights[((r - r0 + rad) * (2 * rad + 1) + (c - c0 + rad)) as usize];
                 let p = self.det_pos(d as usize);
                 let (ux, uy) = (w * (p.x - self.base[m].x), w * (p.y - self.base[m].y));
                 s0 += w;

@@ -726,14 +726,16 @@ impl ReferenceLattice {
                 }
             }
             g.grow();
-            if g.prune_outliers(self.config.prune_min_support, false) > 0 {
-                g.grow();
+            // Leave-one-out check. Without a prior the seeds agree with their neighbours by
+            // construction and only grown nodes are checked. With a prior every assignment, seeds
+            // included, is checked against the REFERENCE lattice geometry: seeds taken from a prior
+            // inherit its errors (a node that slid onto its neighbour's detection in an earlier
+            // frame agrees with the prior but not with its neighbours).
+            let with_prior = prior.is_some();
+            if with_prior {
+                g.set_base(&self.nodes);
             }
-            // Check every assignment, seeds included, against the REFERENCE lattice geometry:
-            // seeds taken from a prior inherit its errors (a node that slid onto its neighbour's
-            // detection in an earlier frame agrees with the prior but not with its neighbours).
-            g.set_base(&self.nodes);
-            if g.prune_outliers(self.config.prune_min_support, true) > 0 {
+            if g.prune_outliers(self.config.prune_min_support, with_prior) > 0 {
                 g.grow();
             }
         }
