@@ -1,18 +1,24 @@
 //! Contact and slip of mono sensors (one camera, e.g. a GelSight Mini) from the in-plane marker
-//! displacement field, px, with the two signals of [`crate::slip`] transposed to 2-D:
+//! displacement field, px:
 //!
 //! - the **contact region** is where the displacement magnitude exceeds
 //!   `max(min_displacement_pitch x pitch, relative x the frame's largest displacement)`;
-//! - the **stick fraction** is the share of contact markers on the plateau of the displacement
-//!   projected on the mean shear direction (partial slip below `stick_fraction`);
-//! - **gross slip** is a drift of the contact region in reference (material) coordinates along
-//!   the shear, of more than `drift_pitch_per_frame` pitches per frame.
+//! - **slip** shows as a strain concentration: while the contact sticks, the gel surface follows
+//!   the object and the displacement field stays smooth (neighbouring markers move alike, the
+//!   surface strain is that of the elastic layer); at a slip front the surface is torn along by
+//!   the object on one side and left behind on the other, and neighbouring markers' displacements
+//!   differ by a sizeable part of the pitch (the displacement discontinuity at the stick/slip
+//!   boundary that Yuan et al., ICRA 2015, use to detect slip with a GelSight). The slip measure is
+//!   the largest displacement difference between tracked 4-neighbours, in pitches (a surface
+//!   strain); above `slip_strain` the frame is `partial_slip`. Without depth the contact cannot be
+//!   told to slide as a whole, so mono sensors report `stick` or `partial_slip`, never
+//!   `gross_slip`.
 //!
 //! Without depth, the area is counted in lattice cells (one per contact marker) and converted with
 //! the marker pitch in mm when the sensor's pitch is known (`pitch_mm`); otherwise it is reported as
 //! 0 and the centroid is left empty.
 
-use gelstereo_core::{MarkerStatus, Point2, SlipState};
+use gelstereo_core::{GridIndex, MarkerStatus, Point2, SlipState};
 
 use crate::error::{Result, config_err};
 use crate::tracker::{TrackFrame, Tracker};
@@ -21,18 +27,15 @@ use crate::tracker::{TrackFrame, Tracker};
 /// training split seen through the left camera only; `docs/tracking.md`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlanarConfig {
-    /// Smallest displacement that counts as contact, in marker pitches.
+    /// Smallest displacement that counts as contact, in marker pitches (0.08: ten times the
+    /// frame-to-frame jitter of blob centres on the GelSight Mini video).
     pub min_displacement_pitch: f64,
     /// Contact threshold relative to the frame's largest displacement.
     pub relative: f64,
-    /// Mean shear below which the contact sticks, in pitches.
-    pub min_shear_pitch: f64,
-    /// Stick fraction below which the contact is in partial slip.
-    pub stick_fraction: f64,
-    /// Relative tolerance of the displacement plateau.
-    pub plateau_tolerance: f64,
-    /// Drift of the contact region across the gel per frame above which it slides as a whole, pitches.
-    pub drift_pitch_per_frame: f64,
+    /// Largest displacement difference between tracked neighbours, in pitches, above which the
+    /// contact slips (0.2: the press of the GelSight Mini video stays below 0.17, its hard slide
+    /// reaches 0.24-0.5).
+    pub slip_strain: f64,
     /// Marker pitch of the sensor, mm, to convert areas and centroids; `None` when unknown.
     pub pitch_mm: Option<f64>,
 }
@@ -42,10 +45,7 @@ impl Default for PlanarConfig {
         Self {
             min_displacement_pitch: 0.08,
             relative: 0.5,
-            min_shear_pitch: 0.08,
-            stick_fraction: 0.9,
-            plateau_tolerance: 0.15,
-            drift_pitch_per_frame: 0.03,
+            slip_strain: 0.2,
             pitch_mm: None,
         }
     }
@@ -56,21 +56,14 @@ impl PlanarConfig {
     pub fn validate(&self) -> Result<()> {
         for (field, v) in [
             ("min_displacement_pitch", self.min_displacement_pitch),
-            ("min_shear_pitch", self.min_shear_pitch),
-            ("drift_pitch_per_frame", self.drift_pitch_per_frame),
+            ("slip_strain", self.slip_strain),
         ] {
             if !(v.is_finite() && v > 0.0 && v < 5.0) {
                 return Err(config_err(field, "a number of pitches in (0, 5)", v));
             }
         }
-        for (field, v) in [
-            ("relative", self.relative),
-            ("stick_fraction", self.stick_fraction),
-            ("plateau_tolerance", self.plateau_tolerance),
-        ] {
-            if !(v.is_finite() && v > 0.0 && v < 1.0) {
-                return Err(config_err(field, "a fraction in (0, 1)", v));
-            }
+        if !(self.relative.is_finite() && self.relative > 0.0 && self.relative < 1.0) {
+            return Err(config_err("relative", "a fraction in (0, 1)", self.relative));
         }
         if let Some(p) = self.pitch_mm
             && !(p.is_finite() && p > 0.0 && p < 100.0)
@@ -96,42 +89,58 @@ pub struct PlanarFrame {
     pub in_contact: Vec<bool>,
     /// Mean displacement of the contact markers, px.
     pub shear_px: [f64; 2],
-    /// Share of contact markers on the displacement plateau.
-    pub stick_fraction: f64,
-    /// Drift of the contact region across the gel since the previous frame, along the shear, px.
-    pub drift_px: f64,
-    /// Slip state.
+    /// Largest displacement difference between tracked 4-neighbours, in pitches.
+    pub strain: f64,
+    /// Slip state (`no_contact`, `stick` or `partial_slip`).
     pub state: SlipState,
 }
 
-/// Classifies mono frames one after the other.
+/// Classifies mono frames.
 #[derive(Debug, Clone)]
 pub struct PlanarDetector {
     config: PlanarConfig,
     pitch_px: f64,
-    previous_material_px: Option<[f64; 2]>,
+    /// Per tracker slot, the slots of its right and lower lattice neighbours.
+    edges: Vec<(usize, usize)>,
 }
 
 impl PlanarDetector {
     /// A detector for the markers of `tracker` (its median reference pitch sets the scale).
     pub fn new(config: PlanarConfig, tracker: &Tracker) -> Result<Self> {
         config.validate()?;
+        let shape = tracker.shape();
+        let mut slot = vec![usize::MAX; shape.count()];
+        for (k, id) in tracker.ids().iter().enumerate() {
+            if let Some(l) = shape.linear(*id) {
+                slot[l] = k;
+            }
+        }
+        let mut edges = Vec::new();
+        for (k, id) in tracker.ids().iter().enumerate() {
+            for n in [
+                GridIndex::new(id.row, id.col + 1),
+                GridIndex::new(id.row + 1, id.col),
+            ] {
+                if let Some(l) = shape.linear(n)
+                    && slot[l] != usize::MAX
+                {
+                    edges.push((k, slot[l]));
+                }
+            }
+        }
         Ok(Self {
             config,
             pitch_px: tracker.median_pitch_px(),
-            previous_material_px: None,
+            edges,
         })
     }
 
-    /// Forgets the history (after re-zeroing).
-    pub fn reset(&mut self) {
-        self.previous_material_px = None;
-    }
+    /// Kept for symmetry with the stereo detector: the mono detector has no history.
+    pub fn reset(&mut self) {}
 
     /// Classifies the frame `track` that `tracker` just produced.
     pub fn update(&mut self, tracker: &Tracker, track: &TrackFrame) -> Result<PlanarFrame> {
         let c = &self.config;
-        let previous = self.previous_material_px.take();
         let reference = tracker.reference_px();
         let disp: Vec<Option<[f64; 2]>> = track
             .markers
@@ -149,78 +158,53 @@ impl PlanarDetector {
             .copied()
             .unwrap_or(0.0);
         let min_disp = c.min_displacement_pitch * self.pitch_px;
-        let none = PlanarFrame {
+        let mut frame = PlanarFrame {
             contact: false,
             contact_area_mm2: 0.0,
             centroid_mm: None,
             contact_markers: 0,
             in_contact: vec![false; disp.len()],
             shear_px: [0.0; 2],
-            stick_fraction: 1.0,
-            drift_px: 0.0,
+            strain: 0.0,
             state: SlipState::NoContact,
         };
         if top <= min_disp {
-            return Ok(none);
-        }
-        let threshold = min_disp.max(c.relative * top);
-        let (mut sx, mut sy, mut n) = (0.0, 0.0, 0usize);
-        let (mut mx, mut my, mut mw) = (0.0, 0.0, 0.0);
-        let (mut cx, mut cy) = (0.0, 0.0);
-        let mut members = Vec::new();
-        let mut in_contact = vec![false; disp.len()];
-        for (k, d) in disp.iter().enumerate() {
-            let Some(d) = d else { continue };
-            let m = d[0].hypot(d[1]);
-            if m <= threshold {
-                continue;
-            }
-            in_contact[k] = true;
-            members.push(*d);
-            sx += d[0];
-            sy += d[1];
-            n += 1;
-            let w = m - threshold;
-            mx += w * reference[k].x;
-            my += w * reference[k].y;
-            mw += w;
-            cx += reference[k].x + d[0];
-            cy += reference[k].y + d[1];
-        }
-        if n == 0 {
-            return Ok(none);
-        }
-        let shear = [sx / n as f64, sy / n as f64];
-        let material = [mx / mw, my / mw];
-        self.previous_material_px = Some(material);
-        let scale = c.pitch_mm.map(|p| p / self.pitch_px);
-        let mut frame = PlanarFrame {
-            contact: true,
-            contact_area_mm2: c.pitch_mm.map_or(0.0, |p| n as f64 * p * p),
-            centroid_mm: scale.map(|s| [s * cx / n as f64, s * cy / n as f64]),
-            contact_markers: n,
-            in_contact,
-            shear_px: shear,
-            stick_fraction: 1.0,
-            drift_px: 0.0,
-            state: SlipState::Stick,
-        };
-        let norm = shear[0].hypot(shear[1]);
-        if norm < c.min_shear_pitch * self.pitch_px {
             return Ok(frame);
         }
-        let dir = [shear[0] / norm, shear[1] / norm];
-        let mut along: Vec<f64> = members.iter().map(|d| d[0] * dir[0] + d[1] * dir[1]).collect();
-        along.sort_by(f64::total_cmp);
-        let p90 = along[((along.len() - 1) as f64 * 0.9).round() as usize];
-        let tol = c.plateau_tolerance * p90.abs();
-        frame.stick_fraction = along.iter().filter(|&&p| p >= p90 - tol).count() as f64 / along.len() as f64;
-        frame.drift_px = previous.map_or(0.0, |p| {
-            (material[0] - p[0]) * dir[0] + (material[1] - p[1]) * dir[1]
-        });
-        frame.state = if frame.drift_px > c.drift_pitch_per_frame * self.pitch_px {
-            SlipState::GrossSlip
-        } else if frame.stick_fraction < c.stick_fraction {
+        let threshold = min_disp.max(c.relative * top);
+        let (mut sx, mut sy, mut cx, mut cy, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
+        for (k, d) in disp.iter().enumerate() {
+            let Some(d) = d else { continue };
+            if d[0].hypot(d[1]) <= threshold {
+                continue;
+            }
+            frame.in_contact[k] = true;
+            sx += d[0];
+            sy += d[1];
+            cx += reference[k].x + d[0];
+            cy += reference[k].y + d[1];
+            n += 1;
+        }
+        if n == 0 {
+            return Ok(frame);
+        }
+        let tracked = |k: usize| track.markers[k].status == MarkerStatus::Tracked;
+        frame.strain = self
+            .edges
+            .iter()
+            .filter(|(a, b)| tracked(*a) && tracked(*b))
+            .filter_map(|(a, b)| match (disp[*a], disp[*b]) {
+                (Some(u), Some(v)) => Some((u[0] - v[0]).hypot(u[1] - v[1]) / self.pitch_px),
+                _ => None,
+            })
+            .fold(0.0, f64::max);
+        let scale = c.pitch_mm.map(|p| p / self.pitch_px);
+        frame.contact = true;
+        frame.contact_markers = n;
+        frame.contact_area_mm2 = c.pitch_mm.map_or(0.0, |p| n as f64 * p * p);
+        frame.centroid_mm = scale.map(|s| [s * cx / n as f64, s * cy / n as f64]);
+        frame.shear_px = [sx / n as f64, sy / n as f64];
+        frame.state = if frame.strain > c.slip_strain {
             SlipState::PartialSlip
         } else {
             SlipState::Stick
@@ -232,4 +216,58 @@ impl PlanarDetector {
 /// Positions of the tracked and predicted markers of `track`, px (for overlays).
 pub fn positions(track: &TrackFrame) -> Vec<Point2> {
     track.markers.iter().filter_map(|m| m.position_px).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gelstereo_core::GridShape;
+
+    #[test]
+    fn smooth_shear_sticks_and_a_torn_field_slips() {
+        // An 8 x 10 lattice, pitch 30 px.
+        let shape = GridShape { rows: 8, cols: 10 };
+        let rest: Vec<(GridIndex, Point2)> = shape
+            .indices()
+            .map(|i| {
+                (
+                    i,
+                    Point2::new(20.0 + 30.0 * f64::from(i.col), 15.0 + 30.0 * f64::from(i.row)),
+                )
+            })
+            .collect();
+        let mut tracker = Tracker::new(shape, &rest, crate::TrackerConfig::default()).unwrap();
+        let mut det = PlanarDetector::new(PlanarConfig::default(), &tracker).unwrap();
+        let mut run = |f: &dyn Fn(GridIndex) -> [f64; 2]| {
+            let pts: Vec<Point2> = rest
+                .iter()
+                .map(|(i, p)| Point2::new(p.x + f(*i)[0], p.y + f(*i)[1]))
+                .collect();
+            let t = tracker.update(&pts);
+            det.update(&tracker, &t).unwrap()
+        };
+        let still = run(&|_| [0.1, -0.1]);
+        assert_eq!(still.state, SlipState::NoContact);
+        // A smooth bump of shear, up to 6 px: neighbours differ by at most ~2 px (0.07 pitch).
+        let bump = |i: GridIndex| {
+            let (dx, dy) = (f64::from(i.col) - 4.5, f64::from(i.row) - 3.5);
+            let w = (-(dx * dx + dy * dy) / 8.0).exp();
+            [6.0 * w, 2.0 * w]
+        };
+        let stick = run(&bump);
+        assert_eq!(stick.state, SlipState::Stick, "strain {}", stick.strain);
+        assert!(stick.contact_markers > 4 && stick.contact_area_mm2 == 0.0 && stick.centroid_mm.is_none());
+        // Columns 5.. carried 9 px further than the rest: a slip front between columns 4 and 5.
+        let torn = run(&|i| {
+            let b = bump(i);
+            [b[0] + if i.col >= 5 { 9.0 } else { 0.0 }, b[1]]
+        });
+        assert_eq!(torn.state, SlipState::PartialSlip, "strain {}", torn.strain);
+        assert!(torn.strain > 0.25);
+        let bad = PlanarConfig {
+            slip_strain: -1.0,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().to_string().contains("slip_strain"));
+    }
 }

@@ -306,7 +306,8 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
 /// The normalised median test of particle image velocimetry (Westerweel & Scarano, "Universal outlier
 /// detection for PIV data", Exp. Fluids 39, 2005) on the 3-D displacement field: a marker whose
 /// displacement differs from the median of its measured 8-neighbours by more than `threshold` x
-/// (the neighbours' median residual + `noise_mm`) is dropped (then predicted from its neighbours).
+/// (the neighbours' median residual + the noise level) is dropped. The noise level is `noise_mm` or,
+/// when larger, the median residual over the lattice (then predicted from its neighbours).
 /// Needs at least 3 measured neighbours.
 fn reject_outliers(
     shape: GridShape,
@@ -324,7 +325,8 @@ fn reject_outliers(
             _ => None,
         })
         .collect();
-    let mut drop = Vec::new();
+    // Per marker: (lattice position, |residual|, neighbours' median residual).
+    let mut tests: Vec<(usize, f64, f64)> = Vec::new();
     let mut neigh: Vec<Vector3<f64>> = Vec::with_capacity(8);
     for r in 0..rows {
         for c in 0..cols {
@@ -350,11 +352,19 @@ fn reject_outliers(
             });
             let spread =
                 crate::tracker::median(neigh.iter().map(|v| (v - med).norm()).collect()).unwrap_or(0.0);
-            if (d - med).norm() > threshold * (spread + noise_mm) {
-                drop.push(k);
-            }
+            tests.push((k, (d - med).norm(), spread));
         }
     }
+    // The noise level: the configured floor, or the median residual over the whole lattice when the
+    // rig is noisier (a calibration with longer range or a noisier localizer).
+    let noise = crate::tracker::median(tests.iter().map(|t| t.1).collect())
+        .unwrap_or(0.0)
+        .max(noise_mm);
+    let drop: Vec<usize> = tests
+        .iter()
+        .filter(|t| t.1 > threshold * (t.2 + noise))
+        .map(|t| t.0)
+        .collect();
     for k in drop {
         current[k] = None;
     }
