@@ -587,3 +587,33 @@ fn evaluation_counts_coverage_wrong_pairs_and_wrong_ids() {
     twice.merge(&e);
     assert_eq!((twice.frames, twice.all.wrong_pairs), (2, 4));
 }
+
+#[test]
+fn empty_and_one_sided_frames_give_empty_results_not_errors() {
+    let rig = rig(-4.0, 1.5);
+    let (l0, r0) = stereo_frame(&rig, &Deformation::NONE, HARD, 8);
+    let stereo = StereoLattice::from_reference(
+        &rig,
+        &l0.detections,
+        &r0.detections,
+        SHAPE,
+        StereoConfig::default(),
+    )
+    .unwrap();
+    let prior = stereo.reference_match().unwrap().to_prior();
+    for p in [None, Some(&prior)] {
+        let m = stereo.match_frame(&[], &[], p).unwrap();
+        assert_eq!(
+            (m.left.indexed_count(), m.right.indexed_count(), m.pairs.len()),
+            (0, 0, 0)
+        );
+        // Only the left view: its markers are indexed, nothing is paired.
+        let m = stereo.match_frame(&l0.detections, &[], p).unwrap();
+        assert!(m.left.indexed_count() > 400 && m.pairs.is_empty() && m.rejected.is_empty());
+        // An empty frame's prior (all None) falls back to the reference.
+        let next = stereo
+            .match_frame(&l0.detections, &r0.detections, Some(&m.to_prior()))
+            .unwrap();
+        assert!(next.pairs.len() > 300, "{}", next.pairs.len());
+    }
+}
