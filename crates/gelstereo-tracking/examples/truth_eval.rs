@@ -18,7 +18,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         args.drain(..2);
     }
     let verbose = std::env::var("VERBOSE").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS.
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, SLIP_DRIFT.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
@@ -63,7 +63,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
         let surface = ReferenceSurface::new(shape, &per_frame[0])?;
-        let mut det = SlipDetector::new(SlipConfig::default())?;
+        let mut slip_cfg = SlipConfig::default();
+        if let Some(v) = std::env::var("SLIP_DRIFT").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.drift_mm_per_frame = v;
+        }
+        let mut det = SlipDetector::new(slip_cfg)?;
         let (mut gt_onset, mut est_onset) = (None, None);
         let mut touched = false;
         for (f, gt) in truth.iter().enumerate() {

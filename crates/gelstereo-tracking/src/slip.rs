@@ -40,7 +40,8 @@ pub struct SlipConfig {
     pub plateau_tolerance: f64,
     /// Absolute tolerance of the displacement plateau, mm (a few times the 3-D noise).
     pub plateau_min_mm: f64,
-    /// Drift of the contact across the gel, per frame, above which the contact slides as a whole, mm.
+    /// Drift of the contact across the gel, per frame (averaged over two frames), above which the
+    /// contact slides as a whole, mm. 0.02: twice the drift noise with 0.01 mm of 3-D noise.
     pub drift_mm_per_frame: f64,
 }
 
@@ -51,7 +52,7 @@ impl Default for SlipConfig {
             stick_fraction: 0.9,
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
-            drift_mm_per_frame: 0.015,
+            drift_mm_per_frame: 0.02,
         }
     }
 }
@@ -100,6 +101,8 @@ pub struct SlipDetector {
     config: SlipConfig,
     /// Material centroids of the last frames in contact, oldest first (at most `DRIFT_WINDOW + 1`).
     history: std::collections::VecDeque<Point3<f64>>,
+    /// Whether the contact has slid as a whole since it began.
+    sliding: bool,
 }
 
 /// Frames over which the drift is measured (its per-frame value is averaged over them, which
@@ -113,18 +116,21 @@ impl SlipDetector {
         Ok(Self {
             config,
             history: std::collections::VecDeque::new(),
+            sliding: false,
         })
     }
 
     /// Forgets the history (after re-zeroing the reference).
     pub fn reset(&mut self) {
         self.history.clear();
+        self.sliding = false;
     }
 
     /// Classifies the next frame.
     pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
         if !frame.contact {
             self.history.clear();
+            self.sliding = false;
             return SlipFrame {
                 state: SlipState::NoContact,
                 shear_mm: Vector3::zeros(),
@@ -177,7 +183,10 @@ impl SlipDetector {
             (Some(a), Some(b)) if span > 0 => (b - a).dot(&dir) / span as f64,
             _ => 0.0,
         };
-        let state = if drift > self.config.drift_mm_per_frame {
+        // Once the whole contact has slid, it stays in gross slip until it is released: the traction
+        // is at the friction limit everywhere, and unloading or further sliding keep it there.
+        self.sliding |= drift > self.config.drift_mm_per_frame;
+        let state = if self.sliding {
             SlipState::GrossSlip
         } else if stick_fraction < self.config.stick_fraction {
             SlipState::PartialSlip
