@@ -29,7 +29,8 @@ pub struct Args {
     /// mrcal .cameramodel files.
     #[arg(long, value_name = "FILE")]
     calib: String,
-    /// Output folder (markers.csv, ply/, and evaluation.json with --evaluate).
+    /// Output folder: markers.csv, ply/NNNNNN.ply, rejected_pairs.csv (markers seen in both views
+    /// but not triangulated, with the reason) and, with --evaluate, evaluation.json.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// Localization method: blob, marknet or marknet-mre.
@@ -448,6 +449,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut prior: Option<StereoPrior> = None;
     let (mut localize_ms, mut match_ms, mut reconstructed, mut paired_rejected) =
         (video_localize_ms, 0.0, 0usize, 0usize);
+    // Markers seen in both views without a 3-D position, and why (epipolar check, triangulation).
+    let mut rejections = String::from("frame,row,col,reason\n");
     let mut evaluation = Evaluation::default();
     let r_px = StereoPair::new(
         0.25 * reconstructor.lattice().left().pitch_px(),
@@ -473,7 +476,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             csv.push('\n');
         }
         reconstructed += rec.reconstructed_count();
-        paired_rejected += rec.markers.iter().filter(|m| m.rejection.is_some()).count();
+        for m in &rec.markers {
+            if let Some(why) = &m.rejection {
+                paired_rejected += 1;
+                // One CSV cell: the reason's own commas become semicolons.
+                let reason = why.to_string().replace(',', ";");
+                let _ = writeln!(
+                    rejections,
+                    "{},{},{},{reason}",
+                    input.frame, m.index.row, m.index.col
+                );
+            }
+        }
         if !args.no_ply {
             let points: Vec<MarkerPoint> = rec
                 .markers
@@ -495,6 +509,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let csv_path = args.out.join("markers.csv");
     std::fs::write(&csv_path, csv).with_context(|| format!("cannot write {}", csv_path.display()))?;
+    let rej_path = args.out.join("rejected_pairs.csv");
+    std::fs::write(&rej_path, rejections).with_context(|| format!("cannot write {}", rej_path.display()))?;
     let n = frames.len() as f64;
     eprintln!(
         "{} frames, {}x{} lattice: {:.1} markers reconstructed per frame ({} pairs rejected in all); \

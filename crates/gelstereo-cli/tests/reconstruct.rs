@@ -113,6 +113,10 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     assert_eq!(all["wrong_pairs"], 0, "{all}");
     assert!(all["index_consistency"].as_f64().unwrap() >= 0.995, "{all}");
 
+    // No pair was rejected: the rejection table has its header only.
+    let rejected = std::fs::read_to_string(out.join("rejected_pairs.csv")).unwrap();
+    assert_eq!(rejected, "frame,row,col,reason\n");
+
     // One PLY per frame with every marker, readable back with its ids.
     for f in 0..6 {
         let cloud = gelstereo_io::ply::read_marker_cloud(&out.join(format!("ply/{f:06}.ply"))).unwrap();
@@ -160,6 +164,46 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     assert!((0.01..0.2).contains(&rmse), "{all}");
     assert!(all["index_consistency"].as_f64().unwrap() >= 0.995, "{all}");
     assert!(all["wrong_pair_rate"].as_f64().unwrap() <= 0.005, "{all}");
+
+    // A tight reprojection bound rejects noisy pairs: flagged with their reason, no 3-D position.
+    let tight = tmp.path().join("tight");
+    let mut cmd = vec![
+        "reconstruct",
+        "--calib",
+        s(&calib),
+        "--out",
+        s(&tight),
+        "--from-ground-truth",
+    ];
+    cmd.extend([
+        "--gt-noise-px",
+        "0.3",
+        "--max-reprojection-px",
+        "0.2",
+        "--no-ply",
+        s(&rec),
+    ]);
+    ok(&cmd);
+    let rejected = std::fs::read_to_string(tight.join("rejected_pairs.csv")).unwrap();
+    let first = rejected.lines().nth(1).expect("some pairs rejected");
+    assert!(
+        first.contains("triangulation: reprojection error") && first.split(',').count() == 4,
+        "{first}"
+    );
+    let (frame, row, col) = {
+        let c: Vec<&str> = first.split(',').collect();
+        (c[0].to_owned(), c[1].to_owned(), c[2].to_owned())
+    };
+    let csv = std::fs::read_to_string(tight.join("markers.csv")).unwrap();
+    let line = csv
+        .lines()
+        .find(|l| l.starts_with(&format!("{frame},{row},{col},")))
+        .unwrap();
+    let cells: Vec<&str> = line.split(',').collect();
+    assert!(
+        !cells[3].is_empty() && !cells[5].is_empty() && cells[7].is_empty(),
+        "{line}"
+    );
 
     // A missing calibration key is named.
     let yaml = std::fs::read_to_string(&calib).unwrap();
