@@ -103,6 +103,8 @@ pub struct SlipDetector {
     history: std::collections::VecDeque<Point3<f64>>,
     /// Whether the contact has slid as a whole since it began.
     sliding: bool,
+    /// Consecutive frames with a drift above the threshold.
+    drifting: usize,
 }
 
 /// Frames over which the drift is measured (its per-frame value is averaged over them, which
@@ -117,6 +119,7 @@ impl SlipDetector {
             config,
             history: std::collections::VecDeque::new(),
             sliding: false,
+            drifting: 0,
         })
     }
 
@@ -124,6 +127,7 @@ impl SlipDetector {
     pub fn reset(&mut self) {
         self.history.clear();
         self.sliding = false;
+        self.drifting = 0;
     }
 
     /// Classifies the next frame.
@@ -131,6 +135,7 @@ impl SlipDetector {
         if !frame.contact {
             self.history.clear();
             self.sliding = false;
+            self.drifting = 0;
             return SlipFrame {
                 state: SlipState::NoContact,
                 shear_mm: Vector3::zeros(),
@@ -185,8 +190,11 @@ impl SlipDetector {
         };
         // Once the whole contact has slid, it stays in gross slip until it is released: the traction
         // is at the friction limit everywhere, and unloading or further sliding keep it there.
-        self.sliding |= drift > self.config.drift_mm_per_frame;
-        let state = if self.sliding {
+        // It latches after two drifting frames in a row (one noisy frame must not latch it).
+        let drifting = drift > self.config.drift_mm_per_frame;
+        self.drifting = if drifting { self.drifting + 1 } else { 0 };
+        self.sliding |= self.drifting >= 2;
+        let state = if self.sliding || drifting {
             SlipState::GrossSlip
         } else if stick_fraction < self.config.stick_fraction {
             SlipState::PartialSlip
