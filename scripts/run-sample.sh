@@ -11,3 +11,5 @@ mkdir -p "$OUT"
 "$BIN" --version
 "$BIN" doctor
 echo "results in $OUT"
+# Tracking, contact geometry and slip on the sample press-then-slide recording (calibration: its calib.yaml).
+"$BIN" track --out "$OUT/track" "$ROOT/data/sample/press-slide"
