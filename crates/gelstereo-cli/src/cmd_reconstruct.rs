@@ -549,6 +549,8 @@ fn counts_json(c: &Counts) -> serde_json::Value {
         "markers_visible_both": c.visible_both,
         "reconstructed": c.reconstructed,
         "coverage": c.coverage(),
+        "markers_detected_both": c.detected_both,
+        "matching_coverage": c.matching_coverage(),
         "wrong_pairs": c.wrong_pairs,
         "wrong_pair_rate": c.wrong_pair_rate(),
         "rmse_mm": c.rmse_mm(),
@@ -578,10 +580,11 @@ fn summary_text(v: &serde_json::Value) -> String {
         let mm = |k: &str| g[k].as_f64().map_or("-".to_owned(), |x| format!("{x:.2e} mm"));
         let _ = writeln!(
             s,
-            "{key}: 3-D RMSE {} (max {}), coverage {}, wrong pairs {} ({}), index consistency {} ({} wrong of {} detected)",
+            "{key}: 3-D RMSE {} (max {}), coverage {} (of the markers found in both views: {}), wrong pairs {} ({}), index consistency {} ({} wrong of {} detected)",
             mm("rmse_mm"),
             mm("max_error_mm"),
             pct("coverage"),
+            pct("matching_coverage"),
             g["wrong_pairs"],
             pct("wrong_pair_rate"),
             pct("index_consistency"),

@@ -6,7 +6,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
-use gelstereo_core::{CsvTable, GridIndex, MarkerRecord, Point2, StereoPair};
+use gelstereo_core::{CsvTable, GridIndex, MarkerRecord, Point2, StereoPair, View};
 
 use crate::Result;
 use crate::lattice::IndexedView;
@@ -81,6 +81,10 @@ pub struct Counts {
     pub index_wrong: usize,
     /// Ground-truth markers visible in both views.
     pub visible_both: usize,
+    /// Ground-truth markers the localizer found in both views (a true detection within r in each).
+    pub detected_both: usize,
+    /// Reconstructed markers among those.
+    pub reconstructed_of_detected_both: usize,
     /// Markers with a 3-D position.
     pub reconstructed: usize,
     /// Reconstructed markers that are visible in both views.
@@ -106,6 +110,12 @@ impl Counts {
     /// Reconstructed / visible in both views.
     pub fn coverage(&self) -> Option<f64> {
         ratio(self.reconstructed_of_visible_both, self.visible_both)
+    }
+
+    /// Reconstructed / found by the localizer in both views: the coverage of indexing, pairing
+    /// and triangulation alone.
+    pub fn matching_coverage(&self) -> Option<f64> {
+        ratio(self.reconstructed_of_detected_both, self.detected_both)
     }
 
     /// Wrong pairs / reconstructed.
@@ -138,11 +148,18 @@ fn true_indices(
     view: &IndexedView,
     gt: &BTreeMap<GridIndex, TruthMarker>,
     r_px: f64,
+    side: View,
 ) -> Vec<Option<GridIndex>> {
     let mut cand: Vec<(f64, usize, GridIndex)> = Vec::new();
     let truth: Vec<(GridIndex, Point2)> = gt
         .iter()
-        .filter_map(|(i, t)| t.left_px.map(|p| (*i, p)))
+        .filter_map(|(i, t)| {
+            match side {
+                View::Left => t.left_px,
+                View::Right => t.right_px,
+            }
+            .map(|p| (*i, p))
+        })
         .collect();
     for d in 0..view.detection_count() {
         let Some(p) = view.detection_position(d) else {
@@ -189,7 +206,19 @@ impl Evaluation {
             }
         };
         let left = &rec.matched.left;
-        for (d, t) in true_indices(left, gt, r_px.left).into_iter().enumerate() {
+        let left_truth = true_indices(left, gt, r_px.left, View::Left);
+        // Markers the localizer found in both views (a true detection within r in each).
+        let found_right: BTreeSet<GridIndex> = true_indices(&rec.matched.right, gt, r_px.right, View::Right)
+            .into_iter()
+            .flatten()
+            .collect();
+        let found_both: BTreeSet<GridIndex> = left_truth
+            .iter()
+            .flatten()
+            .filter(|i| found_right.contains(i))
+            .copied()
+            .collect();
+        for (d, t) in left_truth.into_iter().enumerate() {
             let in_contact = t.and_then(|t| gt.get(&t)).is_some_and(|m| m.in_contact);
             match (t, left.index_of(d)) {
                 (Some(t), Some(g)) => add(in_contact, &|c| {
@@ -216,6 +245,10 @@ impl Evaluation {
             if both {
                 add(in_contact, &|c| c.visible_both += 1);
             }
+            let detected_both = found_both.contains(&m.index);
+            if detected_both {
+                add(in_contact, &|c| c.detected_both += 1);
+            }
             let (Some(pos), Some(right)) = (m.position_mm, m.right_px) else {
                 continue;
             };
@@ -229,6 +262,9 @@ impl Evaluation {
                 c.reconstructed += 1;
                 if both {
                     c.reconstructed_of_visible_both += 1;
+                }
+                if detected_both {
+                    c.reconstructed_of_detected_both += 1;
                 }
                 if !pair_ok {
                     c.wrong_pairs += 1;
@@ -256,6 +292,8 @@ impl Evaluation {
             a.visible_both += b.visible_both;
             a.reconstructed += b.reconstructed;
             a.reconstructed_of_visible_both += b.reconstructed_of_visible_both;
+            a.detected_both += b.detected_both;
+            a.reconstructed_of_detected_both += b.reconstructed_of_detected_both;
             a.wrong_pairs += b.wrong_pairs;
             a.sq_error_mm2 += b.sq_error_mm2;
             a.max_error_mm = a.max_error_mm.max(b.max_error_mm);
