@@ -63,6 +63,7 @@ fn sample_recording_gives_tables_meshes_overlays_plots_and_the_slip_of_the_truth
         "ply/cloud_000010.ply",
         "ply/mesh_000010.ply",
         "overlays/000010.png",
+        "overlays/depth_000010.png",
         "plots/contact_area.png",
         "plots/max_depth.png",
         "plots/slip.png",

@@ -25,7 +25,10 @@ use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{Localizer, Method};
 use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
-use gelstereo_tracking::{ContactFrame, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows};
+use gelstereo_tracking::{
+    ContactFrame, DenseField, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows,
+    interpolate,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use opencv::core::{Mat, MatTraitConst, Point, Scalar};
 use opencv::imgproc;
@@ -854,6 +857,17 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         &caption,
                     )?;
                     images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &img)?;
+                    let field = interpolate(shape, &out.contact.depth_mm, 16);
+                    if let Some(f) = field {
+                        let map = heatmap(
+                            &f,
+                            &format!(
+                                "frame {frame_no} indentation depth 0 .. {:.3} mm",
+                                f.range().1.max(0.0)
+                            ),
+                        )?;
+                        images::write_image(&overlay_dir.join(format!("depth_{frame_no:06}.png")), &map)?;
+                    }
                 }
                 latest_contact = Some(out.contact);
             }
@@ -875,6 +889,23 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         &caption,
                     )?;
                     images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &drawn)?;
+                    // Dense displacement magnitude on the lattice, px.
+                    let mut mags: Vec<Option<f64>> = vec![None; shape.count()];
+                    for (k, mk) in out.track.markers.iter().enumerate() {
+                        if let (Some(p), Some(l)) = (mk.position_px, shape.linear(mk.index)) {
+                            mags[l] = Some(p.distance(reference[k]));
+                        }
+                    }
+                    if let Some(f) = interpolate(shape, &mags, 16) {
+                        let map = heatmap(
+                            &f,
+                            &format!("frame {frame_no} displacement 0 .. {:.1} px", f.range().1),
+                        )?;
+                        images::write_image(
+                            &overlay_dir.join(format!("displacement_{frame_no:06}.png")),
+                            &map,
+                        )?;
+                    }
                 }
             }
             _ => bail!("frame {frame_no}: a mono frame in a stereo session or the reverse"),
@@ -956,6 +987,43 @@ fn ground_truth(dir: &Path, noise_px: f64) -> anyhow::Result<Vec<StereoPair<Vec<
         gelstereo_markers::sort_detections(&mut pair.left);
         gelstereo_markers::sort_detections(&mut pair.right);
     }
+    Ok(out)
+}
+
+/// A colour map (jet, 0 .. the field's maximum) of a dense field, with a caption.
+fn heatmap(field: &DenseField, caption: &str) -> anyhow::Result<Mat> {
+    let (_, hi) = field.range();
+    let scale = if hi > 0.0 { 255.0 / hi } else { 0.0 };
+    let bytes: Vec<u8> = field
+        .values
+        .iter()
+        .map(|v| (v.max(0.0) * scale).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    let grey = Mat::new_rows_cols_with_data(field.height as i32, field.width as i32, &bytes)?.try_clone()?;
+    let mut colour = Mat::default();
+    imgproc::apply_color_map(&grey, &mut colour, imgproc::COLORMAP_JET)?;
+    let mut out = Mat::default();
+    let (w, h) = (colour.cols().max(1), colour.rows().max(1));
+    let k = (480.0 / f64::from(h)).max(1.0);
+    imgproc::resize(
+        &colour,
+        &mut out,
+        opencv::core::Size::new((f64::from(w) * k) as i32, (f64::from(h) * k) as i32),
+        0.0,
+        0.0,
+        imgproc::INTER_LINEAR,
+    )?;
+    imgproc::put_text(
+        &mut out,
+        caption,
+        Point::new(6, 18),
+        imgproc::FONT_HERSHEY_SIMPLEX,
+        0.5,
+        Scalar::all(255.0),
+        1,
+        imgproc::LINE_AA,
+        false,
+    )?;
     Ok(out)
 }
 

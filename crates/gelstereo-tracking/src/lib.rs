@@ -5,6 +5,7 @@
 //!   re-acquisition.
 //! - [`slip`]: per-frame slip state from the 3-D field; [`planar`]: contact and slip of mono sensors.
 //! - [`session`]: whole recordings, stereo and mono, producing the `markers.csv` / `frames.csv` rows.
+//! - [`field`]: dense interpolation of per-marker fields on the lattice (for plots).
 //! - [`contact`]: the marker mesh, indentation depth, contact region, area, centroid, largest depth.
 //!
 //! # Conventions
@@ -17,6 +18,7 @@
 
 pub mod contact;
 pub mod error;
+pub mod field;
 pub mod planar;
 pub mod session;
 pub mod slip;
@@ -26,6 +28,7 @@ pub mod tracker;
 
 pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
 pub use error::{Error, Result};
+pub use field::{DenseField, interpolate};
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 pub use session::{MonoFrame, MonoSession, SessionConfig, StereoFrame, StereoSession, flagged_rows};
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
