@@ -18,6 +18,12 @@
 //!   (reference) coordinates drifts, in the direction in which the object drags the surface. Gross
 //!   slip is a drift of more than `drift_mm_per_frame` along the shear direction.
 //!
+//! - **Twists.** When the in-plane rotation of the contact (least-squares angle about its centroid,
+//!   times its RMS radius) exceeds the mean shear, the plateau is taken on the angular displacement
+//!   of the markers off the centre: sticking points turn by the object's angle, slipping ones lag.
+//!   A stick fraction below `twist_gross_fraction` is gross slip (a symmetric contact does not move
+//!   its centroid when it spins, so the drift cannot see it).
+//!
 //! The shear has to exceed `min_shear_mm` before anything but stick is reported, so that pressing
 //! alone (whose lateral spreading is radial) is never called slip; and nothing but `no_contact` is
 //! reported without contact.
@@ -43,6 +49,9 @@ pub struct SlipConfig {
     /// Drift of the contact across the gel, per frame (averaged over two frames), above which the
     /// contact slides as a whole, mm. 0.02: twice the drift noise with 0.01 mm of 3-D noise.
     pub drift_mm_per_frame: f64,
+    /// Under a twist (rotation about the contact larger than the mean shear), the stick fraction
+    /// below which the contact slides as a whole (0.1, chosen on the training sets).
+    pub twist_gross_fraction: f64,
 }
 
 impl Default for SlipConfig {
@@ -53,6 +62,7 @@ impl Default for SlipConfig {
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
             drift_mm_per_frame: 0.02,
+            twist_gross_fraction: 0.1,
         }
     }
 }
@@ -72,6 +82,7 @@ impl SlipConfig {
         for (field, v) in [
             ("stick_fraction", self.stick_fraction),
             ("plateau_tolerance", self.plateau_tolerance),
+            ("twist_gross_fraction", self.twist_gross_fraction),
         ] {
             if !(v.is_finite() && v > 0.0 && v < 1.0) {
                 return Err(config_err(field, "a fraction in (0, 1)", v));
@@ -152,32 +163,88 @@ impl SlipDetector {
             }
         }
         let normals = surface.normals();
+        let reference = surface.positions_mm();
         let mut tangential = Vec::new();
+        let mut at = Vec::new();
         for (k, d) in frame.displacement_mm.iter().enumerate() {
-            if let (true, Some(d), Some(n)) = (frame.in_contact[k], d, normals[k]) {
+            if let (true, Some(d), Some(n), Some(x)) = (frame.in_contact[k], d, normals[k], reference[k]) {
                 tangential.push(d - n * d.dot(&n));
+                at.push(x.coords);
             }
         }
+        let latched = if self.sliding {
+            SlipState::GrossSlip
+        } else {
+            SlipState::Stick
+        };
         if tangential.is_empty() {
             return SlipFrame {
-                state: SlipState::Stick,
+                state: latched,
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
             };
         }
-        let shear = tangential.iter().fold(Vector3::zeros(), |a, t| a + t) / tangential.len() as f64;
-        let Some(dir) = shear
-            .try_normalize(1e-12)
-            .filter(|_| shear.norm() >= self.config.min_shear_mm)
-        else {
+        let count = tangential.len() as f64;
+        let shear = tangential.iter().fold(Vector3::zeros(), |a, t| a + t) / count;
+        // In-plane rotation of the contact about its centroid (least squares, translation removed).
+        let plane = surface.plane_normal();
+        let centre = at.iter().fold(Vector3::zeros(), |a, x| a + x) / count;
+        let radial: Vec<Vector3<f64>> = at
+            .iter()
+            .map(|x| {
+                let r = x - centre;
+                r - plane * r.dot(&plane)
+            })
+            .collect();
+        let (num, den) = radial.iter().zip(&tangential).fold((0.0, 0.0), |(n, d), (r, t)| {
+            (n + r.cross(&(t - shear)).dot(&plane), d + r.norm_squared())
+        });
+        let omega = if den > 0.0 { num / den } else { 0.0 };
+        let twist_mm = omega.abs() * (den / count).sqrt();
+        if shear.norm() < self.config.min_shear_mm && twist_mm < self.config.min_shear_mm {
             return SlipFrame {
-                state: SlipState::Stick,
+                state: latched,
                 shear_mm: shear,
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
             };
-        };
+        }
+        if twist_mm > shear.norm() {
+            // A twist: sticking points turn with the object by one angle, slipping ones lag. The
+            // plateau is that of the angular displacement of the markers off the centre.
+            let min_r = 0.75 * surface.pitch_mm();
+            let mut angles: Vec<f64> = radial
+                .iter()
+                .zip(&tangential)
+                .filter(|(r, _)| r.norm() >= min_r)
+                .map(|(r, t)| r.cross(t).dot(&plane) / r.norm_squared() * omega.signum())
+                .collect();
+            let stick_fraction = if angles.is_empty() {
+                1.0
+            } else {
+                angles.sort_by(f64::total_cmp);
+                let top = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
+                let tol = self.config.plateau_tolerance * top.abs();
+                angles.iter().filter(|&&a| a >= top - tol).count() as f64 / angles.len() as f64
+            };
+            self.drifting = 0;
+            self.sliding |= stick_fraction < self.config.twist_gross_fraction;
+            let state = if self.sliding {
+                SlipState::GrossSlip
+            } else if stick_fraction < self.config.stick_fraction {
+                SlipState::PartialSlip
+            } else {
+                SlipState::Stick
+            };
+            return SlipFrame {
+                state,
+                shear_mm: shear,
+                stick_fraction,
+                drift_mm: 0.0,
+            };
+        }
+        let dir = shear / shear.norm();
         let mut along: Vec<f64> = tangential.iter().map(|t| t.dot(&dir)).collect();
         along.sort_by(f64::total_cmp);
         let top = along[((along.len() - 1) as f64 * 0.9).round() as usize];
@@ -272,6 +339,42 @@ mod tests {
                 GrossSlip,
                 NoContact
             ]
+        );
+    }
+
+    #[test]
+    fn a_twist_sticks_then_slips_from_the_edge() {
+        // Cap of radius 8 mm, depth 0.6 mm; the contact turns by `angle` rad about its centre, each
+        // point limited to 0.8 w (Cattaneo–Mindlin for torsion).
+        let twist = |angle: f64| -> Vec<Option<[f64; 3]>> {
+            GridShape::REFERENCE
+                .indices()
+                .map(|i| {
+                    let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+                    let w = (0.6 - (x * x + y * y) / 16.0).max(0.0);
+                    let (ux, uy) = (-angle * y, angle * x);
+                    let norm = ux.hypot(uy);
+                    let k = if w > 0.0 && norm > 0.0 {
+                        (0.8 * w / norm).min(1.0)
+                    } else {
+                        0.0
+                    };
+                    Some([x + k * ux, y + k * uy, 24.0 - w])
+                })
+                .collect()
+        };
+        let flat: Vec<Option<[f64; 3]>> = twist(0.0).iter().map(|p| p.map(|p| [p[0], p[1], 24.0])).collect();
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let mut states = Vec::new();
+        for angle in [0.0, 0.03, 0.25] {
+            let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
+            let c = surface.analyze(&twist(angle), &cfg).unwrap();
+            states.push(det.update(&surface, &c).state);
+        }
+        assert_eq!(
+            states,
+            [SlipState::Stick, SlipState::Stick, SlipState::PartialSlip]
         );
     }
 }
