@@ -56,7 +56,7 @@ pub struct Args {
     #[arg(long)]
     no_prior: bool,
     /// Pairs farther than this from their epipolar line are rejected, px.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 3.0)]
     max_epipolar_px: f64,
     /// Triangulated points with a larger reprojection error in either view are rejected, px.
     #[arg(long, default_value_t = 2.0)]

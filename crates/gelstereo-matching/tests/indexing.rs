@@ -299,7 +299,7 @@ fn stereo_reference_and_contact_frames_pair_every_marker_correctly() {
                 if l.truth[ld] != Some(p.index) || r.truth[rd] != Some(p.index) {
                     wrong_pairs += 1;
                 }
-                assert!(p.epipolar_px <= 2.0);
+                assert!(p.epipolar_px <= stereo.config().max_epipolar_px);
             }
         }
         // Done-when figures: >= 99% of markers visible in both views paired, <= 0.1% wrong pairs.
@@ -342,7 +342,7 @@ fn pairs_off_their_epipolar_line_are_rejected_and_flagged() {
     .unwrap();
     assert_eq!(rejected.len(), 1, "{rejected:?}");
     assert_eq!(rejected[0].index, moved);
-    assert!(rejected[0].epipolar_px.unwrap() > 3.0);
+    assert!(rejected[0].epipolar_px.unwrap() > stereo.config().max_epipolar_px);
     assert_eq!(pairs.len(), 528);
     // The gated matcher does not pair it at all.
     let m = stereo.match_frame(&l0.detections, &right, None).unwrap();
