@@ -431,29 +431,32 @@ fn gaussian_taps(sigma: f64) -> Vec<f64> {
 
 /// `dst = G * src` on a `rows x cols` grid, separable, zero outside.
 fn blur(src: &[f64], rows: usize, cols: usize, taps: &[f64], tmp: &mut [f64], dst: &mut [f64]) {
-    let r = (taps.len() / 2) as i64;
+    let r = taps.len() / 2;
+    // Along rows: tap k reads column x + k - r; clamp the tap range instead of testing each tap.
     for y in 0..rows {
+        let row = &src[y * cols..(y + 1) * cols];
         for x in 0..cols {
-            let mut acc = 0.0;
-            for (k, t) in taps.iter().enumerate() {
-                let xx = x as i64 + k as i64 - r;
-                if xx >= 0 && (xx as usize) < cols {
-                    acc += t * src[y * cols + xx as usize];
-                }
-            }
-            tmp[y * cols + x] = acc;
+            let k0 = r.saturating_sub(x);
+            let k1 = (cols + r - x).min(taps.len());
+            let s0 = x + k0 - r;
+            tmp[y * cols + x] = taps[k0..k1]
+                .iter()
+                .zip(&row[s0..s0 + (k1 - k0)])
+                .map(|(t, v)| t * v)
+                .sum();
         }
     }
+    // Along columns: accumulate whole rows (contiguous, vectorisable).
+    dst.iter_mut().for_each(|d| *d = 0.0);
     for y in 0..rows {
-        for x in 0..cols {
-            let mut acc = 0.0;
-            for (k, t) in taps.iter().enumerate() {
-                let yy = y as i64 + k as i64 - r;
-                if yy >= 0 && (yy as usize) < rows {
-                    acc += t * tmp[yy as usize * cols + x];
-                }
+        let out = &mut dst[y * cols..(y + 1) * cols];
+        let k0 = r.saturating_sub(y);
+        let k1 = (rows + r - y).min(taps.len());
+        for (k, t) in taps.iter().enumerate().take(k1).skip(k0) {
+            let yy = y + k - r;
+            for (o, v) in out.iter_mut().zip(&tmp[yy * cols..(yy + 1) * cols]) {
+                *o += t * v;
             }
-            dst[y * cols + x] = acc;
         }
     }
 }
