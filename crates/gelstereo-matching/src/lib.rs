@@ -11,7 +11,7 @@
 //!
 //! # Use
 //! 1. Index each view's reference frame: [`ReferenceLattice::from_detections`] (a lattice fit with a
-//!    known [`GridShape`](gelstereo_core::GridShape)), or both views at once with
+//!    known [`GridShape`]), or both views at once with
 //!    [`StereoLattice::from_reference`], which also aligns the right view's identities to the left's
 //!    with the epipolar geometry.
 //! 2. Index every later frame: [`ReferenceLattice::index`] (one view, optionally with the previous
