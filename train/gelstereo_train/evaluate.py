@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from .blob import BlobDetector
-from .data import list_samples
+from .data import list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
 from .postprocess import PostConfig, TorchMRE, decode_to_original, postprocess, preprocess
 
@@ -83,10 +83,21 @@ def load_mre(path: Path | str | None, threads: int = 2):
     return TorchMRE(load_mre_checkpoint(path)[0])
 
 
+MIN_PITCH_IN_PX = 9.0  # lower end of the training scale jitter (pitch at the network input)
+
+
+def pitch_at_input_px(gt: np.ndarray, image_wh, input_wh) -> float:
+    """Marker pitch of the ground truth at the network input, the smaller of the x and y scalings."""
+    return median_nn_distance(gt) * min(input_wh[0] / image_wh[0], input_wh[1] / image_wh[1])
+
+
 def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: BlobDetector | None = None,
-             log=print, batch: int = 8) -> dict:
-    """Metrics of Marknet, Marknet+MRE and the blob baseline over samples."""
+             log=print, batch: int = 8, min_pitch_in_px: float = MIN_PITCH_IN_PX) -> dict:
+    """Metrics of Marknet, Marknet+MRE and the blob baseline over samples; also over the images whose
+    marker pitch at the network input is >= min_pitch_in_px (the design range), under "in_range"."""
     ev = {"marknet": Evaluator(), "marknet_mre": Evaluator(), "blob": Evaluator()}
+    ev_in = {"marknet": Evaluator(), "marknet_mre": Evaluator(), "blob": Evaluator()}
+    n_out = 0
     blob = blob or BlobDetector()
     t0 = time.time()
     t_net = 0.0
@@ -102,14 +113,20 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
             det = postprocess(dec, post, mre_fn)
-            ev["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r)
-            if mre_fn is not None:
-                ev["marknet_mre"].add_image(det.marknet_mre, gt, hard, s.in_contact, r)
-            ev["blob"].add_image(bl, gt, hard, s.in_contact, r)
+            in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), runner.input_hw[::-1]) >= min_pitch_in_px
+            n_out += not in_range
+            for e in (ev, ev_in) if in_range else (ev,):
+                e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r)
+                if mre_fn is not None:
+                    e["marknet_mre"].add_image(det.marknet_mre, gt, hard, s.in_contact, r)
+                e["blob"].add_image(bl, gt, hard, s.in_contact, r)
         if (i // batch) % 25 == 0:
             log(f"evaluated {i + len(chunk)}/{len(samples)} images ({time.time() - t0:.0f} s)")
     out = {k: v.summary() for k, v in ev.items() if v.radii}
     out["images"] = len(samples)
+    out["in_range"] = {k: v.summary() for k, v in ev_in.items() if v.radii}
+    out["in_range"]["images"] = len(samples) - n_out
+    out["in_range"]["rule"] = f"marker pitch at the network input >= {min_pitch_in_px} px"
     out["torch_or_ort_seconds_per_image"] = t_net / max(1, len(samples))
     return out
 
@@ -157,6 +174,9 @@ def main(argv=None) -> int:
     res["marknet_file"] = str(args.marknet)
     res["mre_file"] = str(args.mre) if args.mre else None
     print(format_table(res))
+    if res["in_range"].get("marknet"):
+        print(f"\nIn the design range ({res['in_range']['rule']}): {res['in_range']['images']} of {res['images']} images")
+        print(format_table(res["in_range"]))
     print(json.dumps({k: res[k] for k in ("images", "split")} | {"radius_px": res["marknet"].get("radius_px")}))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
