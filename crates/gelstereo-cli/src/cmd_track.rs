@@ -378,6 +378,9 @@ fn detect_padded(loc: &mut dyn Localizer, image: &Mat, pad: i32) -> anyhow::Resu
         .collect())
 }
 
+/// Warnings printed one by one; the rest are counted.
+const MAX_WARNINGS: usize = 10;
+
 /// Output files, written as frames arrive.
 struct Outputs {
     dir: PathBuf,
@@ -746,7 +749,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             Ok(x) => x,
             Err(e) => {
                 let msg = format!("frame {frame_no}: {e:#}");
-                progress.suspend(|| eprintln!("warning: {msg}; frame written as lost / no contact"));
+                if warnings.len() < MAX_WARNINGS {
+                    progress.suspend(|| eprintln!("warning: {msg}; frame written as lost / no contact"));
+                }
                 match &session {
                     Some(s) => {
                         let (m, f) = flagged_rows(s.ids(), frame_no);
@@ -810,7 +815,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 }
                 Err(e) => {
                     let msg = format!("frame {frame_no}: cannot index the reference lattice: {e:#}");
-                    progress.suspend(|| eprintln!("warning: {msg}; trying the next frame"));
+                    if warnings.len() < MAX_WARNINGS {
+                        progress.suspend(|| eprintln!("warning: {msg}; trying the next frame"));
+                    }
                     pending_flagged.push((frame_no, msg.clone()));
                     warnings.push(msg);
                     continue;
@@ -912,6 +919,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
     }
     progress.finish_and_clear();
+    if warnings.len() > MAX_WARNINGS {
+        eprintln!(
+            "warning: {} more warnings of the same kind not shown",
+            warnings.len() - MAX_WARNINGS
+        );
+    }
     if session.is_none() {
         bail!(
             "no frame could be indexed as the reference lattice ({} frames read): {}",
