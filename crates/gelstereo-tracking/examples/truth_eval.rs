@@ -18,7 +18,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         args.drain(..2);
     }
     let verbose = std::env::var("VERBOSE").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, SLIP_DRIFT, MIN_SHEAR, TWIST_GROSS.
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, SLIP_DRIFT, MIN_SHEAR, SHEAR_PER_DEPTH, TWIST_GROSS.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
@@ -66,6 +66,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut slip_cfg = SlipConfig::default();
         if let Some(v) = std::env::var("SLIP_DRIFT").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.drift_mm_per_frame = v;
+        }
+        if let Some(v) = std::env::var("SHEAR_PER_DEPTH").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.min_shear_per_depth = v;
         }
         if let Some(v) = std::env::var("MIN_SHEAR").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.min_shear_mm = v;
