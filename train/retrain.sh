@@ -5,16 +5,16 @@
 #
 # DATA_DIR (default train/runs/sim-v1, git-ignored) is simulated first when it has no dataset.json.
 # RUN_DIR (default train/runs/<date>) receives checkpoints, logs and reports; the ONNX files go to
-# MODELS_DIR (default data/models). Knobs (environment): MINUTES (Marknet wall-clock budget, 40),
+# MODELS_DIR (default data/models). Knobs (environment): MINUTES (Marknet wall-clock budget, 48: the shipped run),
 # THREADS (2), SIM_ARGS (arguments of `gelstereo simulate` besides --out), REAL_VIDEO (zero-shot check).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 DATA="${1:-$ROOT/train/runs/sim-v1}"
 RUN="${2:-$ROOT/train/runs/$(date -u +%Y%m%dT%H%M%SZ)}"
 MODELS="${MODELS_DIR:-$ROOT/data/models}"
-MINUTES="${MINUTES:-40}"
+MINUTES="${MINUTES:-48}"
 THREADS="${THREADS:-2}"
-SIM_ARGS="${SIM_ARGS:---experiments 60 --frames 40 --seed 1}"
+SIM_ARGS="${SIM_ARGS:---experiments 60 --frames-per-experiment 50 --seed 1 --randomization full --quiet}"
 REAL_VIDEO="${REAL_VIDEO:-$ROOT/../shared/real/gelsight-mini-press/mini_example.avi}"
 PY="$ROOT/.venv/bin/python"
 export OMP_NUM_THREADS="$THREADS"

@@ -106,6 +106,11 @@ def main(argv=None) -> int:
              f"{rad.get('max', 0):.2f}); loss = mean squared distance of correct points, original px^2. hard = "
              "markers the tuned blob baseline misses or misplaces (`train/gelstereo_train/blob_params.json`).\n")
     L.append(format_table(ev) + "\n")
+    if ev.get("in_range", {}).get("marknet"):
+        ir = ev["in_range"]
+        L.append(f"The same, restricted to the design range ({ir['rule']}): {ir['images']} of {ev['images']} "
+                 "test images.\n")
+        L.append(format_table(ir) + "\n")
     if (run / "real_check.json").exists():
         r = json.loads((run / "real_check.json").read_text())
         L.append("## Zero-shot on a real sensor\n")
