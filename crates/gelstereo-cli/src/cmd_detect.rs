@@ -11,7 +11,7 @@ use gelstereo_core::{Detection, StereoPair};
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{
-    BlobParams, Localizer, LocalizerConfig, Method, SessionOptions, create_localizer, overlay,
+    BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, create_localizer, overlay,
 };
 use opencv::core::Mat;
 
@@ -38,6 +38,11 @@ pub struct LocalizerArgs {
     /// Never use the CUDA execution provider, even where ONNX Runtime has it.
     #[arg(long)]
     pub cpu: bool,
+    /// How Marknet fits an image to its input: `stretch` (the model contract's whole-image resize) or
+    /// `pad` (isotropic, never enlarged, mirrored border; for sensors with a much coarser marker pitch
+    /// than the training data, e.g. a 320x240 GelSight Mini).
+    #[arg(long, default_value = "stretch", value_name = "stretch|pad")]
+    pub fit: InputFit,
 }
 
 impl LocalizerArgs {
@@ -70,6 +75,7 @@ impl LocalizerArgs {
                 intra_threads: self.threads,
                 use_cuda: !self.cpu,
             },
+            fit: self.fit,
         })
     }
 

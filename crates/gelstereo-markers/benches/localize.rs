@@ -90,6 +90,8 @@ fn bench_postprocess(c: &mut Criterion) {
         stride: 8.0,
         scale_x: 640.0 / 416.0,
         scale_y: 480.0 / 416.0,
+        offset_x: 0.0,
+        offset_y: 0.0,
     };
     // Deterministic pseudo-random logits.
     let mut raw = vec![0f32; g.values_per_image()];

@@ -34,7 +34,7 @@ use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
 pub use contract::{MarknetContract, MreContract};
-pub use marknet::{Marknet, Mre, SessionOptions};
+pub use marknet::{InputFit, Marknet, Mre, SessionOptions};
 pub use postprocess::PostProcess;
 
 /// Errors of the marker localizers. Each names the file, the field or the image property concerned and
@@ -268,6 +268,8 @@ pub struct LocalizerConfig {
     pub blob: BlobParams,
     /// ONNX Runtime options.
     pub session: SessionOptions,
+    /// How Marknet fits images to its input ([`InputFit::Stretch`], the contract's, by default).
+    pub fit: InputFit,
 }
 
 /// Builds the localizer for `method`. Models are loaded (and their contract checked) only for the
@@ -279,10 +281,16 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
             &yolo::model_path(config),
             &config.session,
         )?),
-        Method::Marknet => Box::new(Marknet::load(&config.marknet_path, &config.session)?),
+        Method::Marknet => {
+            let mut net = Marknet::load(&config.marknet_path, &config.session)?;
+            net.set_fit(config.fit);
+            Box::new(net)
+        }
         Method::MarknetMre => {
             let mre = Mre::load(&config.mre_path, &config.session)?;
-            Box::new(Marknet::load(&config.marknet_path, &config.session)?.with_mre(mre)?)
+            let mut net = Marknet::load(&config.marknet_path, &config.session)?.with_mre(mre)?;
+            net.set_fit(config.fit);
+            Box::new(net)
         }
     })
 }

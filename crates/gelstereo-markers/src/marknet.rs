@@ -26,6 +26,36 @@ use crate::{
 /// squashes markers into shapes far from anything the network was trained on.
 pub const MAX_ASPECT_DISTORTION: f64 = 2.0;
 
+/// How an image is brought to the network's input size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum InputFit {
+    /// The contract's preprocessing: the whole image resized to the input size (anisotropically if
+    /// the aspect ratios differ). What the model was trained and evaluated with.
+    #[default]
+    Stretch,
+    /// Isotropic: scaled by `min(input_width / W, input_height / H, 1)` (never enlarged), centred, the
+    /// rest filled by mirroring the image (OpenCV `BORDER_REFLECT_101`). For sensors whose marker
+    /// pitch the stretch would push outside the range the network was trained on (e.g. a 320x240
+    /// GelSight Mini video, 31 px pitch, stretched to 40 x 54 px); detections in the padding are dropped.
+    Pad,
+}
+
+impl std::str::FromStr for InputFit {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "stretch" => Ok(Self::Stretch),
+            "pad" => Ok(Self::Pad),
+            _ => Err(Error::Config {
+                path: PathBuf::from("(command line)"),
+                field: "fit".into(),
+                expected: "stretch or pad".into(),
+                found: s.to_owned(),
+            }),
+        }
+    }
+}
+
 /// ONNX Runtime session options shared by Marknet and MRE.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SessionOptions {
@@ -201,7 +231,9 @@ pub struct Marknet {
     contract: MarknetContract,
     post: PostProcess,
     mre: Option<Mre>,
+    fit: InputFit,
     resized: Mat,
+    padded: Mat,
     input: Vec<f32>,
     lut: [f32; 256],
 }
@@ -237,7 +269,9 @@ impl Marknet {
             post: contract.postprocess,
             contract,
             mre: None,
+            fit: InputFit::Stretch,
             resized: Mat::default(),
+            padded: Mat::default(),
             input: Vec::new(),
             lut,
         })
@@ -265,6 +299,24 @@ impl Marknet {
     /// Replaces the post-processing thresholds (e.g. for a threshold sweep).
     pub fn set_postprocess(&mut self, post: PostProcess) {
         self.post = post;
+    }
+
+    /// Chooses how images are fitted to the network input ([`InputFit::Stretch`] by default).
+    pub fn set_fit(&mut self, fit: InputFit) {
+        self.fit = fit;
+    }
+
+    /// The padded layout of an image of `size` ([`InputFit::Pad`]): scaled size and offsets in input px.
+    fn pad_layout(&self, size: ImageSize) -> (i32, i32, i32, i32) {
+        let (iw, ih) = (
+            f64::from(self.contract.input_width),
+            f64::from(self.contract.input_height),
+        );
+        let (w, h) = (f64::from(size.width), f64::from(size.height));
+        let scale = (iw / w).min(ih / h).min(1.0);
+        let nw = ((w * scale).round() as i32).clamp(1, iw as i32);
+        let nh = ((h * scale).round() as i32).clamp(1, ih as i32);
+        (nw, nh, (iw as i32 - nw) / 2, (ih as i32 - nh) / 2)
     }
 
     /// Whether MRE post-processing is on (`marknet-mre`).
@@ -296,24 +348,65 @@ impl Marknet {
     /// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
     fn preprocess(&mut self, image: &Mat, slot: usize) -> Result<ImageSize> {
         let size = check_image(image)?;
-        self.check_size(size)?;
         let (iw, ih) = (
             self.contract.input_width as i32,
             self.contract.input_height as i32,
         );
-        let src: &Mat = if image.cols() == iw && image.rows() == ih {
-            image
-        } else {
-            imgproc::resize(
-                image,
-                &mut self.resized,
-                Size::new(iw, ih),
-                0.0,
-                0.0,
-                imgproc::INTER_LINEAR,
-            )
-            .map_err(cv_err("resize to the network input"))?;
-            &self.resized
+        let src: &Mat = match self.fit {
+            InputFit::Stretch => {
+                self.check_size(size)?;
+                if image.cols() == iw && image.rows() == ih {
+                    image
+                } else {
+                    imgproc::resize(
+                        image,
+                        &mut self.resized,
+                        Size::new(iw, ih),
+                        0.0,
+                        0.0,
+                        imgproc::INTER_LINEAR,
+                    )
+                    .map_err(cv_err("resize to the network input"))?;
+                    &self.resized
+                }
+            }
+            InputFit::Pad => {
+                let (nw, nh, ox, oy) = self.pad_layout(size);
+                let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
+                    image
+                } else {
+                    imgproc::resize(
+                        image,
+                        &mut self.resized,
+                        Size::new(nw, nh),
+                        0.0,
+                        0.0,
+                        imgproc::INTER_LINEAR,
+                    )
+                    .map_err(cv_err("resize to the network input"))?;
+                    &self.resized
+                };
+                let (top, left) = (oy, ox);
+                let (bottom, right) = (ih - nh - oy, iw - nw - ox);
+                // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
+                let mode = if top.max(bottom) < nh && left.max(right) < nw {
+                    opencv::core::BORDER_REFLECT_101
+                } else {
+                    opencv::core::BORDER_REPLICATE
+                };
+                opencv::core::copy_make_border(
+                    scaled,
+                    &mut self.padded,
+                    top,
+                    bottom,
+                    left,
+                    right,
+                    mode,
+                    opencv::core::Scalar::default(),
+                )
+                .map_err(cv_err("padding to the network input"))?;
+                &self.padded
+            }
         };
         let owned;
         let src = if src.is_continuous() {
@@ -409,16 +502,35 @@ impl Marknet {
         Ok((sizes, raw.to_vec()))
     }
 
-    /// The decoding geometry for an image of `size` under this model's contract.
+    /// The decoding geometry for an image of `size` under this model's contract and the input fit.
     pub fn geometry(&self, size: ImageSize) -> DecodeGeometry {
         let c = &self.contract;
+        let (scale_x, scale_y, offset_x, offset_y) = match self.fit {
+            InputFit::Stretch => (
+                f64::from(size.width) / f64::from(c.input_width),
+                f64::from(size.height) / f64::from(c.input_height),
+                0.0,
+                0.0,
+            ),
+            InputFit::Pad => {
+                let (nw, nh, ox, oy) = self.pad_layout(size);
+                (
+                    f64::from(size.width) / f64::from(nw),
+                    f64::from(size.height) / f64::from(nh),
+                    f64::from(ox),
+                    f64::from(oy),
+                )
+            }
+        };
         DecodeGeometry {
             grid_y: c.grid_y as usize,
             grid_x: c.grid_x as usize,
             candidates: c.candidates as usize,
             stride: f64::from(c.stride),
-            scale_x: f64::from(size.width) / f64::from(c.input_width),
-            scale_y: f64::from(size.height) / f64::from(c.input_height),
+            scale_x,
+            scale_y,
+            offset_x,
+            offset_y,
         }
     }
 
@@ -427,15 +539,23 @@ impl Marknet {
     pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
         let (sizes, raw) = self.raw_output(images)?;
         let per_image = raw.len() / sizes.len().max(1);
+        let pad = self.fit == InputFit::Pad;
         Ok(sizes
             .iter()
             .enumerate()
             .map(|(i, size)| {
-                decode(
+                let mut found = decode(
                     &raw[i * per_image..(i + 1) * per_image],
                     &self.geometry(*size),
                     min_confidence,
-                )
+                );
+                if pad {
+                    // Candidates in the mirrored padding are reflections, not markers of the image.
+                    let (w, h) = (f64::from(size.width) - 0.5, f64::from(size.height) - 0.5);
+                    found
+                        .retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
+                }
+                found
             })
             .collect())
     }

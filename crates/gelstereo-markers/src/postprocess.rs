@@ -65,6 +65,10 @@ pub struct DecodeGeometry {
     pub scale_x: f64,
     /// Original pixels per input pixel along y (H / input_height).
     pub scale_y: f64,
+    /// Input pixels left of the image's first column (0 unless the image was padded, [`crate::marknet::InputFit::Pad`]).
+    pub offset_x: f64,
+    /// Input pixels above the image's first row.
+    pub offset_y: f64,
 }
 
 impl DecodeGeometry {
@@ -82,7 +86,8 @@ pub fn sigmoid(v: f32) -> f32 {
 
 /// Decodes one image's raw output (`[Gy, Gx, m, 3]` logits, row-major) into the candidates with
 /// c > `min_confidence`, in original pixels:
-/// `x_in = (sigmoid(tx) + gx) * stride`, `x = x_in * scale_x - 0.5` (likewise y), `c = sigmoid(tc)`.
+/// `x_in = (sigmoid(tx) + gx) * stride`, `x = (x_in - offset_x) * scale_x - 0.5` (likewise y),
+/// `c = sigmoid(tc)`.
 /// Returns an empty list if `raw` is shorter than the geometry says.
 pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Vec<Detection> {
     let g = geometry;
@@ -106,7 +111,10 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
                     continue;
                 }
                 out.push(Detection {
-                    position: Point2::new(x_in * g.scale_x - 0.5, y_in * g.scale_y - 0.5),
+                    position: Point2::new(
+                        (x_in - g.offset_x) * g.scale_x - 0.5,
+                        (y_in - g.offset_y) * g.scale_y - 0.5,
+                    ),
                     confidence: c,
                 });
             }
@@ -428,6 +436,8 @@ mod tests {
             stride: 8.0,
             scale_x: 2.0,
             scale_y: 0.5,
+            offset_x: 0.0,
+            offset_y: 0.0,
         };
         let mut raw = vec![-10.0f32; g.values_per_image()];
         // cell (gy=1, gx=2), slot 1: sigmoid(tx)=0.25, sigmoid(ty)=0.75, c=0.9
@@ -463,6 +473,8 @@ mod tests {
             stride: 4.0,
             scale_x: 1.0,
             scale_y: 1.0,
+            offset_x: 0.0,
+            offset_y: 0.0,
         };
         let raw = [0.0, 0.0, logit(0.4), 0.0, 0.0, logit(0.41), 0.0, 0.0, logit(0.1)];
         let c: Vec<f32> = decode(&raw, &g, 0.4).iter().map(|d| d.confidence).collect();

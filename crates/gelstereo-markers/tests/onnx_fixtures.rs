@@ -305,3 +305,45 @@ fn wrong_metadata_is_named() {
         .to_string();
     assert!(err.contains("'contract'"), "{err}");
 }
+
+/// `InputFit::Pad`: isotropic scale, centred, mirrored border; the mapping back puts the input's centre
+/// on the image's centre, and nothing is reported in the padding.
+#[test]
+fn padded_fit_maps_back_to_the_image() {
+    let mut m = marknet().with_mre(mre()).unwrap();
+    m.set_fit(gelstereo_markers::InputFit::Pad);
+    // 80x60 into 64x64: scale 0.8 -> 64x48, 8 rows of padding above and below.
+    let g = m.geometry(gelstereo_core::ImageSize {
+        width: 80,
+        height: 60,
+    });
+    assert_eq!(
+        (g.scale_x, g.scale_y, g.offset_x, g.offset_y),
+        (1.25, 1.25, 0.0, 8.0)
+    );
+    let centre = Point2::new(
+        (32.0 - g.offset_x) * g.scale_x - 0.5,
+        (32.0 - g.offset_y) * g.scale_y - 0.5,
+    );
+    assert_eq!(centre, Point2::new(39.5, 29.5));
+    // Small images are never enlarged: 40x30 sits at scale 1 in the middle.
+    let g = m.geometry(gelstereo_core::ImageSize {
+        width: 40,
+        height: 30,
+    });
+    assert_eq!(
+        (g.scale_x, g.scale_y, g.offset_x, g.offset_y),
+        (1.0, 1.0, 12.0, 17.0)
+    );
+    let img = image("dots_80x60.png");
+    let found = m.detect(&img).unwrap();
+    assert!(
+        found
+            .iter()
+            .all(|d| (-0.5..=79.5).contains(&d.position.x) && (-0.5..=59.5).contains(&d.position.y))
+    );
+    // A shape the stretch rejects is fine when padded.
+    let wide = Mat::new_rows_cols_with_default(20, 200, CV_8UC3, Scalar::all(128.0)).unwrap();
+    assert!(m.detect(&wide).is_ok());
+    assert!("squash".parse::<gelstereo_markers::InputFit>().is_err());
+}
