@@ -489,6 +489,13 @@ impl ReferenceLattice {
                 min_fraction: config.min_reference_fraction,
             });
         }
+        let outliers = irregular_nodes(&points, node_det, h, w, 0.35 * pitch_px);
+        if outliers * 20 > found {
+            return Err(Error::IrregularLattice {
+                outliers,
+                markers: found,
+            });
+        }
         // Fill missing nodes from a regular lattice through the observed ones (basis from their
         // row/column differences), corrected by the local fit of the grower.
         let basis = lattice_basis(&points, node_det, w);
@@ -819,4 +826,110 @@ fn fill_prior(reference: &[Point2], prior: &[Option<Point2>], h: usize, w: usize
             Point2::new(r.x + dx, r.y + dy)
         })
         .collect()
+}
+
+/// Number of indexed reference markers farther than `limit_px` from a smooth fit of the lattice: a
+/// cubic polynomial in (col, row) for each image coordinate, which holds perspective and lens
+/// distortion of a gel at rest but not a slip of the indexing (a block of markers one row or column
+/// off). Fitted twice, the second time without the first fit's outliers.
+fn irregular_nodes(points: &[Point2], node_det: &[u32], h: usize, w: usize, limit_px: f64) -> usize {
+    type M10 = nalgebra::SMatrix<f64, 10, 10>;
+    type V10 = nalgebra::SVector<f64, 10>;
+    let basis = |n: usize| -> V10 {
+        let c = (n % w) as f64 / (w.max(2) - 1) as f64 - 0.5;
+        let r = (n / w) as f64 / (h.max(2) - 1) as f64 - 0.5;
+        V10::from_column_slice(&[
+            1.0,
+            c,
+            r,
+            c * c,
+            c * r,
+            r * r,
+            c * c * c,
+            c * c * r,
+            c * r * r,
+            r * r * r,
+        ])
+    };
+    let nodes: Vec<(V10, Point2)> = node_det
+        .iter()
+        .enumerate()
+        .filter(|(_, d)| **d != NONE)
+        .map(|(n, &d)| (basis(n), points[d as usize]))
+        .collect();
+    if nodes.len() < 20 {
+        return 0;
+    }
+    let fit = |keep: &dyn Fn(usize) -> bool| -> Option<(V10, V10)> {
+        let (mut a, mut bx, mut by) = (M10::zeros(), V10::zeros(), V10::zeros());
+        for (i, (b, p)) in nodes.iter().enumerate() {
+            if keep(i) {
+                a += b * b.transpose();
+                bx += b * p.x;
+                by += b * p.y;
+            }
+        }
+        let lu = a.lu();
+        Some((lu.solve(&bx)?, lu.solve(&by)?))
+    };
+    let residual = |coef: &(V10, V10), i: usize| {
+        let (b, p) = &nodes[i];
+        (coef.0.dot(b) - p.x).hypot(coef.1.dot(b) - p.y)
+    };
+    let Some(first) = fit(&|_| true) else { return 0 };
+    let inlier: Vec<bool> = (0..nodes.len())
+        .map(|i| residual(&first, i) <= limit_px)
+        .collect();
+    let Some(second) = fit(&|i| inlier[i]) else {
+        return 0;
+    };
+    (0..nodes.len())
+        .filter(|&i| residual(&second, i) > limit_px)
+        .count()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 23 x 23 lattice under perspective and barrel distortion (pitch ~15 px).
+    fn distorted_lattice() -> Vec<Point2> {
+        (0..23 * 23)
+            .map(|n| {
+                let (c, r) = ((n % 23) as f64 - 11.0, (n / 23) as f64 - 11.0);
+                let (x, y, z) = (c * 0.6, r * 0.6, 25.0 + 0.04 * c * 0.6);
+                let (u, v) = (x / z, y / z);
+                let k = 1.0 - 0.12 * (u * u + v * v);
+                Point2::new(320.0 + 600.0 * u * k, 240.0 + 600.0 * v * k)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_smooth_lattice_is_regular_and_a_slipped_block_is_not() {
+        let pts = distorted_lattice();
+        let ident: Vec<u32> = (0..pts.len() as u32).collect();
+        assert_eq!(irregular_nodes(&pts, &ident, 23, 23, 0.35 * 14.4), 0);
+        // Rows 8-13 indexed one column off (each node holds its right neighbour's detection). (A
+        // slipped block at the border is partly absorbed by the cubic and caught less well.)
+        let block = |n: usize| (8..14).contains(&(n / 23));
+        let slipped: Vec<u32> = (0..pts.len())
+            .map(|n| match (block(n), n % 23 < 22) {
+                (true, true) => (n + 1) as u32,
+                (true, false) => NONE,
+                (false, _) => n as u32,
+            })
+            .collect();
+        let outliers = irregular_nodes(&pts, &slipped, 23, 23, 0.35 * 14.4);
+        assert!(outliers >= 60, "{outliers}");
+        let err = ReferenceLattice::from_assignment(
+            pts,
+            GridShape::REFERENCE,
+            &slipped,
+            14.4,
+            IndexingConfig::default(),
+        )
+        .unwrap_err();
+        assert!(matches!(err, Error::IrregularLattice { .. }), "{err}");
+    }
 }

@@ -100,6 +100,19 @@ pub enum Error {
         /// The configured minimum fraction.
         min_fraction: f64,
     },
+    /// The indexed reference frame is not a regular lattice (noisy detections or a gel not at
+    /// rest slipped the indexing by a row or column somewhere).
+    #[error(
+        "reference frame: {outliers} of {markers} indexed markers lie more than 0.35 pitch from a smooth \
+         fit of the lattice: expected a regular grid of markers at rest (detections too inaccurate, \
+         or contact in the reference frame?)"
+    )]
+    IrregularLattice {
+        /// Markers off the fit.
+        outliers: usize,
+        /// Markers indexed.
+        markers: usize,
+    },
     /// A prior of the wrong length.
     #[error("prior: {found} positions, expected one per lattice node ({expected})")]
     PriorLength {
