@@ -489,11 +489,13 @@ impl ReferenceLattice {
                 min_fraction: config.min_reference_fraction,
             });
         }
-        let outliers = irregular_nodes(&points, node_det, h, w, 0.35 * pitch_px);
-        if outliers * 20 > found {
+        let regularity = irregular_nodes(&points, node_det, h, w, 0.35 * pitch_px);
+        if regularity.refused(found) {
             return Err(Error::IrregularLattice {
-                outliers,
+                outliers: regularity.outliers,
                 markers: found,
+                broken_steps: regularity.broken_edges,
+                steps: regularity.edges,
             });
         }
         // Fill missing nodes from a regular lattice through the observed ones (basis from their
@@ -828,11 +830,30 @@ fn fill_prior(reference: &[Point2], prior: &[Option<Point2>], h: usize, w: usize
         .collect()
 }
 
-/// Number of indexed reference markers farther than `limit_px` from a smooth fit of the lattice: a
-/// cubic polynomial in (col, row) for each image coordinate, which holds perspective and lens
-/// distortion of a gel at rest but not a slip of the indexing (a block of markers one row or column
-/// off). Fitted twice, the second time without the first fit's outliers.
-fn irregular_nodes(points: &[Point2], node_det: &[u32], h: usize, w: usize, limit_px: f64) -> usize {
+/// How far the indexed reference markers are from a regular lattice.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Regularity {
+    /// Markers farther than the limit from the smooth fit.
+    outliers: usize,
+    /// Neighbour steps (right or down) that differ from the fit's by more than twice the limit.
+    broken_edges: usize,
+    /// Neighbour steps checked.
+    edges: usize,
+}
+
+impl Regularity {
+    /// Refused: more than 5% of the markers off the fit, or more than 1% (at least 5) of the steps
+    /// broken (a slipped block of ids breaks every step along its border).
+    fn refused(&self, markers: usize) -> bool {
+        self.outliers * 20 > markers || (self.broken_edges >= 5 && self.broken_edges * 100 > self.edges)
+    }
+}
+
+/// Regularity of the indexed reference markers against a smooth fit of the lattice: a cubic
+/// polynomial in (col, row) for each image coordinate, which holds perspective and lens distortion
+/// of a gel at rest but not a slip of the indexing (a block of markers one row or column off).
+/// Fitted twice, the second time without the first fit's outliers (farther than `limit_px`).
+fn irregular_nodes(points: &[Point2], node_det: &[u32], h: usize, w: usize, limit_px: f64) -> Regularity {
     type M10 = nalgebra::SMatrix<f64, 10, 10>;
     type V10 = nalgebra::SVector<f64, 10>;
     let basis = |n: usize| -> V10 {
@@ -858,7 +879,7 @@ fn irregular_nodes(points: &[Point2], node_det: &[u32], h: usize, w: usize, limi
         .map(|(n, &d)| (basis(n), points[d as usize]))
         .collect();
     if nodes.len() < 20 {
-        return 0;
+        return Regularity::default();
     }
     let fit = |keep: &dyn Fn(usize) -> bool| -> Option<(V10, V10)> {
         let (mut a, mut bx, mut by) = (M10::zeros(), V10::zeros(), V10::zeros());
@@ -876,16 +897,50 @@ fn irregular_nodes(points: &[Point2], node_det: &[u32], h: usize, w: usize, limi
         let (b, p) = &nodes[i];
         (coef.0.dot(b) - p.x).hypot(coef.1.dot(b) - p.y)
     };
-    let Some(first) = fit(&|_| true) else { return 0 };
+    let Some(first) = fit(&|_| true) else {
+        return Regularity::default();
+    };
     let inlier: Vec<bool> = (0..nodes.len())
         .map(|i| residual(&first, i) <= limit_px)
         .collect();
     let Some(second) = fit(&|i| inlier[i]) else {
-        return 0;
+        return Regularity::default();
     };
-    (0..nodes.len())
+    let outliers = (0..nodes.len())
         .filter(|&i| residual(&second, i) > limit_px)
-        .count()
+        .count();
+    // Steps between indexed neighbours against the fit's steps: a slipped block breaks the edges
+    // along its border even where the smooth fit bends to absorb it.
+    let at = |n: usize| -> Point2 {
+        let b = basis(n);
+        Point2::new(second.0.dot(&b), second.1.dot(&b))
+    };
+    let (mut edges, mut broken_edges) = (0, 0);
+    for n in 0..h * w {
+        if node_det[n] == NONE {
+            continue;
+        }
+        for m in [(n % w + 1 < w).then_some(n + 1), (n + w < h * w).then_some(n + w)]
+            .into_iter()
+            .flatten()
+        {
+            if node_det[m] == NONE {
+                continue;
+            }
+            let (p, q) = (points[node_det[n] as usize], points[node_det[m] as usize]);
+            let (e, f) = (at(n), at(m));
+            edges += 1;
+            let dev = ((q.x - p.x) - (f.x - e.x)).hypot((q.y - p.y) - (f.y - e.y));
+            if dev > 2.0 * limit_px {
+                broken_edges += 1;
+            }
+        }
+    }
+    Regularity {
+        outliers,
+        broken_edges,
+        edges,
+    }
 }
 
 #[cfg(test)]
@@ -909,7 +964,11 @@ mod tests {
     fn a_smooth_lattice_is_regular_and_a_slipped_block_is_not() {
         let pts = distorted_lattice();
         let ident: Vec<u32> = (0..pts.len() as u32).collect();
-        assert_eq!(irregular_nodes(&pts, &ident, 23, 23, 0.35 * 14.4), 0);
+        let clean = irregular_nodes(&pts, &ident, 23, 23, 0.35 * 14.4);
+        assert_eq!(
+            (clean.outliers, clean.broken_edges, clean.edges),
+            (0, 0, 2 * 22 * 23)
+        );
         // Rows 8-13 indexed one column off (each node holds its right neighbour's detection). (A
         // slipped block at the border is partly absorbed by the cubic and caught less well.)
         let block = |n: usize| (8..14).contains(&(n / 23));
@@ -920,8 +979,22 @@ mod tests {
                 (false, _) => n as u32,
             })
             .collect();
-        let outliers = irregular_nodes(&pts, &slipped, 23, 23, 0.35 * 14.4);
-        assert!(outliers >= 60, "{outliers}");
+        let r = irregular_nodes(&pts, &slipped, 23, 23, 0.35 * 14.4);
+        assert!(r.outliers >= 60 && r.refused(523), "{r:?}");
+        // At the border the cubic absorbs part of the slip (fewer than 5% off the fit), but the
+        // steps along the block's edge break.
+        let border: Vec<u32> = (0..pts.len())
+            .map(|n| match (n / 23 < 4, n % 23 < 22) {
+                (true, true) => (n + 1) as u32,
+                (true, false) => NONE,
+                (false, _) => n as u32,
+            })
+            .collect();
+        let r = irregular_nodes(&pts, &border, 23, 23, 0.35 * 14.4);
+        assert!(
+            r.outliers * 20 <= 525 && r.broken_edges >= 20 && r.refused(525),
+            "{r:?}"
+        );
         let err = ReferenceLattice::from_assignment(
             pts,
             GridShape::REFERENCE,

@@ -104,14 +104,18 @@ pub enum Error {
     /// rest slipped the indexing by a row or column somewhere).
     #[error(
         "reference frame: {outliers} of {markers} indexed markers lie more than 0.35 pitch from a smooth \
-         fit of the lattice: expected a regular grid of markers at rest (detections too inaccurate, \
-         or contact in the reference frame?)"
+         fit of the lattice and {broken_steps} of {steps} neighbour steps are broken: expected a regular \
+         grid of markers at rest (detections too inaccurate, or contact in the reference frame?)"
     )]
     IrregularLattice {
         /// Markers off the fit.
         outliers: usize,
         /// Markers indexed.
         markers: usize,
+        /// Neighbour steps that differ from the fit's by more than 0.7 pitch.
+        broken_steps: usize,
+        /// Neighbour steps checked.
+        steps: usize,
     },
     /// A prior of the wrong length.
     #[error("prior: {found} positions, expected one per lattice node ({expected})")]
