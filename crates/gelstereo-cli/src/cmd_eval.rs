@@ -37,6 +37,9 @@ pub struct Args {
     /// SimpleBlobDetector parameters that define the hard split (`tuned`, `default` or a JSON file).
     #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
     hard_blob_params: String,
+    /// Evaluate every N-th frame of each experiment (frames 0, N, 2N, ...; the trainer's --frame-step).
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    frame_step: usize,
     /// Evaluate at most this many frames per experiment (evenly spaced; 0 = all).
     #[arg(long, default_value_t = 0)]
     frames_per_experiment: usize,
@@ -195,6 +198,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let started = Instant::now();
     for exp in &experiments {
         let mut frames = read_experiment(exp)?;
+        if args.frame_step > 1 {
+            frames = frames.into_iter().step_by(args.frame_step).collect();
+        }
         if args.frames_per_experiment > 0 && frames.len() > args.frames_per_experiment {
             let n = frames.len();
             let k = args.frames_per_experiment;
