@@ -92,7 +92,7 @@ impl LocalizerArgs {
 /// Arguments of `gelstereo detect`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Localization method: blob, marknet or marknet-mre.
+    /// Localization method: blob, yolo, marknet or marknet-mre.
     #[arg(long, default_value = "marknet-mre")]
     method: Method,
     /// CSV output (`image,x,y,confidence`); standard output when absent.
