@@ -10,6 +10,6 @@ OUT="$ROOT/out/sample"
 mkdir -p "$OUT"
 "$BIN" --version
 "$BIN" doctor
-echo "results in $OUT"
 # Tracking, contact geometry and slip on the sample press-then-slide recording (calibration: its calib.yaml).
 "$BIN" track --out "$OUT/track" "$ROOT/data/sample/press-slide"
+echo "results in $OUT/track: markers.csv, frames.csv, ply/, overlays/, plots/"

@@ -18,7 +18,7 @@ pub struct Args {
 /// How much a missing component matters.
 #[derive(Clone, Copy, PartialEq)]
 enum Need {
-    /// The pipeline cannot run without it: doctor fails.
+    /// The default pipeline (Marknet-MRE) cannot run without it: doctor fails.
     Required,
     /// Only some commands need it (training, a given sensor): reported, doctor still passes.
     Optional,
@@ -53,13 +53,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         },
         Check {
             name: "Marknet model",
-            need: Need::Optional,
+            need: Need::Required,
             outcome: model_summary(&models.join("marknet.onnx")),
             fix: "train/retrain.sh retrains it, or restore data/models/ from git",
         },
         Check {
             name: "MRE model",
-            need: Need::Optional,
+            need: Need::Required,
             outcome: model_summary(&models.join("mre.onnx")),
             fix: "train/retrain.sh retrains it, or restore data/models/ from git",
         },
