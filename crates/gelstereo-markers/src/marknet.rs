@@ -84,15 +84,16 @@ fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error 
 }
 
 /// A loaded model: its session, `metadata_props`, and input / output signatures.
-struct Opened {
-    session: Session,
-    metadata: BTreeMap<String, String>,
-    inputs: Vec<TensorSpec>,
-    outputs: Vec<TensorSpec>,
+pub(crate) struct Opened {
+    pub(crate) session: Session,
+    pub(crate) metadata: BTreeMap<String, String>,
+    pub(crate) inputs: Vec<TensorSpec>,
+    pub(crate) outputs: Vec<TensorSpec>,
 }
 
-/// Loads a model file into a session, and reads its metadata and signature.
-fn open_session(path: &Path, options: &SessionOptions) -> Result<Opened> {
+/// Loads a model file into a session, and reads its metadata and signature (every ONNX localizer
+/// opens its model through this one function).
+pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Opened> {
     std::fs::metadata(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,

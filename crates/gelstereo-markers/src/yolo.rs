@@ -27,12 +27,11 @@ use gelstereo_core::{Detection, ImageSize, Point2, StereoPair};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
 use opencv::imgproc;
 use ort::session::Session;
-use ort::session::builder::GraphOptimizationLevel;
-use ort::value::{TensorRef, ValueType};
+use ort::value::TensorRef;
 
 use crate::contract::TensorSpec;
-use crate::marknet::{MAX_ASPECT_DISTORTION, SessionOptions, cuda_available};
-use crate::{Error, Localizer, Result, check_image, cv_err, runtime, sort_detections};
+use crate::marknet::{MAX_ASPECT_DISTORTION, Opened, SessionOptions, open_session};
+use crate::{Error, Localizer, Result, check_image, cv_err, sort_detections};
 
 /// The `contract` value of a YOLO model this loader understands.
 pub const YOLO_CONTRACT: &str = "gelstereo-yolo/1";
@@ -495,50 +494,12 @@ impl std::fmt::Debug for YoloLocalizer {
 impl YoloLocalizer {
     /// Loads `path` into ONNX Runtime and checks its contract.
     pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
-        std::fs::metadata(path).map_err(|source| Error::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let rt = runtime::init()?;
-        let load = onnx_err(path, "loading the model");
-        let mut builder = Session::builder(&rt.environment)
-            .map_err(|e| load(e.to_string()))?
-            .with_optimization_level(GraphOptimizationLevel::Level3)
-            .map_err(|e| load(e.to_string()))?;
-        if options.intra_threads > 0 {
-            builder = builder
-                .with_intra_threads(options.intra_threads)
-                .map_err(|e| load(e.to_string()))?;
-        }
-        if options.use_cuda && cuda_available() {
-            builder = builder
-                .with_execution_providers([ort::ep::CUDA::default().build()])
-                .map_err(|e| load(e.to_string()))?;
-        }
-        let session = builder.commit_from_file(path).map_err(|e| load(e.to_string()))?;
-        let meta_err = onnx_err(path, "reading metadata_props");
-        let metadata = session.metadata().map_err(|e| meta_err(e.to_string()))?;
-        let mut map = BTreeMap::new();
-        for key in metadata.custom_keys().map_err(|e| meta_err(e.to_string()))? {
-            if let Some(v) = metadata.custom(&key) {
-                map.insert(key, v);
-            }
-        }
-        drop(metadata);
-        let spec = |o: &ort::value::Outlet| match o.dtype() {
-            ValueType::Tensor { ty, shape, .. } => TensorSpec {
-                name: o.name().to_owned(),
-                float32: *ty == ort::value::TensorElementType::Float32,
-                dims: shape.to_vec(),
-            },
-            _ => TensorSpec {
-                name: o.name().to_owned(),
-                float32: false,
-                dims: Vec::new(),
-            },
-        };
-        let inputs: Vec<TensorSpec> = session.inputs().iter().map(spec).collect();
-        let outputs: Vec<TensorSpec> = session.outputs().iter().map(spec).collect();
+        let Opened {
+            session,
+            metadata: map,
+            inputs,
+            outputs,
+        } = open_session(path, options)?;
         let contract = YoloContract::from_model(path, &map, &inputs, &outputs)?;
         Ok(Self {
             path: path.to_path_buf(),
