@@ -107,27 +107,14 @@ fn model_summary(path: &Path) -> Result<String, String> {
     if !path.exists() {
         return Err(format!("{} not found", path.display()));
     }
-    let rt = gelstereo_markers::runtime::init().map_err(|e| e.to_string())?;
-    let session = ort::session::Session::builder(&rt.environment)
-        .and_then(|mut b| b.commit_from_file(path))
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    let meta = session
-        .metadata()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut keys = meta
-        .custom_keys()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    keys.sort();
-    let props: Vec<String> = keys
-        .iter()
-        .filter_map(|k| meta.custom(k).map(|v| format!("{k}={v}")))
-        .collect();
-    if props.is_empty() {
+    let metadata = gelstereo_markers::marknet::model_metadata(path).map_err(|e| e.to_string())?;
+    if metadata.is_empty() {
         return Err(format!(
             "{} has no metadata_props (contract missing)",
             path.display()
         ));
     }
+    let props: Vec<String> = metadata.iter().map(|(k, v)| format!("{k}={v}")).collect();
     Ok(format!("{} [{}]", path.display(), props.join(", ")))
 }
 

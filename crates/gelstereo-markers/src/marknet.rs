@@ -152,6 +152,11 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
     })
 }
 
+/// Opens an ONNX model and returns its `metadata_props`, sorted by key (what `gelstereo doctor` reports).
+pub fn model_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
+    Ok(open_session(path, &SessionOptions::default())?.metadata)
+}
+
 /// Whether this ONNX Runtime build includes the CUDA execution provider.
 pub fn cuda_available() -> bool {
     use ort::ep::ExecutionProvider as _;
