@@ -127,7 +127,7 @@ impl Meta<'_> {
     }
 }
 
-fn dims_text(dims: &[i64]) -> String {
+pub(crate) fn dims_text(dims: &[i64]) -> String {
     let parts: Vec<String> = dims
         .iter()
         .map(|d| if *d < 0 { "N".to_owned() } else { d.to_string() })
@@ -137,7 +137,7 @@ fn dims_text(dims: &[i64]) -> String {
 
 /// Checks that `specs` is exactly one tensor named `name`, float32, whose dims match `expected`
 /// (`None` = any size, dynamic included; `Some(n)` = n, or dynamic).
-fn check_signature(
+pub(crate) fn check_signature(
     path: &Path,
     role: &str,
     specs: &[TensorSpec],

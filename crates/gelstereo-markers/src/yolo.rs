@@ -29,7 +29,7 @@ use opencv::imgproc;
 use ort::session::Session;
 use ort::value::TensorRef;
 
-use crate::contract::TensorSpec;
+use crate::contract::{TensorSpec, check_signature};
 use crate::marknet::{MAX_ASPECT_DISTORTION, Opened, SessionOptions, open_session};
 use crate::{Error, Localizer, Result, check_image, cv_err, sort_detections};
 
@@ -114,70 +114,6 @@ fn contract_err(path: &Path, key: &str, expected: impl Into<String>, found: impl
         expected: expected.into(),
         found: found.into(),
     }
-}
-
-fn dims_text(dims: &[i64]) -> String {
-    let parts: Vec<String> = dims
-        .iter()
-        .map(|d| if *d < 0 { "N".to_owned() } else { d.to_string() })
-        .collect();
-    format!("[{}]", parts.join(", "))
-}
-
-/// Checks that `specs` is exactly one float32 tensor named `name` whose dims match `expected`
-/// (`None` = any; a dynamic model dim matches anything).
-fn check_signature(
-    path: &Path,
-    role: &str,
-    specs: &[TensorSpec],
-    name: &str,
-    expected: &[Option<i64>],
-) -> Result<()> {
-    let exp_text = format!(
-        "one float32 {role} '{name}' of shape [{}]",
-        expected
-            .iter()
-            .map(|d| d.map_or("N".to_owned(), |v| v.to_string()))
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    let [spec] = specs else {
-        let names: Vec<&str> = specs.iter().map(|s| s.name.as_str()).collect();
-        return Err(contract_err(
-            path,
-            name,
-            exp_text,
-            format!("{} {role}s ({})", specs.len(), names.join(", ")),
-        ));
-    };
-    if spec.name != name {
-        return Err(contract_err(
-            path,
-            name,
-            exp_text,
-            format!("{role} '{}'", spec.name),
-        ));
-    }
-    let shape_ok = spec.dims.len() == expected.len()
-        && spec
-            .dims
-            .iter()
-            .zip(expected)
-            .all(|(d, e)| *d < 0 || e.is_none_or(|e| e == *d));
-    if !spec.float32 || !shape_ok {
-        let kind = if spec.float32 {
-            "float32"
-        } else {
-            "a non-float32 tensor"
-        };
-        return Err(contract_err(
-            path,
-            name,
-            exp_text,
-            format!("{kind} of shape {}", dims_text(&spec.dims)),
-        ));
-    }
-    Ok(())
 }
 
 impl YoloContract {
