@@ -75,7 +75,7 @@ impl Default for SessionOptions {
     }
 }
 
-fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error + 'a {
+pub(crate) fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error + 'a {
     move |message| Error::Onnx {
         path: path.to_path_buf(),
         what,
@@ -150,6 +150,92 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
         inputs,
         outputs,
     })
+}
+
+/// `UNIT_LUT[v] = v / 255`: 8-bit pixel values to the network's [0, 1] floats.
+const UNIT_LUT: [f32; 256] = {
+    let mut t = [0f32; 256];
+    let mut i = 0;
+    while i < 256 {
+        t[i] = i as f32 / 255.0;
+        i += 1;
+    }
+    t
+};
+
+/// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
+/// (the contract's whole-image stretch would distort markers beyond what training covered).
+pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32) -> Result<()> {
+    let img = f64::from(size.width) / f64::from(size.height);
+    let net = f64::from(input_width) / f64::from(input_height);
+    let ratio = if img > net { img / net } else { net / img };
+    if ratio > MAX_ASPECT_DISTORTION {
+        return Err(Error::Image {
+            property: "size",
+            expected: format!(
+                "an aspect ratio within {MAX_ASPECT_DISTORTION}x of the network input {input_width}x{input_height}"
+            ),
+            found: format!("{}x{}", size.width, size.height),
+        });
+    }
+    Ok(())
+}
+
+/// Writes `src` (8-bit grey, BGR or BGRA, already of the network input size) into `plane` as planar
+/// RGB f32 in [0, 1] (`plane.len()` = 3 x pixels; grey is replicated, alpha dropped).
+pub(crate) fn write_planar_rgb(src: &Mat, plane: &mut [f32]) -> Result<()> {
+    let owned;
+    let src = if src.is_continuous() {
+        src
+    } else {
+        owned = src
+            .try_clone()
+            .map_err(cv_err("copy of a non-continuous image"))?;
+        &owned
+    };
+    let bytes = src.data_bytes().map_err(cv_err("image data"))?;
+    let hw = plane.len() / 3;
+    let (r, rest) = plane.split_at_mut(hw);
+    let (g, b) = rest.split_at_mut(hw);
+    let lut = &UNIT_LUT;
+    match src.channels() {
+        1 => {
+            for (i, &v) in bytes.iter().take(hw).enumerate() {
+                let v = lut[usize::from(v)];
+                (r[i], g[i], b[i]) = (v, v, v);
+            }
+        }
+        3 => {
+            for (((px, r), g), b) in bytes
+                .chunks_exact(3)
+                .zip(r.iter_mut())
+                .zip(g.iter_mut())
+                .zip(b.iter_mut())
+            {
+                (*b, *g, *r) = (
+                    lut[usize::from(px[0])],
+                    lut[usize::from(px[1])],
+                    lut[usize::from(px[2])],
+                );
+            }
+        }
+        n => {
+            let n = n as usize;
+            for (((px, r), g), b) in bytes
+                .chunks_exact(n)
+                .zip(r.iter_mut())
+                .zip(g.iter_mut())
+                .zip(b.iter_mut())
+            {
+                (*b, *g, *r) = (
+                    lut[usize::from(px[0])],
+                    lut[usize::from(px[1])],
+                    lut[usize::from(px[2])],
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Opens an ONNX model and returns its `metadata_props`, sorted by key (what `gelstereo doctor` reports).
@@ -241,7 +327,6 @@ pub struct Marknet {
     resized: Mat,
     padded: Mat,
     input: Vec<f32>,
-    lut: [f32; 256],
 }
 
 impl std::fmt::Debug for Marknet {
@@ -265,10 +350,6 @@ impl Marknet {
             outputs,
         } = open_session(path, options)?;
         let contract = MarknetContract::from_model(path, &meta, &inputs, &outputs)?;
-        let mut lut = [0f32; 256];
-        for (i, v) in lut.iter_mut().enumerate() {
-            *v = i as f32 / 255.0;
-        }
         Ok(Self {
             path: path.to_path_buf(),
             session,
@@ -279,7 +360,6 @@ impl Marknet {
             resized: Mat::default(),
             padded: Mat::default(),
             input: Vec::new(),
-            lut,
         })
     }
 
@@ -330,23 +410,6 @@ impl Marknet {
         self.mre.is_some()
     }
 
-    fn check_size(&self, size: ImageSize) -> Result<()> {
-        let img = f64::from(size.width) / f64::from(size.height);
-        let net = f64::from(self.contract.input_width) / f64::from(self.contract.input_height);
-        let ratio = if img > net { img / net } else { net / img };
-        if ratio > MAX_ASPECT_DISTORTION {
-            return Err(Error::Image {
-                property: "size",
-                expected: format!(
-                    "an aspect ratio within {MAX_ASPECT_DISTORTION}x of the network input {}x{}",
-                    self.contract.input_width, self.contract.input_height
-                ),
-                found: format!("{}x{}", size.width, size.height),
-            });
-        }
-        Ok(())
-    }
-
     /// Resizes `image` to the network input (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
     /// centres, no antialiasing) and writes it as planar RGB f32 in [0, 1] into batch slot `slot`.
     ///
@@ -360,7 +423,7 @@ impl Marknet {
         );
         let src: &Mat = match self.fit {
             InputFit::Stretch => {
-                self.check_size(size)?;
+                check_aspect(size, self.contract.input_width, self.contract.input_height)?;
                 if image.cols() == iw && image.rows() == ih {
                     image
                 } else {
@@ -414,58 +477,8 @@ impl Marknet {
                 &self.padded
             }
         };
-        let owned;
-        let src = if src.is_continuous() {
-            src
-        } else {
-            owned = src
-                .try_clone()
-                .map_err(cv_err("copy of a non-continuous image"))?;
-            &owned
-        };
-        let bytes = src.data_bytes().map_err(cv_err("image data"))?;
         let hw = (iw * ih) as usize;
-        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        let (r, rest) = plane.split_at_mut(hw);
-        let (g, b) = rest.split_at_mut(hw);
-        let lut = &self.lut;
-        match src.channels() {
-            1 => {
-                for (i, &v) in bytes.iter().take(hw).enumerate() {
-                    let v = lut[usize::from(v)];
-                    (r[i], g[i], b[i]) = (v, v, v);
-                }
-            }
-            3 => {
-                for (((px, r), g), b) in bytes
-                    .chunks_exact(3)
-                    .zip(r.iter_mut())
-                    .zip(g.iter_mut())
-                    .zip(b.iter_mut())
-                {
-                    (*b, *g, *r) = (
-                        lut[usize::from(px[0])],
-                        lut[usize::from(px[1])],
-                        lut[usize::from(px[2])],
-                    );
-                }
-            }
-            n => {
-                let n = n as usize;
-                for (((px, r), g), b) in bytes
-                    .chunks_exact(n)
-                    .zip(r.iter_mut())
-                    .zip(g.iter_mut())
-                    .zip(b.iter_mut())
-                {
-                    (*b, *g, *r) = (
-                        lut[usize::from(px[0])],
-                        lut[usize::from(px[1])],
-                        lut[usize::from(px[2])],
-                    );
-                }
-            }
-        }
+        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])?;
         Ok(size)
     }
 

@@ -24,13 +24,13 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, Point2, StereoPair};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
+use opencv::core::{Mat, MatTraitConst, Size};
 use opencv::imgproc;
 use ort::session::Session;
 use ort::value::TensorRef;
 
 use crate::contract::{TensorSpec, check_signature};
-use crate::marknet::{MAX_ASPECT_DISTORTION, Opened, SessionOptions, open_session};
+use crate::marknet::{Opened, SessionOptions, check_aspect, onnx_err, open_session, write_planar_rgb};
 use crate::{Error, Localizer, Result, check_image, cv_err, sort_detections};
 
 /// The `contract` value of a YOLO model this loader understands.
@@ -399,14 +399,6 @@ pub fn model_path(config: &crate::LocalizerConfig) -> PathBuf {
     }
 }
 
-fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error + 'a {
-    move |message| Error::Onnx {
-        path: path.to_path_buf(),
-        what,
-        message,
-    }
-}
-
 /// The YOLOv3 localizer (`yolo`).
 pub struct YoloLocalizer {
     path: PathBuf,
@@ -467,17 +459,7 @@ impl YoloLocalizer {
     fn preprocess(&mut self, image: &Mat, slot: usize) -> Result<ImageSize> {
         let size = check_image(image)?;
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
-        let img_aspect = f64::from(size.width) / f64::from(size.height);
-        let net_aspect = f64::from(iw) / f64::from(ih);
-        if img_aspect.max(net_aspect) / img_aspect.min(net_aspect) > MAX_ASPECT_DISTORTION {
-            return Err(Error::Image {
-                property: "size",
-                expected: format!(
-                    "an aspect ratio within {MAX_ASPECT_DISTORTION}x of the network input {iw}x{ih}"
-                ),
-                found: format!("{}x{}", size.width, size.height),
-            });
-        }
+        check_aspect(size, iw, ih)?;
         let (iw, ih) = (iw as i32, ih as i32);
         let src: &Mat = if image.cols() == iw && image.rows() == ih {
             image
@@ -493,33 +475,8 @@ impl YoloLocalizer {
             .map_err(cv_err("resize to the network input"))?;
             &self.resized
         };
-        let owned;
-        let src = if src.is_continuous() {
-            src
-        } else {
-            owned = src
-                .try_clone()
-                .map_err(cv_err("copy of a non-continuous image"))?;
-            &owned
-        };
-        let bytes = src.data_bytes().map_err(cv_err("image data"))?;
         let hw = (iw * ih) as usize;
-        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        let (r, rest) = plane.split_at_mut(hw);
-        let (g, b) = rest.split_at_mut(hw);
-        let v = |x: u8| f32::from(x) / 255.0;
-        match src.channels() {
-            1 => {
-                for (i, &x) in bytes.iter().take(hw).enumerate() {
-                    (r[i], g[i], b[i]) = (v(x), v(x), v(x));
-                }
-            }
-            n => {
-                for (i, px) in bytes.chunks_exact(n as usize).take(hw).enumerate() {
-                    (b[i], g[i], r[i]) = (v(px[0]), v(px[1]), v(px[2]));
-                }
-            }
-        }
+        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])?;
         Ok(size)
     }
 
