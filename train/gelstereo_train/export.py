@@ -94,7 +94,15 @@ def _ort(path: Path):
 
 def export_marknet(model: Marknet, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
     """Export and verify; returns the max abs difference ONNX Runtime vs PyTorch on the raw output."""
+    return export_image_model(model, path, input_hw, metadata, seed)
+
+
+def export_image_model(model: torch.nn.Module, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
+    """Exports a network with the contract's `image` [N,3,H,W] -> `raw` [N,...] signature (Marknet, YOLO),
+    writes `metadata` into metadata_props and checks it in ONNX Runtime on 2 random images; returns the
+    max abs difference against PyTorch."""
     model = model.eval()
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     h, w = input_hw
     dummy = torch.rand(1, 3, h, w)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .export import OPSET, _ort, _set_metadata
+from .export import export_image_model
 from .yolo_model import OUTPUTS_PER_ANCHOR, TW_CLAMP, YoloV3
 from .yolo_post import YoloPost
 
@@ -72,30 +72,7 @@ def yolo_metadata(model: YoloV3, input_hw, dataset: str, trained: str, post: Yol
 
 def export_yolo(model: YoloV3, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
     """Export and verify; returns the max abs difference onnxruntime vs PyTorch on ``raw``."""
-    model = model.eval()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    h, w = input_hw
-    torch.onnx.export(
-        model,
-        (torch.rand(1, 3, h, w),),
-        str(path),
-        dynamo=False,
-        opset_version=OPSET,
-        input_names=["image"],
-        output_names=["raw"],
-        dynamic_axes={"image": {0: "batch"}, "raw": {0: "batch"}},
-        do_constant_folding=True,
-    )
-    _set_metadata(path, metadata)
-    g = torch.Generator().manual_seed(seed)
-    x = torch.rand(2, 3, h, w, generator=g)
-    with torch.no_grad():
-        ref = model(x).numpy()
-    got = _ort(path).run(["raw"], {"image": x.numpy()})[0]
-    if got.shape != ref.shape:
-        raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
-    return float(np.abs(got - ref).max())
+    return export_image_model(model, Path(path), input_hw, metadata, seed)
 
 
 def main(argv=None) -> int:
