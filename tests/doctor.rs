@@ -5,24 +5,19 @@
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
 use std::path::PathBuf;
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod common;
+use common::{gelstereo_command, text};
 
 fn gelstereo(args: &[&str], ort_dylib: Option<&PathBuf>) -> Output {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_gelstereo"));
+    let mut cmd = gelstereo_command();
     cmd.args(args);
     match ort_dylib {
         Some(p) => cmd.env("ORT_DYLIB_PATH", p),
         None => cmd.env_remove("ORT_DYLIB_PATH"),
     };
     cmd.output().expect("run gelstereo")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
 }
 
 #[test]

@@ -6,7 +6,10 @@
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+
+#[path = "../../../tests/common/mod.rs"]
+mod common;
+use common::{gelstereo, text};
 
 use opencv::core::{CV_8UC3, Mat, Point, Scalar, Vector};
 use opencv::{imgcodecs, imgproc};
@@ -15,21 +18,6 @@ const PITCH_PX: i32 = 20;
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/fixtures/onnx")
-}
-
-fn gelstereo(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_gelstereo"))
-        .args(args)
-        .output()
-        .expect("run gelstereo")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
 }
 
 fn fails_with(args: &[&str], needles: &[&str]) {

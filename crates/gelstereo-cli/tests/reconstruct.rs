@@ -7,22 +7,10 @@
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn gelstereo(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_gelstereo"))
-        .args(args)
-        .output()
-        .expect("run gelstereo")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
+#[path = "../../../tests/common/mod.rs"]
+mod common;
+use common::{gelstereo, text};
 
 fn ok(args: &[&str]) -> String {
     let out = gelstereo(args);
