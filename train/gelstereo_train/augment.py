@@ -1,8 +1,8 @@
 """Training batches: geometric sampling of crops with exact label mapping, and photometric
 augmentation for sim-to-real transfer. Everything is done batch-wise in PyTorch on the CPU.
 
-Geometry (per sample): either the *canonical* view (the whole image resized to the network input, as at
-inference, then a random crop) or a *jittered* view (marker pitch at the input drawn log-uniformly in
+Geometry (per sample): either the *canonical* view (the image scaled as the "auto" fit does at inference,
+``postprocess.fit_layout`` with its true marker pitch, then a random crop) or a *jittered* view (marker pitch at the input drawn log-uniformly in
 ``pitch_in_px``, independent x/y scale for anisotropic resizes, flips, a small rotation). Sampling is
 bilinear with half-pixel centres (OpenCV INTER_LINEAR / torch ``align_corners=False``), i.e. the same
 geometry as the inference resize. Labels are mapped with the same affine transform in continuous
@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
+
+from .postprocess import FitConfig, fit_layout
 
 
 @dataclass
@@ -55,8 +57,10 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng):
     """Affine map from crop continuous coords u to source continuous coords: p = c + A (u - crop/2)."""
     ch, cw = cfg.crop
     if rng.random() < cfg.p_canonical or not math.isfinite(pitch_px):
-        sx = cfg.input_size[1] / w_img
-        sy = cfg.input_size[0] / h_img
+        # As at inference ("auto" fit): isotropic, the scale fit_layout picks for this image and pitch.
+        lay = fit_layout(w_img, h_img, pitch_px, FitConfig(nominal_hw=cfg.input_size))
+        sx = lay.scaled_w / w_img
+        sy = lay.scaled_h / h_img
         rot = 0.0
         fx = fy = 1.0
     else:

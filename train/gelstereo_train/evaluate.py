@@ -21,15 +21,36 @@ import torch
 from .blob import BlobDetector
 from .data import list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
-from .postprocess import PostConfig, TorchMRE, decode_to_original, postprocess, preprocess
+from .postprocess import (
+    MIN_PITCH_SUPPORT,
+    FitConfig,
+    Layout,
+    PostConfig,
+    TorchMRE,
+    decode_layout,
+    decode_to_original,
+    fit_config_from_metadata,
+    fit_layout,
+    pitch_px,
+    postprocess,
+    preprocess,
+    preprocess_layout,
+    relayout_needed,
+)
 
 
 class MarknetRunner:
-    """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image."""
+    """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image.
 
-    def __init__(self, path: Path | str, threads: int = 2):
+    Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
+    docs/model-contract.md: a first pass without a pitch, then, when the measured marker pitch asks for a
+    scale more than ``RELAYOUT_SCALE_CHANGE`` away, a second pass at that scale (each image on its own, as
+    ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
+
+    def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None):
         path = Path(path)
         self.path = path
+        self.post = post or PostConfig()
         if path.suffix == ".onnx":
             import onnxruntime as ort
 
@@ -41,6 +62,7 @@ class MarknetRunner:
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = int(meta["stride"])
             self.model = None
+            self.fit = fit_config_from_metadata(meta) if meta.get("input_size") == "dynamic" else None
         else:
             from .train_marknet import load_checkpoint
 
@@ -48,6 +70,7 @@ class MarknetRunner:
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = self.model.stride
             self.sess = None
+            self.fit = FitConfig(nominal_hw=self.input_hw)
         self.meta = meta
 
     def raw(self, x: torch.Tensor) -> np.ndarray:
@@ -56,7 +79,34 @@ class MarknetRunner:
         with torch.no_grad():
             return self.model(x).numpy()
 
+    def layout(self, img: np.ndarray, pitch_px: float | None = None) -> Layout:
+        """The input layout of an image: "auto" fit for dynamic models, else the stretch."""
+        h, w = img.shape[:2]
+        if self.fit is None:
+            ih, iw = self.input_hw
+            return Layout(iw, ih, iw, ih, 0, 0)
+        return fit_layout(w, h, pitch_px, self.fit)
+
+    def run_layout(self, img: np.ndarray, lay: Layout) -> np.ndarray:
+        """Decoded candidates (flat, original px) of one image under one layout."""
+        raw = self.raw(preprocess_layout(img, lay))[0]
+        return decode_layout(raw, self.stride, (img.shape[1], img.shape[0]), lay)
+
+    def fitted(self, img: np.ndarray) -> tuple[np.ndarray, Layout]:
+        """Decoded candidates of one image and the layout they came from (two passes when needed)."""
+        lay = self.layout(img)
+        dec = self.run_layout(img, lay)
+        if self.fit is not None and int((dec[:, 2] > self.post.conf_keep).sum()) >= MIN_PITCH_SUPPORT:
+            pitch = pitch_px(dec[dec[:, 2] > self.post.conf_low], self.post.conf_keep)
+            better = self.layout(img, pitch)
+            if relayout_needed(lay, better):
+                lay = better
+                dec = self.run_layout(img, lay)
+        return dec, lay
+
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
+        if self.fit is not None:
+            return [self.fitted(im)[0] for im in images]
         out = []
         for i in range(0, len(images), batch):
             chunk = images[i : i + batch]
@@ -113,7 +163,8 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
             det = postprocess(dec, post, mre_fn)
-            in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), runner.input_hw[::-1]) >= min_pitch_in_px
+            lay = runner.layout(img, median_nn_distance(gt))
+            in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range
             for e in (ev, ev_in) if in_range else (ev,):
                 e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r)

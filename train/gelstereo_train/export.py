@@ -2,8 +2,8 @@
 
     python -m gelstereo_train.export --marknet runs/marknet.pt --mre runs/mre.pt --out-dir data/models
 
-torch.onnx.export(dynamo=False, opset 17) with fixed names (image -> raw, features -> score), a dynamic
-batch axis and the contract in metadata_props. Right after export each file is run in onnxruntime on
+torch.onnx.export(dynamo=False, opset 17) with fixed names (image -> raw, features -> score), dynamic
+batch (and, for Marknet, height and width) axes and the contract in metadata_props. Right after export each file is run in onnxruntime on
 random inputs and compared with PyTorch; the max abs difference is printed and stored in a JSON report.
 """
 
@@ -20,10 +20,11 @@ import torch
 from torch import nn
 
 from .model import MRE, Marknet
-from .postprocess import MISSING_DISTANCE, NEIGHBOURS, PostConfig
+from .postprocess import MISSING_DISTANCE, NEIGHBOURS, FitConfig, PostConfig, fit_metadata
 
 OPSET = 17
-MARKNET_CONTRACT = "gelstereo-marknet/1"
+MARKNET_CONTRACT = "gelstereo-marknet/2"
+MARKNET_CONTRACT_FIXED = "gelstereo-marknet/1"
 MRE_CONTRACT = "gelstereo-mre/1"
 
 
@@ -49,10 +50,15 @@ def _set_metadata(path: Path, props: dict) -> None:
     onnx.save(m, str(path))
 
 
-def marknet_metadata(model: Marknet, input_hw, dataset: str, trained: str, post: PostConfig) -> dict:
+def marknet_metadata(model: Marknet, input_hw, dataset: str, trained: str, post: PostConfig,
+                     fit: FitConfig | None = None, dynamic: bool = True) -> dict:
+    """The contract's metadata_props: ``gelstereo-marknet/2`` (dynamic input, "auto" fit) or, with
+    ``dynamic=False``, the fixed-input ``gelstereo-marknet/1`` (kept for the Rust loader's tests)."""
     h, w = input_hw
+    fit = fit or FitConfig(nominal_hw=(h, w))
     return {
-        "contract": MARKNET_CONTRACT,
+        **(fit_metadata(fit) if dynamic else {}),
+        "contract": MARKNET_CONTRACT if dynamic else MARKNET_CONTRACT_FIXED,
         "input_height": h,
         "input_width": w,
         "stride": model.stride,
@@ -92,15 +98,17 @@ def _ort(path: Path):
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
-def export_marknet(model: Marknet, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
-    """Export and verify; returns the max abs difference ONNX Runtime vs PyTorch on the raw output."""
-    return export_image_model(model, path, input_hw, metadata, seed)
+def export_marknet(model: Marknet, path: Path, input_hw, metadata: dict, seed: int = 0, dynamic: bool = True) -> float:
+    """Export (dynamic input height and width: contract v2) and verify at the nominal size and at a
+    non-square one; returns the max abs difference ONNX Runtime vs PyTorch on the raw output."""
+    return export_image_model(model, path, input_hw, metadata, seed, dynamic_hw=dynamic)
 
 
-def export_image_model(model: torch.nn.Module, path: Path, input_hw, metadata: dict, seed: int = 0) -> float:
+def export_image_model(model: torch.nn.Module, path: Path, input_hw, metadata: dict, seed: int = 0,
+                       dynamic_hw: bool = False) -> float:
     """Exports a network with the contract's `image` [N,3,H,W] -> `raw` [N,...] signature (Marknet, YOLO),
-    writes `metadata` into metadata_props and checks it in ONNX Runtime on 2 random images; returns the
-    max abs difference against PyTorch."""
+    writes `metadata` into metadata_props and checks it in ONNX Runtime on 2 random images (and, with a
+    dynamic input, on a second, non-square size); returns the max abs difference against PyTorch."""
     model = model.eval()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -114,18 +122,26 @@ def export_image_model(model: torch.nn.Module, path: Path, input_hw, metadata: d
         opset_version=OPSET,
         input_names=["image"],
         output_names=["raw"],
-        dynamic_axes={"image": {0: "batch"}, "raw": {0: "batch"}},
+        dynamic_axes=(
+            {"image": {0: "batch", 2: "height", 3: "width"}, "raw": {0: "batch", 1: "grid_y", 2: "grid_x"}}
+            if dynamic_hw
+            else {"image": {0: "batch"}, "raw": {0: "batch"}}
+        ),
         do_constant_folding=True,
     )
     _set_metadata(path, metadata)
     g = torch.Generator().manual_seed(seed)
-    x = torch.rand(2, 3, h, w, generator=g)
-    with torch.no_grad():
-        ref = model(x).numpy()
-    got = _ort(path).run(["raw"], {"image": x.numpy()})[0]
-    if got.shape != ref.shape:
-        raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
-    return float(np.abs(got - ref).max())
+    sess = _ort(path)
+    worst = 0.0
+    for hh, ww in [(h, w), (h + 32, w + 64)] if dynamic_hw else [(h, w)]:
+        x = torch.rand(2, 3, hh, ww, generator=g)
+        with torch.no_grad():
+            ref = model(x).numpy()
+        got = sess.run(["raw"], {"image": x.numpy()})[0]
+        if got.shape != ref.shape:
+            raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
+        worst = max(worst, float(np.abs(got - ref).max()))
+    return worst
 
 
 def export_mre(mre: MRE, path: Path, metadata: dict, seed: int = 0) -> float:

@@ -19,6 +19,7 @@ Order of operations for one image (all positions in ORIGINAL pixels, pixel-centr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,116 @@ class PostConfig:
     conf_marknet_only: float = 0.2  # paper: Marknet alone outputs c > 0.2
     dedup_radius_frac: float = 0.3  # of pitch_px; below half the smallest compressed pitch seen in sim
     accept: float = 0.99  # paper: MRE accepts when y_e > 0.99
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """How an image is fitted to a dynamic-size network input (contract ``gelstereo-marknet/2``, "auto" fit).
+
+    The scale is isotropic: the image plus one marker pitch of margin is fitted into the nominal input
+    (``nominal_hw``); if that puts the marker pitch outside ``pitch_range_px`` at the input, the image is
+    scaled to ``pitch_target_px`` instead. The input is the scaled image centred in the smallest multiple
+    of ``multiple`` px around it, the rest filled by mirroring (OpenCV ``BORDER_REFLECT_101``), so a marker
+    cut by the image border is completed by its reflection."""
+
+    nominal_hw: tuple[int, int] = (416, 416)
+    multiple: int = 32
+    pitch_range_px: tuple[float, float] = (9.0, 24.0)
+    pitch_target_px: float = 12.0
+    max_side: int = 2048
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where an image lies in the network input: resized to (scaled_w, scaled_h) and placed at (ox, oy)
+    inside an input of (input_w, input_h)."""
+
+    input_w: int
+    input_h: int
+    scaled_w: int
+    scaled_h: int
+    ox: int
+    oy: int
+
+
+def _ceil_to(v: float, m: int) -> int:
+    return max(m, int(math.ceil(v / m - 1e-9)) * m)
+
+
+def fit_layout(w: int, h: int, pitch_px: float | None, fit: FitConfig = FitConfig()) -> Layout:
+    """The "auto" layout of a w x h image whose marker pitch is pitch_px (original px; None or NaN:
+    unknown, no margin and no pitch check). Mirrors ``fit_layout`` in gelstereo-markers."""
+    p = pitch_px if pitch_px is not None and math.isfinite(pitch_px) and pitch_px > 0 else 0.0
+    nh, nw = fit.nominal_hw
+    s = min(nw / (w + p), nh / (h + p))
+    lo, hi = fit.pitch_range_px
+    if p > 0 and not lo <= p * s <= hi:
+        s = fit.pitch_target_px / p
+    s = min(s, fit.max_side / (w + p), fit.max_side / (h + p))
+    iw = _ceil_to(s * (w + p), fit.multiple)
+    ih = _ceil_to(s * (h + p), fit.multiple)
+    sw = min(iw, max(1, int(math.floor(s * w + 0.5))))  # half away from zero, as Rust's f64::round
+    sh = min(ih, max(1, int(math.floor(s * h + 0.5))))
+    return Layout(iw, ih, sw, sh, (iw - sw) // 2, (ih - sh) // 2)
+
+
+RELAYOUT_SCALE_CHANGE = 0.1  # a second pass when the measured pitch moves the scale by more than this
+MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a measured pitch
+
+
+def relayout_needed(used: Layout, wanted: Layout) -> bool:
+    """Whether a pass under ``used`` should be redone under ``wanted`` (scale off by > 10 %)."""
+    return abs(wanted.scaled_w / used.scaled_w - 1.0) > RELAYOUT_SCALE_CHANGE
+
+
+def fit_config_from_metadata(meta: dict) -> FitConfig:
+    """The FitConfig an exported dynamic model declares in its metadata_props."""
+    lo, hi = (float(v) for v in meta["pitch_range_px"].split(","))
+    return FitConfig(
+        nominal_hw=(int(meta["input_height"]), int(meta["input_width"])),
+        multiple=int(meta["input_multiple"]),
+        pitch_range_px=(lo, hi),
+        pitch_target_px=float(meta["pitch_target_px"]),
+    )
+
+
+def fit_metadata(fit: FitConfig) -> dict:
+    """metadata_props entries of the "auto" fit (contract gelstereo-marknet/2)."""
+    return {
+        "input_size": "dynamic",
+        "input_multiple": fit.multiple,
+        "pitch_range_px": f"{fit.pitch_range_px[0]:g},{fit.pitch_range_px[1]:g}",
+        "pitch_target_px": f"{fit.pitch_target_px:g}",
+    }
+
+
+def preprocess_layout(rgb: np.ndarray, lay: Layout) -> torch.Tensor:
+    """uint8 RGB (H, W, 3) or grey -> float (1, 3, input_h, input_w): rgb/255, bilinear resize to the
+    layout's scaled size (half-pixel centres, no antialiasing), mirrored padding (reflect-101)."""
+    x = preprocess(rgb, (lay.scaled_h, lay.scaled_w))
+    top, left = lay.oy, lay.ox
+    bottom, right = lay.input_h - lay.scaled_h - top, lay.input_w - lay.scaled_w - left
+    if max(top, bottom) < lay.scaled_h and max(left, right) < lay.scaled_w:
+        return F.pad(x, (left, right, top, bottom), mode="reflect")
+    return F.pad(x, (left, right, top, bottom), mode="replicate")
+
+
+def decode_layout(raw: np.ndarray, stride: int, image_wh: tuple[int, int], lay: Layout) -> np.ndarray:
+    """Raw logits (Gy, Gx, m, 3) of one image under a layout -> (n, 3) (x_orig, y_orig, c) in flat order,
+    the candidates in the mirrored padding removed (they are reflections)."""
+    raw = np.asarray(raw, dtype=np.float64)
+    gy, gx, m, _ = raw.shape
+    sig = 1.0 / (1.0 + np.exp(-raw))
+    xs = np.arange(gx).reshape(1, gx, 1)
+    ys = np.arange(gy).reshape(gy, 1, 1)
+    x_in = (sig[..., 0] + xs) * stride - lay.ox
+    y_in = (sig[..., 1] + ys) * stride - lay.oy
+    sx = image_wh[0] / lay.scaled_w
+    sy = image_wh[1] / lay.scaled_h
+    out = np.stack([x_in * sx - 0.5, y_in * sy - 0.5, sig[..., 2]], axis=-1).reshape(-1, 3)
+    w, h = image_wh
+    inside = (out[:, 0] >= -0.5) & (out[:, 0] <= w - 0.5) & (out[:, 1] >= -0.5) & (out[:, 1] <= h - 0.5)
+    return out[inside]
 
 
 def preprocess(rgb: np.ndarray, input_hw: tuple[int, int]) -> torch.Tensor:

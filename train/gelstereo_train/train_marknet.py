@@ -24,7 +24,7 @@ import torch
 from .augment import AugConfig, make_batch
 from .data import dataset_tag, list_samples, median_nn_distance
 from .loss import build_targets, marknet_loss
-from .model import STRIDE_FOR_GRID_416, Marknet, count_flops
+from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 
 
 def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print, max_gb: float | None = None):
@@ -60,7 +60,12 @@ def save_checkpoint(path: Path, model: Marknet, meta: dict) -> None:
     torch.save(
         {
             "model": model.state_dict(),
-            "arch": {"stride": model.stride, "candidates": model.candidates, "width": model.width},
+            "arch": {
+                "stride": model.stride,
+                "candidates": model.candidates,
+                "width": model.width,
+                "stem": model.stem_kind,
+            },
             "meta": meta,
         },
         tmp,
@@ -88,7 +93,7 @@ def train(args, log=print) -> Path:
     log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
 
     stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
-    model = Marknet(stride=stride, candidates=args.candidates, width=args.width)
+    model = Marknet(stride=stride, candidates=args.candidates, width=args.width, stem=args.stem)
     log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
     model = model.to(memory_format=torch.channels_last)
@@ -160,6 +165,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
     p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
     p.add_argument("--width", type=int, default=8, help="base channel width")
+    p.add_argument("--stem", default="s4", choices=STEMS, help="s4: 5x5 stride-4 stem (fast); s2: first model's")
     p.add_argument("--input-size", type=int, default=416)
     p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
     p.add_argument("--batch", type=int, default=32)

@@ -29,7 +29,7 @@ from .data import list_samples
 from .evaluate import MarknetRunner
 from .metrics import match, radius_for
 from .model import MRE
-from .postprocess import PostConfig, decode_to_original, postprocess, preprocess
+from .postprocess import PostConfig, decode_layout, postprocess, preprocess_layout
 
 
 def collect(samples, runner: MarknetRunner, post: PostConfig, variants: int, rng, log=print, batch: int = 8):
@@ -40,12 +40,11 @@ def collect(samples, runner: MarknetRunner, post: PostConfig, variants: int, rng
     for i in range(0, len(samples), batch):
         chunk = samples[i : i + batch]
         imgs = [s.load() for s in chunk]
-        x = torch.cat([preprocess(im, runner.input_hw) for im in imgs])
-        inputs = [x] + [photometric(x.clone(), aug, rng) for _ in range(variants)]
-        for xv in inputs:
-            raws = runner.raw(xv)
-            for s, im, r in zip(chunk, imgs, raws):
-                dec = decode_to_original(r, runner.stride, (im.shape[1], im.shape[0]), runner.input_hw[::-1])
+        for s, im in zip(chunk, imgs):
+            lay = runner.fitted(im)[1] if runner.fit is not None else runner.layout(im)
+            x = preprocess_layout(im, lay)
+            for xv in [x] + [photometric(x.clone(), aug, rng) for _ in range(variants)]:
+                dec = decode_layout(runner.raw(xv)[0], runner.stride, (im.shape[1], im.shape[0]), lay)
                 det = postprocess(dec, post, None)
                 if len(det.mre_index) == 0:
                     continue

@@ -10,6 +10,8 @@ Writes (all small, deterministic from the seeds below):
 - ``mre_tiny.onnx``: an MRE with random weights whose output bias puts scores around the 0.99 cut.
 - ``dots_64x64.png`` (no resize needed: checks the network itself) and ``dots_80x60.png`` (resized to
   64 x 64: checks the preprocessing too), rendered dots.
+- ``marknet_tiny_auto.onnx``, ``dots_160x120.png``, ``expected_auto.json``: the same network with a dynamic
+  input (contract gelstereo-marknet/2) and the expected "auto" fit (layouts and two-pass results).
 - ``expected.json``: for each image the raw output (flat, [Gy, Gx, m, 3] row-major), the decoded
   candidates in original pixels (flat order), and the full post-processing result (pitch, kept
   candidates, Marknet-only output, MRE features and scores, Marknet + MRE output); plus MRE scores
@@ -19,6 +21,7 @@ Writes (all small, deterministic from the seeds below):
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -31,7 +34,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gelstereo_train.export import export_marknet, export_mre, marknet_metadata, mre_metadata  # noqa: E402
 from gelstereo_train.model import MRE, Marknet  # noqa: E402
-from gelstereo_train.postprocess import PostConfig, decode_to_original, postprocess, preprocess  # noqa: E402
+from gelstereo_train.evaluate import MarknetRunner  # noqa: E402
+from gelstereo_train.postprocess import (  # noqa: E402
+    FitConfig,
+    PostConfig,
+    decode_to_original,
+    fit_layout,
+    postprocess,
+    preprocess,
+)
 from gelstereo_train.tinydata import grid_points, render_dots  # noqa: E402
 
 INPUT_HW = (64, 64)
@@ -88,6 +99,49 @@ def build_models():
     return net, mre
 
 
+def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
+    """The "auto" fit (contract gelstereo-marknet/2): the same network exported with a dynamic input as
+    ``marknet_tiny_auto.onnx``; ``expected_auto.json`` holds fit_layout for a table of sizes and pitches
+    and, per image, the first-pass layout, the final layout and the post-processed output of the
+    two-pass fit (no pitch remembered), as MarknetRunner computes them."""
+    fit = FitConfig(nominal_hw=INPUT_HW)
+    md = marknet_metadata(net, INPUT_HW, "fixture: random weights (train/scripts/make_onnx_fixtures.py)",
+                          "2026-11-22T00:00:00Z", post, fit=fit)
+    path = out / "marknet_tiny_auto.onnx"
+    diff = export_marknet(net, path, INPUT_HW, md)
+    pts, _, _ = grid_points(120, 160, 26.0, 4, 6)
+    img = render_dots(120, 160, pts + rng.uniform(-1, 1, pts.shape), 26.0 * 0.3, rng)
+    Image.fromarray(img).save(out / "dots_160x120.png")
+    runner = MarknetRunner(path, threads=1, post=post)
+    lay_dict = lambda lay: dataclasses.asdict(lay)  # noqa: E731
+    cases = []
+    for w, h in ((640, 480), (320, 240), (800, 600), (64, 64), (1280, 720), (5000, 40)):
+        for pitch in (None, 5.0, 10.0, 16.0, 31.0, 200.0):
+            cases.append({"width": w, "height": h, "pitch_px": pitch,
+                          "layout": lay_dict(fit_layout(w, h, pitch, FitConfig()))})
+    auto = {
+        "generator": "train/scripts/make_onnx_fixtures.py",
+        "tolerance": "positions 0.05 px, conf 0.01 (resize implementations differ by rounding)",
+        "export_max_abs_diff": diff,
+        "fit_layout_nominal_416": cases,
+        "images": {},
+    }
+    for name in ("dots_80x60.png", "dots_160x120.png"):
+        im = np.asarray(Image.open(out / name).convert("RGB"))
+        first = runner.layout(im)
+        dec, final = runner.fitted(im)
+        det = postprocess(dec, post, mre_fn)
+        auto["images"][name] = {
+            "first_layout": lay_dict(first),
+            "final_layout": lay_dict(final),
+            "pitch_px": det.pitch_px,
+            "marknet": _round(det.marknet),
+            "marknet_mre": _round(det.marknet_mre),
+        }
+        print(f"{name}: auto fit {first} -> {final}, marknet {len(det.marknet)}")
+    (out / "expected_auto.json").write_text(json.dumps(auto, indent=1) + "\n")
+
+
 def _round(a, nd=6):
     return np.round(np.asarray(a, dtype=np.float64), nd).tolist()
 
@@ -102,8 +156,8 @@ def main(argv=None) -> int:
     net, mre = build_models()
     post = FIXTURE_POST
     md = marknet_metadata(net, INPUT_HW, "fixture: random weights (train/scripts/make_onnx_fixtures.py)",
-                          "2026-11-22T00:00:00Z", post)
-    d_mk = export_marknet(net, out / "marknet_tiny.onnx", INPUT_HW, md)
+                          "2026-11-22T00:00:00Z", post, dynamic=False)
+    d_mk = export_marknet(net, out / "marknet_tiny.onnx", INPUT_HW, md, dynamic=False)
     d_mre = export_mre(mre, out / "mre_tiny.onnx", mre_metadata("fixture: random weights", post))
 
     rng = np.random.default_rng(7)
@@ -163,6 +217,7 @@ def main(argv=None) -> int:
     )
     expected["mre_rows"] = {"features": _round(feats), "scores": _round(mre_fn(feats), 8)}
     (out / "expected.json").write_text(json.dumps(expected, indent=1) + "\n")
+    write_auto_fixture(net, out, post, mre_fn, rng)
     total = sum(f.stat().st_size for f in out.iterdir())
     print(f"wrote {out} ({total / 1024:.0f} KB); export diffs marknet {d_mk:.2g} mre {d_mre:.2g}")
     return 0

@@ -62,7 +62,8 @@ def test_export_round_trip_and_metadata(trained):
     assert report["marknet_max_abs_diff"] < 1e-4 and report["mre_max_abs_diff"] < 1e-5
     m = onnx.load(str(onnx_dir / "marknet.onnx"))
     props = {p.key: p.value for p in m.metadata_props}
-    assert props["contract"] == "gelstereo-marknet/1"
+    assert props["contract"] == "gelstereo-marknet/2" and props["input_size"] == "dynamic"
+    assert (props["input_multiple"], props["pitch_range_px"], props["pitch_target_px"]) == ("32", "9,24", "12")
     assert (props["input_height"], props["input_width"], props["stride"], props["grid"], props["candidates"]) == (
         "128", "128", "8", "16", "3")
     assert props["normalisation"] == "rgb/255" and props["layout"] == "NCHW" and "images=" in props["dataset"]
@@ -70,12 +71,12 @@ def test_export_round_trip_and_metadata(trained):
     sess = ort.InferenceSession(str(onnx_dir / "marknet.onnx"), providers=["CPUExecutionProvider"])
     assert [i.name for i in sess.get_inputs()] == ["image"] and [o.name for o in sess.get_outputs()] == ["raw"]
     model, _ = train_marknet.load_checkpoint(ck)
-    for n in (1, 3):  # dynamic batch
-        x = torch.rand(n, 3, 128, 128)
+    for n, h, w in ((1, 128, 128), (3, 128, 128), (2, 96, 160)):  # dynamic batch, height and width
+        x = torch.rand(n, 3, h, w)
         got = sess.run(["raw"], {"image": x.numpy()})[0]
         with torch.no_grad():
             ref = model(x).numpy()
-        assert got.shape == (n, 16, 16, 3, 3)
+        assert got.shape == (n, h // 8, w // 8, 3, 3)
         assert np.abs(got - ref).max() < 1e-4
     mprops = {p.key: p.value for p in onnx.load(str(onnx_dir / "mre.onnx")).metadata_props}
     assert mprops["contract"] == "gelstereo-mre/1" and mprops["features"] == "11" and mprops["accept"] == "0.99"

@@ -38,10 +38,11 @@ pub struct LocalizerArgs {
     /// Never use the CUDA execution provider, even where ONNX Runtime has it.
     #[arg(long)]
     pub cpu: bool,
-    /// How Marknet fits an image to its input: `stretch` (the model contract's whole-image resize) or
-    /// `pad` (isotropic, never enlarged, mirrored border; for sensors with a much coarser marker pitch
-    /// than the training data, e.g. a 320x240 GelSight Mini).
-    #[arg(long, default_value = "stretch", value_name = "stretch|pad")]
+    /// How Marknet fits an image to its input: `auto` (the model's: isotropic, scaled so the marker
+    /// pitch measured on a first pass lands in the range the network was trained on, mirrored margin;
+    /// the pitch is remembered per image size), `stretch` (the whole image resized to the nominal
+    /// input) or `pad` (isotropic, never enlarged, centred in the nominal input).
+    #[arg(long, default_value = "auto", value_name = "auto|stretch|pad")]
     pub fit: InputFit,
 }
 
@@ -76,13 +77,18 @@ impl LocalizerArgs {
                 use_cuda: !self.cpu,
             },
             fit: self.fit,
+            remember_pitch: true,
         })
     }
 
     /// Builds the localizer of `method`, with the failing method named in the error.
     pub fn localizer(&self, method: Method) -> anyhow::Result<Box<dyn Localizer>> {
-        let config = self.config()?;
-        create_localizer(method, &config).with_context(|| match method {
+        Self::localizer_from(method, &self.config()?)
+    }
+
+    /// Builds the localizer of `method` from a configuration, with the failing method named.
+    pub fn localizer_from(method: Method, config: &LocalizerConfig) -> anyhow::Result<Box<dyn Localizer>> {
+        create_localizer(method, config).with_context(|| match method {
             Method::Blob => format!("cannot set up method '{method}'"),
             _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
         })

@@ -188,9 +188,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 
     // The hard split is defined by the TUNED blob baseline, whatever --blob-params says for the blob row.
     let mut tuned_blob = BlobLocalizer::new(LocalizerArgs::blob(&args.hard_blob_params)?)?;
+    // Every image on its own (no pitch remembered across images): datasets mix sensors of one size.
+    let mut config = args.localizer.config()?;
+    config.remember_pitch = false;
     let mut localizers: Vec<Box<dyn Localizer>> = methods
         .iter()
-        .map(|m| args.localizer.localizer(*m))
+        .map(|m| LocalizerArgs::localizer_from(*m, &config))
         .collect::<anyhow::Result<_>>()?;
     let mut tables = vec![SplitTable::default(); methods.len()];
     let mut radii: Vec<f64> = Vec::new();

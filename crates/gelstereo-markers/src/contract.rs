@@ -8,8 +8,10 @@ use std::path::{Path, PathBuf};
 use crate::postprocess::PostProcess;
 use crate::{Error, Result};
 
-/// The `contract` value of a Marknet model this loader understands.
-pub const MARKNET_CONTRACT: &str = "gelstereo-marknet/1";
+/// The `contract` value of a Marknet model with a dynamic input size (what the trainer writes).
+pub const MARKNET_CONTRACT: &str = "gelstereo-marknet/2";
+/// The `contract` value of a fixed-input Marknet model (the first version; still loaded).
+pub const MARKNET_CONTRACT_FIXED: &str = "gelstereo-marknet/1";
 /// The `contract` value of an MRE model this loader understands.
 pub const MRE_CONTRACT: &str = "gelstereo-mre/1";
 /// Marknet's input name.
@@ -57,6 +59,25 @@ pub struct MarknetContract {
     pub dataset: String,
     /// When the model was trained (ISO date).
     pub trained: String,
+    /// The "auto" fit of a dynamic-input model (`gelstereo-marknet/2`); `None` for a fixed input, whose
+    /// width and height are `input_width` x `input_height` (then they are also nominal sizes).
+    pub auto_fit: Option<AutoFit>,
+}
+
+/// How a dynamic-input model wants images scaled (`docs/model-contract.md`, "auto" fit): isotropically,
+/// the image plus one marker pitch of margin fitted into the nominal `input_width x input_height`, unless
+/// that puts the pitch outside `pitch_min_px..=pitch_max_px` at the input; then scaled to
+/// `pitch_target_px`. The input is the smallest multiple of `multiple` px around the scaled image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AutoFit {
+    /// Input width and height are multiples of this (the network's largest stride).
+    pub multiple: u32,
+    /// Smallest marker pitch at the input the network is trained for, px.
+    pub pitch_min_px: f64,
+    /// Largest marker pitch at the input kept without rescaling, px.
+    pub pitch_max_px: f64,
+    /// Pitch at the input when the nominal fit is out of range, px.
+    pub pitch_target_px: f64,
 }
 
 /// What an MRE model declares.
@@ -119,6 +140,26 @@ impl Meta<'_> {
         match found.trim().parse::<f64>() {
             Ok(v) if v > 0.0 && v < 1.0 => Ok(v),
             _ => Err(self.err(key, "a number strictly between 0 and 1", format!("'{found}'"))),
+        }
+    }
+
+    fn number(&self, key: &str) -> Result<f64> {
+        let expected = "a positive number";
+        let found = self.required(key, expected)?;
+        match found.trim().parse::<f64>() {
+            Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
+            _ => Err(self.err(key, expected, format!("'{found}'"))),
+        }
+    }
+
+    /// `"lo,hi"` with 0 < lo < hi.
+    fn range(&self, key: &str) -> Result<(f64, f64)> {
+        let expected = "'lo,hi' with 0 < lo < hi";
+        let found = self.required(key, expected)?;
+        let parsed: Vec<Option<f64>> = found.split(',').map(|v| v.trim().parse::<f64>().ok()).collect();
+        match parsed.as_slice() {
+            [Some(lo), Some(hi)] if *lo > 0.0 && lo < hi && hi.is_finite() => Ok((*lo, *hi)),
+            _ => Err(self.err(key, expected, format!("'{found}'"))),
         }
     }
 
@@ -194,7 +235,17 @@ impl MarknetContract {
         outputs: &[TensorSpec],
     ) -> Result<Self> {
         let m = Meta { path, map: metadata };
-        m.exact("contract", MARKNET_CONTRACT)?;
+        let dynamic = match metadata.get("contract").map(|c| c.trim()) {
+            Some(MARKNET_CONTRACT) => true,
+            Some(MARKNET_CONTRACT_FIXED) => false,
+            other => {
+                return Err(m.err(
+                    "contract",
+                    format!("'{MARKNET_CONTRACT}' or '{MARKNET_CONTRACT_FIXED}'"),
+                    other.map_or("no such metadata key".to_owned(), |c| format!("'{c}'")),
+                ));
+            }
+        };
         let input_height = m.positive("input_height")?;
         let input_width = m.positive("input_width")?;
         let stride = m.positive("stride")?;
@@ -232,17 +283,42 @@ impl MarknetContract {
                 postprocess.conf_low.to_string(),
             ));
         }
+        let auto_fit = if dynamic {
+            m.exact("input_size", "dynamic")?;
+            let multiple = m.positive("input_multiple")?;
+            if multiple % stride != 0 {
+                return Err(m.err(
+                    "input_multiple",
+                    format!("a multiple of stride {stride}"),
+                    multiple.to_string(),
+                ));
+            }
+            let (pitch_min_px, pitch_max_px) = m.range("pitch_range_px")?;
+            let pitch_target_px = m.number("pitch_target_px")?;
+            if !(pitch_min_px..=pitch_max_px).contains(&pitch_target_px) {
+                return Err(m.err(
+                    "pitch_target_px",
+                    format!("within pitch_range_px {pitch_min_px}..{pitch_max_px}"),
+                    pitch_target_px.to_string(),
+                ));
+            }
+            Some(AutoFit {
+                multiple,
+                pitch_min_px,
+                pitch_max_px,
+                pitch_target_px,
+            })
+        } else {
+            None
+        };
+        // A dynamic model's height, width and grid may be anything; a fixed one's are declared.
+        let fixed = |v: u32| (!dynamic).then_some(i64::from(v));
         check_signature(
             path,
             "input",
             inputs,
             MARKNET_INPUT,
-            &[
-                None,
-                Some(3),
-                Some(i64::from(input_height)),
-                Some(i64::from(input_width)),
-            ],
+            &[None, Some(3), fixed(input_height), fixed(input_width)],
         )?;
         check_signature(
             path,
@@ -251,8 +327,8 @@ impl MarknetContract {
             MARKNET_OUTPUT,
             &[
                 None,
-                Some(i64::from(grid_y)),
-                Some(i64::from(grid_x)),
+                fixed(grid_y),
+                fixed(grid_x),
                 Some(i64::from(candidates)),
                 Some(3),
             ],
@@ -267,6 +343,7 @@ impl MarknetContract {
             postprocess,
             dataset,
             trained,
+            auto_fit,
         })
     }
 }
@@ -340,7 +417,7 @@ mod tests {
 
     fn marknet_meta() -> BTreeMap<String, String> {
         [
-            ("contract", MARKNET_CONTRACT),
+            ("contract", MARKNET_CONTRACT_FIXED),
             ("input_height", "416"),
             ("input_width", "416"),
             ("stride", "8"),
@@ -382,6 +459,58 @@ mod tests {
         .unwrap();
         assert_eq!((c.grid_x, c.grid_y, c.candidates, c.stride), (52, 52, 5, 8));
         assert_eq!(c.postprocess, PostProcess::default());
+    }
+
+    fn dynamic_meta() -> BTreeMap<String, String> {
+        let mut meta = marknet_meta();
+        for (k, v) in [
+            ("contract", MARKNET_CONTRACT),
+            ("input_size", "dynamic"),
+            ("input_multiple", "32"),
+            ("pitch_range_px", "9,24"),
+            ("pitch_target_px", "12"),
+        ] {
+            meta.insert(k.to_owned(), v.to_owned());
+        }
+        meta
+    }
+
+    #[test]
+    fn a_dynamic_marknet_declares_its_auto_fit() {
+        let (inp, out) = (spec("image", &[-1, 3, -1, -1]), spec("raw", &[-1, -1, -1, 5, 3]));
+        let c = parse(&dynamic_meta(), &inp, &out).unwrap();
+        let fit = c.auto_fit.unwrap();
+        assert_eq!(fit.multiple, 32);
+        assert_eq!(
+            (fit.pitch_min_px, fit.pitch_max_px, fit.pitch_target_px),
+            (9.0, 24.0, 12.0)
+        );
+        // The fixed contract has none.
+        let c = parse(
+            &marknet_meta(),
+            &spec("image", &[-1, 3, 416, 416]),
+            &spec("raw", &[-1, 52, 52, 5, 3]),
+        )
+        .unwrap();
+        assert!(c.auto_fit.is_none());
+        let cases: Vec<(&str, Option<&str>, &str)> = vec![
+            ("input_size", Some("fixed"), "'input_size'"),
+            ("input_multiple", None, "'input_multiple'"),
+            ("input_multiple", Some("12"), "'input_multiple'"),
+            ("pitch_range_px", Some("24,9"), "'pitch_range_px'"),
+            ("pitch_range_px", Some("9"), "'pitch_range_px'"),
+            ("pitch_target_px", Some("30"), "'pitch_target_px'"),
+            ("pitch_target_px", Some("-1"), "'pitch_target_px'"),
+        ];
+        for (key, value, needle) in cases {
+            let mut meta = dynamic_meta();
+            match value {
+                Some(v) => meta.insert(key.to_owned(), v.to_owned()),
+                None => meta.remove(key),
+            };
+            let err = parse(&meta, &inp, &out).unwrap_err().to_string();
+            assert!(err.contains(needle), "{key}={value:?}: {err}");
+        }
     }
 
     /// Table of broken contracts: each must be reported by the key at fault.

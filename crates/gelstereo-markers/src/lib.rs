@@ -33,8 +33,8 @@ use gelstereo_core::{Detection, ImageSize, StereoPair};
 use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
-pub use contract::{MarknetContract, MreContract};
-pub use marknet::{InputFit, Marknet, Mre, SessionOptions};
+pub use contract::{AutoFit, MarknetContract, MreContract};
+pub use marknet::{InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout};
 pub use postprocess::PostProcess;
 
 /// Errors of the marker localizers. Each names the file, the field or the image property concerned and
@@ -268,8 +268,11 @@ pub struct LocalizerConfig {
     pub blob: BlobParams,
     /// ONNX Runtime options.
     pub session: SessionOptions,
-    /// How Marknet fits images to its input ([`InputFit::Stretch`], the contract's, by default).
+    /// How Marknet fits images to its input ([`InputFit::Auto`], the model's own, by default).
     pub fit: InputFit,
+    /// Whether Marknet remembers the marker pitch per image size ([`Marknet::set_pitch_memory`]):
+    /// on for streams of one sensor, off for datasets mixing sensors of one image size.
+    pub remember_pitch: bool,
 }
 
 /// Builds the localizer for `method`. Models are loaded (and their contract checked) only for the
@@ -284,12 +287,14 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
         Method::Marknet => {
             let mut net = Marknet::load(&config.marknet_path, &config.session)?;
             net.set_fit(config.fit);
+            net.set_pitch_memory(config.remember_pitch);
             Box::new(net)
         }
         Method::MarknetMre => {
             let mre = Mre::load(&config.mre_path, &config.session)?;
             let mut net = Marknet::load(&config.marknet_path, &config.session)?.with_mre(mre)?;
             net.set_fit(config.fit);
+            net.set_pitch_memory(config.remember_pitch);
             Box::new(net)
         }
     })

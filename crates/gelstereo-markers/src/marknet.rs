@@ -1,12 +1,14 @@
 //! Marknet (and its MRE) through ONNX Runtime: loading with a contract check, preprocessing any image
 //! size, batched inference of both stereo views, decoding and post-processing.
 //!
-//! Preprocessing (`docs/model-contract.md`): the whole image is resized with OpenCV's bilinear
-//! `INTER_LINEAR` (half-pixel centres) to the network input, converted to planar RGB f32 in [0, 1]
-//! (grey replicated, BGRA's alpha dropped). A frame already of the input size is not resized.
-//! Outputs are mapped back with `x_orig = x_in * W / input_width - 0.5` (likewise y).
+//! Preprocessing (`docs/model-contract.md`): the image is resized with OpenCV's bilinear `INTER_LINEAR`
+//! (half-pixel centres) into an [`InputLayout`], converted to planar RGB f32 in [0, 1] (grey replicated,
+//! BGRA's alpha dropped). The default [`InputFit::Auto`] of a dynamic-input model scales isotropically
+//! so that the marker pitch lands where the network was trained, measured on a first pass and
+//! remembered per image size; a fixed-input model gets the contract's whole-image stretch.
+//! Outputs are mapped back with `x_orig = (x_in - offset_x) * W / scaled_width - 0.5` (likewise y).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, StereoPair};
@@ -16,8 +18,9 @@ use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 
+use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::postprocess::{DecodeGeometry, Selection, decode};
+use crate::postprocess::{DecodeGeometry, Selection, decode, estimate_pitch_px};
 use crate::{
     Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
 };
@@ -29,14 +32,17 @@ pub const MAX_ASPECT_DISTORTION: f64 = 2.0;
 /// How an image is brought to the network's input size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum InputFit {
-    /// The contract's preprocessing: the whole image resized to the input size (anisotropically if
-    /// the aspect ratios differ). What the model was trained and evaluated with.
+    /// The model's own fit: for a dynamic-input model (`gelstereo-marknet/2`) the "auto" layout of
+    /// [`fit_layout`] (isotropic, marker pitch brought into the trained range, mirrored margin), with the
+    /// pitch measured on a first pass and remembered per image size; for a fixed-input model the
+    /// contract's [`Stretch`](Self::Stretch).
     #[default]
+    Auto,
+    /// The whole image resized to the nominal input size (anisotropically if the aspect ratios
+    /// differ): the first contract's preprocessing.
     Stretch,
-    /// Isotropic: scaled by `min(input_width / W, input_height / H, 1)` (never enlarged), centred, the
-    /// rest filled by mirroring the image (OpenCV `BORDER_REFLECT_101`). For sensors whose marker
-    /// pitch the stretch would push outside the range the network was trained on (e.g. a 320x240
-    /// GelSight Mini video, 31 px pitch, stretched to 40 x 54 px); detections in the padding are dropped.
+    /// Isotropic: scaled by `min(input_width / W, input_height / H, 1)` (never enlarged), centred in
+    /// the nominal input, the rest filled by mirroring the image (OpenCV `BORDER_REFLECT_101`).
     Pad,
 }
 
@@ -44,15 +50,92 @@ impl std::str::FromStr for InputFit {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
         match s {
+            "auto" => Ok(Self::Auto),
             "stretch" => Ok(Self::Stretch),
             "pad" => Ok(Self::Pad),
             _ => Err(Error::Config {
                 path: PathBuf::from("(command line)"),
                 field: "fit".into(),
-                expected: "stretch or pad".into(),
+                expected: "auto, stretch or pad".into(),
                 found: s.to_owned(),
             }),
         }
+    }
+}
+
+/// Largest side of a network input the "auto" fit builds, px (bounds memory and time on huge images).
+pub const MAX_INPUT_SIDE_PX: u32 = 2048;
+
+/// A second pass is run when the measured pitch asks for a scale more than this (relative) away
+/// from the one used (`RELAYOUT_SCALE_CHANGE` in the trainer).
+pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
+
+/// Confident candidates (c > `conf_keep`) needed before a measured pitch may change the layout
+/// (`MIN_PITCH_SUPPORT` in the trainer).
+pub const MIN_PITCH_SUPPORT: usize = 8;
+
+/// Where an image lies in the network input: resized to `scaled_width x scaled_height` and placed at
+/// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest mirrored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct InputLayout {
+    /// Network input width, px.
+    pub input_width: u32,
+    /// Network input height, px.
+    pub input_height: u32,
+    /// Width of the resized image inside the input, px.
+    pub scaled_width: u32,
+    /// Height of the resized image inside the input, px.
+    pub scaled_height: u32,
+    /// Input columns left of the image.
+    pub offset_x: u32,
+    /// Input rows above the image.
+    pub offset_y: u32,
+}
+
+impl InputLayout {
+    /// The whole input is the image (no padding).
+    fn fills_input(&self) -> bool {
+        self.scaled_width == self.input_width && self.scaled_height == self.input_height
+    }
+
+    /// Whether an image under `self` should be run again under `wanted` (scale off by more than
+    /// [`RELAYOUT_SCALE_CHANGE`]).
+    pub fn needs_relayout(&self, wanted: &InputLayout) -> bool {
+        let ratio = f64::from(wanted.scaled_width) / f64::from(self.scaled_width.max(1));
+        (ratio - 1.0).abs() > RELAYOUT_SCALE_CHANGE
+    }
+}
+
+/// The "auto" layout (`docs/model-contract.md`) of an image of `size` whose marker pitch is `pitch_px`
+/// (original px; `None`: unknown, then no margin and no pitch check) for a model of nominal input
+/// `nominal_width x nominal_height`. Mirrors `fit_layout` of the trainer (`postprocess.py`).
+pub fn fit_layout(
+    size: ImageSize,
+    pitch_px: Option<f64>,
+    nominal_width: u32,
+    nominal_height: u32,
+    fit: &AutoFit,
+) -> InputLayout {
+    let p = pitch_px.filter(|p| p.is_finite() && *p > 0.0).unwrap_or(0.0);
+    let (w, h) = (f64::from(size.width), f64::from(size.height));
+    let mut s = (f64::from(nominal_width) / (w + p)).min(f64::from(nominal_height) / (h + p));
+    if p > 0.0 && !(fit.pitch_min_px..=fit.pitch_max_px).contains(&(p * s)) {
+        s = fit.pitch_target_px / p;
+    }
+    let max_side = f64::from(MAX_INPUT_SIDE_PX);
+    s = s.min(max_side / (w + p)).min(max_side / (h + p));
+    let m = f64::from(fit.multiple.max(1));
+    let ceil_to = |v: f64| (((v / m - 1e-9).ceil().max(1.0)) * m) as u32;
+    let (input_width, input_height) = (ceil_to(s * (w + p)), ceil_to(s * (h + p)));
+    let scaled_width = ((s * w).round() as u32).clamp(1, input_width);
+    let scaled_height = ((s * h).round() as u32).clamp(1, input_height);
+    InputLayout {
+        input_width,
+        input_height,
+        scaled_width,
+        scaled_height,
+        offset_x: (input_width - scaled_width) / 2,
+        offset_y: (input_height - scaled_height) / 2,
     }
 }
 
@@ -324,6 +407,9 @@ pub struct Marknet {
     post: PostProcess,
     mre: Option<Mre>,
     fit: InputFit,
+    /// Marker pitch (original px) measured per image size, for the "auto" fit of the next image.
+    pitch_memory: HashMap<ImageSize, f64>,
+    remember_pitch: bool,
     resized: Mat,
     padded: Mat,
     input: Vec<f32>,
@@ -335,6 +421,7 @@ impl std::fmt::Debug for Marknet {
             .field("path", &self.path)
             .field("contract", &self.contract)
             .field("post", &self.post)
+            .field("fit", &self.fit)
             .field("mre", &self.mre)
             .finish()
     }
@@ -356,7 +443,9 @@ impl Marknet {
             post: contract.postprocess,
             contract,
             mre: None,
-            fit: InputFit::Stretch,
+            fit: InputFit::Auto,
+            pitch_memory: HashMap::new(),
+            remember_pitch: true,
             resized: Mat::default(),
             padded: Mat::default(),
             input: Vec::new(),
@@ -387,22 +476,64 @@ impl Marknet {
         self.post = post;
     }
 
-    /// Chooses how images are fitted to the network input ([`InputFit::Stretch`] by default).
+    /// Chooses how images are fitted to the network input ([`InputFit::Auto`] by default).
     pub fn set_fit(&mut self, fit: InputFit) {
         self.fit = fit;
     }
 
-    /// The padded layout of an image of `size` ([`InputFit::Pad`]): scaled size and offsets in input px.
-    fn pad_layout(&self, size: ImageSize) -> (i32, i32, i32, i32) {
-        let (iw, ih) = (
-            f64::from(self.contract.input_width),
-            f64::from(self.contract.input_height),
-        );
-        let (w, h) = (f64::from(size.width), f64::from(size.height));
-        let scale = (iw / w).min(ih / h).min(1.0);
-        let nw = ((w * scale).round() as i32).clamp(1, iw as i32);
-        let nh = ((h * scale).round() as i32).clamp(1, ih as i32);
-        (nw, nh, (iw as i32 - nw) / 2, (ih as i32 - nh) / 2)
+    /// Whether the "auto" fit remembers the marker pitch measured per image size (default: yes, for
+    /// streams of one sensor: one pass per image). Off, every image starts without a pitch (a first
+    /// pass, and a second when the pitch asks for another scale), as the trainer's evaluation does.
+    pub fn set_pitch_memory(&mut self, remember: bool) {
+        self.remember_pitch = remember;
+        if !remember {
+            self.pitch_memory.clear();
+        }
+    }
+
+    /// Whether the "auto" fit applies (an [`InputFit::Auto`] localizer on a dynamic-input model).
+    fn auto_fit(&self) -> Option<&AutoFit> {
+        match self.fit {
+            InputFit::Auto => self.contract.auto_fit.as_ref(),
+            InputFit::Stretch | InputFit::Pad => None,
+        }
+    }
+
+    /// The layout of an image of `size` given its marker pitch (used by the "auto" fit only).
+    pub fn layout(&self, size: ImageSize, pitch_px: Option<f64>) -> InputLayout {
+        let (iw, ih) = (self.contract.input_width, self.contract.input_height);
+        if let Some(fit) = self.auto_fit() {
+            return fit_layout(size, pitch_px, iw, ih, fit);
+        }
+        match self.fit {
+            InputFit::Pad => {
+                let (w, h) = (f64::from(size.width), f64::from(size.height));
+                let scale = (f64::from(iw) / w).min(f64::from(ih) / h).min(1.0);
+                let nw = ((w * scale).round() as u32).clamp(1, iw);
+                let nh = ((h * scale).round() as u32).clamp(1, ih);
+                InputLayout {
+                    input_width: iw,
+                    input_height: ih,
+                    scaled_width: nw,
+                    scaled_height: nh,
+                    offset_x: (iw - nw) / 2,
+                    offset_y: (ih - nh) / 2,
+                }
+            }
+            InputFit::Auto | InputFit::Stretch => InputLayout {
+                input_width: iw,
+                input_height: ih,
+                scaled_width: iw,
+                scaled_height: ih,
+                offset_x: 0,
+                offset_y: 0,
+            },
+        }
+    }
+
+    /// The layout the next image of `size` gets (with the remembered pitch, if any).
+    pub fn next_layout(&self, size: ImageSize) -> InputLayout {
+        self.layout(size, self.pitch_memory.get(&size).copied())
     }
 
     /// Whether MRE post-processing is on (`marknet-mre`).
@@ -410,92 +541,71 @@ impl Marknet {
         self.mre.is_some()
     }
 
-    /// Resizes `image` to the network input (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-    /// centres, no antialiasing) and writes it as planar RGB f32 in [0, 1] into batch slot `slot`.
+    /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
+    /// centres, no antialiasing; mirrored padding) and writes it as planar RGB f32 in [0, 1] into batch
+    /// slot `slot`.
     ///
     /// The trainer divides by 255 before resizing; resizing the 8-bit image first differs by at most
     /// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
-    fn preprocess(&mut self, image: &Mat, slot: usize) -> Result<ImageSize> {
+    fn preprocess(&mut self, image: &Mat, layout: &InputLayout, slot: usize) -> Result<()> {
         let size = check_image(image)?;
-        let (iw, ih) = (
-            self.contract.input_width as i32,
-            self.contract.input_height as i32,
-        );
-        let src: &Mat = match self.fit {
-            InputFit::Stretch => {
-                check_aspect(size, self.contract.input_width, self.contract.input_height)?;
-                if image.cols() == iw && image.rows() == ih {
-                    image
-                } else {
-                    imgproc::resize(
-                        image,
-                        &mut self.resized,
-                        Size::new(iw, ih),
-                        0.0,
-                        0.0,
-                        imgproc::INTER_LINEAR,
-                    )
-                    .map_err(cv_err("resize to the network input"))?;
-                    &self.resized
-                }
-            }
-            InputFit::Pad => {
-                let (nw, nh, ox, oy) = self.pad_layout(size);
-                let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
-                    image
-                } else {
-                    imgproc::resize(
-                        image,
-                        &mut self.resized,
-                        Size::new(nw, nh),
-                        0.0,
-                        0.0,
-                        imgproc::INTER_LINEAR,
-                    )
-                    .map_err(cv_err("resize to the network input"))?;
-                    &self.resized
-                };
-                let (top, left) = (oy, ox);
-                let (bottom, right) = (ih - nh - oy, iw - nw - ox);
-                // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
-                let mode = if top.max(bottom) < nh && left.max(right) < nw {
-                    opencv::core::BORDER_REFLECT_101
-                } else {
-                    opencv::core::BORDER_REPLICATE
-                };
-                opencv::core::copy_make_border(
-                    scaled,
-                    &mut self.padded,
-                    top,
-                    bottom,
-                    left,
-                    right,
-                    mode,
-                    opencv::core::Scalar::default(),
-                )
-                .map_err(cv_err("padding to the network input"))?;
-                &self.padded
-            }
+        if self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.contract.auto_fit.is_none()) {
+            check_aspect(size, self.contract.input_width, self.contract.input_height)?;
+        }
+        let (nw, nh) = (layout.scaled_width as i32, layout.scaled_height as i32);
+        let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
+            image
+        } else {
+            imgproc::resize(
+                image,
+                &mut self.resized,
+                Size::new(nw, nh),
+                0.0,
+                0.0,
+                imgproc::INTER_LINEAR,
+            )
+            .map_err(cv_err("resize to the network input"))?;
+            &self.resized
         };
-        let hw = (iw * ih) as usize;
-        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])?;
-        Ok(size)
+        let src: &Mat = if layout.fills_input() {
+            scaled
+        } else {
+            let (top, left) = (layout.offset_y as i32, layout.offset_x as i32);
+            let bottom = layout.input_height as i32 - nh - top;
+            let right = layout.input_width as i32 - nw - left;
+            // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
+            let mode = if top.max(bottom) < nh && left.max(right) < nw {
+                opencv::core::BORDER_REFLECT_101
+            } else {
+                opencv::core::BORDER_REPLICATE
+            };
+            opencv::core::copy_make_border(
+                scaled,
+                &mut self.padded,
+                top,
+                bottom,
+                left,
+                right,
+                mode,
+                opencv::core::Scalar::default(),
+            )
+            .map_err(cv_err("padding to the network input"))?;
+            &self.padded
+        };
+        let hw = (layout.input_width * layout.input_height) as usize;
+        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])
     }
 
-    /// Runs the network on `images` (one batch): each image's size and its raw output (`[Gy, Gx, m, 3]`
-    /// logits, row-major, `Gy * Gx * m * 3` values per image, concatenated).
-    pub fn raw_output(&mut self, images: &[&Mat]) -> Result<(Vec<ImageSize>, Vec<f32>)> {
-        if images.is_empty() {
-            return Ok((Vec::new(), Vec::new()));
-        }
-        let (iw, ih) = (
-            self.contract.input_width as usize,
-            self.contract.input_height as usize,
-        );
+    /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
+    /// (`[Gy, Gx, m, 3]` logits per image, row-major, concatenated).
+    fn run_batch(&mut self, images: &[&Mat], layouts: &[InputLayout]) -> Result<Vec<f32>> {
+        let Some(first) = layouts.first() else {
+            return Ok(Vec::new());
+        };
+        let (iw, ih) = (first.input_width as usize, first.input_height as usize);
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
-        let mut sizes = Vec::with_capacity(images.len());
-        for (slot, image) in images.iter().enumerate() {
-            sizes.push(self.preprocess(image, slot)?);
+        for (slot, (image, layout)) in images.iter().zip(layouts).enumerate() {
+            self.preprocess(image, layout, slot)?;
         }
         let run = onnx_err(&self.path, "inference");
         let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
@@ -508,75 +618,145 @@ impl Marknet {
             .try_extract_tensor::<f32>()
             .map_err(|e| run(e.to_string()))?;
         let c = &self.contract;
-        let per_image = (c.grid_y * c.grid_x * c.candidates * 3) as usize;
+        let (gy, gx) = (ih / c.stride as usize, iw / c.stride as usize);
+        let per_image = gy * gx * c.candidates as usize * 3;
         if raw.len() != per_image * images.len() {
             return Err(run(format!(
-                "output '{MARKNET_OUTPUT}' has shape {shape}, expected [{}, {}, {}, {}, 3]",
+                "output '{MARKNET_OUTPUT}' has shape {shape}, expected [{}, {gy}, {gx}, {}, 3]",
                 images.len(),
-                c.grid_y,
-                c.grid_x,
                 c.candidates
             )));
         }
-        Ok((sizes, raw.to_vec()))
+        Ok(raw.to_vec())
     }
 
-    /// The decoding geometry for an image of `size` under this model's contract and the input fit.
-    pub fn geometry(&self, size: ImageSize) -> DecodeGeometry {
+    /// Runs the network on `images` as one batch under the layouts the next images of their sizes get
+    /// ([`next_layout`](Self::next_layout)): each image's size and its raw output (`[Gy, Gx, m, 3]`
+    /// logits, row-major, concatenated). The images must share one input size (e.g. a stereo pair).
+    pub fn raw_output(&mut self, images: &[&Mat]) -> Result<(Vec<ImageSize>, Vec<f32>)> {
+        let sizes = images
+            .iter()
+            .map(|im| check_image(im))
+            .collect::<Result<Vec<_>>>()?;
+        let layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
+        if let Some(other) = layouts
+            .iter()
+            .find(|l| (l.input_width, l.input_height) != (layouts[0].input_width, layouts[0].input_height))
+        {
+            return Err(Error::Image {
+                property: "size",
+                expected: format!(
+                    "one network input size for the whole batch ({}x{})",
+                    layouts[0].input_width, layouts[0].input_height
+                ),
+                found: format!("{}x{}", other.input_width, other.input_height),
+            });
+        }
+        let raw = self.run_batch(images, &layouts)?;
+        Ok((sizes, raw))
+    }
+
+    /// The decoding geometry of an image of `size` under `layout`.
+    pub fn geometry_for(&self, size: ImageSize, layout: &InputLayout) -> DecodeGeometry {
         let c = &self.contract;
-        let (scale_x, scale_y, offset_x, offset_y) = match self.fit {
-            InputFit::Stretch => (
-                f64::from(size.width) / f64::from(c.input_width),
-                f64::from(size.height) / f64::from(c.input_height),
-                0.0,
-                0.0,
-            ),
-            InputFit::Pad => {
-                let (nw, nh, ox, oy) = self.pad_layout(size);
-                (
-                    f64::from(size.width) / f64::from(nw),
-                    f64::from(size.height) / f64::from(nh),
-                    f64::from(ox),
-                    f64::from(oy),
-                )
-            }
-        };
         DecodeGeometry {
-            grid_y: c.grid_y as usize,
-            grid_x: c.grid_x as usize,
+            grid_y: (layout.input_height / c.stride) as usize,
+            grid_x: (layout.input_width / c.stride) as usize,
             candidates: c.candidates as usize,
             stride: f64::from(c.stride),
-            scale_x,
-            scale_y,
-            offset_x,
-            offset_y,
+            scale_x: f64::from(size.width) / f64::from(layout.scaled_width),
+            scale_y: f64::from(size.height) / f64::from(layout.scaled_height),
+            offset_x: f64::from(layout.offset_x),
+            offset_y: f64::from(layout.offset_y),
         }
     }
 
-    /// Runs the network on `images` (one batch) and returns each image's candidates with
-    /// c > `min_confidence`, in that image's pixels, in flat order (step 1 of [`crate::postprocess`]).
-    pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
-        let (sizes, raw) = self.raw_output(images)?;
-        let per_image = raw.len() / sizes.len().max(1);
-        let pad = self.fit == InputFit::Pad;
-        Ok(sizes
-            .iter()
-            .enumerate()
-            .map(|(i, size)| {
-                let mut found = decode(
-                    &raw[i * per_image..(i + 1) * per_image],
-                    &self.geometry(*size),
+    /// The decoding geometry the next image of `size` gets ([`next_layout`](Self::next_layout)).
+    pub fn geometry(&self, size: ImageSize) -> DecodeGeometry {
+        self.geometry_for(size, &self.next_layout(size))
+    }
+
+    /// Runs `images` under `layouts` (grouped into one batch per input size) and decodes each image's
+    /// candidates with c > `min_confidence`, in its own pixels; candidates in the mirrored padding are
+    /// dropped (reflections, not markers of the image).
+    fn decode_pass(
+        &mut self,
+        images: &[&Mat],
+        sizes: &[ImageSize],
+        layouts: &[InputLayout],
+        min_confidence: f32,
+    ) -> Result<Vec<Vec<Detection>>> {
+        let mut found = vec![Vec::new(); images.len()];
+        let mut pending: Vec<usize> = (0..images.len()).collect();
+        while let Some(&lead) = pending.first() {
+            let key = (layouts[lead].input_width, layouts[lead].input_height);
+            let (group, rest): (Vec<usize>, Vec<usize>) = pending
+                .iter()
+                .partition(|&&i| (layouts[i].input_width, layouts[i].input_height) == key);
+            pending = rest;
+            let batch_images: Vec<&Mat> = group.iter().map(|&i| images[i]).collect();
+            let batch_layouts: Vec<InputLayout> = group.iter().map(|&i| layouts[i]).collect();
+            let raw = self.run_batch(&batch_images, &batch_layouts)?;
+            let per_image = raw.len() / group.len().max(1);
+            for (k, &i) in group.iter().enumerate() {
+                let mut dets = decode(
+                    &raw[k * per_image..(k + 1) * per_image],
+                    &self.geometry_for(sizes[i], &layouts[i]),
                     min_confidence,
                 );
-                if pad {
-                    // Candidates in the mirrored padding are reflections, not markers of the image.
-                    let (w, h) = (f64::from(size.width) - 0.5, f64::from(size.height) - 0.5);
-                    found
-                        .retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
+                if !layouts[i].fills_input() {
+                    let (w, h) = (f64::from(sizes[i].width) - 0.5, f64::from(sizes[i].height) - 0.5);
+                    dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
                 }
-                found
-            })
-            .collect())
+                found[i] = dets;
+            }
+        }
+        Ok(found)
+    }
+
+    /// Runs the network on `images` and returns each image's candidates with c > `min_confidence`, in
+    /// that image's pixels, in flat order (step 1 of [`crate::postprocess`]). Under the "auto" fit an
+    /// image whose measured pitch asks for another scale is run again at that scale, and the pitch is
+    /// remembered for its size.
+    pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
+        let sizes = images
+            .iter()
+            .map(|im| check_image(im))
+            .collect::<Result<Vec<_>>>()?;
+        let mut layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
+        let mut found = self.decode_pass(images, &sizes, &layouts, min_confidence)?;
+        if self.auto_fit().is_none() {
+            return Ok(found);
+        }
+        let mut redo = Vec::new();
+        for (i, dets) in found.iter().enumerate() {
+            let confident = dets.iter().filter(|d| d.confidence > self.post.conf_keep).count();
+            if confident < MIN_PITCH_SUPPORT {
+                continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
+            }
+            let Some(pitch) = estimate_pitch_px(dets, self.post.conf_keep) else {
+                continue;
+            };
+            let wanted = self.layout(sizes[i], Some(pitch));
+            let relayout = layouts[i].needs_relayout(&wanted);
+            if relayout {
+                layouts[i] = wanted;
+                redo.push(i);
+            }
+            if self.remember_pitch && (relayout || !self.pitch_memory.contains_key(&sizes[i])) {
+                self.pitch_memory.insert(sizes[i], pitch);
+            }
+        }
+        if !redo.is_empty() {
+            let again_images: Vec<&Mat> = redo.iter().map(|&i| images[i]).collect();
+            let again_sizes: Vec<ImageSize> = redo.iter().map(|&i| sizes[i]).collect();
+            let again_layouts: Vec<InputLayout> = redo.iter().map(|&i| layouts[i]).collect();
+            let again = self.decode_pass(&again_images, &again_sizes, &again_layouts, min_confidence)?;
+            for (i, dets) in redo.into_iter().zip(again) {
+                found[i] = dets;
+            }
+        }
+        Ok(found)
     }
 
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run

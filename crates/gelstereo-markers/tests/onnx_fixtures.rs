@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use gelstereo_core::{Detection, Point2, StereoPair};
 use gelstereo_markers::postprocess::{Selection, decode};
 use gelstereo_markers::{Error, Localizer, Marknet, Mre, PostProcess, SessionOptions};
-use opencv::core::{CV_8UC3, Mat, Scalar};
+use opencv::core::{CV_8UC3, Mat, MatTraitConst, Scalar};
 use serde_json::Value;
 
 fn fixtures() -> PathBuf {
@@ -346,4 +346,101 @@ fn padded_fit_maps_back_to_the_image() {
     let wide = Mat::new_rows_cols_with_default(20, 200, CV_8UC3, Scalar::all(128.0)).unwrap();
     assert!(m.detect(&wide).is_ok());
     assert!("squash".parse::<gelstereo_markers::InputFit>().is_err());
+}
+
+/// Same count, and every wanted detection has its own found one within the tolerances (order-free:
+/// rows of equal y may sort differently after a rounding difference).
+fn assert_matched(got: &[Detection], want: &[Detection], tol_px: f64, tol_c: f32, what: &str) {
+    assert_eq!(got.len(), want.len(), "{what}: count");
+    let mut used = vec![false; got.len()];
+    for w in want {
+        let best = (0..got.len())
+            .filter(|&i| !used[i])
+            .min_by(|&a, &b| {
+                got[a]
+                    .position
+                    .distance(w.position)
+                    .total_cmp(&got[b].position.distance(w.position))
+            })
+            .unwrap();
+        let g = got[best];
+        used[best] = true;
+        assert!(
+            g.position.distance(w.position) <= tol_px && (g.confidence - w.confidence).abs() <= tol_c,
+            "{what}: got {g:?}, want {w:?}"
+        );
+    }
+}
+
+fn expected_auto() -> Value {
+    let text = std::fs::read_to_string(fixtures().join("expected_auto.json")).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
+
+fn layout_of(v: &Value) -> gelstereo_markers::InputLayout {
+    let u = |k: &str| v[k].as_u64().unwrap() as u32;
+    gelstereo_markers::InputLayout {
+        input_width: u("input_w"),
+        input_height: u("input_h"),
+        scaled_width: u("scaled_w"),
+        scaled_height: u("scaled_h"),
+        offset_x: u("ox"),
+        offset_y: u("oy"),
+    }
+}
+
+/// The "auto" layout for a table of image sizes and pitches equals the trainer's `fit_layout`
+/// (nominal 416 x 416, multiple 32, pitch range 9-24, target 12).
+#[test]
+fn auto_layout_matches_the_trainer() {
+    let fit = gelstereo_markers::AutoFit {
+        multiple: 32,
+        pitch_min_px: 9.0,
+        pitch_max_px: 24.0,
+        pitch_target_px: 12.0,
+    };
+    let cases = expected_auto()["fit_layout_nominal_416"]
+        .as_array()
+        .unwrap()
+        .clone();
+    assert!(cases.len() >= 30);
+    for case in cases {
+        let size = gelstereo_core::ImageSize {
+            width: case["width"].as_u64().unwrap() as u32,
+            height: case["height"].as_u64().unwrap() as u32,
+        };
+        let got = gelstereo_markers::fit_layout(size, case["pitch_px"].as_f64(), 416, 416, &fit);
+        assert_eq!(got, layout_of(&case["layout"]), "{case}");
+    }
+}
+
+/// A dynamic-input model (`gelstereo-marknet/2`) under the default fit: a first pass without a pitch,
+/// a second at the scale the measured pitch asks for, detections as the trainer's MarknetRunner finds
+/// them; with the pitch remembered, the next image of that size starts from the final layout.
+#[test]
+fn auto_fit_two_passes_match_the_trainer() {
+    let e = expected_auto();
+    let path = fixtures().join("marknet_tiny_auto.onnx");
+    let post = post_of(&expected());
+    for name in ["dots_80x60.png", "dots_160x120.png"] {
+        let want = &e["images"][name];
+        let img = image(name);
+        let size = gelstereo_core::ImageSize {
+            width: img.cols() as u32,
+            height: img.rows() as u32,
+        };
+        let mut m = Marknet::load(&path, &options()).unwrap();
+        assert!(m.contract().auto_fit.is_some());
+        m.set_postprocess(post);
+        assert_eq!(m.next_layout(size), layout_of(&want["first_layout"]), "{name}");
+        let got = sorted(m.detect(&img).unwrap());
+        assert_matched(&got, &rows(&want["marknet"]), 0.05, 0.01, name);
+        // Remembered: the next frame of this size starts at the final layout. (A random network has no
+        // stable pitch, so what it measures there is not checked.)
+        assert_eq!(m.next_layout(size), layout_of(&want["final_layout"]), "{name}");
+        // Not remembered: every image starts from the first layout again.
+        m.set_pitch_memory(false);
+        assert_eq!(m.next_layout(size), layout_of(&want["first_layout"]), "{name}");
+        assert_same(&sorted(m.detect(&img).unwrap()), &got, 1e-9, 0.0, name);
+    }
 }
