@@ -47,7 +47,9 @@ class MarknetRunner:
     scale more than ``RELAYOUT_SCALE_CHANGE`` away, a second pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
-    def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None):
+    def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
+        if fit not in ("auto", "stretch"):
+            raise ValueError(f"fit must be 'auto' or 'stretch', got {fit!r}")
         path = Path(path)
         self.path = path
         self.post = post or PostConfig()
@@ -62,7 +64,8 @@ class MarknetRunner:
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = int(meta["stride"])
             self.model = None
-            self.fit = fit_config_from_metadata(meta) if meta.get("input_size") == "dynamic" else None
+            dynamic = meta.get("input_size") == "dynamic" and fit == "auto"
+            self.fit = fit_config_from_metadata(meta) if dynamic else None
         else:
             from .train_marknet import load_checkpoint
 
@@ -70,7 +73,7 @@ class MarknetRunner:
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = self.model.stride
             self.sess = None
-            self.fit = FitConfig(nominal_hw=self.input_hw)
+            self.fit = FitConfig(nominal_hw=self.input_hw) if fit == "auto" else None
         self.meta = meta
 
     def raw(self, x: torch.Tensor) -> np.ndarray:
@@ -208,10 +211,13 @@ def main(argv=None) -> int:
     p.add_argument("--max-experiments", type=int, default=None)
     p.add_argument("--max-images", type=int, default=None, help="random subset (seed 0) of the split's images")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--fit", choices=("auto", "stretch"), default="auto",
+                   help="auto: the model's layout (two passes, docs/model-contract.md); stretch: whole image "
+                   "resized to the nominal input (the first contract)")
     p.add_argument("--dedup-radius-frac", type=float, default=None)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
-    runner = MarknetRunner(args.marknet, args.threads)
+    runner = MarknetRunner(args.marknet, args.threads, fit=args.fit)
     post = PostConfig()
     if args.dedup_radius_frac is not None:
         post.dedup_radius_frac = args.dedup_radius_frac
