@@ -48,16 +48,24 @@ def main(argv=None) -> int:
              "trained in PyTorch by `train/` on simulated data only, exported per `docs/model-contract.md`.\n")
     L.append("## Files\n")
     L.append("| file | bytes | sha256 (16) | contents |\n|---|---|---|---|")
+    if props.get("input_size") == "dynamic":
+        shapes = (f"input `image` [N,3,H,W] (H, W multiples of {props['input_multiple']}; nominal "
+                  f"{props['input_height']}x{props['input_width']}) -> `raw` [N,H/{arch['stride']},W/{arch['stride']},"
+                  f"{arch['candidates']},3]; contract `{props['contract']}`")
+    else:
+        shapes = (f"input `image` [N,3,{props['input_height']},{props['input_width']}] -> `raw` "
+                  f"[N,{int(props['input_height']) // arch['stride']},{props['grid']},{arch['candidates']},3]")
     L.append(f"| `marknet.onnx` | {(models / 'marknet.onnx').stat().st_size} | {sha(models / 'marknet.onnx')} | "
-             f"input `image` [N,3,{props['input_height']},{props['input_width']}] -> `raw` "
-             f"[N,{int(props['input_height']) // arch['stride']},{props['grid']},{arch['candidates']},3] |")
+             f"{shapes} |")
     L.append(f"| `mre.onnx` | {(models / 'mre.onnx').stat().st_size} | {sha(models / 'mre.onnx')} | "
              "input `features` [N,11] -> `score` [N,1] |\n")
     L.append("## Model\n")
     L.append(f"- Marknet: S = {props['grid']} (stride {arch['stride']}), m = {arch['candidates']}, base width "
              f"{arch['width']}; {sum(q.numel() for q in net.parameters())} parameters, "
-             f"{count_flops(net):.3f} GFLOP at 416x416. Conv + BatchNorm + LeakyReLU, Darknet residual blocks "
-             "down to stride 32, a top-down path with nearest upsampling and lateral concatenation back to "
+             f"{count_flops(net):.3f} GFLOP at 416x416 ({count_flops(net, 320, 416):.3f} at 416x320, the reference "
+             f"sensor's auto layout); stem `{arch.get('stem', 's2')}` ("
+             + ("one 5x5 stride-4 convolution" if arch.get("stem") == "s4" else "3x3 stride-2 convolution + residual block")
+             + "). Conv + BatchNorm + LeakyReLU, Darknet residual blocks down to stride 32, a top-down path with nearest upsampling and lateral concatenation back to "
              "stride 8, one 1x1 detection head (`train/gelstereo_train/model.py`).")
     L.append("- MRE: 11 -> 32 -> 32 -> 1 fully connected, ReLU, sigmoid inside the exported graph.")
     L.append(f"- Post-processing defaults in metadata_props: conf_keep {props['conf_keep']}, conf_low "
@@ -70,7 +78,9 @@ def main(argv=None) -> int:
     L.append(f"- Dataset: `{meta['data_root']}` — metadata `dataset` = \"{meta['dataset']}\".")
     L.append(f"- Marknet: random {a['crop']}x{a['crop']} crops of the training split's images (left and right "
              f"views; {meta['dataset'].split('images=')[-1]} images held in memory), half sampled exactly as at "
-             "inference (whole image resized to 416x416), half with marker pitch 9-44 px at the input, "
+             + ("inference (the auto layout's isotropic scale for the image's true marker pitch)"
+                if props.get("input_size") == "dynamic" else "inference (whole image resized to 416x416)")
+             + ", half with marker pitch 9-44 px at the input, "
              "anisotropic scale, flips, +-8 deg rotation; photometric augmentation on 70% "
              "(colour gains, contrast, gamma, colour shading, grey, polarity, blur, noise, JPEG).")
     rc = mre_meta.get("raw_counts", {})
@@ -123,7 +133,14 @@ def main(argv=None) -> int:
     if args.notes and args.notes.exists():
         L.append("## Notes\n")
         L.append(args.notes.read_text().strip() + "\n")
-    (models / "MODEL_CARD.md").write_text("\n".join(L))
+    card = models / "MODEL_CARD.md"
+    # Sections other trainers append (the YOLOv3 baseline's) are kept.
+    if card.exists():
+        old = card.read_text()
+        at = old.find("\n## `yolo.onnx`")
+        if at >= 0:
+            L.append(old[at + 1 :].rstrip() + "\n")
+    card.write_text("\n".join(L))
     print(f"wrote {models / 'MODEL_CARD.md'}")
     return 0
 

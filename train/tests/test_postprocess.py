@@ -65,3 +65,31 @@ def test_postprocess_thresholds_and_mre_acceptance():
     assert len(det.marknet_mre) == 35  # both uncertain ones accepted by the toy MRE
     det2 = postprocess(dec, PostConfig(), mre_fn=lambda f: np.zeros(len(f)))
     assert len(det2.marknet_mre) == 33
+
+
+def test_auto_layout_brings_the_pitch_into_range_and_decodes_back():
+    from gelstereo_train.postprocess import FitConfig, decode_layout, fit_layout, preprocess_layout
+
+    # Reference sensor: 640x480, 16 px pitch -> inside the nominal 416 with a pitch of margin.
+    lay = fit_layout(640, 480, 16.0)
+    assert (lay.input_w, lay.input_h) == (416, 320) and 9.0 <= 16.0 * lay.scaled_w / 640 <= 24.0
+    # A fine pitch is enlarged to the target, a coarse one shrunk; unknown pitch: no margin.
+    assert fit_layout(800, 600, 10.0).scaled_w == round(800 * 1.2)
+    assert fit_layout(320, 240, 31.0).scaled_w == round(320 * 12 / 31)
+    assert (fit_layout(640, 480, None).scaled_w, fit_layout(640, 480, None).scaled_h) == (416, 312)
+    assert fit_layout(100000, 50, 10.0, FitConfig()).input_w <= 2048
+    # A marker whose centre is drawn at a known place comes back there through the layout.
+    img = np.zeros((60, 80, 3), np.uint8)
+    lay = fit_layout(80, 60, 13.0, FitConfig(nominal_hw=(64, 64)))
+    x = preprocess_layout(img, lay)
+    assert x.shape == (1, 3, lay.input_h, lay.input_w)
+    stride, gx, gy = 8, 3, 2
+    raw = np.full((lay.input_h // stride, lay.input_w // stride, 1, 3), -20.0)
+    raw[gy, gx, 0] = [0.0, 0.0, 20.0]  # centre of cell (2, 3), confident
+    out = decode_layout(raw, stride, (80, 60), lay)
+    sx, sy = 80 / lay.scaled_w, 60 / lay.scaled_h
+    want = [((gx + 0.5) * stride - lay.ox) * sx - 0.5, ((gy + 0.5) * stride - lay.oy) * sy - 0.5]
+    hit = out[out[:, 2] > 0.5]
+    assert len(hit) == 1 and hit[0, :2].tolist() == pytest.approx(want)
+    # Nothing decoded in the mirrored border.
+    assert ((out[:, 0] >= -0.5) & (out[:, 0] <= 79.5) & (out[:, 1] >= -0.5) & (out[:, 1] <= 59.5)).all()
