@@ -371,10 +371,14 @@ pub struct PipelineBench<'a> {
     pub json: Option<&'a Path>,
 }
 
-/// Stage names of the latency table, in pipeline order.
-const STAGES: [&str; 8] = [
+/// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
+/// for the learned methods only).
+const STAGES: [&str; 11] = [
     "decode (both views, from bytes in memory)",
     "localization (both views, one batch)",
+    "  preprocess (resize, f32 tensor)",
+    "  network (ONNX Runtime run)",
+    "  post-process (decode, select, MRE)",
     "tracking association (2 views)",
     "triangulation",
     "outlier test + fill",
@@ -439,7 +443,7 @@ impl Stages {
         })
     }
 
-    /// One frame, stage by stage: the wall time of stages 2..=6 of [`STAGES`] (ms) and the contact
+    /// One frame, stage by stage: the wall time of stages 5..=9 of [`STAGES`] (ms) and the contact
     /// and slip results.
     fn run(
         &mut self,
@@ -704,10 +708,15 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         times[0].push(t_decode);
         times[1].push(ms(t0, t1));
-        for (i, v) in st.iter().enumerate() {
-            times[2 + i].push(*v);
+        if let Some(parts) = localizer.last_times() {
+            times[2].push(parts.preprocess_ms);
+            times[3].push(parts.network_ms);
+            times[4].push(parts.postprocess_ms);
         }
-        times[7].push(ms(t1, t2));
+        for (i, v) in st.iter().enumerate() {
+            times[5 + i].push(*v);
+        }
+        times[10].push(ms(t1, t2));
         whole.push(ms(t0, t2));
         let cpu = |a: Option<u64>, b: Option<u64>, readings: u64| {
             a.zip(b)
@@ -831,6 +840,9 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     );
     let mut stage_rows = Vec::new();
     for (name, samples) in STAGES.iter().zip(times.iter_mut()) {
+        if samples.is_empty() {
+            continue;
+        }
         let (med, p90, mean) = stats(samples);
         let _ = writeln!(text, "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms");
         stage_rows.push(json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean}));

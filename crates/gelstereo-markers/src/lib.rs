@@ -122,6 +122,17 @@ pub(crate) fn cv_err(context: &'static str) -> impl FnOnce(opencv::Error) -> Err
 /// Smallest image side a localizer accepts, px: below it no marker of any sensor we know is resolvable.
 pub const MIN_IMAGE_SIDE_PX: u32 = 16;
 
+/// Wall time of the parts of one localization call (one image or one stereo batch), ms.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LocalizationTimes {
+    /// Resize to the network input and conversion to its f32 tensor, all images of the batch.
+    pub preprocess_ms: f64,
+    /// The network's ONNX Runtime run, its output copied out.
+    pub network_ms: f64,
+    /// Decoding the output, candidate selection and (with MRE) the MRE run.
+    pub postprocess_ms: f64,
+}
+
 /// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
 pub trait Localizer {
     /// The method's name as used on the command line and in tables (`blob`, `marknet`, `marknet-mre`).
@@ -133,6 +144,12 @@ pub trait Localizer {
     /// For `marknet-mre`: the confidence at or below which a detection was accepted by MRE (its
     /// `conf_keep`), so overlays can mark those. `None` for methods without MRE.
     fn mre_band_top(&self) -> Option<f32> {
+        None
+    }
+
+    /// Wall time of the parts of the latest `detect` / `detect_stereo` call (for benchmarks); `None`
+    /// for methods that do not split their work (the blob detector).
+    fn last_times(&self) -> Option<LocalizationTimes> {
         None
     }
 

@@ -19,7 +19,8 @@ use ort::value::{TensorRef, ValueType};
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::postprocess::{DecodeGeometry, Selection, decode};
 use crate::{
-    Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
+    Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image,
+    cv_err, runtime,
 };
 
 /// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
@@ -327,6 +328,7 @@ pub struct Marknet {
     resized: Mat,
     padded: Mat,
     input: Vec<f32>,
+    times: LocalizationTimes,
 }
 
 impl std::fmt::Debug for Marknet {
@@ -360,6 +362,7 @@ impl Marknet {
             resized: Mat::default(),
             padded: Mat::default(),
             input: Vec::new(),
+            times: LocalizationTimes::default(),
         })
     }
 
@@ -492,11 +495,13 @@ impl Marknet {
             self.contract.input_width as usize,
             self.contract.input_height as usize,
         );
+        let t0 = std::time::Instant::now();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         let mut sizes = Vec::with_capacity(images.len());
         for (slot, image) in images.iter().enumerate() {
             sizes.push(self.preprocess(image, slot)?);
         }
+        let t1 = std::time::Instant::now();
         let run = onnx_err(&self.path, "inference");
         let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
             .map_err(|e| run(e.to_string()))?;
@@ -518,7 +523,10 @@ impl Marknet {
                 c.candidates
             )));
         }
-        Ok((sizes, raw.to_vec()))
+        let raw = raw.to_vec();
+        self.times.preprocess_ms = (t1 - t0).as_secs_f64() * 1e3;
+        self.times.network_ms = t1.elapsed().as_secs_f64() * 1e3;
+        Ok((sizes, raw))
     }
 
     /// The decoding geometry for an image of `size` under this model's contract and the input fit.
@@ -582,6 +590,15 @@ impl Marknet {
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run
     /// for all images' pending candidates.
     pub fn detect_batch(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
+        let started = std::time::Instant::now();
+        self.times = LocalizationTimes::default();
+        let found = self.detect_batch_untimed(images)?;
+        let t = &mut self.times;
+        t.postprocess_ms = (started.elapsed().as_secs_f64() * 1e3 - t.preprocess_ms - t.network_ms).max(0.0);
+        Ok(found)
+    }
+
+    fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates(images, post.conf_low)?;
@@ -628,6 +645,10 @@ impl Localizer for Marknet {
 
     fn mre_band_top(&self) -> Option<f32> {
         self.mre.is_some().then_some(self.post.conf_keep)
+    }
+
+    fn last_times(&self) -> Option<LocalizationTimes> {
+        Some(self.times)
     }
 
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
