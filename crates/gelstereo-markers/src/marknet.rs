@@ -153,16 +153,12 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
     })
 }
 
-/// `UNIT_LUT[v] = v / 255`: 8-bit pixel values to the network's [0, 1] floats.
-const UNIT_LUT: [f32; 256] = {
-    let mut t = [0f32; 256];
-    let mut i = 0;
-    while i < 256 {
-        t[i] = i as f32 / 255.0;
-        i += 1;
-    }
-    t
-};
+/// An 8-bit pixel value as the network's [0, 1] float, `v / 255` (correctly rounded; a plain division
+/// vectorises, where a lookup table does not).
+#[inline(always)]
+fn unit(v: u8) -> f32 {
+    f32::from(v) / 255.0
+}
 
 /// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
 /// (the contract's whole-image stretch would distort markers beyond what training covered).
@@ -198,41 +194,35 @@ pub(crate) fn write_planar_rgb(src: &Mat, plane: &mut [f32]) -> Result<()> {
     let hw = plane.len() / 3;
     let (r, rest) = plane.split_at_mut(hw);
     let (g, b) = rest.split_at_mut(hw);
-    let lut = &UNIT_LUT;
-    match src.channels() {
+    // Index loops over slices cut to the same length: bounds checks vanish and the loops vectorise.
+    match src.channels().max(1) as usize {
         1 => {
-            for (i, &v) in bytes.iter().take(hw).enumerate() {
-                let v = lut[usize::from(v)];
+            let m = hw.min(bytes.len());
+            let (r, g, b) = (&mut r[..m], &mut g[..m], &mut b[..m]);
+            for (i, &v) in bytes[..m].iter().enumerate() {
+                let v = unit(v);
                 (r[i], g[i], b[i]) = (v, v, v);
             }
         }
         3 => {
-            for (((px, r), g), b) in bytes
-                .chunks_exact(3)
-                .zip(r.iter_mut())
-                .zip(g.iter_mut())
-                .zip(b.iter_mut())
-            {
-                (*b, *g, *r) = (
-                    lut[usize::from(px[0])],
-                    lut[usize::from(px[1])],
-                    lut[usize::from(px[2])],
-                );
+            let m = hw.min(bytes.len() / 3);
+            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..3 * m]);
+            for i in 0..m {
+                (b[i], g[i], r[i]) = (unit(px[3 * i]), unit(px[3 * i + 1]), unit(px[3 * i + 2]));
             }
         }
+        2 => {
+            return Err(Error::Image {
+                property: "channels",
+                expected: "1 (grey), 3 (BGR) or 4 (BGRA)".into(),
+                found: "2".into(),
+            });
+        }
         n => {
-            let n = n as usize;
-            for (((px, r), g), b) in bytes
-                .chunks_exact(n)
-                .zip(r.iter_mut())
-                .zip(g.iter_mut())
-                .zip(b.iter_mut())
-            {
-                (*b, *g, *r) = (
-                    lut[usize::from(px[0])],
-                    lut[usize::from(px[1])],
-                    lut[usize::from(px[2])],
-                );
+            let m = hw.min(bytes.len() / n);
+            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..n * m]);
+            for i in 0..m {
+                (b[i], g[i], r[i]) = (unit(px[n * i]), unit(px[n * i + 1]), unit(px[n * i + 2]));
             }
         }
     }
@@ -657,5 +647,46 @@ impl Localizer for Marknet {
         let right = out.pop().unwrap_or_default();
         let left = out.pop().unwrap_or_default();
         Ok(StereoPair::new(left, right))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Scalar};
+    use opencv::prelude::*;
+
+    /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
+    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped).
+    #[test]
+    fn planar_rgb_is_exact_for_grey_bgr_and_bgra() -> Result<()> {
+        for (typ, n) in [(CV_8UC1, 1usize), (CV_8UC3, 3), (CV_8UC4, 4)] {
+            let (w, h) = (37, 29);
+            let mut m =
+                Mat::new_rows_cols_with_default(h, w, typ, Scalar::all(0.0)).map_err(cv_err("test"))?;
+            for (i, v) in m.data_bytes_mut().map_err(cv_err("test"))?.iter_mut().enumerate() {
+                *v = (i * 7 % 256) as u8;
+            }
+            let bytes = m.data_bytes().map_err(cv_err("test"))?.to_vec();
+            let hw = (w * h) as usize;
+            let mut plane = vec![-1.0f32; 3 * hw];
+            write_planar_rgb(&m, &mut plane)?;
+            for p in 0..hw {
+                let px = &bytes[n * p..n * p + n];
+                let (r, g, b) = if n == 1 {
+                    (px[0], px[0], px[0])
+                } else {
+                    (px[2], px[1], px[0])
+                };
+                for (c, v) in [r, g, b].into_iter().enumerate() {
+                    assert_eq!(
+                        plane[c * hw + p].to_bits(),
+                        (v as f32 / 255.0).to_bits(),
+                        "{n} channels, px {p}"
+                    );
+                }
+            }
+        }
+        Ok(())
     }
 }
