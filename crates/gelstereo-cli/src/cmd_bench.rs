@@ -443,17 +443,17 @@ impl Stages {
         })
     }
 
-    /// One frame, stage by stage: the wall time of stages 5..=9 of [`STAGES`] (ms) and the contact
-    /// and slip results.
+    /// One frame, stage by stage: the marks between stages 5..=9 of [`STAGES`] and the contact and
+    /// slip results.
     fn run(
         &mut self,
         left: &[Point2],
         right: &[Point2],
-    ) -> anyhow::Result<([f64; 5], ContactFrame, SlipState)> {
-        let t0 = Instant::now();
+    ) -> anyhow::Result<([Mark; 6], ContactFrame, SlipState)> {
+        let t0 = Mark::now();
         let lf = self.left.update(left);
         let rf = self.right.update(right);
-        let t1 = Instant::now();
+        let t1 = Mark::now();
         let n = self.shape.count();
         let mut current: Vec<Option<[f64; 3]>> = vec![None; n];
         for (lin, cur) in current.iter_mut().enumerate() {
@@ -466,7 +466,7 @@ impl Stages {
                 *cur = Some([p.x, p.y, p.z]);
             }
         }
-        let t2 = Instant::now();
+        let t2 = Mark::now();
         session::reject_outliers(
             self.shape,
             &self.reference_mm,
@@ -475,17 +475,58 @@ impl Stages {
             self.config.outlier_noise_mm,
         );
         let filled = session::fill_from_neighbours(self.shape, &self.reference_mm, &current);
-        let t3 = Instant::now();
+        let t3 = Mark::now();
         let contact = self.surface.analyze(&filled, &self.config.contact)?;
-        let t4 = Instant::now();
+        let t4 = Mark::now();
         let slip = self.slip.update(&self.surface, &contact);
-        let t5 = Instant::now();
-        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
-        Ok((
-            [ms(t0, t1), ms(t1, t2), ms(t2, t3), ms(t3, t4), ms(t4, t5)],
-            contact,
-            slip.state,
-        ))
+        let t5 = Mark::now();
+        Ok(([t0, t1, t2, t3, t4, t5], contact, slip.state))
+    }
+}
+
+/// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
+/// at the moment of the call (the kernel adds the running threads' pending time), where
+/// `/proc/self/task/*/schedstat` lags for a thread that is running; `None` if the clock fails.
+#[allow(unsafe_code)]
+fn process_cpu_clock_ns() -> Option<u64> {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec into `ts`, a valid and exclusively borrowed value.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return None;
+    }
+    Some(u64::try_from(ts.tv_sec).ok()? * 1_000_000_000 + u64::try_from(ts.tv_nsec).ok()?)
+}
+
+/// A point in time and the process CPU time then.
+#[derive(Clone, Copy)]
+struct Mark {
+    wall: Instant,
+    cpu_ns: Option<u64>,
+}
+
+impl Mark {
+    fn now() -> Self {
+        let cpu_ns = process_cpu_clock_ns();
+        Self {
+            wall: Instant::now(),
+            cpu_ns,
+        }
+    }
+
+    /// Wall time from `self` to `later`, ms.
+    fn wall_ms(&self, later: &Mark) -> f64 {
+        (later.wall - self.wall).as_secs_f64() * 1e3
+    }
+
+    /// CPU time of the process from `self` to `later`, ms, less `overhead_ns` (one clock reading).
+    fn cpu_ms(&self, later: &Mark, overhead_ns: u64) -> Option<f64> {
+        self.cpu_ns
+            .zip(later.cpu_ns)
+            .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6)
     }
 }
 
@@ -622,6 +663,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         .map(|p| p.display().to_string())
         .unwrap_or_default();
     let mut localizer = b.localizer.localizer(b.method)?;
+    localizer.set_cpu_clock(process_cpu_clock_ns);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let workers = if b.workers == 0 { cores } else { b.workers };
     let load_start = load_average();
@@ -666,11 +708,11 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
             t_index.push(ms);
         }
     }
-    // The CPU-time reading costs CPU itself: its median over a few empty readings is subtracted.
+    // A clock reading costs CPU itself: its median over a few empty intervals is subtracted.
     let mut empty: Vec<u64> = (0..31)
         .filter_map(|_| {
-            process_cpu_ns()
-                .zip(process_cpu_ns())
+            process_cpu_clock_ns()
+                .zip(process_cpu_clock_ns())
                 .map(|(a, b)| b.saturating_sub(a))
         })
         .collect();
@@ -681,23 +723,21 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     let mut session = make()?;
     let mut stages = Stages::new(&session, triangulator.clone(), &config)?;
     let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
-    let (mut whole, mut cpu_whole, mut cpu_loc) = (Vec::new(), Vec::new(), Vec::new());
+    let mut cpu_times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
+    let (mut whole, mut cpu_whole) = (Vec::new(), Vec::new());
     let (mut mismatches, mut markers) = (0usize, 0usize);
     for j in 0..b.warmup + b.runs {
         let k = ping_pong(j, n);
-        let t = Instant::now();
+        let m_decode = Mark::now();
         let decoded = decode_pair(&encoded[k], &paths[k])?;
-        let t_decode = t.elapsed().as_secs_f64() * 1e3;
+        let m_decoded = Mark::now();
         drop(decoded);
-        let c0 = process_cpu_ns();
-        let t0 = Instant::now();
+        let m0 = Mark::now();
         let d = localizer.detect_stereo(&frames[k])?;
         let pts = to_points(&d);
-        let t1 = Instant::now();
-        let c1 = process_cpu_ns();
+        let m1 = Mark::now();
         let out = session.track(j as u32, &pts.left, &pts.right)?;
-        let t2 = Instant::now();
-        let c2 = process_cpu_ns();
+        let m2 = Mark::now();
         let (st, contact, slip) = stages.run(&pts.left, &pts.right)?;
         if contact.depth_mm != out.contact.depth_mm || slip != out.slip.state {
             mismatches += 1;
@@ -705,25 +745,28 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         if j < b.warmup {
             continue;
         }
-        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
-        times[0].push(t_decode);
-        times[1].push(ms(t0, t1));
+        let mut push = |i: usize, a: &Mark, b: &Mark| {
+            times[i].push(a.wall_ms(b));
+            cpu_times[i].extend(a.cpu_ms(b, overhead_ns));
+        };
+        push(0, &m_decode, &m_decoded);
+        push(1, &m0, &m1);
+        for (i, w) in st.windows(2).enumerate() {
+            push(5 + i, &w[0], &w[1]);
+        }
+        push(10, &m1, &m2);
         if let Some(parts) = localizer.last_times() {
             times[2].push(parts.preprocess_ms);
             times[3].push(parts.network_ms);
             times[4].push(parts.postprocess_ms);
+            if let Some(cpu) = parts.cpu_ms {
+                for (i, c) in cpu.iter().enumerate() {
+                    cpu_times[2 + i].push((c - overhead_ns as f64 * 1e-6).max(0.0));
+                }
+            }
         }
-        for (i, v) in st.iter().enumerate() {
-            times[5 + i].push(*v);
-        }
-        times[10].push(ms(t1, t2));
-        whole.push(ms(t0, t2));
-        let cpu = |a: Option<u64>, b: Option<u64>, readings: u64| {
-            a.zip(b)
-                .map(|(a, b)| b.saturating_sub(a).saturating_sub(readings * overhead_ns) as f64 * 1e-6)
-        };
-        cpu_whole.extend(cpu(c0, c2, 2));
-        cpu_loc.extend(cpu(c0, c1, 1));
+        whole.push(m0.wall_ms(&m2));
+        cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
         markers += d.left.len() + d.right.len();
     }
 
@@ -781,7 +824,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         }
         drop(tx);
         barrier.wait();
-        let c0 = process_cpu_ns();
+        let c0 = process_cpu_clock_ns();
         let t0 = Instant::now();
         let mut pending = std::collections::BTreeMap::new();
         let mut expect = 0usize;
@@ -797,7 +840,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
             Ok(())
         })();
         let elapsed = t0.elapsed().as_secs_f64();
-        let c1 = process_cpu_ns();
+        let c1 = process_cpu_clock_ns();
         if result.is_err() {
             stop.store(true, Ordering::SeqCst);
         }
@@ -810,6 +853,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     })?;
     let fps = runs as f64 / elapsed_s.max(1e-9);
     let cpu_per_frame_tp = cpu_ns.map(|c| c as f64 * 1e-6 / runs as f64);
+    let ort = matches!(b.method, Method::Marknet | Method::MarknetMre | Method::Yolo);
     let load_end = load_average();
 
     // Report.
@@ -824,50 +868,66 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         b.method
     );
     let threads = if b.localizer.threads == 0 {
-        format!("ONNX Runtime's default ({cores})")
+        format!("{cores} (default: one per core)")
     } else {
         b.localizer.threads.to_string()
     };
     let _ = writeln!(
         text,
-        "latency mode: one frame at a time, {} timed frame-runs after {} warm-up, intra-op threads {threads}",
-        b.runs, b.warmup
+        "latency mode: one frame at a time, {} timed frame-runs after {} warm-up{}; CPU = process CPU time, all threads",
+        b.runs,
+        b.warmup,
+        if ort {
+            format!(", ONNX Runtime intra-op threads {threads}")
+        } else {
+            String::new()
+        }
     );
     let _ = writeln!(
         text,
-        "{:<44} {:>10} {:>10} {:>10}",
-        "stage", "median", "p90", "mean"
+        "{:<44} {:>10} {:>10} {:>10} {:>10}",
+        "stage", "median", "p90", "mean", "CPU med"
     );
+    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"));
     let mut stage_rows = Vec::new();
-    for (name, samples) in STAGES.iter().zip(times.iter_mut()) {
+    for ((name, samples), cpu) in STAGES.iter().zip(times.iter_mut()).zip(cpu_times.iter_mut()) {
         if samples.is_empty() {
             continue;
         }
         let (med, p90, mean) = stats(samples);
-        let _ = writeln!(text, "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms");
-        stage_rows.push(json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean}));
+        let cpu_med = median_of(cpu);
+        let _ = writeln!(
+            text,
+            "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms {:>10}",
+            ms(cpu_med)
+        );
+        stage_rows.push(
+            json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean, "cpu_median_ms": cpu_med}),
+        );
     }
     let (idx_med, idx_p90, idx_mean) = stats(&mut t_index);
     let _ = writeln!(
         text,
-        "{:<44} {idx_med:>7.3} ms {idx_p90:>7.3} ms {idx_mean:>7.3} ms",
-        "reference grid indexing (once per session)"
+        "{:<44} {idx_med:>7.3} ms {idx_p90:>7.3} ms {idx_mean:>7.3} ms {:>10}",
+        "reference grid indexing (once per session)", "/"
     );
     let (w_med, w_p90, w_mean) = stats(&mut whole);
-    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
     let cpu_whole_med = median_of(&mut cpu_whole);
-    let cpu_loc_med = median_of(&mut cpu_loc);
-    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.2} ms"));
     let _ = writeln!(
         text,
-        "whole pipeline (localization + track(), decoded frames): median {w_med:.2} ms, p90 {w_p90:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame (localization {})",
+        "whole pipeline (localization + track(), decoded frames): median {w_med:.2} ms, p90 {w_p90:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame",
         1e3 / w_med,
         ms(cpu_whole_med),
-        ms(cpu_loc_med)
     );
     let _ = writeln!(
         text,
-        "throughput mode: {fps:.1} stereo frames/s over {runs} frames ({workers} workers localizing frames in parallel, one ONNX Runtime intra-op thread each, sequential tracker); CPU {} per frame",
+        "throughput mode: {fps:.1} stereo frames/s over {runs} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame",
+        if ort {
+            ", one ONNX Runtime intra-op thread each"
+        } else {
+            ""
+        },
         ms(cpu_per_frame_tp)
     );
     let _ = writeln!(
@@ -900,7 +960,6 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
                 "reference_indexing_ms": {"median": idx_med, "p90": idx_p90, "mean": idx_mean},
                 "whole_ms": {"median": w_med, "p90": w_p90, "mean": w_mean},
                 "cpu_ms_per_frame": cpu_whole_med,
-                "localization_cpu_ms_per_frame": cpu_loc_med,
             },
             "throughput": {
                 "workers": workers,

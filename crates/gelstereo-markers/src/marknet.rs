@@ -19,8 +19,8 @@ use ort::value::{TensorRef, ValueType};
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::postprocess::{DecodeGeometry, Selection, decode};
 use crate::{
-    Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image,
-    cv_err, runtime,
+    CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
+    check_image, cv_err, runtime,
 };
 
 /// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
@@ -319,6 +319,9 @@ pub struct Marknet {
     padded: Mat,
     input: Vec<f32>,
     times: LocalizationTimes,
+    clock: Option<CpuClock>,
+    /// CPU time at the start of the latest batch, after preprocessing and after the network, ns.
+    cpu_marks: [Option<u64>; 3],
 }
 
 impl std::fmt::Debug for Marknet {
@@ -353,6 +356,8 @@ impl Marknet {
             padded: Mat::default(),
             input: Vec::new(),
             times: LocalizationTimes::default(),
+            clock: None,
+            cpu_marks: [None; 3],
         })
     }
 
@@ -485,6 +490,7 @@ impl Marknet {
             self.contract.input_width as usize,
             self.contract.input_height as usize,
         );
+        self.cpu_marks[0] = self.clock.and_then(|c| c());
         let t0 = std::time::Instant::now();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         let mut sizes = Vec::with_capacity(images.len());
@@ -492,6 +498,7 @@ impl Marknet {
             sizes.push(self.preprocess(image, slot)?);
         }
         let t1 = std::time::Instant::now();
+        self.cpu_marks[1] = self.clock.and_then(|c| c());
         let run = onnx_err(&self.path, "inference");
         let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
             .map_err(|e| run(e.to_string()))?;
@@ -516,6 +523,7 @@ impl Marknet {
         let raw = raw.to_vec();
         self.times.preprocess_ms = (t1 - t0).as_secs_f64() * 1e3;
         self.times.network_ms = t1.elapsed().as_secs_f64() * 1e3;
+        self.cpu_marks[2] = self.clock.and_then(|c| c());
         Ok((sizes, raw))
     }
 
@@ -582,9 +590,15 @@ impl Marknet {
     pub fn detect_batch(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
         let started = std::time::Instant::now();
         self.times = LocalizationTimes::default();
+        self.cpu_marks = [None; 3];
         let found = self.detect_batch_untimed(images)?;
+        let end = self.clock.and_then(|c| c());
         let t = &mut self.times;
         t.postprocess_ms = (started.elapsed().as_secs_f64() * 1e3 - t.preprocess_ms - t.network_ms).max(0.0);
+        if let ([Some(a), Some(b), Some(c)], Some(d)) = (self.cpu_marks, end) {
+            let ms = |x: u64, y: u64| y.saturating_sub(x) as f64 * 1e-6;
+            t.cpu_ms = Some([ms(a, b), ms(b, c), ms(c, d)]);
+        }
         Ok(found)
     }
 
@@ -639,6 +653,10 @@ impl Localizer for Marknet {
 
     fn last_times(&self) -> Option<LocalizationTimes> {
         Some(self.times)
+    }
+
+    fn set_cpu_clock(&mut self, clock: CpuClock) {
+        self.clock = Some(clock);
     }
 
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
