@@ -95,3 +95,24 @@ fn pipeline_bench_names_a_missing_recording() {
     assert!(!out.status.success());
     assert!(text.contains("/nonexistent/recording"), "{text}");
 }
+
+#[test]
+fn track_bench_is_an_alias_of_the_pipeline_benchmark() {
+    let rec = repo().join("data/sample/press-slide");
+    let out = common::gelstereo(&[
+        "track",
+        "--bench",
+        "--method",
+        "blob",
+        "--bench-frames",
+        "3",
+        rec.to_str().unwrap(),
+    ]);
+    let text = common::text(&out);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("stereo frames/s over 3 frames"), "{text}");
+    assert!(
+        first_ms(&text, "track() whole (stages above + rows)") > 0.0,
+        "{text}"
+    );
+}
