@@ -43,13 +43,14 @@ pub struct Args {
     /// Comma-separated methods; `blob` is always measured too (it is the reference).
     #[arg(long, default_value = "blob,marknet,marknet-mre")]
     methods: String,
-    /// Timed runs per method and per measurement (after the warm-up).
+    /// Timed runs per method and per measurement (after the warm-up); pipeline benchmark: timed
+    /// frame-runs per mode.
     #[arg(long, default_value_t = 200)]
     runs: usize,
-    /// Untimed warm-up runs per method.
+    /// Untimed warm-up runs per method (pipeline benchmark: frame-runs before the latency mode).
     #[arg(long, default_value_t = 20)]
     warmup: usize,
-    /// Also write the figures as JSON here.
+    /// Also write the figures as JSON here (`--json` is the same option).
     #[arg(long, alias = "json", value_name = "FILE.json")]
     out: Option<PathBuf>,
     /// Pipeline benchmark: the stereo calibration (OpenCV YAML/XML, or a folder / pair of mrcal
