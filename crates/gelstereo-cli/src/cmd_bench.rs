@@ -1,16 +1,28 @@
-//! `gelstereo bench`: localization latency of each method per view and per stereo pair, measured side
-//! by side in one process (the runs of the methods are interleaved, so machine load hits all alike),
-//! with the ratio to the blob baseline. Criterion benches of the same code are in
-//! `crates/gelstereo-markers/benches`.
+//! `gelstereo bench`, two benchmarks:
+//! - localization (`--dataset DATA`, or recordings / images without `--calib`): latency of each
+//!   method per view and per stereo pair, measured side by side in one process (the runs of the
+//!   methods are interleaved, so machine load hits all alike), with the ratio to the blob baseline.
+//!   Criterion benches of the same code are in `crates/gelstereo-markers/benches`.
+//! - the whole stereo pipeline (`--calib FILE RECORDING` or `--pipeline RECORDING`; also
+//!   `gelstereo track --bench`): per-stage medians and p90 in latency mode (one frame at a time),
+//!   the whole pipeline per stereo frame with its CPU time, and the throughput mode (frames localized
+//!   in parallel, sequential tracking); see [`run_pipeline`].
 
 use std::fmt::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Barrier, mpsc};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use gelstereo_core::StereoPair;
+use gelstereo_core::{GridIndex, GridShape, ImageSize, Point2, SlipState, StereoPair};
+use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use gelstereo_io::images::{self, StereoRecording};
-use gelstereo_markers::{Localizer, Method};
+use gelstereo_markers::{Localizer, Method, create_localizer};
+use gelstereo_matching::{StereoConfig, StereoLattice};
+use gelstereo_tracking::{
+    ContactFrame, ReferenceSurface, SessionConfig, SlipDetector, StereoSession, Tracker, session,
+};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
 
@@ -31,18 +43,39 @@ pub struct Args {
     /// Comma-separated methods; `blob` is always measured too (it is the reference).
     #[arg(long, default_value = "blob,marknet,marknet-mre")]
     methods: String,
-    /// Timed runs per method and per measurement (after the warm-up).
+    /// Timed runs per method and per measurement (after the warm-up); pipeline benchmark: timed
+    /// frame-runs per mode.
     #[arg(long, default_value_t = 200)]
     runs: usize,
-    /// Untimed warm-up runs per method.
+    /// Untimed warm-up runs per method (pipeline benchmark: frame-runs before the latency mode).
     #[arg(long, default_value_t = 20)]
     warmup: usize,
-    /// Also write the figures as JSON here.
-    #[arg(long, value_name = "FILE.json")]
+    /// Also write the figures as JSON here (`--json` is the same option).
+    #[arg(long, alias = "json", value_name = "FILE.json")]
     out: Option<PathBuf>,
+    /// Pipeline benchmark: the stereo calibration (OpenCV YAML/XML, or a folder / pair of mrcal
+    /// .cameramodel files). With it, INPUT is one stereo recording and the whole pipeline is timed.
+    #[arg(long, value_name = "FILE")]
+    calib: Option<String>,
+    /// Pipeline benchmark with the recording's own calib.yaml (as --calib RECORDING/calib.yaml).
+    #[arg(long)]
+    pipeline: bool,
+    /// Pipeline benchmark: the localization method (blob, yolo, marknet or marknet-mre).
+    #[arg(long, default_value = "marknet-mre")]
+    method: Method,
+    /// Pipeline benchmark: distinct frames loaded from frame 0 on, walked forth and back (0: all).
+    #[arg(long, default_value_t = 0)]
+    frames: usize,
+    /// Pipeline benchmark: marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
+    #[arg(long, value_name = "ROWSxCOLS")]
+    grid: Option<String>,
+    /// Pipeline benchmark: worker threads of the throughput mode (0: one per core).
+    #[arg(long, default_value_t = 0)]
+    workers: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,
-    /// Stereo recordings (folders with left/ and right/) or images (consecutive images form pairs).
+    /// Stereo recordings (folders with left/ and right/) or images (consecutive images form pairs);
+    /// with --calib or --pipeline: one stereo recording.
     #[arg(value_name = "INPUT")]
     inputs: Vec<PathBuf>,
 }
@@ -146,6 +179,30 @@ fn stats(samples_ms: &mut [f64]) -> (f64, f64, f64) {
 }
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    if args.calib.is_some() || args.pipeline {
+        let [recording] = args.inputs.as_slice() else {
+            bail!(
+                "the pipeline benchmark (--calib / --pipeline) takes exactly one stereo RECORDING, got {}",
+                args.inputs.len()
+            );
+        };
+        if args.dataset.is_some() {
+            bail!("--dataset is for the localization benchmark; the pipeline benchmark takes one RECORDING");
+        }
+        return run_pipeline(&PipelineBench {
+            recording,
+            calib: args.calib.as_deref(),
+            method: args.method,
+            grid: args.grid.as_deref(),
+            gel_thickness_mm: None,
+            frames: args.frames,
+            runs: args.runs,
+            warmup: args.warmup,
+            workers: args.workers,
+            localizer: &args.localizer,
+            json: args.out.as_deref(),
+        });
+    }
     if args.runs < 1 {
         bail!("--runs must be at least 1");
     }
@@ -276,6 +333,644 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "ort_intra_threads": args.localizer.threads,
             "blob_params": args.localizer.blob_params,
             "results": rows,
+        });
+        let pretty = serde_json::to_string_pretty(&report).context("cannot format the JSON report")?;
+        std::fs::write(out, pretty + "\n").with_context(|| format!("cannot write {}", out.display()))?;
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------------
+// Pipeline benchmark (`gelstereo bench --calib FILE RECORDING`, also `gelstereo track --bench`).
+// ---------------------------------------------------------------------------------------------------
+
+/// What the pipeline benchmark runs on and how (`gelstereo bench --calib` and `gelstereo track --bench`
+/// fill it from their arguments).
+pub struct PipelineBench<'a> {
+    /// The stereo recording (folder with left/ and right/).
+    pub recording: &'a Path,
+    /// Calibration spec; `None`: the recording's calib.yaml.
+    pub calib: Option<&'a str>,
+    /// Localization method.
+    pub method: Method,
+    /// Lattice `ROWSxCOLS`; `None`: the recording's meta.json, else 23x23.
+    pub grid: Option<&'a str>,
+    /// Gel thickness, mm; `None`: the recording's meta.json, else the default.
+    pub gel_thickness_mm: Option<f64>,
+    /// Distinct frames loaded from frame 0 on (0: all).
+    pub frames: usize,
+    /// Timed frame-runs per mode.
+    pub runs: usize,
+    /// Untimed warm-up frame-runs (latency mode).
+    pub warmup: usize,
+    /// Worker threads of the throughput mode (0: one per core).
+    pub workers: usize,
+    /// Model paths, blob parameters and ONNX Runtime options (its `threads`: latency mode's intra-op
+    /// threads).
+    pub localizer: &'a LocalizerArgs,
+    /// Also write the figures as JSON here.
+    pub json: Option<&'a Path>,
+}
+
+/// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
+/// for the learned methods only).
+const STAGES: [&str; 11] = [
+    "decode (both views, from bytes in memory)",
+    "localization (both views, one batch)",
+    "  preprocess (resize, f32 tensor)",
+    "  network (ONNX Runtime run)",
+    "  post-process (decode, select, MRE)",
+    "tracking association (2 views)",
+    "triangulation",
+    "outlier test + fill",
+    "contact geometry",
+    "slip",
+    "track() whole (stages above + rows)",
+];
+
+/// The tracking stages of `StereoSession::track`, run one by one from the same public parts so each
+/// can be timed; kept in step with a real session and checked against it every frame.
+struct Stages {
+    shape: GridShape,
+    left: Tracker,
+    right: Tracker,
+    triangulator: Triangulator,
+    surface: ReferenceSurface,
+    slip: SlipDetector,
+    config: SessionConfig,
+    left_slot: Vec<Option<usize>>,
+    right_slot: Vec<Option<usize>>,
+    reference_mm: Vec<Option<[f64; 3]>>,
+}
+
+impl Stages {
+    fn new(
+        session: &StereoSession,
+        triangulator: Triangulator,
+        config: &SessionConfig,
+    ) -> anyhow::Result<Self> {
+        let shape = session.shape();
+        let slot = |t: &Tracker| {
+            let mut s = vec![None; shape.count()];
+            for (k, id) in t.ids().iter().enumerate() {
+                if let Some(lin) = shape.linear(*id) {
+                    s[lin] = Some(k);
+                }
+            }
+            s
+        };
+        let (left, right) = (session.left().clone(), session.right().clone());
+        let (left_slot, right_slot) = (slot(&left), slot(&right));
+        let mut reference_mm = vec![None; shape.count()];
+        for lin in 0..shape.count() {
+            if let (Some(a), Some(b)) = (left_slot[lin], right_slot[lin])
+                && let Ok(t) = triangulator.triangulate(left.reference_px()[a], right.reference_px()[b])
+            {
+                let p = t.p_in_left_mm;
+                reference_mm[lin] = Some([p.x, p.y, p.z]);
+            }
+        }
+        Ok(Self {
+            shape,
+            left,
+            right,
+            triangulator,
+            surface: session.surface().clone(),
+            slip: SlipDetector::new(config.slip.clone())?,
+            config: config.clone(),
+            left_slot,
+            right_slot,
+            reference_mm,
+        })
+    }
+
+    /// One frame, stage by stage: the marks between stages 5..=9 of [`STAGES`] and the contact and
+    /// slip results.
+    fn run(
+        &mut self,
+        left: &[Point2],
+        right: &[Point2],
+    ) -> anyhow::Result<([Mark; 6], ContactFrame, SlipState)> {
+        let t0 = Mark::now();
+        let lf = self.left.update(left);
+        let rf = self.right.update(right);
+        let t1 = Mark::now();
+        let n = self.shape.count();
+        let mut current: Vec<Option<[f64; 3]>> = vec![None; n];
+        for (lin, cur) in current.iter_mut().enumerate() {
+            let l = self.left_slot[lin].and_then(|k| lf.markers[k].position_px);
+            let r = self.right_slot[lin].and_then(|k| rf.markers[k].position_px);
+            if let (Some(l), Some(r)) = (l, r)
+                && let Ok(t) = self.triangulator.triangulate(l, r)
+            {
+                let p = t.p_in_left_mm;
+                *cur = Some([p.x, p.y, p.z]);
+            }
+        }
+        let t2 = Mark::now();
+        session::reject_outliers(
+            self.shape,
+            &self.reference_mm,
+            &mut current,
+            self.config.outlier_threshold,
+            self.config.outlier_noise_mm,
+        );
+        let filled = session::fill_from_neighbours(self.shape, &self.reference_mm, &current);
+        let t3 = Mark::now();
+        let contact = self.surface.analyze(&filled, &self.config.contact)?;
+        let t4 = Mark::now();
+        let slip = self.slip.update(&self.surface, &contact);
+        let t5 = Mark::now();
+        Ok(([t0, t1, t2, t3, t4, t5], contact, slip.state))
+    }
+}
+
+/// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
+/// at the moment of the call (the kernel adds the running threads' pending time), where
+/// `/proc/self/task/*/schedstat` lags for a thread that is running; `None` if the clock fails.
+#[allow(unsafe_code)]
+fn process_cpu_clock_ns() -> Option<u64> {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec into `ts`, a valid and exclusively borrowed value.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return None;
+    }
+    Some(u64::try_from(ts.tv_sec).ok()? * 1_000_000_000 + u64::try_from(ts.tv_nsec).ok()?)
+}
+
+/// A point in time and the process CPU time then.
+#[derive(Clone, Copy)]
+struct Mark {
+    wall: Instant,
+    cpu_ns: Option<u64>,
+}
+
+impl Mark {
+    fn now() -> Self {
+        let cpu_ns = process_cpu_clock_ns();
+        Self {
+            wall: Instant::now(),
+            cpu_ns,
+        }
+    }
+
+    /// Wall time from `self` to `later`, ms.
+    fn wall_ms(&self, later: &Mark) -> f64 {
+        (later.wall - self.wall).as_secs_f64() * 1e3
+    }
+
+    /// CPU time of the process from `self` to `later`, ms, less `overhead_ns` (one clock reading).
+    fn cpu_ms(&self, later: &Mark, overhead_ns: u64) -> Option<f64> {
+        self.cpu_ns
+            .zip(later.cpu_ns)
+            .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6)
+    }
+}
+
+/// Frame `j` of a ping-pong walk over `n` frames (0, 1, .., n-1, n-2, .., 1, 0, 1, ..): the motion
+/// stays continuous however many runs are asked for, so the tracker sees realistic frame-to-frame
+/// steps.
+fn ping_pong(j: usize, n: usize) -> usize {
+    if n <= 1 {
+        return 0;
+    }
+    let period = 2 * (n - 1);
+    let k = j % period;
+    if k < n { k } else { period - k }
+}
+
+fn decode_pair(bytes: &StereoPair<Vec<u8>>, paths: &StereoPair<PathBuf>) -> anyhow::Result<StereoPair<Mat>> {
+    let one = |b: &Vec<u8>, p: &Path| -> anyhow::Result<Mat> {
+        let buf = opencv::core::Vector::<u8>::from_slice(b);
+        let m = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_COLOR)
+            .with_context(|| format!("{}: cannot decode the image", p.display()))?;
+        if m.empty() {
+            bail!(
+                "{}: cannot decode the image (not an image OpenCV reads)",
+                p.display()
+            );
+        }
+        Ok(m)
+    };
+    Ok(StereoPair::new(
+        one(&bytes.left, &paths.left)?,
+        one(&bytes.right, &paths.right)?,
+    ))
+}
+
+fn to_points(d: &StereoPair<Vec<gelstereo_core::Detection>>) -> StereoPair<Vec<Point2>> {
+    StereoPair::new(
+        d.left.iter().map(|d| d.position).collect(),
+        d.right.iter().map(|d| d.position).collect(),
+    )
+}
+
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .unwrap_or_default()
+        .split_whitespace()
+        .take(3)
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// The pipeline benchmark: per-stage medians and p90 in latency mode (one frame at a time, frames
+/// decoded into memory first), the whole pipeline per stereo frame, CPU time per frame, and the
+/// throughput mode (localization of frames in parallel on worker threads, one ONNX Runtime session
+/// with one intra-op thread each, feeding the sequential tracker).
+pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
+    if b.runs < 1 {
+        bail!("--runs must be at least 1");
+    }
+    let input = b.recording;
+    if !images::is_stereo_recording(input) {
+        bail!(
+            "{}: the pipeline benchmark needs a stereo recording (a folder with left/ and right/)",
+            input.display()
+        );
+    }
+    let rec = StereoRecording::open(input)?;
+    if rec.is_empty() {
+        bail!("{}: the recording holds no frames", input.display());
+    }
+    let spec = match b.calib {
+        Some(c) => c.to_owned(),
+        None => input.join("calib.yaml").display().to_string(),
+    };
+    let rig = StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?;
+    let (meta_grid, meta_thickness) = crate::cmd_track::meta(Some(input));
+    let shape = match b.grid {
+        Some(g) => crate::cmd_track::parse_grid(g)?,
+        None => meta_grid.unwrap_or(GridShape::REFERENCE),
+    };
+    let mut config = SessionConfig::default();
+    if let Some(t) = b.gel_thickness_mm.or(meta_thickness) {
+        config.contact.gel_thickness_mm = t;
+    }
+    let n = if b.frames == 0 {
+        rec.len()
+    } else {
+        b.frames.min(rec.len())
+    };
+    // Every frame read from disk first: encoded bytes (for the decode stage) and decoded images.
+    let mut paths = Vec::with_capacity(n);
+    let mut encoded = Vec::with_capacity(n);
+    for k in 0..n {
+        let p = rec
+            .paths(k)
+            .with_context(|| format!("{}: no frame {k}", input.display()))?;
+        let read = |f: &Path| std::fs::read(f).with_context(|| format!("cannot read {}", f.display()));
+        encoded.push(StereoPair::new(read(&p.left)?, read(&p.right)?));
+        paths.push(p);
+    }
+    let frames: Vec<StereoPair<Mat>> = encoded
+        .iter()
+        .zip(&paths)
+        .map(|(e, p)| decode_pair(e, p))
+        .collect::<anyhow::Result<_>>()?;
+    let size = (frames[0].left.cols(), frames[0].left.rows());
+    for (k, f) in frames.iter().enumerate() {
+        let s = ImageSize {
+            width: f.left.cols().max(0) as u32,
+            height: f.left.rows().max(0) as u32,
+        };
+        rig.check_image_sizes(s, s).with_context(|| {
+            format!(
+                "{}: frame {k} does not match the calibration {spec}",
+                paths[k].left.display()
+            )
+        })?;
+        if (f.right.cols(), f.right.rows()) != size || (f.left.cols(), f.left.rows()) != size {
+            bail!(
+                "{}: frame {k} is {}x{} / {}x{} (left / right), frame 0 {}x{}",
+                input.display(),
+                f.left.cols(),
+                f.left.rows(),
+                f.right.cols(),
+                f.right.rows(),
+                size.0,
+                size.1
+            );
+        }
+    }
+    let mut loc_config = b.localizer.config()?;
+    let models = loc_config
+        .marknet_path
+        .parent()
+        .map(|p| p.display().to_string())
+        .unwrap_or_default();
+    let mut localizer = b.localizer.localizer(b.method)?;
+    localizer.set_cpu_clock(process_cpu_clock_ns);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let workers = if b.workers == 0 { cores } else { b.workers };
+    let load_start = load_average();
+    eprintln!(
+        "pipeline benchmark: {} ({n} frames of {}x{}, {}), {} warm-up + {} timed frame-runs per mode; {cores} cores, load average {load_start}",
+        input.display(),
+        size.0,
+        size.1,
+        b.method,
+        b.warmup,
+        b.runs
+    );
+    // The reference frame: indexing, then the session.
+    let d0 = localizer.detect_stereo(&frames[0])?;
+    let lattice = StereoLattice::from_reference(&rig, &d0.left, &d0.right, shape, StereoConfig::default())
+        .with_context(|| {
+            format!(
+                "{}: frame 0 cannot be indexed as the reference lattice",
+                paths[0].left.display()
+            )
+        })?;
+    let l: Vec<(GridIndex, Point2)> = lattice.left().reference_view().markers().collect();
+    let r: Vec<(GridIndex, Point2)> = lattice.right().reference_view().markers().collect();
+    let triangulator = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+    let make = || -> anyhow::Result<StereoSession> {
+        Ok(StereoSession::new(
+            shape,
+            &l,
+            &r,
+            triangulator.clone(),
+            config.clone(),
+        )?)
+    };
+    // Reference indexing: once per session, timed on its own.
+    let mut t_index = Vec::new();
+    for i in 0..(b.runs.min(50) + 2) {
+        let t = Instant::now();
+        let lat = StereoLattice::from_reference(&rig, &d0.left, &d0.right, shape, StereoConfig::default());
+        let ms = t.elapsed().as_secs_f64() * 1e3;
+        lat?;
+        if i >= 2 {
+            t_index.push(ms);
+        }
+    }
+    // A clock reading costs CPU itself: its median over a few empty intervals is subtracted.
+    let mut empty: Vec<u64> = (0..31)
+        .filter_map(|_| {
+            process_cpu_clock_ns()
+                .zip(process_cpu_clock_ns())
+                .map(|(a, b)| b.saturating_sub(a))
+        })
+        .collect();
+    empty.sort_unstable();
+    let overhead_ns = empty.get(empty.len() / 2).copied().unwrap_or(0);
+
+    // Latency mode: one frame at a time.
+    let mut session = make()?;
+    let mut stages = Stages::new(&session, triangulator.clone(), &config)?;
+    let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
+    let mut cpu_times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
+    let (mut whole, mut cpu_whole) = (Vec::new(), Vec::new());
+    let (mut mismatches, mut markers) = (0usize, 0usize);
+    for j in 0..b.warmup + b.runs {
+        let k = ping_pong(j, n);
+        let m_decode = Mark::now();
+        let decoded = decode_pair(&encoded[k], &paths[k])?;
+        let m_decoded = Mark::now();
+        drop(decoded);
+        let m0 = Mark::now();
+        let d = localizer.detect_stereo(&frames[k])?;
+        let pts = to_points(&d);
+        let m1 = Mark::now();
+        let out = session.track(j as u32, &pts.left, &pts.right)?;
+        let m2 = Mark::now();
+        let (st, contact, slip) = stages.run(&pts.left, &pts.right)?;
+        if contact.depth_mm != out.contact.depth_mm || slip != out.slip.state {
+            mismatches += 1;
+        }
+        if j < b.warmup {
+            continue;
+        }
+        let mut push = |i: usize, a: &Mark, b: &Mark| {
+            times[i].push(a.wall_ms(b));
+            cpu_times[i].extend(a.cpu_ms(b, overhead_ns));
+        };
+        push(0, &m_decode, &m_decoded);
+        push(1, &m0, &m1);
+        for (i, w) in st.windows(2).enumerate() {
+            push(5 + i, &w[0], &w[1]);
+        }
+        push(10, &m1, &m2);
+        if let Some(parts) = localizer.last_times() {
+            times[2].push(parts.preprocess_ms);
+            times[3].push(parts.network_ms);
+            times[4].push(parts.postprocess_ms);
+            if let Some(cpu) = parts.cpu_ms {
+                for (i, c) in cpu.iter().enumerate() {
+                    cpu_times[2 + i].push((c - overhead_ns as f64 * 1e-6).max(0.0));
+                }
+            }
+        }
+        whole.push(m0.wall_ms(&m2));
+        cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
+        markers += d.left.len() + d.right.len();
+    }
+
+    // Throughput mode: `workers` threads localize frames in parallel (each its own localizer, ONNX
+    // Runtime at one intra-op thread), the calling thread tracks them in frame order as they arrive.
+    loc_config.session.intra_threads = 1;
+    let method = b.method;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(workers)
+        .build()
+        .context("cannot start the worker threads")?;
+    let next = AtomicUsize::new(0);
+    let stop = AtomicBool::new(false);
+    let barrier = Barrier::new(workers + 1);
+    let runs = b.runs;
+    let mut throughput_session = make()?;
+    let (tx, rx) = mpsc::channel::<(usize, anyhow::Result<StereoPair<Vec<Point2>>>)>();
+    let (elapsed_s, cpu_ns) = pool.in_place_scope(|s| -> anyhow::Result<(f64, Option<u64>)> {
+        for _ in 0..workers {
+            let tx = tx.clone();
+            let (frames, loc_config, next, stop, barrier) = (&frames, &loc_config, &next, &stop, &barrier);
+            s.spawn(move |_| {
+                let made = create_localizer(method, loc_config)
+                    .with_context(|| format!("cannot set up method '{method}' for the throughput mode"));
+                let mut loc = match made {
+                    Ok(l) => Some(l),
+                    Err(e) => {
+                        stop.store(true, Ordering::SeqCst);
+                        let _ = tx.send((usize::MAX, Err(e)));
+                        None
+                    }
+                };
+                // Warm-up: a few untimed frames per worker.
+                if let Some(loc) = loc.as_mut() {
+                    for k in 0..3 {
+                        let _ = loc.detect_stereo(&frames[k % frames.len()]);
+                    }
+                }
+                barrier.wait();
+                let Some(mut loc) = loc else { return };
+                while !stop.load(Ordering::SeqCst) {
+                    let j = next.fetch_add(1, Ordering::SeqCst);
+                    if j >= runs {
+                        break;
+                    }
+                    let found = loc
+                        .detect_stereo(&frames[ping_pong(j, frames.len())])
+                        .map(|d| to_points(&d))
+                        .map_err(anyhow::Error::from);
+                    if tx.send((j, found)).is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        barrier.wait();
+        let c0 = process_cpu_clock_ns();
+        let t0 = Instant::now();
+        let mut pending = std::collections::BTreeMap::new();
+        let mut expect = 0usize;
+        let result = (|| -> anyhow::Result<()> {
+            for (j, found) in &rx {
+                let found = found?;
+                pending.insert(j, found);
+                while let Some(d) = pending.remove(&expect) {
+                    throughput_session.track(expect as u32, &d.left, &d.right)?;
+                    expect += 1;
+                }
+            }
+            Ok(())
+        })();
+        let elapsed = t0.elapsed().as_secs_f64();
+        let c1 = process_cpu_clock_ns();
+        if result.is_err() {
+            stop.store(true, Ordering::SeqCst);
+        }
+        drop(rx);
+        result?;
+        if expect != runs {
+            bail!("throughput mode: {expect} of {runs} frames tracked");
+        }
+        Ok((elapsed, c0.zip(c1).map(|(a, b)| b.saturating_sub(a))))
+    })?;
+    let fps = runs as f64 / elapsed_s.max(1e-9);
+    let cpu_per_frame_tp = cpu_ns.map(|c| c as f64 * 1e-6 / runs as f64);
+    let ort = matches!(b.method, Method::Marknet | Method::MarknetMre | Method::Yolo);
+    let load_end = load_average();
+
+    // Report.
+    let mut text = String::new();
+    let _ = writeln!(
+        text,
+        "stereo pipeline, {}: {n} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {} (models {models}); calibration {spec}",
+        input.display(),
+        size.0,
+        size.1,
+        n.saturating_sub(1),
+        b.method
+    );
+    let threads = if b.localizer.threads == 0 {
+        format!("{cores} (default: one per core)")
+    } else {
+        b.localizer.threads.to_string()
+    };
+    let _ = writeln!(
+        text,
+        "latency mode: one frame at a time, {} timed frame-runs after {} warm-up{}; CPU = process CPU time, all threads",
+        b.runs,
+        b.warmup,
+        if ort {
+            format!(", ONNX Runtime intra-op threads {threads}")
+        } else {
+            String::new()
+        }
+    );
+    let _ = writeln!(
+        text,
+        "{:<44} {:>10} {:>10} {:>10} {:>10}",
+        "stage", "median", "p90", "mean", "CPU med"
+    );
+    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"));
+    let mut stage_rows = Vec::new();
+    for ((name, samples), cpu) in STAGES.iter().zip(times.iter_mut()).zip(cpu_times.iter_mut()) {
+        if samples.is_empty() {
+            continue;
+        }
+        let (med, p90, mean) = stats(samples);
+        let cpu_med = median_of(cpu);
+        let _ = writeln!(
+            text,
+            "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms {:>10}",
+            ms(cpu_med)
+        );
+        stage_rows.push(
+            json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean, "cpu_median_ms": cpu_med}),
+        );
+    }
+    let (idx_med, idx_p90, idx_mean) = stats(&mut t_index);
+    let _ = writeln!(
+        text,
+        "{:<44} {idx_med:>7.3} ms {idx_p90:>7.3} ms {idx_mean:>7.3} ms {:>10}",
+        "reference grid indexing (once per session)", "/"
+    );
+    let (w_med, w_p90, w_mean) = stats(&mut whole);
+    let cpu_whole_med = median_of(&mut cpu_whole);
+    let _ = writeln!(
+        text,
+        "whole pipeline (localization + track(), decoded frames): median {w_med:.2} ms, p90 {w_p90:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame",
+        1e3 / w_med,
+        ms(cpu_whole_med),
+    );
+    let _ = writeln!(
+        text,
+        "throughput mode: {fps:.1} stereo frames/s over {runs} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame",
+        if ort {
+            ", one ONNX Runtime intra-op thread each"
+        } else {
+            ""
+        },
+        ms(cpu_per_frame_tp)
+    );
+    let _ = writeln!(
+        text,
+        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots); {:.1} markers per view; stage breakdown {}; load average {load_start} at start, {load_end} at end",
+        markers as f64 / (2 * b.runs) as f64,
+        if mismatches == 0 {
+            "matches track() in every frame".to_owned()
+        } else {
+            format!("differs from track() in {mismatches} frames")
+        }
+    );
+    print!("{text}");
+    if let Some(out) = b.json {
+        let report = json!({
+            "recording": input.display().to_string(),
+            "calibration": spec,
+            "method": b.method.as_str(),
+            "models": models,
+            "frames": n,
+            "image_size": [size.0, size.1],
+            "runs": b.runs,
+            "warmup": b.warmup,
+            "cores": cores,
+            "load_average_at_start": load_start,
+            "load_average_at_end": load_end,
+            "latency": {
+                "ort_intra_threads": b.localizer.threads,
+                "stages": stage_rows,
+                "reference_indexing_ms": {"median": idx_med, "p90": idx_p90, "mean": idx_mean},
+                "whole_ms": {"median": w_med, "p90": w_p90, "mean": w_mean},
+                "cpu_ms_per_frame": cpu_whole_med,
+            },
+            "throughput": {
+                "workers": workers,
+                "ort_intra_threads": 1,
+                "frames": runs,
+                "frames_per_s": fps,
+                "cpu_ms_per_frame": cpu_per_frame_tp,
+            },
+            "stage_breakdown_mismatches": mismatches,
+            "not_timed": "exports (CSV rows, PLY, overlays, plots)",
         });
         let pretty = serde_json::to_string_pretty(&report).context("cannot format the JSON report")?;
         std::fs::write(out, pretty + "\n").with_context(|| format!("cannot write {}", out.display()))?;

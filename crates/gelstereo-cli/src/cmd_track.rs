@@ -4,10 +4,9 @@
 //! (`OUT/ply/`), overlay PNGs with displacement arrows (`OUT/overlays/`) and plots (`OUT/plots/`).
 //! The work is `gelstereo_tracking::{StereoSession, MonoSession}`; this is input handling and output.
 //!
-//! Also `gelstereo track --bench`: per-stage medians of the stereo pipeline in latency mode (one frame
-//! at a time) and throughput mode (rayon across frames).
+//! Also `gelstereo track --bench`: an alias of the pipeline benchmark `gelstereo bench --calib FILE
+//! RECORDING` (`cmd_bench.rs`).
 
-use std::fmt::Write as _;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -32,7 +31,6 @@ use gelstereo_tracking::{
 use indicatif::{ProgressBar, ProgressStyle};
 use opencv::core::{Mat, MatTraitConst, Point, Scalar};
 use opencv::imgproc;
-use rayon::prelude::*;
 
 use crate::cmd_detect::LocalizerArgs;
 
@@ -100,12 +98,12 @@ pub struct Args {
     /// With --from-ground-truth: add Gaussian noise of this standard deviation to each coordinate, px.
     #[arg(long, default_value_t = 0.0, value_name = "PX")]
     gt_noise_px: f64,
-    /// Benchmark the stereo pipeline on the recording instead of writing outputs: per-stage medians,
-    /// latency mode and throughput mode.
+    /// Benchmark the stereo pipeline on the recording instead of writing outputs (an alias of
+    /// `gelstereo bench --calib FILE RECORDING`): per-stage medians, latency and throughput mode.
     #[arg(long)]
     bench: bool,
-    /// Frames timed per mode with --bench.
-    #[arg(long, default_value_t = 40)]
+    /// Frame-runs timed per mode with --bench (after 20 warm-up runs).
+    #[arg(long, default_value_t = 200)]
     bench_frames: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,
@@ -282,7 +280,8 @@ fn open_source(args: &Args) -> anyhow::Result<Source> {
     )
 }
 
-fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
+/// Parses `--grid ROWSxCOLS`.
+pub(crate) fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
     let (r, c) = text
         .split_once(['x', 'X'])
         .with_context(|| format!("--grid '{text}': expected ROWSxCOLS, e.g. 23x23"))?;
@@ -301,7 +300,7 @@ fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
 }
 
 /// The recording's sensor description (`meta.json` of a simulated recording): grid and gel thickness.
-fn meta(input: Option<&Path>) -> (Option<GridShape>, Option<f64>) {
+pub(crate) fn meta(input: Option<&Path>) -> (Option<GridShape>, Option<f64>) {
     let Some(dir) = input.filter(|p| p.is_dir()) else {
         return (None, None);
     };
@@ -1067,126 +1066,23 @@ fn check_size(reference: &mut Option<ImageSize>, size: ImageSize) -> anyhow::Res
     }
 }
 
-/// Median of a list of durations in ms.
-fn median_ms(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-}
-
-/// `gelstereo track --bench`: per-stage medians (latency mode) and throughput across frames.
+/// `gelstereo track --bench`: an alias of the pipeline benchmark, `gelstereo bench --calib FILE
+/// RECORDING` (one implementation, [`crate::cmd_bench::run_pipeline`]).
 fn bench(args: &Args) -> anyhow::Result<()> {
     let Some(input) = &args.input else {
         bail!("--bench needs a stereo RECORDING")
     };
-    if !images::is_stereo_recording(input) {
-        bail!(
-            "{}: --bench needs a stereo recording (left/ and right/)",
-            input.display()
-        );
-    }
-    let rec = StereoRecording::open(input)?;
-    let spec = match &args.calib {
-        Some(c) => c.clone(),
-        None => input.join("calib.yaml").display().to_string(),
-    };
-    let rig = StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?;
-    let (meta_grid, meta_thickness) = meta(Some(input));
-    let shape = match &args.grid {
-        Some(g) => parse_grid(g)?,
-        None => meta_grid.unwrap_or(GridShape::REFERENCE),
-    };
-    let mut config = SessionConfig::default();
-    if let Some(t) = args.gel_thickness_mm.or(meta_thickness) {
-        config.contact.gel_thickness_mm = t;
-    }
-    let method = choose_method(args);
-    let n = args.bench_frames.clamp(2, rec.len());
-    let frames: Vec<StereoPair<Mat>> = (0..n)
-        .map(|k| rec.read(k).into_iter().flatten().next())
-        .collect::<Option<Vec<_>>>()
-        .context("cannot read the recording's frames")?;
-    let mut localizer = args.localizer.localizer(method)?;
-    let d0 = localizer.detect_stereo(&frames[0])?;
-    let lattice = StereoLattice::from_reference(&rig, &d0.left, &d0.right, shape, StereoConfig::default())?;
-    let l: Vec<(GridIndex, Point2)> = lattice.left().reference_view().markers().collect();
-    let r: Vec<(GridIndex, Point2)> = lattice.right().reference_view().markers().collect();
-    let make = || -> anyhow::Result<StereoSession> {
-        Ok(StereoSession::new(
-            shape,
-            &l,
-            &r,
-            Triangulator::new(rig.clone(), TriangulationConfig::default())?,
-            config.clone(),
-        )?)
-    };
-    // Latency: one frame at a time, stages timed separately.
-    let mut session = make()?;
-    let (mut t_detect, mut t_track, mut t_total) = (Vec::new(), Vec::new(), Vec::new());
-    for (k, pair) in frames.iter().enumerate() {
-        let t0 = Instant::now();
-        let d = localizer.detect_stereo(pair)?;
-        let t1 = Instant::now();
-        session.track(k as u32, &points(&d.left), &points(&d.right))?;
-        let t2 = Instant::now();
-        t_detect.push((t1 - t0).as_secs_f64() * 1e3);
-        t_track.push((t2 - t1).as_secs_f64() * 1e3);
-        t_total.push((t2 - t0).as_secs_f64() * 1e3);
-    }
-    // Tracking stages alone on the detections, repeated for stable medians.
-    let dets: Vec<StereoPair<Vec<Point2>>> = frames
-        .iter()
-        .map(|p| {
-            localizer
-                .detect_stereo(p)
-                .map(|d| StereoPair::new(points(&d.left), points(&d.right)))
-        })
-        .collect::<Result<_, _>>()?;
-    // Throughput: localization of all frames in parallel (one localizer per rayon worker), then the
-    // sequential tracking (a recurrence over frames) on the results.
-    let t0 = Instant::now();
-    let detected: Vec<StereoPair<Vec<Point2>>> = frames
-        .par_iter()
-        .map_init(
-            || args.localizer.localizer(method),
-            |loc, pair| -> anyhow::Result<StereoPair<Vec<Point2>>> {
-                let loc = loc.as_mut().map_err(|e| anyhow::anyhow!("{e:#}"))?;
-                let d = loc.detect_stereo(pair)?;
-                Ok(StereoPair::new(points(&d.left), points(&d.right)))
-            },
-        )
-        .collect::<anyhow::Result<_>>()?;
-    let mut s2 = make()?;
-    for (k, d) in detected.iter().enumerate() {
-        s2.track(k as u32, &d.left, &d.right)?;
-    }
-    let throughput = n as f64 / t0.elapsed().as_secs_f64();
-    let mut s3 = make()?;
-    let t0 = Instant::now();
-    for (k, d) in dets.iter().enumerate() {
-        s3.track(k as u32, &d.left, &d.right)?;
-    }
-    let track_only = n as f64 / t0.elapsed().as_secs_f64();
-    let size = size_of(&frames[0].left);
-    let mut report = String::new();
-    let _ = writeln!(
-        report,
-        "stereo pipeline on {} ({n} frames of {}x{}, {method}, {} threads)",
-        input.display(),
-        size.width,
-        size.height,
-        rayon::current_num_threads()
-    );
-    let _ = writeln!(
-        report,
-        "latency mode (median per stereo frame): localization {:.2} ms, tracking+triangulation+contact+slip {:.2} ms, whole {:.2} ms",
-        median_ms(t_detect),
-        median_ms(t_track),
-        median_ms(t_total)
-    );
-    let _ = writeln!(
-        report,
-        "throughput mode (rayon across frames): {throughput:.0} stereo frames/s; tracking stages alone {track_only:.0} frames/s"
-    );
-    print!("{report}");
-    Ok(())
+    crate::cmd_bench::run_pipeline(&crate::cmd_bench::PipelineBench {
+        recording: input,
+        calib: args.calib.as_deref(),
+        method: choose_method(args),
+        grid: args.grid.as_deref(),
+        gel_thickness_mm: args.gel_thickness_mm,
+        frames: 0,
+        runs: args.bench_frames,
+        warmup: 20,
+        workers: 0,
+        localizer: &args.localizer,
+        json: None,
+    })
 }

@@ -31,7 +31,8 @@ enum Command {
     Detect(cmd_detect::Args),
     /// The paper's Table I (easy / hard / contact precision, recall, loss) on a simulated dataset.
     Eval(cmd_eval::Args),
-    /// Localization latency per view and per stereo pair, each method against the blob baseline.
+    /// Localization latency per view and per stereo pair, each method against the blob baseline; with
+    /// --calib FILE RECORDING: the whole stereo pipeline, per stage, latency and throughput mode.
     Bench(cmd_bench::Args),
     /// Stereo checkerboard calibration: OpenCV YAML/XML or a mrcal pair, with RMS and epipolar errors.
     Calibrate(cmd_calibrate::Args),

@@ -122,6 +122,24 @@ pub(crate) fn cv_err(context: &'static str) -> impl FnOnce(opencv::Error) -> Err
 /// Smallest image side a localizer accepts, px: below it no marker of any sensor we know is resolvable.
 pub const MIN_IMAGE_SIDE_PX: u32 = 16;
 
+/// Wall time (and, with a [`CpuClock`], CPU time) of the parts of one localization call (one image
+/// or one stereo batch), ms.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LocalizationTimes {
+    /// Resize to the network input and conversion to its f32 tensor, all images of the batch.
+    pub preprocess_ms: f64,
+    /// The network's ONNX Runtime run, its output copied out.
+    pub network_ms: f64,
+    /// Decoding the output, candidate selection and (with MRE) the MRE run.
+    pub postprocess_ms: f64,
+    /// CPU time of the process during each of the three parts, ms (`None` without a clock).
+    pub cpu_ms: Option<[f64; 3]>,
+}
+
+/// A reading of the process's CPU time, ns (e.g. `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`), given by
+/// a benchmark to [`Localizer::set_cpu_clock`]; `None` when unavailable.
+pub type CpuClock = fn() -> Option<u64>;
+
 /// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
 pub trait Localizer {
     /// The method's name as used on the command line and in tables (`blob`, `marknet`, `marknet-mre`).
@@ -134,6 +152,18 @@ pub trait Localizer {
     /// `conf_keep`), so overlays can mark those. `None` for methods without MRE.
     fn mre_band_top(&self) -> Option<f32> {
         None
+    }
+
+    /// Wall time of the parts of the latest `detect` / `detect_stereo` call (for benchmarks); `None`
+    /// for methods that do not split their work (the blob detector).
+    fn last_times(&self) -> Option<LocalizationTimes> {
+        None
+    }
+
+    /// Lets [`Localizer::last_times`] also report CPU time, read with `clock` (for benchmarks; no
+    /// effect on methods without [`Localizer::last_times`]).
+    fn set_cpu_clock(&mut self, clock: CpuClock) {
+        let _ = clock;
     }
 
     /// Markers in both views of a stereo pair. The two views must have the same size; the learned

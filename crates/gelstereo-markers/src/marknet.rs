@@ -22,7 +22,8 @@ use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::postprocess::{DecodeGeometry, Selection, decode, estimate_pitch_px};
 use crate::{
-    Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
+    CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
+    check_image, cv_err, runtime,
 };
 
 /// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
@@ -235,16 +236,12 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
     })
 }
 
-/// `UNIT_LUT[v] = v / 255`: 8-bit pixel values to the network's [0, 1] floats.
-const UNIT_LUT: [f32; 256] = {
-    let mut t = [0f32; 256];
-    let mut i = 0;
-    while i < 256 {
-        t[i] = i as f32 / 255.0;
-        i += 1;
-    }
-    t
-};
+/// An 8-bit pixel value as the network's [0, 1] float, `v / 255` (correctly rounded; a plain division
+/// vectorises, where a lookup table does not).
+#[inline(always)]
+fn unit(v: u8) -> f32 {
+    f32::from(v) / 255.0
+}
 
 /// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
 /// (the contract's whole-image stretch would distort markers beyond what training covered).
@@ -280,41 +277,35 @@ pub(crate) fn write_planar_rgb(src: &Mat, plane: &mut [f32]) -> Result<()> {
     let hw = plane.len() / 3;
     let (r, rest) = plane.split_at_mut(hw);
     let (g, b) = rest.split_at_mut(hw);
-    let lut = &UNIT_LUT;
-    match src.channels() {
+    // Index loops over slices cut to the same length: bounds checks vanish and the loops vectorise.
+    match src.channels().max(1) as usize {
         1 => {
-            for (i, &v) in bytes.iter().take(hw).enumerate() {
-                let v = lut[usize::from(v)];
+            let m = hw.min(bytes.len());
+            let (r, g, b) = (&mut r[..m], &mut g[..m], &mut b[..m]);
+            for (i, &v) in bytes[..m].iter().enumerate() {
+                let v = unit(v);
                 (r[i], g[i], b[i]) = (v, v, v);
             }
         }
         3 => {
-            for (((px, r), g), b) in bytes
-                .chunks_exact(3)
-                .zip(r.iter_mut())
-                .zip(g.iter_mut())
-                .zip(b.iter_mut())
-            {
-                (*b, *g, *r) = (
-                    lut[usize::from(px[0])],
-                    lut[usize::from(px[1])],
-                    lut[usize::from(px[2])],
-                );
+            let m = hw.min(bytes.len() / 3);
+            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..3 * m]);
+            for i in 0..m {
+                (b[i], g[i], r[i]) = (unit(px[3 * i]), unit(px[3 * i + 1]), unit(px[3 * i + 2]));
             }
         }
+        2 => {
+            return Err(Error::Image {
+                property: "channels",
+                expected: "1 (grey), 3 (BGR) or 4 (BGRA)".into(),
+                found: "2".into(),
+            });
+        }
         n => {
-            let n = n as usize;
-            for (((px, r), g), b) in bytes
-                .chunks_exact(n)
-                .zip(r.iter_mut())
-                .zip(g.iter_mut())
-                .zip(b.iter_mut())
-            {
-                (*b, *g, *r) = (
-                    lut[usize::from(px[0])],
-                    lut[usize::from(px[1])],
-                    lut[usize::from(px[2])],
-                );
+            let m = hw.min(bytes.len() / n);
+            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..n * m]);
+            for i in 0..m {
+                (b[i], g[i], r[i]) = (unit(px[n * i]), unit(px[n * i + 1]), unit(px[n * i + 2]));
             }
         }
     }
@@ -413,6 +404,12 @@ pub struct Marknet {
     resized: Mat,
     padded: Mat,
     input: Vec<f32>,
+    times: LocalizationTimes,
+    clock: Option<CpuClock>,
+    /// CPU time of the latest batch spent preprocessing and in the network (all passes), ns.
+    cpu_spent_ns: [u64; 2],
+    /// Whether every clock reading of the latest batch succeeded.
+    cpu_complete: bool,
 }
 
 impl std::fmt::Debug for Marknet {
@@ -449,6 +446,10 @@ impl Marknet {
             resized: Mat::default(),
             padded: Mat::default(),
             input: Vec::new(),
+            times: LocalizationTimes::default(),
+            clock: None,
+            cpu_spent_ns: [0; 2],
+            cpu_complete: true,
         })
     }
 
@@ -597,16 +598,21 @@ impl Marknet {
     }
 
     /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
-    /// (`[Gy, Gx, m, 3]` logits per image, row-major, concatenated).
+    /// (`[Gy, Gx, m, 3]` logits per image, row-major, concatenated). Adds its preprocessing and network
+    /// times to [`LocalizationTimes`] (a batch may take two passes under the "auto" fit).
     fn run_batch(&mut self, images: &[&Mat], layouts: &[InputLayout]) -> Result<Vec<f32>> {
         let Some(first) = layouts.first() else {
             return Ok(Vec::new());
         };
         let (iw, ih) = (first.input_width as usize, first.input_height as usize);
+        let c0 = self.clock.and_then(|c| c());
+        let t0 = std::time::Instant::now();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         for (slot, (image, layout)) in images.iter().zip(layouts).enumerate() {
             self.preprocess(image, layout, slot)?;
         }
+        let t1 = std::time::Instant::now();
+        let c1 = self.clock.and_then(|c| c());
         let run = onnx_err(&self.path, "inference");
         let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
             .map_err(|e| run(e.to_string()))?;
@@ -627,7 +633,17 @@ impl Marknet {
                 c.candidates
             )));
         }
-        Ok(raw.to_vec())
+        let raw = raw.to_vec();
+        self.times.preprocess_ms += (t1 - t0).as_secs_f64() * 1e3;
+        self.times.network_ms += t1.elapsed().as_secs_f64() * 1e3;
+        match (c0, c1, self.clock.and_then(|c| c())) {
+            (Some(a), Some(b), Some(c)) => {
+                self.cpu_spent_ns[0] += b.saturating_sub(a);
+                self.cpu_spent_ns[1] += c.saturating_sub(b);
+            }
+            _ => self.cpu_complete = false,
+        }
+        Ok(raw)
     }
 
     /// Runs the network on `images` as one batch under the layouts the next images of their sizes get
@@ -762,6 +778,28 @@ impl Marknet {
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run
     /// for all images' pending candidates.
     pub fn detect_batch(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
+        let started = std::time::Instant::now();
+        self.times = LocalizationTimes::default();
+        self.cpu_spent_ns = [0; 2];
+        self.cpu_complete = true;
+        let start = self.clock.and_then(|c| c());
+        let found = self.detect_batch_untimed(images)?;
+        let end = self.clock.and_then(|c| c());
+        let t = &mut self.times;
+        t.postprocess_ms = (started.elapsed().as_secs_f64() * 1e3 - t.preprocess_ms - t.network_ms).max(0.0);
+        if let (true, Some(a), Some(d)) = (self.cpu_complete, start, end) {
+            let [pre, net] = self.cpu_spent_ns;
+            let ms = |ns: u64| ns as f64 * 1e-6;
+            t.cpu_ms = Some([
+                ms(pre),
+                ms(net),
+                ms(d.saturating_sub(a).saturating_sub(pre + net)),
+            ]);
+        }
+        Ok(found)
+    }
+
+    fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates(images, post.conf_low)?;
@@ -810,11 +848,60 @@ impl Localizer for Marknet {
         self.mre.is_some().then_some(self.post.conf_keep)
     }
 
+    fn last_times(&self) -> Option<LocalizationTimes> {
+        Some(self.times)
+    }
+
+    fn set_cpu_clock(&mut self, clock: CpuClock) {
+        self.clock = Some(clock);
+    }
+
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
         crate::check_stereo_sizes(pair)?;
         let mut out = self.detect_batch(&[&pair.left, &pair.right])?;
         let right = out.pop().unwrap_or_default();
         let left = out.pop().unwrap_or_default();
         Ok(StereoPair::new(left, right))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Scalar};
+    use opencv::prelude::*;
+
+    /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
+    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped).
+    #[test]
+    fn planar_rgb_is_exact_for_grey_bgr_and_bgra() -> Result<()> {
+        for (typ, n) in [(CV_8UC1, 1usize), (CV_8UC3, 3), (CV_8UC4, 4)] {
+            let (w, h) = (37, 29);
+            let mut m =
+                Mat::new_rows_cols_with_default(h, w, typ, Scalar::all(0.0)).map_err(cv_err("test"))?;
+            for (i, v) in m.data_bytes_mut().map_err(cv_err("test"))?.iter_mut().enumerate() {
+                *v = (i * 7 % 256) as u8;
+            }
+            let bytes = m.data_bytes().map_err(cv_err("test"))?.to_vec();
+            let hw = (w * h) as usize;
+            let mut plane = vec![-1.0f32; 3 * hw];
+            write_planar_rgb(&m, &mut plane)?;
+            for p in 0..hw {
+                let px = &bytes[n * p..n * p + n];
+                let (r, g, b) = if n == 1 {
+                    (px[0], px[0], px[0])
+                } else {
+                    (px[2], px[1], px[0])
+                };
+                for (c, v) in [r, g, b].into_iter().enumerate() {
+                    assert_eq!(
+                        plane[c * hw + p].to_bits(),
+                        (v as f32 / 255.0).to_bits(),
+                        "{n} channels, px {p}"
+                    );
+                }
+            }
+        }
+        Ok(())
     }
 }

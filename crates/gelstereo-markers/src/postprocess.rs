@@ -96,10 +96,21 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
         return out;
     }
     let cell_values = g.candidates * 3;
+    // Logits below this cannot pass `c > min_confidence` (the sigmoid increases; the margin of 1e-3
+    // in logit covers the f32 rounding of the sigmoid and the logarithm many times over), so most
+    // cells skip the exponential; the test itself stays the exact one below.
+    let skip_below = if min_confidence > 0.0 && min_confidence < 1.0 {
+        (min_confidence / (1.0 - min_confidence)).ln() - 1e-3
+    } else {
+        f32::NEG_INFINITY
+    };
     for gy in 0..g.grid_y {
         for gx in 0..g.grid_x {
             let base = (gy * g.grid_x + gx) * cell_values;
             for slot in raw[base..base + cell_values].chunks_exact(3) {
+                if slot[2] < skip_below {
+                    continue;
+                }
                 let c = sigmoid(slot[2]);
                 // NaN (a broken model) is dropped too: it must not inject non-finite candidates.
                 if c.is_nan() || c <= min_confidence {
@@ -414,6 +425,41 @@ impl Selection {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The logit pre-filter keeps exactly the candidates the sigmoid test keeps, at the thresholds
+    /// in use and for logits packed around each threshold.
+    #[test]
+    fn decode_prefilter_keeps_exactly_what_the_sigmoid_test_keeps() {
+        let g = DecodeGeometry {
+            grid_y: 40,
+            grid_x: 50,
+            candidates: 5,
+            stride: 8.0,
+            scale_x: 1.5,
+            scale_y: 1.2,
+            offset_x: 0.0,
+            offset_y: 0.0,
+        };
+        for min in [0.1f32, 0.2, 0.4, 0.5, 0.99, 0.0, 1.0] {
+            let thr = if min > 0.0 && min < 1.0 {
+                (min / (1.0 - min)).ln()
+            } else {
+                0.0
+            };
+            let raw: Vec<f32> = (0..g.values_per_image())
+                .map(|k| {
+                    if k % 3 == 2 {
+                        // Spacing of a few ulps around the threshold, then wider.
+                        thr + ((k / 3) as f32 - 5000.0) * if k % 2 == 0 { 1e-7 } else { 1e-3 }
+                    } else {
+                        0.1
+                    }
+                })
+                .collect();
+            let want = raw.chunks_exact(3).filter(|s| sigmoid(s[2]) > min).count();
+            assert_eq!(decode(&raw, &g, min).len(), want, "min {min}");
+        }
+    }
 
     fn logit(p: f32) -> f32 {
         (p / (1.0 - p)).ln()

@@ -1,0 +1,118 @@
+//! End-to-end test of the pipeline benchmark, `gelstereo bench --calib FILE RECORDING`, on the
+//! bundled sample recording with few frames: checks the structure of the output (every stage listed,
+//! figures positive, the JSON report complete), not speed, so the command cannot silently rot.
+
+// A test helper may panic: that is how a test reports failure.
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+mod common;
+
+use std::path::PathBuf;
+
+fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The number before " ms" right after `label` on the line that starts with it.
+fn first_ms(text: &str, label: &str) -> f64 {
+    let line = text
+        .lines()
+        .find(|l| l.starts_with(label))
+        .unwrap_or_else(|| panic!("no line '{label}' in:\n{text}"));
+    line[label.len()..]
+        .split_whitespace()
+        .next()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no number on '{line}'"))
+}
+
+#[test]
+fn pipeline_bench_lists_every_stage_with_positive_figures() {
+    let rec = repo().join("data/sample/press-slide");
+    let calib = rec.join("calib.yaml");
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("bench.json");
+    let out = common::gelstereo(&[
+        "bench",
+        "--calib",
+        calib.to_str().unwrap(),
+        "--method",
+        "blob",
+        "--frames",
+        "4",
+        "--runs",
+        "6",
+        "--warmup",
+        "1",
+        "--workers",
+        "2",
+        "--json",
+        json.to_str().unwrap(),
+        rec.to_str().unwrap(),
+    ]);
+    let text = common::text(&out);
+    assert!(out.status.success(), "{text}");
+    for stage in [
+        "decode (both views, from bytes in memory)",
+        "localization (both views, one batch)",
+        "tracking association (2 views)",
+        "triangulation",
+        "outlier test + fill",
+        "contact geometry",
+        "track() whole (stages above + rows)",
+        "reference grid indexing (once per session)",
+    ] {
+        assert!(first_ms(&text, stage) > 0.0, "{stage}: not positive in\n{text}");
+    }
+    assert!(first_ms(&text, "slip") >= 0.0, "{text}");
+    assert!(
+        text.contains("whole pipeline (localization + track(), decoded frames): median "),
+        "{text}"
+    );
+    assert!(
+        text.contains("stereo frames/s over 6 frames (2 workers"),
+        "{text}"
+    );
+    assert!(text.contains("matches track() in every frame"), "{text}");
+    assert!(text.contains("load average"), "{text}");
+
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["method"], "blob");
+    assert_eq!(report["frames"], 4);
+    assert_eq!(report["image_size"], serde_json::json!([640, 480]));
+    let stages = report["latency"]["stages"].as_array().unwrap();
+    assert_eq!(stages.len(), 8);
+    assert!(stages.iter().all(|s| s["median_ms"].as_f64().unwrap() >= 0.0));
+    assert!(report["latency"]["whole_ms"]["median"].as_f64().unwrap() > 0.0);
+    assert!(report["throughput"]["frames_per_s"].as_f64().unwrap() > 0.0);
+    assert_eq!(report["stage_breakdown_mismatches"], 0);
+}
+
+#[test]
+fn pipeline_bench_names_a_missing_recording() {
+    let out = common::gelstereo(&["bench", "--pipeline", "/nonexistent/recording"]);
+    let text = common::text(&out);
+    assert!(!out.status.success());
+    assert!(text.contains("/nonexistent/recording"), "{text}");
+}
+
+#[test]
+fn track_bench_is_an_alias_of_the_pipeline_benchmark() {
+    let rec = repo().join("data/sample/press-slide");
+    let out = common::gelstereo(&[
+        "track",
+        "--bench",
+        "--method",
+        "blob",
+        "--bench-frames",
+        "3",
+        rec.to_str().unwrap(),
+    ]);
+    let text = common::text(&out);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("stereo frames/s over 3 frames"), "{text}");
+    assert!(
+        first_ms(&text, "track() whole (stages above + rows)") > 0.0,
+        "{text}"
+    );
+}
