@@ -63,6 +63,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
         let surface = ReferenceSurface::new(shape, &per_frame[0])?;
+        // The gel thickness of the recording's sensor (as `gelstereo track` reads it from meta.json).
+        let mut contact_cfg = contact_cfg.clone();
+        if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
+            contact_cfg.gel_thickness_mm = t;
+        }
         let mut slip_cfg = SlipConfig::default();
         if let Some(v) = std::env::var("SLIP_DRIFT").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.drift_mm_per_frame = v;
@@ -114,7 +119,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             if verbose && (gt.contact || c.contact) {
                 println!(
-                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3}",
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4}",
                     rec.display(),
                     c.contact_area_mm2,
                     gt.contact_area_mm2,
@@ -126,7 +131,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     gt.slip.as_str(),
                     sl.stick_fraction,
                     sl.drift_mm,
-                    sl.shear_mm.norm()
+                    sl.shear_mm.norm(),
+                    sl.rotation_rad
                 );
             }
         }
@@ -164,4 +170,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("confusion (rows truth, cols estimate; no_contact stick partial gross): {conf:?}");
     Ok(())
+}
+
+/// `sensor.gel.thickness_mm` of a simulated recording's `meta.json` (a plain text search: the
+/// example has no JSON dependency), `None` when absent.
+fn meta_thickness_mm(path: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let at = text.find("\"thickness_mm\"")?;
+    let rest = text[at..].split_once(':')?.1.trim_start();
+    let end = rest.find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == 'e'))?;
+    rest[..end].parse().ok()
 }

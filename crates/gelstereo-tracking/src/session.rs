@@ -31,6 +31,12 @@ pub struct SessionConfig {
     pub outlier_threshold: f64,
     /// Noise level of the median test, mm (about twice the triangulation noise of the reference rig).
     pub outlier_noise_mm: f64,
+    /// A residual below this fraction of the lattice pitch is never an outlier (0.1). What the test
+    /// is for are mismatched or spurious detections, which are off by a sizeable part of the pitch
+    /// (the association gate is 0.35 pitch); the heavy tail of the localization noise (a few tenths
+    /// of a pixel, a few hundredths of a mm in depth) is not, and dropping it only discards a good
+    /// measurement (Westerweel & Scarano's noise floor plays the same role in pixels).
+    pub outlier_min_pitch: f64,
 }
 
 impl Default for SessionConfig {
@@ -42,6 +48,7 @@ impl Default for SessionConfig {
             planar: PlanarConfig::default(),
             outlier_threshold: 2.0,
             outlier_noise_mm: 0.02,
+            outlier_min_pitch: 0.1,
         }
     }
 }
@@ -216,6 +223,7 @@ impl StereoSession {
             &mut current,
             self.config.outlier_threshold,
             self.config.outlier_noise_mm,
+            self.config.outlier_min_pitch * self.surface.pitch_mm(),
         );
         let measured: Vec<bool> = current.iter().map(Option::is_some).collect();
         // Markers without a 3-D point take their reference plus the mean 3-D displacement of their
@@ -307,14 +315,15 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
 /// detection for PIV data", Exp. Fluids 39, 2005) on the 3-D displacement field: a marker whose
 /// displacement differs from the median of its measured 8-neighbours by more than `threshold` x
 /// (the neighbours' median residual + the noise level) is dropped. The noise level is `noise_mm` or,
-/// when larger, the median residual over the lattice (then predicted from its neighbours).
-/// Needs at least 3 measured neighbours.
+/// when larger, the median residual over the lattice (then predicted from its neighbours); a
+/// residual below `min_residual_mm` is never dropped. Needs at least 3 measured neighbours.
 fn reject_outliers(
     shape: GridShape,
     reference: &[Option<[f64; 3]>],
     current: &mut [Option<[f64; 3]>],
     threshold: f64,
     noise_mm: f64,
+    min_residual_mm: f64,
 ) {
     let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
     let disp: Vec<Option<Vector3<f64>>> = current
@@ -362,7 +371,7 @@ fn reject_outliers(
         .max(noise_mm);
     let drop: Vec<usize> = tests
         .iter()
-        .filter(|t| t.1 > threshold * (t.2 + noise))
+        .filter(|t| t.1 > min_residual_mm && t.1 > threshold * (t.2 + noise))
         .map(|t| t.0)
         .collect();
     for k in drop {
@@ -596,5 +605,40 @@ mod tests {
             (rows.len(), summary.frame, summary.slip),
             (529, 8, SlipState::NoContact)
         );
+    }
+
+    #[test]
+    fn median_test_keeps_localization_noise_and_drops_a_mismatch() {
+        // A flat 23 x 23 lattice, pitch 0.8 mm; every marker 0.01 mm deeper, one 0.06 mm (a heavy
+        // tail of the localization noise, well below 0.1 pitch) and one half a pitch off (a detection
+        // taken by the wrong id).
+        let reference: Vec<Option<[f64; 3]>> = scene(0.0).iter().map(|p| Some([p.x, p.y, p.z])).collect();
+        let noisy = 5 * 23 + 5;
+        let mismatched = 15 * 23 + 15;
+        let mut current: Vec<Option<[f64; 3]>> = reference
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                p.map(|[x, y, z]| match k {
+                    k if k == noisy => [x, y, z - 0.06],
+                    k if k == mismatched => [x + 0.4, y, z - 0.01],
+                    _ => [x, y, z - 0.01],
+                })
+            })
+            .collect();
+        reject_outliers(GridShape::REFERENCE, &reference, &mut current, 2.0, 0.02, 0.08);
+        assert!(current[noisy].is_some());
+        assert!(current[mismatched].is_none());
+        assert_eq!(current.iter().flatten().count(), 528);
+        // Without the floor the noisy marker is dropped too (the normalised median test alone).
+        let mut again = reference.clone();
+        again[noisy] = current[noisy];
+        for (k, p) in again.iter_mut().enumerate() {
+            if k != noisy {
+                *p = p.map(|[x, y, z]| [x, y, z - 0.01]);
+            }
+        }
+        reject_outliers(GridShape::REFERENCE, &reference, &mut again, 2.0, 0.02, 0.0);
+        assert!(again[noisy].is_none());
     }
 }

@@ -111,6 +111,9 @@ pub struct SlipFrame {
     /// Drift of the contact's material centroid per frame (over the last two contact frames), along
     /// the shear, mm.
     pub drift_mm: f64,
+    /// In-plane rotation of the contact markers about their centroid (least squares, translation
+    /// removed), rad, signed about the surface normal (zero without contact or without shear).
+    pub rotation_rad: f64,
 }
 
 /// Classifies frames one after the other (it keeps the material centroids of the last frames).
@@ -159,6 +162,7 @@ impl SlipDetector {
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: 0.0,
             };
         }
         let oldest = self.history.front().copied();
@@ -190,6 +194,7 @@ impl SlipDetector {
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: 0.0,
             };
         }
         let count = tangential.len() as f64;
@@ -215,6 +220,7 @@ impl SlipDetector {
                 shear_mm: shear,
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: omega,
             };
         }
         if twist_mm > shear.norm() {
@@ -249,6 +255,7 @@ impl SlipDetector {
                 shear_mm: shear,
                 stick_fraction,
                 drift_mm: 0.0,
+                rotation_rad: omega,
             };
         }
         let dir = shear / shear.norm();
@@ -284,6 +291,7 @@ impl SlipDetector {
             shear_mm: shear,
             stick_fraction,
             drift_mm: drift,
+            rotation_rad: omega,
         }
     }
 }
