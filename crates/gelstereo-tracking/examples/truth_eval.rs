@@ -23,6 +23,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
     }
+    if let Some(v) = std::env::var("MIN_DEPTH").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.min_depth_mm = v;
+    }
+    if let Some(v) = std::env::var("CONTACT_NOISE").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.contact_noise_factor = v;
+    }
     if let Some(v) = std::env::var("LOAD_ITERATIONS").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_iterations = v;
     }
