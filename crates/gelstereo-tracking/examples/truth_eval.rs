@@ -84,6 +84,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(v) = std::env::var("MIN_SHEAR").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.min_shear_mm = v;
         }
+        if let Some(v) = std::env::var("DRIFT_NOISE").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.drift_noise_factor = v;
+        }
         if let Some(v) = std::env::var("TWIST_GROSS").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.twist_gross_fraction = v;
         }
