@@ -401,7 +401,7 @@ fn index_of(shape: GridShape, k: usize) -> Option<GridIndex> {
 }
 
 /// Mean of each marker's value and its present 8-neighbours' (`None` where the marker has none).
-fn smooth3(shape: GridShape, v: &[Option<f64>]) -> Vec<Option<f64>> {
+pub(crate) fn smooth3(shape: GridShape, v: &[Option<f64>]) -> Vec<Option<f64>> {
     let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
     let mut out = vec![None; v.len()];
     for r in 0..rows {
