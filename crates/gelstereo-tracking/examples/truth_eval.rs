@@ -23,6 +23,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
     }
+    if let Some(v) = std::env::var("MIN_DEPTH").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.min_depth_mm = v;
+    }
+    if let Some(v) = std::env::var("CONTACT_NOISE").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.contact_noise_factor = v;
+    }
     if let Some(v) = std::env::var("LOAD_ITERATIONS").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_iterations = v;
     }
@@ -63,6 +69,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
         let surface = ReferenceSurface::new(shape, &per_frame[0])?;
+        // The gel thickness of the recording's sensor (as `gelstereo track` reads it from meta.json).
+        let mut contact_cfg = contact_cfg.clone();
+        if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
+            contact_cfg.gel_thickness_mm = t;
+        }
         let mut slip_cfg = SlipConfig::default();
         if let Some(v) = std::env::var("SLIP_DRIFT").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.drift_mm_per_frame = v;
@@ -72,6 +83,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         if let Some(v) = std::env::var("MIN_SHEAR").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.min_shear_mm = v;
+        }
+        if let Some(v) = std::env::var("DRIFT_NOISE").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.drift_noise_factor = v;
         }
         if let Some(v) = std::env::var("TWIST_GROSS").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.twist_gross_fraction = v;
@@ -114,7 +128,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             if verbose && (gt.contact || c.contact) {
                 println!(
-                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3}",
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4}",
                     rec.display(),
                     c.contact_area_mm2,
                     gt.contact_area_mm2,
@@ -126,7 +140,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     gt.slip.as_str(),
                     sl.stick_fraction,
                     sl.drift_mm,
-                    sl.shear_mm.norm()
+                    sl.shear_mm.norm(),
+                    sl.rotation_rad
                 );
             }
         }
@@ -164,4 +179,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     println!("confusion (rows truth, cols estimate; no_contact stick partial gross): {conf:?}");
     Ok(())
+}
+
+/// `sensor.gel.thickness_mm` of a simulated recording's `meta.json` (a plain text search: the
+/// example has no JSON dependency), `None` when absent.
+fn meta_thickness_mm(path: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let at = text.find("\"thickness_mm\"")?;
+    let rest = text[at..].split_once(':')?.1.trim_start();
+    let end = rest.find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == 'e'))?;
+    rest[..end].parse().ok()
 }

@@ -49,7 +49,8 @@ pub struct SlipConfig {
     /// Absolute tolerance of the displacement plateau, mm (a few times the 3-D noise).
     pub plateau_min_mm: f64,
     /// Drift of the contact across the gel, per frame (averaged over two frames), above which the
-    /// contact slides as a whole, mm. 0.02: twice the drift noise with 0.01 mm of 3-D noise.
+    /// contact slides as a whole, mm, when the frame's depth noise allows (see
+    /// `drift_noise_factor`). 0.01: the noise-free floor.
     pub drift_mm_per_frame: f64,
     /// Mean shear, as a fraction of the largest depth, below which a drift is not taken for gross
     /// slip (0.25, chosen on the training sets: it removes drifts of growing contacts while pressing).
@@ -57,6 +58,16 @@ pub struct SlipConfig {
     /// Under a twist (rotation about the contact larger than the mean shear), the stick fraction
     /// below which the contact slides as a whole (0.1, chosen on the training sets).
     pub twist_gross_fraction: f64,
+    /// The drift threshold is at least this many times the frame's depth noise
+    /// (`ContactFrame::depth_noise_mm`): 1.5, chosen on the train / val splits with and without
+    /// 0.01 mm of 3-D noise (and checked on a fresh seed-202 set); the drift noise grows with the
+    /// depth noise, a fixed threshold is either deaf on clean data or jumpy on noisy data.
+    pub drift_noise_factor: f64,
+    /// Under a twist, the turn of the indentation across the gel (its material rotation x the
+    /// contact's RMS radius, per frame) must exceed this many drift thresholds to be gross slip (2:
+    /// a fitted rotation is noisier than a centroid; 1.5-3 all did better than no such test on the
+    /// train / val splits and a seed-202 set, 2 best with noise).
+    pub turn_threshold_factor: f64,
 }
 
 impl Default for SlipConfig {
@@ -66,9 +77,11 @@ impl Default for SlipConfig {
             stick_fraction: 0.9,
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
-            drift_mm_per_frame: 0.02,
+            drift_mm_per_frame: 0.01,
             twist_gross_fraction: 0.1,
             min_shear_per_depth: 0.25,
+            drift_noise_factor: 1.5,
+            turn_threshold_factor: 2.0,
         }
     }
 }
@@ -84,6 +97,20 @@ impl SlipConfig {
             if !(v.is_finite() && v > 0.0 && v < 10.0) {
                 return Err(config_err(field, "a length in (0, 10) mm", v));
             }
+        }
+        if !(self.turn_threshold_factor.is_finite() && (0.0..100.0).contains(&self.turn_threshold_factor)) {
+            return Err(config_err(
+                "turn_threshold_factor",
+                "a factor in [0, 100)",
+                self.turn_threshold_factor,
+            ));
+        }
+        if !(self.drift_noise_factor.is_finite() && (0.0..100.0).contains(&self.drift_noise_factor)) {
+            return Err(config_err(
+                "drift_noise_factor",
+                "a factor in [0, 100)",
+                self.drift_noise_factor,
+            ));
         }
         for (field, v) in [
             ("stick_fraction", self.stick_fraction),
@@ -111,6 +138,9 @@ pub struct SlipFrame {
     /// Drift of the contact's material centroid per frame (over the last two contact frames), along
     /// the shear, mm.
     pub drift_mm: f64,
+    /// In-plane rotation of the contact markers about their centroid (least squares, translation
+    /// removed), rad, signed about the surface normal (zero without contact or without shear).
+    pub rotation_rad: f64,
 }
 
 /// Classifies frames one after the other (it keeps the material centroids of the last frames).
@@ -123,6 +153,8 @@ pub struct SlipDetector {
     sliding: bool,
     /// Consecutive frames with a drift above the threshold.
     drifting: usize,
+    /// 3 x 3 mean depths of the last frames in contact, oldest first (at most `DRIFT_WINDOW`).
+    depths: std::collections::VecDeque<Vec<Option<f64>>>,
 }
 
 /// Frames over which the drift is measured (its per-frame value is averaged over them, which
@@ -138,12 +170,14 @@ impl SlipDetector {
             history: std::collections::VecDeque::new(),
             sliding: false,
             drifting: 0,
+            depths: std::collections::VecDeque::new(),
         })
     }
 
     /// Forgets the history (after re-zeroing the reference).
     pub fn reset(&mut self) {
         self.history.clear();
+        self.depths.clear();
         self.sliding = false;
         self.drifting = 0;
     }
@@ -152,6 +186,7 @@ impl SlipDetector {
     pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
         if !frame.contact {
             self.history.clear();
+            self.depths.clear();
             self.sliding = false;
             self.drifting = 0;
             return SlipFrame {
@@ -159,10 +194,22 @@ impl SlipDetector {
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: 0.0,
             };
         }
         let oldest = self.history.front().copied();
         let span = self.history.len();
+        let smoothed = crate::contact::smooth3(surface.shape(), &frame.depth_mm);
+        let old_depth = self.depths.front().cloned();
+        let depth_span = self.depths.len();
+        self.depths.push_back(smoothed.clone());
+        if self.depths.len() > DRIFT_WINDOW {
+            self.depths.pop_front();
+        }
+        let drift_threshold = self
+            .config
+            .drift_mm_per_frame
+            .max(self.config.drift_noise_factor * frame.depth_noise_mm);
         if let Some(c) = frame.material_centroid_mm {
             self.history.push_back(c);
             if self.history.len() > DRIFT_WINDOW {
@@ -190,6 +237,7 @@ impl SlipDetector {
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: 0.0,
             };
         }
         let count = tangential.len() as f64;
@@ -208,13 +256,15 @@ impl SlipDetector {
             (n + r.cross(&(t - shear)).dot(&plane), d + r.norm_squared())
         });
         let omega = if den > 0.0 { num / den } else { 0.0 };
-        let twist_mm = omega.abs() * (den / count).sqrt();
+        let radius_mm = (den / count).sqrt();
+        let twist_mm = omega.abs() * radius_mm;
         if shear.norm() < self.config.min_shear_mm && twist_mm < self.config.min_shear_mm {
             return SlipFrame {
                 state: latched,
                 shear_mm: shear,
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
+                rotation_rad: omega,
             };
         }
         if twist_mm > shear.norm() {
@@ -235,9 +285,20 @@ impl SlipDetector {
                 let tol = self.config.plateau_tolerance * top.abs();
                 angles.iter().filter(|&&a| a >= top - tol).count() as f64 / angles.len() as f64
             };
-            self.drifting = 0;
-            self.sliding |= stick_fraction < self.config.twist_gross_fraction;
-            let state = if self.sliding {
+            // Torsional gross slip: the indentation turns across the gel (the twist analogue of the
+            // drift): the rotation of the depth pattern in material coordinates, at the contact's
+            // RMS radius, per frame, in the sense of the twist.
+            let turn_mm = match (&old_depth, frame.material_centroid_mm) {
+                (Some(old), Some(c)) if depth_span > 0 => {
+                    material_rotation(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
+                        .map_or(0.0, |t| t * omega.signum() * radius_mm / depth_span as f64)
+                }
+                _ => 0.0,
+            };
+            let turning = turn_mm > self.config.turn_threshold_factor * drift_threshold;
+            self.drifting = if turning { self.drifting + 1 } else { 0 };
+            self.sliding |= stick_fraction < self.config.twist_gross_fraction || self.drifting >= 2;
+            let state = if self.sliding || turning {
                 SlipState::GrossSlip
             } else if stick_fraction < self.config.stick_fraction {
                 SlipState::PartialSlip
@@ -248,7 +309,8 @@ impl SlipDetector {
                 state,
                 shear_mm: shear,
                 stick_fraction,
-                drift_mm: 0.0,
+                drift_mm: turn_mm,
+                rotation_rad: omega,
             };
         }
         let dir = shear / shear.norm();
@@ -269,7 +331,7 @@ impl SlipDetector {
         // part of the indentation depth (0.8 w on the reference sensor). Pressing alone shears
         // little, so a drift without that shear is the noise of a growing contact.
         let dragged = shear.norm() >= self.config.min_shear_per_depth * frame.max_depth_mm;
-        let drifting = drift > self.config.drift_mm_per_frame && dragged;
+        let drifting = drift > drift_threshold && dragged;
         self.drifting = if drifting { self.drifting + 1 } else { 0 };
         self.sliding |= self.drifting >= 2;
         let state = if self.sliding || drifting {
@@ -284,8 +346,74 @@ impl SlipDetector {
             shear_mm: shear,
             stick_fraction,
             drift_mm: drift,
+            rotation_rad: omega,
         }
     }
+}
+
+/// Rotation (rad, about the surface normal) that carries the depth pattern `old` into `new` about
+/// `centre`, both 3 x 3 mean depths over the lattice in material (reference) coordinates: the least
+/// squares of `new - old = a new + b + (translation) . grad - angle (n x (x - c)) . grad` over the
+/// markers deeper than `min_depth_mm` in either frame (the scale and offset absorb pressing, the
+/// translation a drift; the gradient is the central difference along the lattice). `None` when
+/// too few markers or a singular fit.
+fn material_rotation(
+    surface: &ReferenceSurface,
+    old: &[Option<f64>],
+    new: &[Option<f64>],
+    centre: Point3<f64>,
+    min_depth_mm: f64,
+) -> Option<f64> {
+    let shape = surface.shape();
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let pos = surface.positions_mm();
+    let plane = surface.plane_normal();
+    let mut ata = nalgebra::Matrix5::<f64>::zeros();
+    let mut atb = nalgebra::Vector5::<f64>::zeros();
+    let mut count = 0;
+    for r in 1..rows.saturating_sub(1) {
+        for c in 1..cols.saturating_sub(1) {
+            let k = r * cols + c;
+            let at = |rr: usize, cc: usize| -> Option<(Point3<f64>, f64)> {
+                let j = rr * cols + cc;
+                Some((pos[j]?, new[j]?))
+            };
+            let (Some((p, d)), Some(d0), Some((pl, dl)), Some((pr, dr)), Some((pu, du)), Some((pd, dd))) = (
+                at(r, c),
+                old[k],
+                at(r, c - 1),
+                at(r, c + 1),
+                at(r - 1, c),
+                at(r + 1, c),
+            ) else {
+                continue;
+            };
+            if d.max(d0) <= min_depth_mm {
+                continue;
+            }
+            let (eu, ev) = ((pr - pl) / 2.0, (pd - pu) / 2.0);
+            let (gu, gv) = ((dr - dl) / 2.0, (dd - du) / 2.0);
+            // The tangential direction of a rotation about the centre, in lattice steps.
+            let t = plane.cross(&(p - centre));
+            let gram = nalgebra::Matrix2::new(eu.dot(&eu), eu.dot(&ev), eu.dot(&ev), ev.dot(&ev));
+            let Some(ab) = gram
+                .try_inverse()
+                .map(|g| g * nalgebra::Vector2::new(t.dot(&eu), t.dot(&ev)))
+            else {
+                continue;
+            };
+            let g_turn = ab.x * gu + ab.y * gv;
+            let row = nalgebra::Vector5::new(d, 1.0, gu, gv, -g_turn);
+            ata += row * row.transpose();
+            atb += row * (d - d0);
+            count += 1;
+        }
+    }
+    if count < 8 {
+        return None;
+    }
+    let s = ata.cholesky()?.solve(&atb);
+    s[4].is_finite().then_some(s[4])
 }
 
 #[cfg(test)]
@@ -387,5 +515,56 @@ mod tests {
             states,
             [SlipState::Stick, SlipState::Stick, SlipState::PartialSlip]
         );
+    }
+
+    #[test]
+    fn an_indentation_turning_across_the_gel_is_gross_slip() {
+        // An elongated indentation (Gaussian, widths 1.6 and 0.8 mm, 0.5 mm deep) whose surface is
+        // twisted by `omega` about its centre (each point limited to 0.8 w); from the fifth frame on
+        // the indentation itself turns across the gel by 0.03 rad per frame (torsional gross slip).
+        let frame = |phi: f64, omega: f64| -> Vec<Option<[f64; 3]>> {
+            GridShape::REFERENCE
+                .indices()
+                .map(|i| {
+                    let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+                    let (s, c) = phi.sin_cos();
+                    let (xr, yr) = (c * x + s * y, -s * x + c * y);
+                    let w = 0.5 * (-(xr * xr) / (2.0 * 1.6 * 1.6) - (yr * yr) / (2.0 * 0.8 * 0.8)).exp();
+                    let (ux, uy) = (-omega * y, omega * x);
+                    let norm = ux.hypot(uy);
+                    let k = if norm > 0.0 {
+                        (0.8 * w / norm).min(1.0)
+                    } else {
+                        0.0
+                    };
+                    Some([x + k * ux, y + k * uy, 24.0 - w])
+                })
+                .collect()
+        };
+        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
+            .iter()
+            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
+            .collect();
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
+        let script = [
+            (0.0, 0.0),
+            (0.0, 0.02),
+            (0.0, 0.04),
+            (0.0, 0.06),
+            (0.03, 0.08),
+            (0.06, 0.10),
+            (0.09, 0.12),
+        ];
+        let states: Vec<SlipState> = script
+            .iter()
+            .map(|(phi, omega)| {
+                det.update(&surface, &surface.analyze(&frame(*phi, *omega), &cfg).unwrap())
+                    .state
+            })
+            .collect();
+        assert!(!states[..4].contains(&SlipState::GrossSlip), "{states:?}");
+        assert_eq!(states[6], SlipState::GrossSlip, "{states:?}");
     }
 }
