@@ -34,6 +34,9 @@ class AugConfig:
     crop: tuple[int, int] = (224, 224)  # (height, width) of a training crop, network input pixels
     input_size: tuple[int, int] = (416, 416)  # (height, width) of the canonical network input
     p_canonical: float = 0.5  # share of crops sampled exactly as at inference
+    # How the canonical crops are scaled: "auto" (the auto layout, isotropic) or "stretch" (whole image to
+    # input_size, the first contract's preprocessing, which the shipped model was trained with)
+    canonical: str = "auto"
     pitch_in_px: tuple[float, float] = (9.0, 44.0)  # jittered marker pitch (x) at the input
     aspect: tuple[float, float] = (0.7, 1.5)  # y scale / x scale in jittered crops
     rotate_deg: float = 8.0
@@ -57,10 +60,13 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng):
     """Affine map from crop continuous coords u to source continuous coords: p = c + A (u - crop/2)."""
     ch, cw = cfg.crop
     if rng.random() < cfg.p_canonical or not math.isfinite(pitch_px):
-        # As at inference ("auto" fit): isotropic, the scale fit_layout picks for this image and pitch.
-        lay = fit_layout(w_img, h_img, pitch_px, FitConfig(nominal_hw=cfg.input_size))
-        sx = lay.scaled_w / w_img
-        sy = lay.scaled_h / h_img
+        if cfg.canonical == "stretch":
+            sx = cfg.input_size[1] / w_img
+            sy = cfg.input_size[0] / h_img
+        else:  # as at inference ("auto" fit): isotropic, the scale fit_layout picks for this image and pitch
+            lay = fit_layout(w_img, h_img, pitch_px, FitConfig(nominal_hw=cfg.input_size))
+            sx = lay.scaled_w / w_img
+            sy = lay.scaled_h / h_img
         rot = 0.0
         fx = fy = 1.0
     else:

@@ -7,7 +7,7 @@ head outputs, for each cell, m candidates of raw logits (tx, ty, tc); decoding i
 ``x_in = (sigmoid(tx) + gx) * stride`` (the paper's eq. 5-6), ``c = sigmoid(tc)``.
 
 At the default width (8) and S = 52, m = 5 the net has ~45k parameters and ~0.29 GFLOP at 416 x 416
-with the stride-2 stem ("s2"), ~0.24 GFLOP with the stride-4 stem ("s4", the trainer's default).
+with the stride-2 stem ("s2", the shipped model), ~0.24 GFLOP with the stride-4 stem ("s4").
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 STRIDE_FOR_GRID_416 = {13: 32, 26: 16, 52: 8}
 # Stems: "s2" = 3x3 stride-2 convolution + residual block, then stride 4 (the first shipped model);
-# "s4" = one 5x5 stride-4 convolution (about 2x faster on a CPU at the same accuracy budget).
+# "s4" = one 5x5 stride-4 convolution (about 2x faster on a CPU; less accurate after 46 min of training).
 STEMS = ("s2", "s4")
 
 

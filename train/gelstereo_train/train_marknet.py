@@ -98,7 +98,8 @@ def train(args, log=print) -> Path:
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
     model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size))
+    cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
+                    canonical=args.canonical)
     budget_s = args.minutes * 60.0 if args.minutes else None
     warm = 200
     t0 = time.time()
@@ -165,8 +166,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
     p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
     p.add_argument("--width", type=int, default=8, help="base channel width")
-    p.add_argument("--stem", default="s4", choices=STEMS, help="s4: 5x5 stride-4 stem (fast); s2: first model's")
+    p.add_argument("--stem", default="s2", choices=STEMS,
+                   help="s2: stride-2 stage (the shipped model); s4: one 5x5 stride-4 convolution (~2x faster, "
+                   "less accurate at our budget, see data/models/MODEL_CARD.md)")
     p.add_argument("--input-size", type=int, default=416)
+    p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
+                   help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
+                   "shipped model was trained) or auto (the auto layout)")
     p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3)

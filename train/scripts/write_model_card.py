@@ -78,8 +78,9 @@ def main(argv=None) -> int:
     L.append(f"- Dataset: `{meta['data_root']}` — metadata `dataset` = \"{meta['dataset']}\".")
     L.append(f"- Marknet: random {a['crop']}x{a['crop']} crops of the training split's images (left and right "
              f"views; {meta['dataset'].split('images=')[-1]} images held in memory), half sampled exactly as at "
-             + ("inference (the auto layout's isotropic scale for the image's true marker pitch)"
-                if props.get("input_size") == "dynamic" else "inference (whole image resized to 416x416)")
+             + ("inference under the auto layout (isotropic scale for the image's true marker pitch)"
+                if meta.get("aug", {}).get("canonical", "stretch") == "auto"
+                else "the first contract's inference (whole image resized to 416x416)")
              + ", half with marker pitch 9-44 px at the input, "
              "anisotropic scale, flips, +-8 deg rotation; photometric augmentation on 70% "
              "(colour gains, contrast, gamma, colour shading, grey, polarity, blur, noise, JPEG).")
