@@ -73,7 +73,8 @@ class MarknetRunner:
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = self.model.stride
             self.sess = None
-            self.fit = FitConfig(nominal_hw=self.input_hw) if fit == "auto" else None
+            stretch = meta.get("aug", {}).get("canonical", "stretch") == "stretch"
+            self.fit = FitConfig(nominal_hw=self.input_hw, prefer_stretch=stretch) if fit == "auto" else None
         self.meta = meta
 
     def raw(self, x: torch.Tensor) -> np.ndarray:

@@ -174,6 +174,8 @@ def main(argv=None) -> int:
     p.add_argument("--marknet", type=Path, required=True, help="Marknet checkpoint (.pt)")
     p.add_argument("--mre", type=Path, default=None, help="MRE checkpoint (.pt)")
     p.add_argument("--out-dir", type=Path, required=True)
+    p.add_argument("--preferred-layout", choices=("stretch", "isotropic"), default=None,
+                   help="metadata preferred_layout (default: from the checkpoint's canonical crops)")
     args = p.parse_args(argv)
     from .train_marknet import load_checkpoint
     from .train_mre import load_mre_checkpoint
@@ -182,10 +184,14 @@ def main(argv=None) -> int:
     model, meta = load_checkpoint(args.marknet)
     post = PostConfig()
     hw = (int(meta["input_height"]), int(meta["input_width"]))
+    # The layout the net was trained on: its canonical crops (checkpoints before the option: stretch).
+    preferred = args.preferred_layout or (
+        "isotropic" if meta.get("aug", {}).get("canonical", "stretch") == "auto" else "stretch")
+    fit = FitConfig(nominal_hw=hw, prefer_stretch=preferred == "stretch")
     report = {}
     mk = args.out_dir / "marknet.onnx"
     report["marknet_max_abs_diff"] = export_marknet(
-        model, mk, hw, marknet_metadata(model, hw, meta["dataset"], meta["trained"], post)
+        model, mk, hw, marknet_metadata(model, hw, meta["dataset"], meta["trained"], post, fit=fit)
     )
     print(f"{mk}: onnxruntime vs PyTorch max abs diff (raw logits) {report['marknet_max_abs_diff']:.3g}")
     if args.mre:

@@ -56,6 +56,9 @@ class FitConfig:
     pitch_range_px: tuple[float, float] = (9.0, 24.0)
     pitch_target_px: float = 12.0
     max_side: int = 2048
+    # The layout the network was trained on (its canonical crops): False = isotropic, as above; True = the
+    # whole-image stretch to the nominal input, kept whenever it puts the pitch in range along both axes.
+    prefer_stretch: bool = False
 
 
 @dataclass(frozen=True)
@@ -80,8 +83,10 @@ def fit_layout(w: int, h: int, pitch_px: float | None, fit: FitConfig = FitConfi
     unknown, no margin and no pitch check). Mirrors ``fit_layout`` in gelstereo-markers."""
     p = pitch_px if pitch_px is not None and math.isfinite(pitch_px) and pitch_px > 0 else 0.0
     nh, nw = fit.nominal_hw
-    s = min(nw / (w + p), nh / (h + p))
     lo, hi = fit.pitch_range_px
+    if fit.prefer_stretch and (p == 0 or (lo <= p * nw / w <= hi and lo <= p * nh / h <= hi)):
+        return Layout(nw, nh, nw, nh, 0, 0)
+    s = min(nw / (w + p), nh / (h + p))
     if p > 0 and not lo <= p * s <= hi:
         s = fit.pitch_target_px / p
     s = min(s, fit.max_side / (w + p), fit.max_side / (h + p))
@@ -97,8 +102,9 @@ MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a 
 
 
 def relayout_needed(used: Layout, wanted: Layout) -> bool:
-    """Whether a pass under ``used`` should be redone under ``wanted`` (scale off by > 10 %)."""
-    return abs(wanted.scaled_w / used.scaled_w - 1.0) > RELAYOUT_SCALE_CHANGE
+    """Whether a pass under ``used`` should be redone under ``wanted`` (scale off by > 10 % along x or y)."""
+    return (abs(wanted.scaled_w / used.scaled_w - 1.0) > RELAYOUT_SCALE_CHANGE
+            or abs(wanted.scaled_h / used.scaled_h - 1.0) > RELAYOUT_SCALE_CHANGE)
 
 
 def fit_config_from_metadata(meta: dict) -> FitConfig:
@@ -109,6 +115,7 @@ def fit_config_from_metadata(meta: dict) -> FitConfig:
         multiple=int(meta["input_multiple"]),
         pitch_range_px=(lo, hi),
         pitch_target_px=float(meta["pitch_target_px"]),
+        prefer_stretch=meta.get("preferred_layout", "isotropic") == "stretch",
     )
 
 
@@ -119,6 +126,7 @@ def fit_metadata(fit: FitConfig) -> dict:
         "input_multiple": fit.multiple,
         "pitch_range_px": f"{fit.pitch_range_px[0]:g},{fit.pitch_range_px[1]:g}",
         "pitch_target_px": f"{fit.pitch_target_px:g}",
+        "preferred_layout": "stretch" if fit.prefer_stretch else "isotropic",
     }
 
 

@@ -119,11 +119,17 @@ def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
         for pitch in (None, 5.0, 10.0, 16.0, 31.0, 200.0):
             cases.append({"width": w, "height": h, "pitch_px": pitch,
                           "layout": lay_dict(fit_layout(w, h, pitch, FitConfig()))})
+    stretch_cases = []
+    for w, h in ((640, 480), (320, 240), (800, 600), (416, 416), (1280, 720)):
+        for pitch in (None, 5.0, 10.0, 16.0, 31.0):
+            stretch_cases.append({"width": w, "height": h, "pitch_px": pitch,
+                                  "layout": lay_dict(fit_layout(w, h, pitch, FitConfig(prefer_stretch=True)))})
     auto = {
         "generator": "train/scripts/make_onnx_fixtures.py",
         "tolerance": "positions 0.05 px, conf 0.01 (resize implementations differ by rounding)",
         "export_max_abs_diff": diff,
         "fit_layout_nominal_416": cases,
+        "fit_layout_nominal_416_prefer_stretch": stretch_cases,
         "images": {},
     }
     for name in ("dots_80x60.png", "dots_160x120.png"):

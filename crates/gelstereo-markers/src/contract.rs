@@ -78,6 +78,10 @@ pub struct AutoFit {
     pub pitch_max_px: f64,
     /// Pitch at the input when the nominal fit is out of range, px.
     pub pitch_target_px: f64,
+    /// The layout the network was trained on (`preferred_layout` = `stretch`): the whole-image stretch to
+    /// the nominal input is kept whenever it puts the pitch within range along both axes. Otherwise
+    /// (`isotropic`, the default) the isotropic fit above.
+    pub prefer_stretch: bool,
 }
 
 /// What an MRE model declares.
@@ -302,11 +306,23 @@ impl MarknetContract {
                     pitch_target_px.to_string(),
                 ));
             }
+            let prefer_stretch = match metadata.get("preferred_layout").map(|v| v.trim()) {
+                None | Some("isotropic") => false,
+                Some("stretch") => true,
+                Some(other) => {
+                    return Err(m.err(
+                        "preferred_layout",
+                        "'stretch' or 'isotropic'",
+                        format!("'{other}'"),
+                    ));
+                }
+            };
             Some(AutoFit {
                 multiple,
                 pitch_min_px,
                 pitch_max_px,
                 pitch_target_px,
+                prefer_stretch,
             })
         } else {
             None
@@ -485,6 +501,10 @@ mod tests {
             (fit.pitch_min_px, fit.pitch_max_px, fit.pitch_target_px),
             (9.0, 24.0, 12.0)
         );
+        assert!(!fit.prefer_stretch);
+        let mut meta = dynamic_meta();
+        meta.insert("preferred_layout".into(), "stretch".into());
+        assert!(parse(&meta, &inp, &out).unwrap().auto_fit.unwrap().prefer_stretch);
         // The fixed contract has none.
         let c = parse(
             &marknet_meta(),
@@ -501,6 +521,7 @@ mod tests {
             ("pitch_range_px", Some("9"), "'pitch_range_px'"),
             ("pitch_target_px", Some("30"), "'pitch_target_px'"),
             ("pitch_target_px", Some("-1"), "'pitch_target_px'"),
+            ("preferred_layout", Some("squash"), "'preferred_layout'"),
         ];
         for (key, value, needle) in cases {
             let mut meta = dynamic_meta();

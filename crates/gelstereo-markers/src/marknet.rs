@@ -99,11 +99,11 @@ impl InputLayout {
         self.scaled_width == self.input_width && self.scaled_height == self.input_height
     }
 
-    /// Whether an image under `self` should be run again under `wanted` (scale off by more than
-    /// [`RELAYOUT_SCALE_CHANGE`]).
+    /// Whether an image under `self` should be run again under `wanted` (scale along x or y off by
+    /// more than [`RELAYOUT_SCALE_CHANGE`]).
     pub fn needs_relayout(&self, wanted: &InputLayout) -> bool {
-        let ratio = f64::from(wanted.scaled_width) / f64::from(self.scaled_width.max(1));
-        (ratio - 1.0).abs() > RELAYOUT_SCALE_CHANGE
+        let off = |a: u32, b: u32| (f64::from(a) / f64::from(b.max(1)) - 1.0).abs() > RELAYOUT_SCALE_CHANGE;
+        off(wanted.scaled_width, self.scaled_width) || off(wanted.scaled_height, self.scaled_height)
     }
 }
 
@@ -119,6 +119,20 @@ pub fn fit_layout(
 ) -> InputLayout {
     let p = pitch_px.filter(|p| p.is_finite() && *p > 0.0).unwrap_or(0.0);
     let (w, h) = (f64::from(size.width), f64::from(size.height));
+    let in_range = |v: f64| (fit.pitch_min_px..=fit.pitch_max_px).contains(&v);
+    if fit.prefer_stretch
+        && (p == 0.0
+            || (in_range(p * f64::from(nominal_width) / w) && in_range(p * f64::from(nominal_height) / h)))
+    {
+        return InputLayout {
+            input_width: nominal_width,
+            input_height: nominal_height,
+            scaled_width: nominal_width,
+            scaled_height: nominal_height,
+            offset_x: 0,
+            offset_y: 0,
+        };
+    }
     let mut s = (f64::from(nominal_width) / (w + p)).min(f64::from(nominal_height) / (h + p));
     if p > 0.0 && !(fit.pitch_min_px..=fit.pitch_max_px).contains(&(p * s)) {
         s = fit.pitch_target_px / p;

@@ -390,21 +390,28 @@ fn layout_of(v: &Value) -> gelstereo_markers::InputLayout {
 }
 
 /// The "auto" layout for a table of image sizes and pitches equals the trainer's `fit_layout`
-/// (nominal 416 x 416, multiple 32, pitch range 9-24, target 12).
+/// (nominal 416 x 416, multiple 32, pitch range 9-24, target 12), isotropic and preferring the stretch.
 #[test]
 fn auto_layout_matches_the_trainer() {
-    let fit = gelstereo_markers::AutoFit {
-        multiple: 32,
-        pitch_min_px: 9.0,
-        pitch_max_px: 24.0,
-        pitch_target_px: 12.0,
-    };
-    let cases = expected_auto()["fit_layout_nominal_416"]
-        .as_array()
-        .unwrap()
-        .clone();
-    assert!(cases.len() >= 30);
-    for case in cases {
+    let e = expected_auto();
+    let table = |key: &str| e[key].as_array().unwrap().clone();
+    let (isotropic, stretch) = (
+        table("fit_layout_nominal_416"),
+        table("fit_layout_nominal_416_prefer_stretch"),
+    );
+    assert!(isotropic.len() >= 30 && stretch.len() >= 20);
+    let cases = isotropic
+        .into_iter()
+        .map(|c| (c, false))
+        .chain(stretch.into_iter().map(|c| (c, true)));
+    for (case, prefer_stretch) in cases {
+        let fit = gelstereo_markers::AutoFit {
+            multiple: 32,
+            pitch_min_px: 9.0,
+            pitch_max_px: 24.0,
+            pitch_target_px: 12.0,
+            prefer_stretch,
+        };
         let size = gelstereo_core::ImageSize {
             width: case["width"].as_u64().unwrap() as u32,
             height: case["height"].as_u64().unwrap() as u32,
