@@ -15,14 +15,12 @@ use std::sync::{Barrier, mpsc};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use gelstereo_core::{GridIndex, GridShape, ImageSize, Point2, SlipState, StereoPair};
+use gelstereo_core::{GridIndex, GridShape, ImageSize, Point2, StereoPair};
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_markers::{Localizer, Method, create_localizer};
 use gelstereo_matching::{StereoConfig, StereoLattice};
-use gelstereo_tracking::{
-    ContactFrame, ReferenceSurface, SessionConfig, SlipDetector, StereoSession, Tracker, session,
-};
+use gelstereo_tracking::{SessionConfig, StereoSession};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
 
@@ -388,103 +386,6 @@ const STAGES: [&str; 11] = [
     "track() whole (stages above + rows)",
 ];
 
-/// The tracking stages of `StereoSession::track`, run one by one from the same public parts so each
-/// can be timed; kept in step with a real session and checked against it every frame.
-struct Stages {
-    shape: GridShape,
-    left: Tracker,
-    right: Tracker,
-    triangulator: Triangulator,
-    surface: ReferenceSurface,
-    slip: SlipDetector,
-    config: SessionConfig,
-    left_slot: Vec<Option<usize>>,
-    right_slot: Vec<Option<usize>>,
-    reference_mm: Vec<Option<[f64; 3]>>,
-}
-
-impl Stages {
-    fn new(
-        session: &StereoSession,
-        triangulator: Triangulator,
-        config: &SessionConfig,
-    ) -> anyhow::Result<Self> {
-        let shape = session.shape();
-        let slot = |t: &Tracker| {
-            let mut s = vec![None; shape.count()];
-            for (k, id) in t.ids().iter().enumerate() {
-                if let Some(lin) = shape.linear(*id) {
-                    s[lin] = Some(k);
-                }
-            }
-            s
-        };
-        let (left, right) = (session.left().clone(), session.right().clone());
-        let (left_slot, right_slot) = (slot(&left), slot(&right));
-        let mut reference_mm = vec![None; shape.count()];
-        for lin in 0..shape.count() {
-            if let (Some(a), Some(b)) = (left_slot[lin], right_slot[lin])
-                && let Ok(t) = triangulator.triangulate(left.reference_px()[a], right.reference_px()[b])
-            {
-                let p = t.p_in_left_mm;
-                reference_mm[lin] = Some([p.x, p.y, p.z]);
-            }
-        }
-        Ok(Self {
-            shape,
-            left,
-            right,
-            triangulator,
-            surface: session.surface().clone(),
-            slip: SlipDetector::new(config.slip.clone())?,
-            config: config.clone(),
-            left_slot,
-            right_slot,
-            reference_mm,
-        })
-    }
-
-    /// One frame, stage by stage: the marks between stages 5..=9 of [`STAGES`] and the contact and
-    /// slip results.
-    fn run(
-        &mut self,
-        left: &[Point2],
-        right: &[Point2],
-    ) -> anyhow::Result<([Mark; 6], ContactFrame, SlipState)> {
-        let t0 = Mark::now();
-        let lf = self.left.update(left);
-        let rf = self.right.update(right);
-        let t1 = Mark::now();
-        let n = self.shape.count();
-        let mut current: Vec<Option<[f64; 3]>> = vec![None; n];
-        for (lin, cur) in current.iter_mut().enumerate() {
-            let l = self.left_slot[lin].and_then(|k| lf.markers[k].position_px);
-            let r = self.right_slot[lin].and_then(|k| rf.markers[k].position_px);
-            if let (Some(l), Some(r)) = (l, r)
-                && let Ok(t) = self.triangulator.triangulate(l, r)
-            {
-                let p = t.p_in_left_mm;
-                *cur = Some([p.x, p.y, p.z]);
-            }
-        }
-        let t2 = Mark::now();
-        session::reject_outliers(
-            self.shape,
-            &self.reference_mm,
-            &mut current,
-            self.config.outlier_threshold,
-            self.config.outlier_noise_mm,
-        );
-        let filled = session::fill_from_neighbours(self.shape, &self.reference_mm, &current);
-        let t3 = Mark::now();
-        let contact = self.surface.analyze(&filled, &self.config.contact)?;
-        let t4 = Mark::now();
-        let slip = self.slip.update(&self.surface, &contact);
-        let t5 = Mark::now();
-        Ok(([t0, t1, t2, t3, t4, t5], contact, slip.state))
-    }
-}
-
 /// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
 /// at the moment of the call (the kernel adds the running threads' pending time), where
 /// `/proc/self/task/*/schedstat` lags for a thread that is running; `None` if the clock fails.
@@ -722,11 +623,11 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
 
     // Latency mode: one frame at a time.
     let mut session = make()?;
-    let mut stages = Stages::new(&session, triangulator.clone(), &config)?;
+    session.record_stage_marks(process_cpu_clock_ns);
     let mut times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
     let mut cpu_times: Vec<Vec<f64>> = vec![Vec::with_capacity(b.runs); STAGES.len()];
     let (mut whole, mut cpu_whole) = (Vec::new(), Vec::new());
-    let (mut mismatches, mut markers) = (0usize, 0usize);
+    let mut markers = 0usize;
     for j in 0..b.warmup + b.runs {
         let k = ping_pong(j, n);
         let m_decode = Mark::now();
@@ -737,12 +638,16 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         let d = localizer.detect_stereo(&frames[k])?;
         let pts = to_points(&d);
         let m1 = Mark::now();
-        let out = session.track(j as u32, &pts.left, &pts.right)?;
+        session.track(j as u32, &pts.left, &pts.right)?;
         let m2 = Mark::now();
-        let (st, contact, slip) = stages.run(&pts.left, &pts.right)?;
-        if contact.depth_mm != out.contact.depth_mm || slip != out.slip.state {
-            mismatches += 1;
-        }
+        let st: Vec<Mark> = session
+            .stage_marks()
+            .iter()
+            .map(|m| Mark {
+                wall: m.wall,
+                cpu_ns: m.cpu_ns,
+            })
+            .collect();
         if j < b.warmup {
             continue;
         }
@@ -933,13 +838,8 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     );
     let _ = writeln!(
         text,
-        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots); {:.1} markers per view; stage breakdown {}; load average {load_start} at start, {load_end} at end",
+        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots); {:.1} markers per view; tracking stages from StereoSession::track's own stage marks; load average {load_start} at start, {load_end} at end",
         markers as f64 / (2 * b.runs) as f64,
-        if mismatches == 0 {
-            "matches track() in every frame".to_owned()
-        } else {
-            format!("differs from track() in {mismatches} frames")
-        }
     );
     print!("{text}");
     if let Some(out) = b.json {
@@ -969,7 +869,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
                 "frames_per_s": fps,
                 "cpu_ms_per_frame": cpu_per_frame_tp,
             },
-            "stage_breakdown_mismatches": mismatches,
+            "tracking_stages_from": "StereoSession::track stage marks",
             "not_timed": "exports (CSV rows, PLY, overlays, plots)",
         });
         let pretty = serde_json::to_string_pretty(&report).context("cannot format the JSON report")?;

@@ -30,6 +30,8 @@ pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
 pub use error::{Error, Result};
 pub use field::{DenseField, interpolate};
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
-pub use session::{MonoFrame, MonoSession, SessionConfig, StereoFrame, StereoSession, flagged_rows};
+pub use session::{
+    CpuClock, MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
+};
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

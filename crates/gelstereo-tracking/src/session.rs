@@ -74,6 +74,18 @@ pub struct StereoFrame {
     pub reprojection_px: Vec<Option<f64>>,
 }
 
+/// A process CPU-time clock, ns (e.g. `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`); `None` when it fails.
+pub type CpuClock = fn() -> Option<u64>;
+
+/// A clock reading taken between two stages of [`StereoSession::track`].
+#[derive(Debug, Clone, Copy)]
+pub struct StageMark {
+    /// Wall-clock time.
+    pub wall: std::time::Instant,
+    /// Process CPU time, ns (`None` when the clock failed).
+    pub cpu_ns: Option<u64>,
+}
+
 /// Tracks a stereo recording from its reference frame on.
 #[derive(Debug, Clone)]
 pub struct StereoSession {
@@ -90,6 +102,9 @@ pub struct StereoSession {
     /// Ids in either view, row-major.
     ids: Vec<GridIndex>,
     reference_mm: Vec<Option<[f64; 3]>>,
+    /// With a clock, [`track`](Self::track) records [`StageMark`]s (for benchmarks).
+    stage_clock: Option<CpuClock>,
+    stage_marks: Vec<StageMark>,
 }
 
 impl StereoSession {
@@ -146,12 +161,27 @@ impl StereoSession {
             right_slot,
             ids,
             reference_mm,
+            stage_clock: None,
+            stage_marks: Vec::new(),
         })
     }
 
     /// The ids written per frame (indexed in either view on the reference frame), row-major.
     pub fn ids(&self) -> &[GridIndex] {
         &self.ids
+    }
+
+    /// Makes [`track`](Self::track) take a [`StageMark`] (wall time and `cpu_clock`) before and after
+    /// each stage: association (both trackers), triangulation, outlier test and fill, contact geometry,
+    /// slip. Off by default (it costs six clock readings per frame).
+    pub fn record_stage_marks(&mut self, cpu_clock: CpuClock) {
+        self.stage_clock = Some(cpu_clock);
+    }
+
+    /// The six marks of the latest [`track`](Self::track) call (empty unless
+    /// [`record_stage_marks`](Self::record_stage_marks) was called, or after an error).
+    pub fn stage_marks(&self) -> &[StageMark] {
+        &self.stage_marks
     }
 
     /// The lattice.
@@ -193,8 +223,18 @@ impl StereoSession {
 
     /// Tracks frame number `frame` given the detections of each view (px).
     pub fn track(&mut self, frame: u32, left: &[Point2], right: &[Point2]) -> Result<StereoFrame> {
+        let clock = self.stage_clock;
+        let mark = || {
+            clock.map(|cpu| StageMark {
+                wall: std::time::Instant::now(),
+                cpu_ns: cpu(),
+            })
+        };
+        self.stage_marks.clear();
+        let m_start = mark();
         let lf = self.left.update(left);
         let rf = self.right.update(right);
+        let m_associated = mark();
         let n = self.shape.count();
         let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); n];
         for (lin, entry) in px.iter_mut().enumerate() {
@@ -218,6 +258,7 @@ impl StereoSession {
                 reprojection_px[lin] = Some(t.max_reprojection_error_px());
             }
         }
+        let m_triangulated = mark();
         let dropped = reject_outliers(
             self.shape,
             &self.reference_mm,
@@ -229,8 +270,15 @@ impl StereoSession {
         // Markers without a 3-D point take their reference plus the mean 3-D displacement of their
         // measured 8-neighbours.
         let filled = fill_from_neighbours(self.shape, &self.reference_mm, &current);
+        let m_filled = mark();
         let contact = self.surface.analyze(&filled, &self.config.contact)?;
+        let m_contact = mark();
         let slip = self.slip.update(&self.surface, &contact);
+        self.stage_marks.extend(
+            [m_start, m_associated, m_triangulated, m_filled, m_contact, mark()]
+                .into_iter()
+                .flatten(),
+        );
         // What is written: outliers within the noise floor keep their measurement.
         let mut written = filled;
         let floor_mm = self.config.outlier_min_pitch * self.surface.pitch_mm();
@@ -327,7 +375,7 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
 /// when larger, the median residual over the lattice (then predicted from its neighbours).
 /// Needs at least 3 measured neighbours. Returns the dropped markers: lattice position, position
 /// and residual, mm.
-pub fn reject_outliers(
+fn reject_outliers(
     shape: GridShape,
     reference: &[Option<[f64; 3]>],
     current: &mut [Option<[f64; 3]>],
@@ -391,7 +439,7 @@ pub fn reject_outliers(
 
 /// Dense positions where missing entries with a reference take the reference plus the mean
 /// displacement of their present 8-neighbours (that have a reference).
-pub fn fill_from_neighbours(
+fn fill_from_neighbours(
     shape: GridShape,
     reference: &[Option<[f64; 3]>],
     current: &[Option<[f64; 3]>],
