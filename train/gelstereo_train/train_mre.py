@@ -139,7 +139,7 @@ def main(argv=None) -> int:
     p.add_argument("--frame-step", type=int, default=1)
     p.add_argument("--max-images", type=int, default=1200, help="random subset of the split's images")
     p.add_argument("--max-samples", type=int, default=200000, help="cap of the balanced set (paper: 200,000)")
-    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--epochs", type=int, default=200)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
