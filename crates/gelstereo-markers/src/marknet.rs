@@ -94,6 +94,18 @@ pub struct InputLayout {
 }
 
 impl InputLayout {
+    /// The whole image resized to `width x height` (no padding): the first contract's stretch.
+    pub fn stretch(width: u32, height: u32) -> Self {
+        Self {
+            input_width: width,
+            input_height: height,
+            scaled_width: width,
+            scaled_height: height,
+            offset_x: 0,
+            offset_y: 0,
+        }
+    }
+
     /// The whole input is the image (no padding).
     fn fills_input(&self) -> bool {
         self.scaled_width == self.input_width && self.scaled_height == self.input_height
@@ -124,14 +136,7 @@ pub fn fit_layout(
         && (p == 0.0
             || (in_range(p * f64::from(nominal_width) / w) && in_range(p * f64::from(nominal_height) / h)))
     {
-        return InputLayout {
-            input_width: nominal_width,
-            input_height: nominal_height,
-            scaled_width: nominal_width,
-            scaled_height: nominal_height,
-            offset_x: 0,
-            offset_y: 0,
-        };
+        return InputLayout::stretch(nominal_width, nominal_height);
     }
     let mut s = (f64::from(nominal_width) / (w + p)).min(f64::from(nominal_height) / (h + p));
     if p > 0.0 && !(fit.pitch_min_px..=fit.pitch_max_px).contains(&(p * s)) {
@@ -273,6 +278,52 @@ pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32)
         });
     }
     Ok(())
+}
+
+/// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
+/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`) and writes it into `plane` as
+/// planar RGB f32 in [0, 1]. `resized` and `padded` are scratch images kept between calls.
+pub(crate) fn write_layout(
+    image: &Mat,
+    layout: &InputLayout,
+    resized: &mut Mat,
+    padded: &mut Mat,
+    plane: &mut [f32],
+) -> Result<()> {
+    let (nw, nh) = (layout.scaled_width as i32, layout.scaled_height as i32);
+    let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
+        image
+    } else {
+        imgproc::resize(image, resized, Size::new(nw, nh), 0.0, 0.0, imgproc::INTER_LINEAR)
+            .map_err(cv_err("resize to the network input"))?;
+        resized
+    };
+    let src: &Mat = if layout.fills_input() {
+        scaled
+    } else {
+        let (top, left) = (layout.offset_y as i32, layout.offset_x as i32);
+        let bottom = layout.input_height as i32 - nh - top;
+        let right = layout.input_width as i32 - nw - left;
+        // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
+        let mode = if top.max(bottom) < nh && left.max(right) < nw {
+            opencv::core::BORDER_REFLECT_101
+        } else {
+            opencv::core::BORDER_REPLICATE
+        };
+        opencv::core::copy_make_border(
+            scaled,
+            padded,
+            top,
+            bottom,
+            left,
+            right,
+            mode,
+            opencv::core::Scalar::default(),
+        )
+        .map_err(cv_err("padding to the network input"))?;
+        padded
+    };
+    write_planar_rgb(src, plane)
 }
 
 /// Writes `src` (8-bit grey, BGR or BGRA, already of the network input size) into `plane` as planar
@@ -535,14 +586,7 @@ impl Marknet {
                     offset_y: (ih - nh) / 2,
                 }
             }
-            InputFit::Auto | InputFit::Stretch => InputLayout {
-                input_width: iw,
-                input_height: ih,
-                scaled_width: iw,
-                scaled_height: ih,
-                offset_x: 0,
-                offset_y: 0,
-            },
+            InputFit::Auto | InputFit::Stretch => InputLayout::stretch(iw, ih),
         }
     }
 
@@ -567,48 +611,9 @@ impl Marknet {
         if self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.contract.auto_fit.is_none()) {
             check_aspect(size, self.contract.input_width, self.contract.input_height)?;
         }
-        let (nw, nh) = (layout.scaled_width as i32, layout.scaled_height as i32);
-        let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
-            image
-        } else {
-            imgproc::resize(
-                image,
-                &mut self.resized,
-                Size::new(nw, nh),
-                0.0,
-                0.0,
-                imgproc::INTER_LINEAR,
-            )
-            .map_err(cv_err("resize to the network input"))?;
-            &self.resized
-        };
-        let src: &Mat = if layout.fills_input() {
-            scaled
-        } else {
-            let (top, left) = (layout.offset_y as i32, layout.offset_x as i32);
-            let bottom = layout.input_height as i32 - nh - top;
-            let right = layout.input_width as i32 - nw - left;
-            // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
-            let mode = if top.max(bottom) < nh && left.max(right) < nw {
-                opencv::core::BORDER_REFLECT_101
-            } else {
-                opencv::core::BORDER_REPLICATE
-            };
-            opencv::core::copy_make_border(
-                scaled,
-                &mut self.padded,
-                top,
-                bottom,
-                left,
-                right,
-                mode,
-                opencv::core::Scalar::default(),
-            )
-            .map_err(cv_err("padding to the network input"))?;
-            &self.padded
-        };
         let hw = (layout.input_width * layout.input_height) as usize;
-        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])
+        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
+        write_layout(image, layout, &mut self.resized, &mut self.padded, plane)
     }
 
     /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
@@ -749,22 +754,42 @@ impl Marknet {
     /// image whose measured pitch asks for another scale is run again at that scale, and the pitch is
     /// remembered for its size.
     pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
+        let found = self.candidates_with_pitch(images, min_confidence)?;
+        Ok(found.into_iter().map(|(dets, _)| dets).collect())
+    }
+
+    /// [`candidates`](Self::candidates), each image's with its pitch estimate (post-processing step 2
+    /// on those candidates), computed once for both the layout decision and the post-processing.
+    fn candidates_with_pitch(
+        &mut self,
+        images: &[&Mat],
+        min_confidence: f32,
+    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
         let sizes = images
             .iter()
             .map(|im| check_image(im))
             .collect::<Result<Vec<_>>>()?;
         let mut layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
-        let mut found = self.decode_pass(images, &sizes, &layouts, min_confidence)?;
+        let conf_keep = self.post.conf_keep;
+        let with_pitch = |dets: Vec<Detection>| {
+            let pitch = estimate_pitch_px(&dets, conf_keep);
+            (dets, pitch)
+        };
+        let mut found: Vec<(Vec<Detection>, Option<f64>)> = self
+            .decode_pass(images, &sizes, &layouts, min_confidence)?
+            .into_iter()
+            .map(with_pitch)
+            .collect();
         if self.auto_fit().is_none() {
             return Ok(found);
         }
         let mut redo = Vec::new();
-        for (i, dets) in found.iter().enumerate() {
-            let confident = dets.iter().filter(|d| d.confidence > self.post.conf_keep).count();
+        for (i, (dets, pitch)) in found.iter().enumerate() {
+            let confident = dets.iter().filter(|d| d.confidence > conf_keep).count();
             if confident < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
             }
-            let Some(pitch) = estimate_pitch_px(dets, self.post.conf_keep) else {
+            let Some(pitch) = *pitch else {
                 continue;
             };
             let wanted = self.layout(sizes[i], Some(pitch));
@@ -783,7 +808,7 @@ impl Marknet {
             let again_layouts: Vec<InputLayout> = redo.iter().map(|&i| layouts[i]).collect();
             let again = self.decode_pass(&again_images, &again_sizes, &again_layouts, min_confidence)?;
             for (i, dets) in redo.into_iter().zip(again) {
-                found[i] = dets;
+                found[i] = with_pitch(dets);
             }
         }
         Ok(found)
@@ -816,10 +841,10 @@ impl Marknet {
     fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
         let with_mre = self.mre.is_some();
         let post = self.post;
-        let candidates = self.candidates(images, post.conf_low)?;
+        let candidates = self.candidates_with_pitch(images, post.conf_low)?;
         let selections: Vec<Selection> = candidates
             .into_iter()
-            .map(|c| Selection::new(c, &post, with_mre))
+            .map(|(c, pitch_px)| Selection::with_pitch(c, pitch_px, &post, with_mre))
             .collect();
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections

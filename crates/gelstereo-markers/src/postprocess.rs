@@ -367,8 +367,19 @@ pub struct Selection {
 impl Selection {
     /// Steps 2-4 (up to MRE's scores) for `candidates`, the output of step 1 (c > `conf_low`, flat
     /// order). `with_mre` selects `marknet-mre`, else `marknet`.
-    pub fn new(mut candidates: Vec<Detection>, params: &PostProcess, with_mre: bool) -> Self {
+    pub fn new(candidates: Vec<Detection>, params: &PostProcess, with_mre: bool) -> Self {
         let pitch_px = estimate_pitch_px(&candidates, params.conf_keep);
+        Self::with_pitch(candidates, pitch_px, params, with_mre)
+    }
+
+    /// [`new`](Self::new) with step 2 already done: `pitch_px` = [`estimate_pitch_px`] of
+    /// `candidates` with `params.conf_keep`.
+    pub fn with_pitch(
+        mut candidates: Vec<Detection>,
+        pitch_px: Option<f64>,
+        params: &PostProcess,
+        with_mre: bool,
+    ) -> Self {
         deduplicate(
             &mut candidates,
             pitch_px.map_or(0.0, |p| params.dedup_radius_frac * p),

@@ -24,14 +24,15 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, Point2, StereoPair};
-use opencv::core::{Mat, MatTraitConst, Size};
-use opencv::imgproc;
+use opencv::core::Mat;
 use ort::session::Session;
 use ort::value::TensorRef;
 
 use crate::contract::{TensorSpec, check_signature};
-use crate::marknet::{Opened, SessionOptions, check_aspect, onnx_err, open_session, write_planar_rgb};
-use crate::{Error, Localizer, Result, check_image, cv_err, sort_detections};
+use crate::marknet::{
+    InputLayout, Opened, SessionOptions, check_aspect, onnx_err, open_session, write_layout,
+};
+use crate::{Error, Localizer, Result, check_image, sort_detections};
 
 /// The `contract` value of a YOLO model this loader understands.
 pub const YOLO_CONTRACT: &str = "gelstereo-yolo/1";
@@ -406,6 +407,8 @@ pub struct YoloLocalizer {
     contract: YoloContract,
     post: YoloPost,
     resized: Mat,
+    /// Scratch of `write_layout` (unused: a stretch has no border).
+    padded: Mat,
     input: Vec<f32>,
 }
 
@@ -435,6 +438,7 @@ impl YoloLocalizer {
             post: contract.post,
             contract,
             resized: Mat::default(),
+            padded: Mat::default(),
             input: Vec::new(),
         })
     }
@@ -460,23 +464,10 @@ impl YoloLocalizer {
         let size = check_image(image)?;
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
         check_aspect(size, iw, ih)?;
-        let (iw, ih) = (iw as i32, ih as i32);
-        let src: &Mat = if image.cols() == iw && image.rows() == ih {
-            image
-        } else {
-            imgproc::resize(
-                image,
-                &mut self.resized,
-                Size::new(iw, ih),
-                0.0,
-                0.0,
-                imgproc::INTER_LINEAR,
-            )
-            .map_err(cv_err("resize to the network input"))?;
-            &self.resized
-        };
+        let layout = InputLayout::stretch(iw, ih);
         let hw = (iw * ih) as usize;
-        write_planar_rgb(src, &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw])?;
+        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
+        write_layout(image, &layout, &mut self.resized, &mut self.padded, plane)?;
         Ok(size)
     }
 
