@@ -21,6 +21,7 @@ import torch
 from .blob import BlobDetector
 from .data import list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
+from .runtime import ort_session
 from .postprocess import (
     MIN_PITCH_SUPPORT,
     FitConfig,
@@ -54,12 +55,7 @@ class MarknetRunner:
         self.path = path
         self.post = post or PostConfig()
         if path.suffix == ".onnx":
-            import onnxruntime as ort
-
-            so = ort.SessionOptions()
-            so.intra_op_num_threads = threads
-            so.inter_op_num_threads = 1
-            self.sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            self.sess = ort_session(path, threads)
             meta = self.sess.get_modelmeta().custom_metadata_map
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.stride = int(meta["stride"])
@@ -126,11 +122,7 @@ def load_mre(path: Path | str | None, threads: int = 2):
         return None
     path = Path(path)
     if path.suffix == ".onnx":
-        import onnxruntime as ort
-
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = threads
-        sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        sess = ort_session(path, threads)
         return lambda f: sess.run(["score"], {"features": np.asarray(f, np.float32)})[0][:, 0]
     from .train_mre import load_mre_checkpoint
 

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from .model import MRE, Marknet
+from .runtime import ort_session
 from .postprocess import MISSING_DISTANCE, NEIGHBOURS, FitConfig, PostConfig, fit_metadata
 
 OPSET = 17
@@ -90,14 +91,6 @@ def mre_metadata(dataset: str, post: PostConfig) -> dict:
     }
 
 
-def _ort(path: Path):
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 2
-    return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-
-
 def export_marknet(model: Marknet, path: Path, input_hw, metadata: dict, seed: int = 0, dynamic: bool = True) -> float:
     """Export (dynamic input height and width: contract v2) and verify at the nominal size and at a
     non-square one; returns the max abs difference ONNX Runtime vs PyTorch on the raw output."""
@@ -131,7 +124,7 @@ def export_image_model(model: torch.nn.Module, path: Path, input_hw, metadata: d
     )
     _set_metadata(path, metadata)
     g = torch.Generator().manual_seed(seed)
-    sess = _ort(path)
+    sess = ort_session(path)
     worst = 0.0
     for hh, ww in [(h, w), (h + 32, w + 64)] if dynamic_hw else [(h, w)]:
         x = torch.rand(2, 3, hh, ww, generator=g)
@@ -163,7 +156,7 @@ def export_mre(mre: MRE, path: Path, metadata: dict, seed: int = 0) -> float:
     x = torch.rand(64, NEIGHBOURS + 1, generator=g) * 3
     with torch.no_grad():
         ref = wrapped(x).numpy()
-    got = _ort(path).run(["score"], {"features": x.numpy()})[0]
+    got = ort_session(path).run(["score"], {"features": x.numpy()})[0]
     if got.shape != ref.shape:
         raise RuntimeError(f"{path}: onnxruntime output shape {got.shape} != PyTorch {ref.shape}")
     return float(np.abs(got - ref).max())

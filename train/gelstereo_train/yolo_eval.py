@@ -25,6 +25,7 @@ from .blob import BlobDetector
 from .data import list_samples
 from .metrics import Evaluator, hard_mask, radius_for
 from .postprocess import preprocess
+from .runtime import ort_session
 from .yolo_export import anchors_text, parse_anchors
 from .yolo_post import YoloPost, postprocess
 
@@ -36,12 +37,7 @@ class YoloRunner:
         path = Path(path)
         self.path = path
         if path.suffix == ".onnx":
-            import onnxruntime as ort
-
-            so = ort.SessionOptions()
-            so.intra_op_num_threads = threads
-            so.inter_op_num_threads = 1
-            self.sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            self.sess = ort_session(path, threads)
             meta = self.sess.get_modelmeta().custom_metadata_map
             self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
             self.strides = [int(s) for s in meta["strides"].split(",")]

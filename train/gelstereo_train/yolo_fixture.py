@@ -27,6 +27,7 @@ import torch
 from PIL import Image
 
 from . import yolo_train
+from .runtime import ort_session
 from .tinydata import grid_points, render_dots, write_tiny_dataset
 from .yolo_export import box_description, export_yolo, parse_anchors, yolo_metadata
 from .yolo_post import YoloPost, postprocess
@@ -74,9 +75,7 @@ def main(argv=None) -> int:
     rgb = np.asarray(Image.open(png).convert("RGB"))
     resized = cv2.resize(rgb, (INPUT, INPUT), interpolation=cv2.INTER_LINEAR)
     x = (resized.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
-    raw = ort.InferenceSession(str(onnx_path), so, providers=["CPUExecutionProvider"]).run(["raw"], {"image": x})[0][0]
+    raw = ort_session(onnx_path, threads=1).run(["raw"], {"image": x})[0][0]
     anchors = parse_anchors(meta_props["anchors"])  # what the Rust loader reads
     res = postprocess(raw, (INPUT, INPUT), list(model.strides), anchors, IMAGE_WH, POST)
     cand, markers = res["candidates"], res["markers"]
