@@ -7,11 +7,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use gelstereo_core::table::CsvTable;
-use gelstereo_core::{Point2, StereoPair};
+use gelstereo_core::StereoPair;
 use gelstereo_io::images;
 use gelstereo_markers::metrics::{self, GroundTruth, SPLITS, SplitTable};
 use gelstereo_markers::{BlobLocalizer, Localizer, Method};
+use gelstereo_matching::eval::GroundTruth as RecordingTruth;
 use serde_json::json;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -53,59 +53,32 @@ struct FrameTruth {
     truth: StereoPair<Vec<GroundTruth>>,
 }
 
-fn flag(table: &CsvTable, row: usize, column: &str) -> anyhow::Result<bool> {
-    Ok(match table.cell(row, column)? {
-        "1" | "true" => true,
-        "0" | "false" | "" => false,
-        other => bail!(
-            "markers.csv line {}: column '{column}': expected 0 or 1, found '{other}'",
-            row + 2
-        ),
-    })
-}
-
-/// Reads one experiment's frames and ground truth.
+/// Reads one experiment's frames and ground truth (the simulator's markers.csv, read by the
+/// matching crate's `eval::GroundTruth`): per view, the visible markers and whether each is in contact.
 fn read_experiment(dir: &Path) -> anyhow::Result<Vec<FrameTruth>> {
-    let csv = dir.join("markers.csv");
-    let table = CsvTable::read(&csv)?;
-    table.require(&[
-        "frame",
-        "x_left",
-        "y_left",
-        "x_right",
-        "y_right",
-        "visible_left",
-        "visible_right",
-        "in_contact",
-    ])?;
-    let mut frames: std::collections::BTreeMap<u32, StereoPair<Vec<GroundTruth>>> = Default::default();
-    for row in 0..table.len() {
-        let frame: u32 = table.value(row, "frame", "a frame number")?;
-        let in_contact = flag(&table, row, "in_contact").with_context(|| csv.display().to_string())?;
-        let entry = frames.entry(frame).or_default();
-        for (view, x, y, vis) in [
-            (&mut entry.left, "x_left", "y_left", "visible_left"),
-            (&mut entry.right, "x_right", "y_right", "visible_right"),
-        ] {
-            if !flag(&table, row, vis).with_context(|| csv.display().to_string())? {
-                continue;
-            }
-            if let (Some(x), Some(y)) = (table.opt_f64(row, x)?, table.opt_f64(row, y)?) {
-                view.push(GroundTruth {
-                    position: Point2::new(x, y),
-                    in_contact,
-                });
-            }
-        }
-    }
-    Ok(frames
+    let truth = RecordingTruth::read(dir)?;
+    Ok(truth
+        .frames
         .into_iter()
-        .map(|(f, truth)| FrameTruth {
-            paths: StereoPair::new(
-                dir.join("left").join(format!("{f:06}.png")),
-                dir.join("right").join(format!("{f:06}.png")),
-            ),
-            truth,
+        .map(|(f, markers)| {
+            let mut views: StereoPair<Vec<GroundTruth>> = StereoPair::default();
+            for m in markers.values() {
+                for (px, view) in [(m.left_px, &mut views.left), (m.right_px, &mut views.right)] {
+                    if let Some(position) = px {
+                        view.push(GroundTruth {
+                            position,
+                            in_contact: m.in_contact,
+                        });
+                    }
+                }
+            }
+            FrameTruth {
+                paths: StereoPair::new(
+                    dir.join("left").join(format!("{f:06}.png")),
+                    dir.join("right").join(format!("{f:06}.png")),
+                ),
+                truth: views,
+            }
         })
         .collect())
 }

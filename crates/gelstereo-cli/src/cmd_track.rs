@@ -23,6 +23,7 @@ use gelstereo_io::plot::{self, LinePlot};
 use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{Localizer, Method};
+use gelstereo_matching::eval::GroundTruth;
 use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
 use gelstereo_tracking::{
     ContactFrame, DenseField, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows,
@@ -953,18 +954,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 /// `noise_px`, seeded, when > 0), in a shuffled-free but id-free form: sorted by y then x like a
 /// localizer's output.
 fn ground_truth(dir: &Path, noise_px: f64) -> anyhow::Result<Vec<StereoPair<Vec<Detection>>>> {
-    let path = dir.join("markers.csv");
-    let table = gelstereo_core::CsvTable::read(&path)?;
-    table.require(&[
-        "frame",
-        "x_left",
-        "y_left",
-        "x_right",
-        "y_right",
-        "visible_left",
-        "visible_right",
-    ])?;
-    let mut out: Vec<StereoPair<Vec<Detection>>> = Vec::new();
+    let truth = GroundTruth::read(dir)?;
+    let frames = truth.frames.keys().next_back().map_or(0, |f| *f as usize + 1);
+    let mut out: Vec<StereoPair<Vec<Detection>>> = vec![StereoPair::default(); frames];
     // xorshift + Box-Muller: reproducible noise without another dependency.
     let mut state: u64 = 0x2545_F491_4F6C_DD1D;
     let mut uniform = move || {
@@ -974,23 +966,17 @@ fn ground_truth(dir: &Path, noise_px: f64) -> anyhow::Result<Vec<StereoPair<Vec<
         ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
     let mut gauss = move || (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
-    for r in 0..table.len() {
-        let m = MarkerRecord::from_table(&table, r)?;
-        let f = m.frame as usize;
-        if out.len() <= f {
-            out.resize(f + 1, StereoPair::default());
-        }
-        for (px, col, list) in [(m.left_px, "visible_left", 0), (m.right_px, "visible_right", 1)] {
-            if let (Some(p), "1") = (px, table.cell(r, col)?) {
-                let p = Point2::new(p.x + noise_px * gauss(), p.y + noise_px * gauss());
-                let d = Detection {
-                    position: p,
-                    confidence: 1.0,
-                };
-                if list == 0 {
-                    out[f].left.push(d)
-                } else {
-                    out[f].right.push(d)
+    // Frames, then markers row-major: the order of the simulator's markers.csv, so the noise is drawn
+    // in the same sequence for every run.
+    for (frame, markers) in &truth.frames {
+        let pair = &mut out[*frame as usize];
+        for m in markers.values() {
+            for (px, list) in [(m.left_px, &mut pair.left), (m.right_px, &mut pair.right)] {
+                if let Some(p) = px {
+                    list.push(Detection {
+                        position: Point2::new(p.x + noise_px * gauss(), p.y + noise_px * gauss()),
+                        confidence: 1.0,
+                    });
                 }
             }
         }
