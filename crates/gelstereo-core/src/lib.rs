@@ -15,6 +15,7 @@
 
 mod grid;
 mod marker;
+pub mod spatial;
 pub mod table;
 
 pub use grid::{GridIndex, GridShape};

@@ -13,6 +13,7 @@
 //!    the 10 smallest distances to the OTHER kept candidates, ascending, divided by `pitch_px` (missing
 //!    ones, or all when the pitch is undefined, = 4.0), then c.
 
+use gelstereo_core::spatial::Buckets;
 use gelstereo_core::{Detection, Point2};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
@@ -147,110 +148,12 @@ fn median(values: &mut [f64]) -> Option<f64> {
     })
 }
 
-/// Points bucketed into a uniform grid (compressed rows: the points of cell k are
-/// `order[start[k]..start[k + 1]]`), for neighbour searches in 2-D.
-struct PointGrid<'a> {
-    points: &'a [Point2],
-    min: (f64, f64),
-    cell_px: f64,
-    cols: usize,
-    rows: usize,
-    start: Vec<usize>,
-    order: Vec<usize>,
-}
-
-impl<'a> PointGrid<'a> {
-    /// About one point per cell on average (cell side = sqrt(area / n)).
-    fn new(points: &'a [Point2]) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) =
-            (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for p in points {
-            x0 = x0.min(p.x);
-            y0 = y0.min(p.y);
-            x1 = x1.max(p.x);
-            y1 = y1.max(p.y);
-        }
-        let (w, h) = ((x1 - x0).max(1e-6), (y1 - y0).max(1e-6));
-        let n = points.len().max(1) as f64;
-        let mut cell_px = (w * h / n).sqrt().max(w.max(h) / 1024.0);
-        if !cell_px.is_finite() || cell_px <= 0.0 {
-            cell_px = 1.0;
-        }
-        let cols = (w / cell_px) as usize + 1;
-        let rows = (h / cell_px) as usize + 1;
-        let cell_of = |p: &Point2| -> usize {
-            let cx = (((p.x - x0) / cell_px) as usize).min(cols - 1);
-            let cy = (((p.y - y0) / cell_px) as usize).min(rows - 1);
-            cy * cols + cx
-        };
-        let mut start = vec![0usize; cols * rows + 1];
-        for p in points {
-            start[cell_of(p) + 1] += 1;
-        }
-        for k in 0..cols * rows {
-            start[k + 1] += start[k];
-        }
-        let mut fill = start.clone();
-        let mut order = vec![0usize; points.len()];
-        for (i, p) in points.iter().enumerate() {
-            let k = cell_of(p);
-            order[fill[k]] = i;
-            fill[k] += 1;
-        }
-        Self {
-            points,
-            min: (x0, y0),
-            cell_px,
-            cols,
-            rows,
-            start,
-            order,
-        }
-    }
-
-    /// Distance from `points[i]` to its nearest other point (`None` if it is alone).
-    fn nearest_other_px(&self, i: usize) -> Option<f64> {
-        let p = self.points[i];
-        let cx = (((p.x - self.min.0) / self.cell_px) as usize).min(self.cols - 1) as isize;
-        let cy = (((p.y - self.min.1) / self.cell_px) as usize).min(self.rows - 1) as isize;
-        let mut best = f64::INFINITY;
-        let max_ring = self.cols.max(self.rows) as isize;
-        for ring in 0..=max_ring {
-            for gy in cy - ring..=cy + ring {
-                if gy < 0 || gy >= self.rows as isize {
-                    continue;
-                }
-                let on_edge_row = gy == cy - ring || gy == cy + ring;
-                let step = if on_edge_row { 1 } else { (2 * ring).max(1) };
-                let mut gx = cx - ring;
-                while gx <= cx + ring {
-                    if gx >= 0 && gx < self.cols as isize {
-                        let k = gy as usize * self.cols + gx as usize;
-                        for &j in &self.order[self.start[k]..self.start[k + 1]] {
-                            if j != i {
-                                let q = self.points[j];
-                                best = best.min((q.x - p.x) * (q.x - p.x) + (q.y - p.y) * (q.y - p.y));
-                            }
-                        }
-                    }
-                    gx += step;
-                }
-            }
-            // Points in the next ring are at least `ring` cells away.
-            if best.is_finite() && best.sqrt() <= ring as f64 * self.cell_px {
-                break;
-            }
-        }
-        best.is_finite().then(|| best.sqrt())
-    }
-}
-
 /// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
 pub fn median_nearest_neighbour_px(points: &[Point2]) -> Option<f64> {
     if points.len() < 2 {
         return None;
     }
-    let grid = PointGrid::new(points);
+    let grid = Buckets::with_one_point_per_cell(points);
     let mut nn: Vec<f64> = (0..points.len())
         .filter_map(|i| grid.nearest_other_px(i))
         .collect();
@@ -541,33 +444,6 @@ mod tests {
     }
 
     /// The grid search against brute force on scattered points (seeded, with duplicates and clusters).
-    #[test]
-    fn nearest_neighbours_match_brute_force() {
-        let mut state = 7u64;
-        let mut rnd = || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
-        for n in [2usize, 3, 17, 400] {
-            let mut pts: Vec<Point2> = (0..n)
-                .map(|_| Point2::new(640.0 * rnd(), 30.0 * rnd() * rnd()))
-                .collect();
-            pts.push(pts[0]);
-            pts.push(Point2::new(pts[1].x + 0.01, pts[1].y));
-            let grid = PointGrid::new(&pts);
-            for i in 0..pts.len() {
-                let brute = (0..pts.len())
-                    .filter(|&j| j != i)
-                    .map(|j| pts[i].distance(pts[j]))
-                    .fold(f64::INFINITY, f64::min);
-                let got = grid.nearest_other_px(i).unwrap();
-                assert!((got - brute).abs() < 1e-12, "n={n} i={i}: {got} vs {brute}");
-            }
-        }
-    }
-
     #[test]
     fn pitch_and_deduplication() {
         // A 4x4 lattice of pitch 10 plus a weaker duplicate 2 px from (10, 10).

@@ -21,7 +21,7 @@ use std::collections::BinaryHeap;
 use gelstereo_core::Point2;
 use nalgebra::{Matrix3, Vector3};
 
-use crate::spatial::Buckets;
+use gelstereo_core::spatial::Buckets;
 
 /// Marks "no node" / "no detection" in the dense assignment arrays.
 pub(crate) const NONE: u32 = u32::MAX;

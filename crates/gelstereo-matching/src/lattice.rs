@@ -3,8 +3,8 @@
 use gelstereo_core::{Detection, GridIndex, GridShape, Point2};
 
 use crate::grow::{Grower, NONE};
-use crate::spatial::Buckets;
 use crate::{Error, Result};
+use gelstereo_core::spatial::Buckets;
 
 /// Tuning of the grid indexer. Distances are fractions of the marker pitch in pixels, so one
 /// configuration serves any image size.

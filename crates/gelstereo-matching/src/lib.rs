@@ -26,7 +26,6 @@ pub mod eval;
 mod grow;
 mod lattice;
 mod reconstruct;
-mod spatial;
 mod stereo;
 
 pub use lattice::{IndexedView, IndexingConfig, ReferenceLattice};

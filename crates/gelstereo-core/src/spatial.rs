@@ -5,14 +5,14 @@
 //! cells; it is built in one counting-sort pass and its answers come in a deterministic order
 //! (by cell, then by detection number), which keeps marker ids reproducible.
 
-use gelstereo_core::Point2;
+use crate::Point2;
 
 /// The most cells along one side; a wider spread of points gets larger cells.
 const MAX_CELLS_PER_SIDE: f64 = 2048.0;
 
 /// Points sorted into square cells.
 #[derive(Debug, Clone)]
-pub(crate) struct Buckets {
+pub struct Buckets {
     x0: f64,
     y0: f64,
     inv_cell: f64,
@@ -26,7 +26,7 @@ pub(crate) struct Buckets {
 
 impl Buckets {
     /// Sorts `points` (all finite) into cells of about `cell_px` pixels.
-    pub(crate) fn new(points: &[Point2], cell_px: f64) -> Self {
+    pub fn new(points: &[Point2], cell_px: f64) -> Self {
         let (mut x0, mut y0, mut x1, mut y1) =
             (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
         for p in points {
@@ -80,13 +80,28 @@ impl Buckets {
         }
     }
 
+    /// Sorts `points` into cells of about one point each on average (side sqrt(area / n)), the size
+    /// for nearest-neighbour queries when no pitch is known.
+    pub fn with_one_point_per_cell(points: &[Point2]) -> Self {
+        let (mut x0, mut y0, mut x1, mut y1) =
+            (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for p in points {
+            x0 = x0.min(p.x);
+            y0 = y0.min(p.y);
+            x1 = x1.max(p.x);
+            y1 = y1.max(p.y);
+        }
+        let (w, h) = ((x1 - x0).max(1e-6), (y1 - y0).max(1e-6));
+        Self::new(points, (w * h / points.len().max(1) as f64).sqrt())
+    }
+
     /// The points, in the order given.
-    pub(crate) fn points(&self) -> &[Point2] {
+    pub fn points(&self) -> &[Point2] {
         &self.points
     }
 
     /// Calls `f(index, squared_distance)` for every point within `radius_px` of `p`.
-    pub(crate) fn for_each_within(&self, p: Point2, radius_px: f64, mut f: impl FnMut(usize, f64)) {
+    pub fn for_each_within(&self, p: Point2, radius_px: f64, mut f: impl FnMut(usize, f64)) {
         if !(p.x.is_finite() && p.y.is_finite()) || self.points.is_empty() {
             return;
         }
@@ -114,6 +129,44 @@ impl Buckets {
                 }
             }
         }
+    }
+    /// Distance from `points[i]` to its nearest other point, px (`None` if it is alone or `i` is out of
+    /// range). Searches rings of cells outwards until no closer point can remain.
+    pub fn nearest_other_px(&self, i: usize) -> Option<f64> {
+        let p = *self.points.get(i)?;
+        let cell_px = 1.0 / self.inv_cell;
+        let cx = (((p.x - self.x0) * self.inv_cell) as usize).min(self.nx - 1) as isize;
+        let cy = (((p.y - self.y0) * self.inv_cell) as usize).min(self.ny - 1) as isize;
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let mut best = f64::INFINITY;
+        for ring in 0..=nx.max(ny) {
+            for gy in cy - ring..=cy + ring {
+                if gy < 0 || gy >= ny {
+                    continue;
+                }
+                // Inner rows of the ring: only its two edge cells.
+                let on_edge_row = gy == cy - ring || gy == cy + ring;
+                let step = if on_edge_row { 1 } else { (2 * ring).max(1) };
+                let mut gx = cx - ring;
+                while gx <= cx + ring {
+                    if gx >= 0 && gx < nx {
+                        let c = gy as usize * self.nx + gx as usize;
+                        for &j in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
+                            if j as usize != i {
+                                let q = self.points[j as usize];
+                                best = best.min((q.x - p.x) * (q.x - p.x) + (q.y - p.y) * (q.y - p.y));
+                            }
+                        }
+                    }
+                    gx += step;
+                }
+            }
+            // Points in the next ring are at least `ring` cells away.
+            if best.is_finite() && best.sqrt() <= ring as f64 * cell_px {
+                break;
+            }
+        }
+        best.is_finite().then(|| best.sqrt())
     }
 }
 
@@ -148,5 +201,41 @@ mod tests {
                 assert_eq!(got, want, "query {k} radius {r}");
             }
         }
+    }
+
+    #[test]
+    fn nearest_neighbours_match_brute_force() {
+        let mut state = 7u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for n in [2usize, 3, 17, 400] {
+            let mut pts: Vec<Point2> = (0..n)
+                .map(|_| Point2::new(640.0 * rnd(), 30.0 * rnd() * rnd()))
+                .collect();
+            pts.push(pts[0]);
+            pts.push(Point2::new(pts[1].x + 0.01, pts[1].y));
+            for cell_px in [0.5, 7.0, 1000.0] {
+                let grid = Buckets::new(&pts, cell_px);
+                for i in 0..pts.len() {
+                    let brute = (0..pts.len())
+                        .filter(|&j| j != i)
+                        .map(|j| pts[i].distance(pts[j]))
+                        .fold(f64::INFINITY, f64::min);
+                    let got = grid.nearest_other_px(i).unwrap();
+                    assert!(
+                        (got - brute).abs() < 1e-12,
+                        "n={n} cell={cell_px} i={i}: {got} vs {brute}"
+                    );
+                }
+            }
+        }
+        assert_eq!(
+            Buckets::new(&[Point2::new(1.0, 1.0)], 1.0).nearest_other_px(0),
+            None
+        );
     }
 }
