@@ -157,39 +157,31 @@ def train(args, log=print) -> Path:
     return Path(args.out)
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_training_args(p: argparse.ArgumentParser, minutes: float, threads: int) -> None:
+    """The options every trainer here shares (Marknet, YOLOv3): data, output, budget, crops, optimiser,
+    memory, threads, seed, logging."""
     p.add_argument("--data", type=Path, required=True, help="dataset root (has train/ val/ test/)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint file to write (.pt)")
-    p.add_argument("--minutes", type=float, default=45.0, help="wall-clock training budget")
+    p.add_argument("--minutes", type=float, default=minutes, help="wall-clock training budget")
     p.add_argument("--steps", type=int, default=None, help="train this many steps instead of --minutes")
-    p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
-    p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
     p.add_argument("--width", type=int, default=8, help="base channel width")
-    p.add_argument("--stem", default="s2", choices=STEMS,
-                   help="s2: stride-2 stage (the shipped model); s4: one 5x5 stride-4 convolution (~2x faster, "
-                   "less accurate at our budget, see data/models/MODEL_CARD.md)")
     p.add_argument("--input-size", type=int, default=416)
-    p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
-                   help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
-                   "shipped model was trained) or auto (the auto layout)")
     p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
     p.add_argument("--batch", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
-    p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
-    p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
     p.add_argument("--max-gb", type=float, default=3.0, help="memory budget for the decoded images")
     p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=threads)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--log-every-s", type=float, default=30.0)
-    return p
 
 
-def main(argv=None) -> int:
-    args = parser().parse_args(argv)
+def training_main(p: argparse.ArgumentParser, train_fn, argv=None) -> int:
+    """Parses the arguments and runs `train_fn(args, log)` with timestamped logging; exit status 2
+    without a budget."""
+    args = p.parse_args(argv)
     if args.steps is None and not args.minutes:
         print("give --minutes or --steps", file=sys.stderr)
         return 2
@@ -197,9 +189,29 @@ def main(argv=None) -> int:
     def log(msg):
         print(f"[{datetime.now().strftime('%H:%M:%S')}] {msg}", flush=True)
 
-    train(args, log)
+    train_fn(args, log)
     log(json.dumps({"done": str(args.out)}))
     return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_training_args(p, minutes=45.0, threads=2)
+    p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
+    p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
+    p.add_argument("--stem", default="s2", choices=STEMS,
+                   help="s2: stride-2 stage (the shipped model); s4: one 5x5 stride-4 convolution (~2x faster, "
+                   "less accurate at our budget, see data/models/MODEL_CARD.md)")
+    p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
+                   help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
+                   "shipped model was trained) or auto (the auto layout)")
+    p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
+    p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
+    return p
+
+
+def main(argv=None) -> int:
+    return training_main(parser(), train, argv)
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ import torch.nn.functional as F
 from .augment import AugConfig, photometric, sample_crops
 from .data import dataset_tag, list_samples, read_dataset_info
 from .model import count_flops
-from .train_marknet import load_images
+from .train_marknet import add_training_args, load_images, training_main
 from .yolo_model import OUTPUTS_PER_ANCHOR, YoloV3, decode_head, kmeans_anchors, mean_best_iou, wh_iou
 
 DEFAULT_DIAMETER_FRAC = 0.5  # calib/reference-sensor.json: dot_diameter_mm 0.4 / pitch_mm 0.8
@@ -407,42 +407,17 @@ def train(args, log=print) -> Path:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, required=True, help="dataset root (has train/ val/ test/)")
-    p.add_argument("--out", type=Path, required=True, help="checkpoint file to write (.pt)")
-    p.add_argument("--minutes", type=float, default=40.0, help="wall-clock training budget")
-    p.add_argument("--steps", type=int, default=None, help="train this many steps instead of --minutes")
+    add_training_args(p, minutes=40.0, threads=1)
     p.add_argument("--strides", default="8,16", help="head strides, ascending (from 8, 16, 32)")
     p.add_argument("--anchors-per-head", type=int, default=3)
-    p.add_argument("--width", type=int, default=8, help="base channel width")
-    p.add_argument("--input-size", type=int, default=416)
-    p.add_argument("--crop", type=int, default=224, help="training crop size, network pixels (multiple of 32)")
-    p.add_argument("--batch", type=int, default=32)
-    p.add_argument("--lr", type=float, default=3e-3)
-    p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--ignore-iou", type=float, default=0.5, help="YOLOv3 ignore threshold for negatives")
     p.add_argument("--diameter-frac", type=float, default=None,
                    help="dot diameter / pitch (default: from the dataset's sensor description)")
-    p.add_argument("--max-images", type=int, default=4000, help="images kept in memory (random subset)")
-    p.add_argument("--max-gb", type=float, default=3.0, help="memory budget for the decoded images")
-    p.add_argument("--frame-step", type=int, default=1, help="use every k-th frame of each experiment")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--log-every-s", type=float, default=30.0)
     return p
 
 
 def main(argv=None) -> int:
-    args = parser().parse_args(argv)
-    if args.steps is None and not args.minutes:
-        print("give --minutes or --steps", file=sys.stderr)
-        return 2
-
-    def log(msg):
-        print(f"[{datetime.now().strftime('%H:%M:%S')}] {msg}", flush=True)
-
-    train(args, log)
-    log(json.dumps({"done": str(args.out)}))
-    return 0
+    return training_main(parser(), train, argv)
 
 
 if __name__ == "__main__":
