@@ -7,12 +7,6 @@
 
 mod common;
 
-use std::path::PathBuf;
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
 /// The number before " ms" right after `label` on the line that starts with it.
 fn first_ms(text: &str, label: &str) -> f64 {
     let line = text
@@ -28,7 +22,7 @@ fn first_ms(text: &str, label: &str) -> f64 {
 
 #[test]
 fn pipeline_bench_lists_every_stage_with_positive_figures() {
-    let rec = repo().join("data/sample/press-slide");
+    let rec = common::repo().join("data/sample/press-slide");
     let calib = rec.join("calib.yaml");
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("bench.json");
@@ -98,7 +92,7 @@ fn pipeline_bench_names_a_missing_recording() {
 
 #[test]
 fn track_bench_is_an_alias_of_the_pipeline_benchmark() {
-    let rec = repo().join("data/sample/press-slide");
+    let rec = common::repo().join("data/sample/press-slide");
     let out = common::gelstereo(&[
         "track",
         "--bench",

@@ -6,18 +6,16 @@
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
 
 use gelstereo_core::{CsvTable, FrameSummary, GridIndex, MarkerRecord, MarkerStatus, SlipState};
 use opencv::prelude::MatTraitConst;
 
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
+mod common;
+use common::{gelstereo_command, repo};
 
 fn track(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_gelstereo"))
+    let out = gelstereo_command()
         .arg("track")
         .arg("--quiet")
         .args(args)

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
-use common::{gelstereo, text};
+use common::{fails_with, gelstereo, text};
 
 use opencv::core::{CV_8UC3, Mat, Point, Scalar, Vector};
 use opencv::{imgcodecs, imgproc};
@@ -18,16 +18,6 @@ const PITCH_PX: i32 = 20;
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/fixtures/onnx")
-}
-
-fn fails_with(args: &[&str], needles: &[&str]) {
-    let out = gelstereo(args);
-    let t = text(&out);
-    assert!(!out.status.success(), "{args:?} should fail:\n{t}");
-    for n in needles {
-        assert!(t.contains(n), "{args:?}: '{n}' missing from:\n{t}");
-    }
-    assert!(!t.contains("panicked"), "{args:?} panicked:\n{t}");
 }
 
 /// A 160x120 bright image with dark discs (radius 4) at `centres`.

@@ -10,23 +10,13 @@ use std::path::{Path, PathBuf};
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
-use common::{gelstereo, text};
+use common::{fails_with, gelstereo, text};
 
 fn ok(args: &[&str]) -> String {
     let out = gelstereo(args);
     let t = text(&out);
     assert!(out.status.success(), "{args:?} failed:\n{t}");
     t
-}
-
-fn fails_with(args: &[&str], needles: &[&str]) {
-    let out = gelstereo(args);
-    let t = text(&out);
-    assert!(!out.status.success(), "{args:?} should fail:\n{t}");
-    for n in needles {
-        assert!(t.contains(n), "{args:?}: '{n}' missing from:\n{t}");
-    }
-    assert!(!t.contains("panicked"), "{t}");
 }
 
 /// Simulates one 6-frame experiment into `root` and returns its recording folder.
