@@ -43,6 +43,43 @@ class Residual(nn.Module):
         return x + self.b(self.a(x))
 
 
+def top_down_path(chans: dict[int, int], to_stride: int) -> tuple[nn.ModuleList, int]:
+    """YOLOv3's top-down path from stride 32 down to `to_stride`: per halving, a 1x1 reduction,
+    nearest upsampling, concatenation with the backbone's map of that stride and two fusing
+    convolutions. `chans` = backbone channels per stride. Returns the blocks and the channels of the
+    finest fused map."""
+    blocks = nn.ModuleList()
+    cur, s = chans[32], 32
+    while s > to_stride:
+        s //= 2
+        lat = chans[s]
+        blocks.append(
+            nn.ModuleDict(
+                {
+                    "reduce": conv_bn(cur, lat // 2, 1),
+                    "fuse1": conv_bn(lat // 2 + lat, lat // 2, 1),
+                    "fuse2": conv_bn(lat // 2, lat, 3),
+                }
+            )
+        )
+        cur = lat
+    return blocks, cur
+
+
+def run_top_down(blocks: nn.ModuleList, feats: dict[int, torch.Tensor]) -> dict[int, torch.Tensor]:
+    """Runs `top_down_path` blocks on the backbone maps `feats` (stride -> map, 32 included); returns
+    the fused map of every stride it reaches, stride 32 being the backbone's own."""
+    fused = {32: feats[32]}
+    y, s = feats[32], 32
+    for block in blocks:
+        s //= 2
+        y = block["reduce"](y)
+        y = F.interpolate(y, scale_factor=2.0, mode="nearest")
+        y = block["fuse2"](block["fuse1"](torch.cat([y, feats[s]], dim=1)))
+        fused[s] = y
+    return fused
+
+
 class Marknet(nn.Module):
     """Marknet. Input (N, 3, H, W) RGB in [0, 1]; output (N, H/stride, W/stride, m, 3) raw logits."""
 
@@ -72,23 +109,7 @@ class Marknet(nn.Module):
         self.s16 = nn.Sequential(conv_bn(4 * w, 8 * w, 3, 2), Residual(8 * w))
         self.s32 = nn.Sequential(conv_bn(8 * w, 8 * w, 3, 2), Residual(8 * w))
         # Top-down path (upsampling + lateral concatenation) down to the head's stride.
-        self.up = nn.ModuleList()
-        chans = {8: 4 * w, 16: 8 * w, 32: 8 * w}
-        cur = chans[32]
-        s = 32
-        while s > stride:
-            s //= 2
-            lat = chans[s]
-            self.up.append(
-                nn.ModuleDict(
-                    {
-                        "reduce": conv_bn(cur, lat // 2, 1),
-                        "fuse1": conv_bn(lat // 2 + lat, lat // 2, 1),
-                        "fuse2": conv_bn(lat // 2, lat, 3),
-                    }
-                )
-            )
-            cur = lat
+        self.up, cur = top_down_path({8: 4 * w, 16: 8 * w, 32: 8 * w}, stride)
         self.head = nn.Conv2d(cur, candidates * 3, 1)
         with torch.no_grad():
             self.head.weight.mul_(0.1)
@@ -102,16 +123,8 @@ class Marknet(nn.Module):
         f8 = self.s8(f4)
         f16 = self.s16(f8)
         f32 = self.s32(f16)
-        feats = {8: f8, 16: f16, 32: f32}
-        y = f32
-        s = 32
-        for block in self.up:
-            s //= 2
-            y = block["reduce"](y)
-            y = F.interpolate(y, scale_factor=2.0, mode="nearest")
-            y = torch.cat([y, feats[s]], dim=1)
-            y = block["fuse2"](block["fuse1"](y))
-        out = self.head(y)  # (N, m*3, Gy, Gx), channel = k*3 + j
+        fused = run_top_down(self.up, {8: f8, 16: f16, 32: f32})
+        out = self.head(fused[self.stride])  # (N, m*3, Gy, Gx), channel = k*3 + j
         n, _, gy, gx = out.shape
         return out.view(n, self.candidates, 3, gy, gx).permute(0, 3, 4, 1, 2).contiguous()
 

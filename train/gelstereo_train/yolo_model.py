@@ -25,10 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from .model import Residual, conv_bn
+from .model import Residual, conv_bn, run_top_down, top_down_path
 
 OUTPUTS_PER_ANCHOR = 5
 TW_CLAMP = 20.0  # |tw|, |th| are clamped before exp (both in PyTorch, in the reference and in Rust)
@@ -57,21 +56,7 @@ class YoloV3(nn.Module):
         self.s16 = nn.Sequential(conv_bn(4 * w, 8 * w, 3, 2), Residual(8 * w))
         self.s32 = nn.Sequential(conv_bn(8 * w, 8 * w, 3, 2), Residual(8 * w))
         chans = {8: 4 * w, 16: 8 * w, 32: 8 * w}
-        self.up = nn.ModuleList()
-        cur, s = chans[32], 32
-        while s > strides[0]:
-            s //= 2
-            lat = chans[s]
-            self.up.append(
-                nn.ModuleDict(
-                    {
-                        "reduce": conv_bn(cur, lat // 2, 1),
-                        "fuse1": conv_bn(lat // 2 + lat, lat // 2, 1),
-                        "fuse2": conv_bn(lat // 2, lat, 3),
-                    }
-                )
-            )
-            cur = lat
+        self.up, _ = top_down_path(chans, strides[0])
         self.heads = nn.ModuleDict()
         for st in strides:
             c = chans[st]
@@ -88,15 +73,7 @@ class YoloV3(nn.Module):
         f8 = self.s8(self.s4(self.stem(x)))
         f16 = self.s16(f8)
         f32 = self.s32(f16)
-        feats = {8: f8, 16: f16, 32: f32}
-        fused = {32: f32}
-        y, s = f32, 32
-        for block in self.up:
-            s //= 2
-            y = block["reduce"](y)
-            y = F.interpolate(y, scale_factor=2.0, mode="nearest")
-            y = block["fuse2"](block["fuse1"](torch.cat([y, feats[s]], dim=1)))
-            fused[s] = y
+        fused = run_top_down(self.up, {8: f8, 16: f16, 32: f32})
         out = []
         for st in self.strides:
             o = self.heads[str(st)](fused[st])
