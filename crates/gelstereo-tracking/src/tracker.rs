@@ -834,7 +834,7 @@ mod tests {
                 .contains("second_tier_gate_pitch")
         );
         let off = TrackerConfig {
-            second_tier_gate_pitch: 0.2,
+            second_tier_gate_pitch: 0.0,
             ..TrackerConfig::default()
         };
         let (mut t, _) = small(off);
