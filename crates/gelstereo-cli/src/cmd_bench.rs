@@ -15,7 +15,7 @@ use std::sync::{Barrier, mpsc};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use gelstereo_core::{GridIndex, GridShape, ImageSize, Point2, StereoPair};
+use gelstereo_core::{GridIndex, GridShape, ImageSize, Point2, StereoPair, TieredDetections};
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_markers::{Localizer, Method, create_localizer};
@@ -463,13 +463,6 @@ fn decode_pair(bytes: &StereoPair<Vec<u8>>, paths: &StereoPair<PathBuf>) -> anyh
     ))
 }
 
-fn to_points(d: &StereoPair<Vec<gelstereo_core::Detection>>) -> StereoPair<Vec<Point2>> {
-    StereoPair::new(
-        d.left.iter().map(|d| d.position).collect(),
-        d.right.iter().map(|d| d.position).collect(),
-    )
-}
-
 fn load_average() -> String {
     std::fs::read_to_string("/proc/loadavg")
         .unwrap_or_default()
@@ -635,10 +628,9 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         let m_decoded = Mark::now();
         drop(decoded);
         let m0 = Mark::now();
-        let d = localizer.detect_stereo(&frames[k])?;
-        let pts = to_points(&d);
+        let d = localizer.detect_stereo_tiered(&frames[k])?;
         let m1 = Mark::now();
-        session.track(j as u32, &pts.left, &pts.right)?;
+        session.track_tiered(j as u32, &d.left, &d.right)?;
         let m2 = Mark::now();
         let st: Vec<Mark> = session
             .stage_marks()
@@ -673,7 +665,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
         }
         whole.push(m0.wall_ms(&m2));
         cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
-        markers += d.left.len() + d.right.len();
+        markers += d.left.accepted.len() + d.right.accepted.len();
     }
 
     // Throughput mode: `workers` threads localize frames in parallel (each its own localizer, ONNX
@@ -689,7 +681,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     let barrier = Barrier::new(workers + 1);
     let runs = b.runs;
     let mut throughput_session = make()?;
-    let (tx, rx) = mpsc::channel::<(usize, anyhow::Result<StereoPair<Vec<Point2>>>)>();
+    let (tx, rx) = mpsc::channel::<(usize, anyhow::Result<StereoPair<TieredDetections>>)>();
     let (elapsed_s, cpu_ns) = pool.in_place_scope(|s| -> anyhow::Result<(f64, Option<u64>)> {
         for _ in 0..workers {
             let tx = tx.clone();
@@ -719,8 +711,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
                         break;
                     }
                     let found = loc
-                        .detect_stereo(&frames[ping_pong(j, frames.len())])
-                        .map(|d| to_points(&d))
+                        .detect_stereo_tiered(&frames[ping_pong(j, frames.len())])
                         .map_err(anyhow::Error::from);
                     if tx.send((j, found)).is_err() {
                         break;
@@ -739,7 +730,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
                 let found = found?;
                 pending.insert(j, found);
                 while let Some(d) = pending.remove(&expect) {
-                    throughput_session.track(expect as u32, &d.left, &d.right)?;
+                    throughput_session.track_tiered(expect as u32, &d.left, &d.right)?;
                     expect += 1;
                 }
             }

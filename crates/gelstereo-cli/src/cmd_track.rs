@@ -15,7 +15,7 @@ use anyhow::{Context, bail};
 use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
 use gelstereo_core::{
     Detection, FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, MarkerStatus, Point2, SlipState,
-    StereoPair,
+    StereoPair, TieredDetections,
 };
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use gelstereo_io::images::{self, StereoRecording};
@@ -338,14 +338,11 @@ fn size_of(m: &Mat) -> ImageSize {
     }
 }
 
-fn points(d: &[Detection]) -> Vec<Point2> {
-    d.iter().map(|d| d.position).collect()
-}
-
-/// Localizes `image`, first mirroring `pad` pixels around its border when `pad > 0`.
-fn detect_padded(loc: &mut dyn Localizer, image: &Mat, pad: i32) -> anyhow::Result<Vec<Detection>> {
+/// Localizes `image` (with the localizer's second tier), first mirroring `pad` pixels around its
+/// border when `pad > 0`.
+fn detect_padded(loc: &mut dyn Localizer, image: &Mat, pad: i32) -> anyhow::Result<TieredDetections> {
     if pad <= 0 {
-        return Ok(loc.detect(image)?);
+        return Ok(loc.detect_tiered(image)?);
     }
     let mut padded = Mat::default();
     opencv::core::copy_make_border(
@@ -361,21 +358,27 @@ fn detect_padded(loc: &mut dyn Localizer, image: &Mat, pad: i32) -> anyhow::Resu
     .context("padding the image border")?;
     let (w, h) = (f64::from(image.cols()), f64::from(image.rows()));
     let p = f64::from(pad);
-    Ok(loc
-        .detect(&padded)?
-        .into_iter()
-        .map(|mut d| {
-            d.position = Point2::new(d.position.x - p, d.position.y - p);
-            d
-        })
-        // Keep markers whose centre lies within half a pad of the image.
-        .filter(|d| {
-            d.position.x > -0.5 * p
-                && d.position.y > -0.5 * p
-                && d.position.x < w - 1.0 + 0.5 * p
-                && d.position.y < h - 1.0 + 0.5 * p
-        })
-        .collect())
+    let unpad = |found: Vec<Detection>| -> Vec<Detection> {
+        found
+            .into_iter()
+            .map(|mut d| {
+                d.position = Point2::new(d.position.x - p, d.position.y - p);
+                d
+            })
+            // Keep markers whose centre lies within half a pad of the image.
+            .filter(|d| {
+                d.position.x > -0.5 * p
+                    && d.position.y > -0.5 * p
+                    && d.position.x < w - 1.0 + 0.5 * p
+                    && d.position.y < h - 1.0 + 0.5 * p
+            })
+            .collect()
+    };
+    let found = loc.detect_tiered(&padded)?;
+    Ok(TieredDetections {
+        accepted: unpad(found.accepted),
+        second_tier: unpad(found.second_tier),
+    })
 }
 
 /// Warnings printed one by one; the rest are counted.
@@ -704,7 +707,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         k += 1;
         progress.inc(1);
         // Read and localize; any failure flags the frame.
-        let detected: anyhow::Result<(Frame, StereoPair<Vec<Detection>>)> = (|| {
+        let detected: anyhow::Result<(Frame, StereoPair<TieredDetections>)> = (|| {
             let frame = next?;
             match &frame {
                 Frame::Stereo(pair) => {
@@ -726,9 +729,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let d = match &truth {
                         Some(t) => t
                             .get(frame_no as usize)
-                            .cloned()
+                            .map(|p| StereoPair::new(p.left.clone().into(), p.right.clone().into()))
                             .with_context(|| format!("no ground truth for frame {frame_no}"))?,
-                        None => localizer.detect_stereo(pair)?,
+                        None => localizer.detect_stereo_tiered(pair)?,
                     };
                     Ok((frame, d))
                 }
@@ -737,11 +740,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let d = match &truth {
                         Some(t) => t
                             .get(frame_no as usize)
-                            .map(|p| p.left.clone())
+                            .map(|p| p.left.clone().into())
                             .with_context(|| format!("no ground truth for frame {frame_no}"))?,
                         None => detect_padded(localizer.as_mut(), m, args.pad_border)?,
                     };
-                    Ok((frame, StereoPair::new(d, Vec::new())))
+                    Ok((frame, StereoPair::new(d, TieredDetections::default())))
                 }
             }
         })();
@@ -768,8 +771,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             let started = match (&frame, &rig) {
                 (Frame::Stereo(_), Some(rig)) => StereoLattice::from_reference(
                     rig,
-                    &dets.left,
-                    &dets.right,
+                    &dets.left.accepted,
+                    &dets.right.accepted,
                     shape,
                     StereoConfig::default(),
                 )
@@ -786,7 +789,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         config.clone(),
                     )?)))
                 }),
-                _ => ReferenceLattice::from_detections(&dets.left, shape, IndexingConfig::default())
+                _ => ReferenceLattice::from_detections(&dets.left.accepted, shape, IndexingConfig::default())
                     .map_err(anyhow::Error::from)
                     .and_then(|lat| {
                         let l: Vec<(GridIndex, Point2)> = lat.reference_view().markers().collect();
@@ -840,7 +843,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         match (s, &frame) {
             (Session::Stereo(st), Frame::Stereo(pair)) => {
                 let reference: Vec<Point2> = st.left().reference_px().to_vec();
-                let out = st.track(frame_no, &points(&dets.left), &points(&dets.right))?;
+                let out = st.track_tiered(frame_no, &dets.left, &dets.right)?;
                 outputs.rows(&out.markers, &out.summary)?;
                 tracked_total += out.left.count(MarkerStatus::Tracked);
                 visible_total += out.left.markers.len();
@@ -880,7 +883,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             }
             (Session::Mono(m), Frame::Mono(img)) => {
                 let reference: Vec<Point2> = m.tracker().reference_px().to_vec();
-                let out = m.track(frame_no, &points(&dets.left))?;
+                let out = m.track_tiered(frame_no, &dets.left)?;
                 outputs.rows(&out.markers, &out.summary)?;
                 tracked_total += out.track.count(MarkerStatus::Tracked);
                 visible_total += out.track.markers.len();

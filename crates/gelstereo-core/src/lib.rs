@@ -19,7 +19,7 @@ pub mod spatial;
 pub mod table;
 
 pub use grid::{GridIndex, GridShape};
-pub use marker::{Detection, ImageSize, MarkerStatus, Point2, SlipState, StereoPair, View};
+pub use marker::{Detection, ImageSize, MarkerStatus, Point2, SlipState, StereoPair, TieredDetections, View};
 pub use table::{CsvTable, FrameSummary, MarkerRecord};
 
 /// Errors of the shared types: parsing names and table files.

@@ -41,6 +41,29 @@ pub struct Detection {
     pub confidence: f32,
 }
 
+/// A localizer's output for one view with the candidates it found but did not accept: a tracker
+/// may give one of those to a marker it expects there and finds nothing else for
+/// (`docs/tracking.md`, "Second-tier candidates"). Localizers without such candidates leave
+/// `second_tier` empty.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct TieredDetections {
+    /// The markers (what the localizer's `detect` returns).
+    pub accepted: Vec<Detection>,
+    /// Candidates not accepted (Marknet-MRE: `conf_low < c <= conf_keep` with an MRE score at or
+    /// below its threshold; Marknet: `conf_low < c <= conf_marknet_only`), with Marknet's
+    /// confidence.
+    pub second_tier: Vec<Detection>,
+}
+
+impl From<Vec<Detection>> for TieredDetections {
+    fn from(accepted: Vec<Detection>) -> Self {
+        Self {
+            accepted,
+            second_tier: Vec::new(),
+        }
+    }
+}
+
 /// Which camera of the stereo pair.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub enum View {

@@ -29,7 +29,7 @@ pub mod yolo;
 
 use std::path::PathBuf;
 
-use gelstereo_core::{Detection, ImageSize, StereoPair};
+use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
@@ -174,6 +174,19 @@ pub trait Localizer {
             self.detect(&pair.left)?,
             self.detect(&pair.right)?,
         ))
+    }
+
+    /// [`detect`](Self::detect) plus the candidates the method found but did not accept, for a
+    /// tracker's second tier (Marknet and Marknet-MRE; others: none).
+    fn detect_tiered(&mut self, image: &Mat) -> Result<TieredDetections> {
+        Ok(self.detect(image)?.into())
+    }
+
+    /// [`detect_stereo`](Self::detect_stereo) with each view's second tier
+    /// ([`detect_tiered`](Self::detect_tiered)).
+    fn detect_stereo_tiered(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<TieredDetections>> {
+        let d = self.detect_stereo(pair)?;
+        Ok(StereoPair::new(d.left.into(), d.right.into()))
     }
 }
 

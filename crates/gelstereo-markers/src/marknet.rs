@@ -11,7 +11,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use gelstereo_core::{Detection, ImageSize, StereoPair};
+use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
 use opencv::imgproc;
 use ort::session::Session;
@@ -817,6 +817,16 @@ impl Marknet {
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run
     /// for all images' pending candidates.
     pub fn detect_batch(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
+        Ok(self
+            .detect_batch_tiered(images)?
+            .into_iter()
+            .map(|t| t.accepted)
+            .collect())
+    }
+
+    /// [`detect_batch`](Self::detect_batch) with each image's rejected candidates as second tier
+    /// ([`Selection::finish_tiered`]); same accepted markers, same cost.
+    pub fn detect_batch_tiered(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
         let started = std::time::Instant::now();
         self.times = LocalizationTimes::default();
         self.cpu_spent_ns = [0; 2];
@@ -838,7 +848,7 @@ impl Marknet {
         Ok(found)
     }
 
-    fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<Vec<Detection>>> {
+    fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates_with_pitch(images, post.conf_low)?;
@@ -849,7 +859,7 @@ impl Marknet {
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections
                 .into_iter()
-                .map(|s| s.finish(&[], post.accept))
+                .map(|s| s.finish_tiered(&[], post.accept))
                 .collect());
         };
         let features: Vec<[f32; MRE_FEATURES]> = selections
@@ -864,7 +874,7 @@ impl Marknet {
                 let n = s.pending.len();
                 let mine = scores.get(offset..offset + n).unwrap_or(&[]);
                 offset += n;
-                s.finish(mine, post.accept)
+                s.finish_tiered(mine, post.accept)
             })
             .collect())
     }
@@ -896,8 +906,17 @@ impl Localizer for Marknet {
     }
 
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
+        let t = self.detect_stereo_tiered(pair)?;
+        Ok(StereoPair::new(t.left.accepted, t.right.accepted))
+    }
+
+    fn detect_tiered(&mut self, image: &Mat) -> Result<TieredDetections> {
+        Ok(self.detect_batch_tiered(&[image])?.pop().unwrap_or_default())
+    }
+
+    fn detect_stereo_tiered(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<TieredDetections>> {
         crate::check_stereo_sizes(pair)?;
-        let mut out = self.detect_batch(&[&pair.left, &pair.right])?;
+        let mut out = self.detect_batch_tiered(&[&pair.left, &pair.right])?;
         let right = out.pop().unwrap_or_default();
         let left = out.pop().unwrap_or_default();
         Ok(StereoPair::new(left, right))

@@ -14,7 +14,7 @@
 //!    ones, or all when the pitch is undefined, = 4.0), then c.
 
 use gelstereo_core::spatial::Buckets;
-use gelstereo_core::{Detection, Point2};
+use gelstereo_core::{Detection, Point2, TieredDetections};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::contract::{MRE_FEATURES, MRE_NEIGHBOURS};
@@ -261,6 +261,9 @@ pub struct Selection {
     pub pending: Vec<Detection>,
     /// Their MRE feature vectors, one per `pending` entry.
     pub features: Vec<[f32; MRE_FEATURES]>,
+    /// `marknet` only: the candidates with `conf_low < c <= conf_marknet_only`, not markers but
+    /// handed to a tracker as second tier ([`finish_tiered`](Self::finish_tiered)).
+    pub below: Vec<Detection>,
     /// The pitch estimate used, px (`None` with fewer than two candidates).
     pub pitch_px: Option<f64>,
     /// Number of candidates left after de-duplication (step 3).
@@ -289,9 +292,12 @@ impl Selection {
         );
         let kept = candidates.len();
         if !with_mre {
-            candidates.retain(|d| d.confidence > params.conf_marknet_only);
+            let (accepted, below) = candidates
+                .into_iter()
+                .partition(|d| d.confidence > params.conf_marknet_only);
             return Self {
-                accepted: candidates,
+                accepted,
+                below,
                 pitch_px,
                 kept,
                 ..Self::default()
@@ -323,16 +329,28 @@ impl Selection {
     /// Step 4's decision: the accepted candidates plus the pending ones whose score > `accept`,
     /// sorted by y then x. `scores` has one entry per pending candidate (missing ones reject).
     pub fn finish(self, scores: &[f32], accept: f32) -> Vec<Detection> {
-        let mut out = self.accepted;
-        out.extend(
-            self.pending
-                .iter()
-                .zip(scores)
-                .filter(|(_, s)| **s > accept)
-                .map(|(d, _)| *d),
-        );
-        crate::sort_detections(&mut out);
-        out
+        self.finish_tiered(scores, accept).accepted
+    }
+
+    /// [`finish`](Self::finish) keeping what it rejects as the second tier: the pending candidates
+    /// whose score is at or below `accept` (`marknet-mre`) or the [`below`](Self::below) ones
+    /// (`marknet`), both sorted by y then x.
+    pub fn finish_tiered(self, scores: &[f32], accept: f32) -> TieredDetections {
+        let mut accepted = self.accepted;
+        let mut second_tier = self.below;
+        for (k, d) in self.pending.iter().enumerate() {
+            if scores.get(k).is_some_and(|s| *s > accept) {
+                accepted.push(*d);
+            } else {
+                second_tier.push(*d);
+            }
+        }
+        crate::sort_detections(&mut accepted);
+        crate::sort_detections(&mut second_tier);
+        TieredDetections {
+            accepted,
+            second_tier,
+        }
     }
 }
 
@@ -468,6 +486,16 @@ mod tests {
     }
 
     #[test]
+    fn marknet_alone_hands_its_weak_candidates_on_as_second_tier() {
+        let cands = vec![det(0.0, 0.0, 0.9), det(0.0, 10.0, 0.25), det(10.0, 5.0, 0.15)];
+        let s = Selection::new(cands, &PostProcess::default(), false);
+        assert_eq!((s.accepted.len(), s.below.len(), s.pending.len()), (2, 1, 0));
+        let tiers = s.finish_tiered(&[], 0.99);
+        assert_eq!(tiers.accepted.len(), 2);
+        assert_eq!(tiers.second_tier, [det(10.0, 5.0, 0.15)]);
+    }
+
+    #[test]
     fn features_are_sorted_pitch_distances_with_missing_filled() {
         // pitch 10 (two confident points 10 apart); a pending candidate at (0, 5)
         let cands = vec![det(0.0, 0.0, 0.9), det(0.0, 10.0, 0.8), det(6.0, 5.0, 0.3)];
@@ -493,6 +521,15 @@ mod tests {
         let out = s.clone().finish(&[0.995], 0.99);
         assert_eq!(out.len(), 3);
         assert!(out.windows(2).all(|w| w[0].position.y <= w[1].position.y));
+        let tiers = s.clone().finish_tiered(&[0.99], 0.99);
+        assert_eq!(tiers.accepted, s.clone().finish(&[0.99], 0.99));
+        assert_eq!(
+            tiers.second_tier.len(),
+            1,
+            "the rejected candidate is the second tier"
+        );
+        assert!((tiers.second_tier[0].confidence - 0.3).abs() < 1e-7);
+        assert!(s.clone().finish_tiered(&[0.995], 0.99).second_tier.is_empty());
         assert_eq!(s.finish(&[0.99], 0.99).len(), 2, "acceptance is strict");
     }
 }

@@ -239,6 +239,21 @@ fn onnx_runtime_pipeline_matches_python() {
     let pair = m.detect_stereo(&StereoPair::new(a.clone(), b.clone())).unwrap();
     assert_eq!(pair.left, m.detect(&a).unwrap());
     assert_eq!(pair.right, m.detect(&b).unwrap());
+    // With the second tier: the same markers, plus only candidates of the MRE band it rejected.
+    let tiered = m.detect_stereo_tiered(&StereoPair::new(a.clone(), b)).unwrap();
+    assert_eq!(tiered.left, m.detect_tiered(&a).unwrap());
+    assert_eq!(
+        (&tiered.left.accepted, &tiered.right.accepted),
+        (&pair.left, &pair.right)
+    );
+    let post = *m.postprocess();
+    for d in tiered.left.second_tier.iter().chain(&tiered.right.second_tier) {
+        assert!(
+            d.confidence > post.conf_low && d.confidence <= post.conf_keep,
+            "{d:?}"
+        );
+        assert!(!pair.left.contains(d) && !pair.right.contains(d), "{d:?}");
+    }
 }
 
 #[test]

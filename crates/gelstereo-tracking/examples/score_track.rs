@@ -1,6 +1,7 @@
 //! Scores `gelstereo track` outputs against simulated ground truth (the figures of
 //! `docs/results.md`): id swaps (DESIGN.md: ids that ever map to more than one ground-truth marker),
-//! the share of visible markers tracked per frame, contact area / largest depth / centroid errors,
+//! the share of visible markers tracked per frame, wrong associations (a marker written `tracked`
+//! more than 0.25 pitch from its own true position in either view), contact area / largest depth / centroid errors,
 //! gross-slip F1 per frame, onset delay, and slip reported before contact.
 //!
 //! `cargo run --release -p gelstereo-tracking --example score_track -- REC OUT [REC OUT ...]`
@@ -14,6 +15,7 @@ use gelstereo_core::{CsvTable, FrameSummary, GridIndex, MarkerRecord, MarkerStat
 struct Truth {
     index: GridIndex,
     left: Option<Point2>,
+    right: Option<Point2>,
     visible_both: bool,
 }
 
@@ -45,6 +47,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Err("usage: score_track REC OUT [REC OUT ...]".into());
     }
     let (mut swaps, mut ids_total) = (0usize, 0usize);
+    let (mut wrong, mut tracked_total) = (0usize, 0usize);
     let mut worst_tracked: f64 = 1.0;
     let mut tracked_fracs = Vec::new();
     let (mut area_err, mut depth_err, mut cent_err) = (Vec::new(), Vec::new(), Vec::new());
@@ -64,6 +67,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             truth.entry(m.frame).or_default().push(Truth {
                 index: m.index,
                 left: m.left_px.filter(|_| vis("visible_left")),
+                right: m.right_px.filter(|_| vis("visible_right")),
                 visible_both: vis("visible_left") && vis("visible_right"),
             });
         }
@@ -98,6 +102,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     if let Some((dist, id)) = nearest.filter(|n| n.0 <= r) {
                         let _ = dist;
                         maps.entry(m.index).or_default().insert(id);
+                    }
+                }
+                // A tracked marker must sit on its own marker in each view it has a position in.
+                if m.status == Some(MarkerStatus::Tracked) {
+                    tracked_total += 1;
+                    let t = by_id.get(&m.index);
+                    let off = |p: Option<Point2>, q: Option<Point2>| match (p, q) {
+                        (Some(p), Some(q)) => p.distance(q) > r,
+                        (Some(_), None) => true,
+                        (None, _) => false,
+                    };
+                    if t.is_none_or(|t| off(m.left_px, t.left) || off(m.right_px, t.right)) {
+                        wrong += 1;
                     }
                 }
                 if by_id.get(&m.index).is_some_and(|t| t.visible_both) {
@@ -151,6 +168,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         |v: &[f64], t: f64| 100.0 * v.iter().filter(|x| **x <= t).count() as f64 / v.len().max(1) as f64;
     println!("recordings {}, frames {frames_total}", args.len() / 2);
     println!("ids {ids_total}, id swaps {swaps}");
+    println!(
+        "tracked marker-frames {tracked_total}, wrong associations (> 0.25 pitch off its own truth) {wrong}"
+    );
     println!(
         "visible markers tracked per frame: worst {:.2} %, median {:.2} %",
         100.0 * worst_tracked,

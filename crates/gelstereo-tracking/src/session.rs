@@ -5,7 +5,10 @@
 //! - [`MonoSession`]: one view (e.g. a GelSight Mini): 2-D displacement, contact and slip from the
 //!   in-plane field (see [`crate::planar`]).
 
-use gelstereo_core::{FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, SlipState};
+use gelstereo_core::{
+    Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, SlipState,
+    TieredDetections,
+};
 use gelstereo_geometry::Triangulator;
 use nalgebra::{Point3, Vector3};
 
@@ -223,6 +226,35 @@ impl StereoSession {
 
     /// Tracks frame number `frame` given the detections of each view (px).
     pub fn track(&mut self, frame: u32, left: &[Point2], right: &[Point2]) -> Result<StereoFrame> {
+        self.track_views(frame, [left, &[]], [right, &[]])
+    }
+
+    /// [`track`](Self::track) with each view's localizer output including its second tier
+    /// (`Localizer::detect_stereo_tiered`), which markers left without a detection may take
+    /// ([`Tracker::update_tiered`]).
+    pub fn track_tiered(
+        &mut self,
+        frame: u32,
+        left: &TieredDetections,
+        right: &TieredDetections,
+    ) -> Result<StereoFrame> {
+        let [l, l2, r, r2] = [
+            &left.accepted,
+            &left.second_tier,
+            &right.accepted,
+            &right.second_tier,
+        ]
+        .map(|d| positions(d));
+        self.track_views(frame, [&l, &l2], [&r, &r2])
+    }
+
+    /// Tracks a frame given each view's [accepted, second-tier] points.
+    fn track_views(
+        &mut self,
+        frame: u32,
+        left: [&[Point2]; 2],
+        right: [&[Point2]; 2],
+    ) -> Result<StereoFrame> {
         let clock = self.stage_clock;
         let mark = || {
             clock.map(|cpu| StageMark {
@@ -232,8 +264,8 @@ impl StereoSession {
         };
         self.stage_marks.clear();
         let m_start = mark();
-        let lf = self.left.update(left);
-        let rf = self.right.update(right);
+        let lf = self.left.update_tiered(left[0], left[1]);
+        let rf = self.right.update_tiered(right[0], right[1]);
         let m_associated = mark();
         let n = self.shape.count();
         let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); n];
@@ -344,6 +376,10 @@ impl StereoSession {
     pub fn flagged(&self, frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
         flagged_rows(&self.ids, frame)
     }
+}
+
+fn positions(detections: &[Detection]) -> Vec<Point2> {
+    detections.iter().map(|d| d.position).collect()
 }
 
 /// Rows for a frame without data: every id lost, no contact.
@@ -517,7 +553,25 @@ impl MonoSession {
 
     /// Tracks frame number `frame` given its detections (px).
     pub fn track(&mut self, frame: u32, detections: &[Point2]) -> Result<MonoFrame> {
-        let track = self.tracker.update(detections);
+        self.track_views(frame, detections, &[])
+    }
+
+    /// [`track`](Self::track) with the localizer's second tier (see [`StereoSession::track_tiered`]).
+    pub fn track_tiered(&mut self, frame: u32, detections: &TieredDetections) -> Result<MonoFrame> {
+        let (accepted, second) = (
+            positions(&detections.accepted),
+            positions(&detections.second_tier),
+        );
+        self.track_views(frame, &accepted, &second)
+    }
+
+    fn track_views(
+        &mut self,
+        frame: u32,
+        detections: &[Point2],
+        second_tier: &[Point2],
+    ) -> Result<MonoFrame> {
+        let track = self.tracker.update_tiered(detections, second_tier);
         let planar = self.detector.update(&self.tracker, &track)?;
         let markers = track
             .markers
@@ -663,6 +717,46 @@ mod tests {
             (rows.len(), summary.frame, summary.slip),
             (529, 8, SlipState::NoContact)
         );
+    }
+
+    #[test]
+    fn a_marker_found_only_in_the_second_tier_is_tracked_in_3d() {
+        let rig = rig();
+        let (l, r) = views(&rig, &scene(0.0));
+        let ids: Vec<GridIndex> = GridShape::REFERENCE.indices().collect();
+        let lref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(l.iter().copied()).collect();
+        let rref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(r.iter().copied()).collect();
+        let tri = Triangulator::new(rig.clone(), TriangulationConfig::default()).unwrap();
+        let mut s =
+            StereoSession::new(GridShape::REFERENCE, &lref, &rref, tri, SessionConfig::default()).unwrap();
+        let det = |p: &Point2| Detection {
+            position: *p,
+            confidence: 0.9,
+        };
+        let centre = 11 * 23 + 11;
+        let mut truth = Vec::new();
+        for (f, d) in [0.0, 0.1, 0.2].iter().enumerate() {
+            truth = scene(*d);
+            let (l, r) = views(&rig, &truth);
+            // The deepest marker is a second-tier candidate only (rejected by the localizer).
+            let mut left = TieredDetections::from(l.iter().map(det).collect::<Vec<_>>());
+            let weak = left.accepted.remove(centre);
+            left.second_tier.push(Detection {
+                confidence: 0.3,
+                ..weak
+            });
+            let right = TieredDetections::from(r.iter().map(det).collect::<Vec<_>>());
+            let out = s.track_tiered(f as u32, &left, &right).unwrap();
+            let m = &out.markers[centre];
+            assert_eq!(m.status, Some(MarkerStatus::Tracked), "frame {f}");
+            assert_eq!(m.left_px, Some(weak.position));
+            assert!((Point3::from(m.position_mm.unwrap()) - truth[centre]).norm() < 1e-6);
+            assert!(out.left.markers[centre].second_tier);
+            // Through `track` (no second tier) the same marker is only predicted.
+            let plain = s.clone().track(f as u32, &positions(&left.accepted), &r).unwrap();
+            assert_eq!(plain.markers[centre].status, Some(MarkerStatus::Predicted));
+        }
+        assert!(!truth.is_empty());
     }
 
     #[test]

@@ -52,6 +52,10 @@ pub struct TrackerConfig {
     pub support_radius: u16,
     /// Candidates per marker in each association pass (nearest detections within the gate).
     pub candidates: usize,
+    /// Gate for second-tier candidates (what the localizer found but did not accept), fraction of
+    /// the local pitch, around the neighbour-based position of a marker left without a detection;
+    /// 0 ignores the second tier. See [`Tracker::update_tiered`].
+    pub second_tier_gate_pitch: f64,
 }
 
 impl Default for TrackerConfig {
@@ -62,6 +66,7 @@ impl Default for TrackerConfig {
             velocity_factor: 0.8,
             support_radius: 2,
             candidates: 3,
+            second_tier_gate_pitch: 0.2,
         }
     }
 }
@@ -78,6 +83,9 @@ impl TrackerConfig {
         };
         frac("gate_pitch", self.gate_pitch)?;
         frac("refine_gate_pitch", self.refine_gate_pitch)?;
+        if self.second_tier_gate_pitch != 0.0 {
+            frac("second_tier_gate_pitch", self.second_tier_gate_pitch)?;
+        }
         if !(self.velocity_factor.is_finite() && (0.0..=1.5).contains(&self.velocity_factor)) {
             return Err(config_err(
                 "velocity_factor",
@@ -108,8 +116,11 @@ pub struct TrackedMarker {
     pub position_px: Option<Point2>,
     /// Tracked (detected and associated), predicted (from its neighbours) or lost.
     pub status: MarkerStatus,
-    /// The detection it was associated with (position in the frame's detection list).
+    /// The detection it was associated with (position in the frame's detection list, or in its
+    /// second tier when `second_tier`).
     pub detection: Option<usize>,
+    /// Whether that detection is a second-tier candidate ([`Tracker::update_tiered`]).
+    pub second_tier: bool,
 }
 
 /// The result of tracking one frame in one view.
@@ -119,7 +130,7 @@ pub struct TrackFrame {
     pub markers: Vec<TrackedMarker>,
     /// Detections no marker took (spurious detections or markers outside the reference).
     pub unassigned: Vec<usize>,
-    /// Detections rejected because a coordinate was NaN or infinite.
+    /// Detections rejected because a coordinate was NaN or infinite (second tier included).
     pub non_finite: usize,
 }
 
@@ -267,19 +278,24 @@ impl Tracker {
     /// counted). An empty list is a valid frame: every marker becomes lost (or predicted, never
     /// silently dropped) and is re-acquired later.
     pub fn update(&mut self, detections: &[Point2]) -> TrackFrame {
-        let finite: Vec<usize> = (0..detections.len())
-            .filter(|&k| detections[k].x.is_finite() && detections[k].y.is_finite())
-            .collect();
-        let non_finite = detections.len() - finite.len();
-        let points: Vec<[f64; 2]> = finite
-            .iter()
-            .map(|&k| [detections[k].x, detections[k].y])
-            .collect();
-        let tree = if points.is_empty() {
-            None
-        } else {
-            ImmutableKdTree::<f64, 2>::new_from_slice(&points).ok()
-        };
+        self.update_tiered(detections, &[])
+    }
+
+    /// [`update`](Self::update) with a second tier: candidates the localizer found but did not
+    /// accept (e.g. Marknet candidates the MRE rejected). After the fine association, a marker
+    /// still without a detection and with an associated lattice neighbour (`predicted`) takes the
+    /// nearest second-tier candidate within `second_tier_gate_pitch` x its local pitch of its
+    /// last position moved by its neighbours' motion in this frame, one-to-one, closest pairs
+    /// first, and only one nearer to it than to any other marker within the support radius
+    /// (tracked ones at their detection): the lattice and the neighbours' motion are the evidence
+    /// the localizer's own check lacks. Such a marker is `tracked` at the candidate
+    /// (`TrackedMarker::second_tier`); accepted detections are associated exactly as by
+    /// [`update`](Self::update).
+    pub fn update_tiered(&mut self, detections: &[Point2], second_tier: &[Point2]) -> TrackFrame {
+        let (finite, points) = finite_points(detections);
+        let (finite2, points2) = finite_points(second_tier);
+        let non_finite = detections.len() - finite.len() + second_tier.len() - finite2.len();
+        let tree = kd_tree(&points);
 
         let n = self.ids.len();
         let vf = self.config.velocity_factor;
@@ -306,9 +322,9 @@ impl Tracker {
         let (step2, support) = self.local_motion(&points, &fine);
 
         let mut taken = vec![false; points.len()];
-        let mut markers = Vec::with_capacity(n);
+        let mut placed: Vec<(Point2, MarkerStatus, Option<usize>)> = Vec::with_capacity(n);
         for i in 0..n {
-            let (pos, status, det) = if fine[i] != NONE {
+            placed.push(if fine[i] != NONE {
                 let d = fine[i] as usize;
                 taken[d] = true;
                 (
@@ -332,7 +348,30 @@ impl Tracker {
                     MarkerStatus::Lost
                 };
                 (p, s, None)
-            };
+            });
+        }
+        // The second tier is gated around the last position moved like the neighbours this frame
+        // (closer to the truth than the reference-anchored fill when the marker was tracked in
+        // the previous frame; fewer wrong associations on the val split).
+        let centres: Vec<Point2> = (0..n)
+            .map(|i| {
+                Point2::new(
+                    self.current_px[i].x + step2[i][0],
+                    self.current_px[i].y + step2[i][1],
+                )
+            })
+            .collect();
+        let second = self.take_second_tier(&placed, &centres, &points2);
+        let mut markers = Vec::with_capacity(n);
+        for (i, &(mut pos, mut status, mut det)) in placed.iter().enumerate() {
+            if second[i] != NONE {
+                let d = second[i] as usize;
+                (pos, status, det) = (
+                    Point2::new(points2[d][0], points2[d][1]),
+                    MarkerStatus::Tracked,
+                    Some(finite2[d]),
+                );
+            }
             self.motion_px[i] = [pos.x - self.current_px[i].x, pos.y - self.current_px[i].y];
             self.current_px[i] = pos;
             self.status[i] = status;
@@ -341,6 +380,7 @@ impl Tracker {
                 position_px: (status != MarkerStatus::Lost).then_some(pos),
                 status,
                 detection: det,
+                second_tier: second[i] != NONE,
             });
         }
         let unassigned = (0..points.len())
@@ -352,6 +392,65 @@ impl Tracker {
             unassigned,
             non_finite,
         }
+    }
+
+    /// The second-tier pass of [`update_tiered`](Self::update_tiered): per slot, the second-tier
+    /// candidate (position in `points`) it takes, or [`NONE`]. `placed` holds every marker's
+    /// position and status after the fine association, `centres` the gate centre of each.
+    fn take_second_tier(
+        &self,
+        placed: &[(Point2, MarkerStatus, Option<usize>)],
+        centres: &[Point2],
+        points: &[[f64; 2]],
+    ) -> Vec<u32> {
+        let n = placed.len();
+        let mut out = vec![NONE; n];
+        let gate = self.config.second_tier_gate_pitch;
+        let Some(tree) = kd_tree(points).filter(|_| gate > 0.0) else {
+            return out;
+        };
+        let k = NonZeroUsize::new(self.config.candidates.clamp(1, points.len())).unwrap_or(NonZeroUsize::MIN);
+        let mut cands: Vec<(f64, u32, u32)> = Vec::new();
+        for (i, &(_, status, _)) in placed.iter().enumerate() {
+            let p = centres[i];
+            // Only a marker the neighbours place (predicted): a lost one has no prior to check
+            // the candidate against.
+            if status != MarkerStatus::Predicted {
+                continue;
+            }
+            let g = gate * self.pitch_px[i];
+            let found = tree
+                .query(&[p.x, p.y])
+                .nearest_n::<SquaredEuclidean<f64>>(k)
+                .within(g * g)
+                .execute();
+            for item in found {
+                let c = Point2::new(points[item.item as usize][0], points[item.item as usize][1]);
+                let d2 = item.distance;
+                let nearest_is_mine = self.neighbours[i].iter().all(|&(j, _)| {
+                    let q = if placed[j as usize].1 == MarkerStatus::Tracked {
+                        placed[j as usize].0
+                    } else {
+                        centres[j as usize]
+                    };
+                    let (dx, dy) = (c.x - q.x, c.y - q.y);
+                    dx * dx + dy * dy > d2
+                });
+                if nearest_is_mine {
+                    cands.push((d2, i as u32, item.item));
+                }
+            }
+        }
+        cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let mut used = vec![false; points.len()];
+        for (_, i, d) in cands {
+            let (iu, du) = (i as usize, d as usize);
+            if out[iu] == NONE && !used[du] {
+                out[iu] = d;
+                used[du] = true;
+            }
+        }
+        out
     }
 
     /// One-to-one association, closest pairs first, within `gate` x local pitch of each prediction.
@@ -447,6 +546,25 @@ impl Tracker {
             motion.push(if mw > 0.0 { [mx / mw, my / mw] } else { global });
         }
         (motion, support)
+    }
+}
+
+/// The finite points of `detections`: their positions in `detections` and their coordinates.
+fn finite_points(detections: &[Point2]) -> (Vec<usize>, Vec<[f64; 2]>) {
+    detections
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.x.is_finite() && p.y.is_finite())
+        .map(|(k, p)| (k, [p.x, p.y]))
+        .unzip()
+}
+
+/// A k-d tree over `points`; `None` when empty.
+fn kd_tree(points: &[[f64; 2]]) -> Option<ImmutableKdTree<f64, 2>> {
+    if points.is_empty() {
+        None
+    } else {
+        ImmutableKdTree::<f64, 2>::new_from_slice(points).ok()
     }
 }
 
@@ -609,6 +727,123 @@ mod tests {
         bad.push(Point2::new(f64::NAN, 3.0));
         let out = tracker.update(&bad);
         assert_eq!((out.non_finite, out.count(MarkerStatus::Tracked)), (1, 529));
+    }
+
+    /// A static 5 x 5 lattice of pitch 10 px: the tracker and the lattice points of frame 1.
+    fn small(config: TrackerConfig) -> (Tracker, Vec<(GridIndex, Point2)>) {
+        let shape = GridShape { rows: 5, cols: 5 };
+        let reference: Vec<(GridIndex, Point2)> = shape
+            .indices()
+            .map(|i| (i, Point2::new(10.0 * f64::from(i.col), 10.0 * f64::from(i.row))))
+            .collect();
+        (Tracker::new(shape, &reference, config).unwrap(), reference)
+    }
+
+    /// Frame 1: every lattice point but `missed`, with `moved` shifted by (dx, dy) px.
+    fn frame_without(
+        lattice: &[(GridIndex, Point2)],
+        missed: &[GridIndex],
+        moved: Option<(GridIndex, f64, f64)>,
+    ) -> Vec<Point2> {
+        lattice
+            .iter()
+            .filter(|(i, _)| !missed.contains(i))
+            .map(|&(i, p)| match moved {
+                Some((m, dx, dy)) if m == i => Point2::new(p.x + dx, p.y + dy),
+                _ => p,
+            })
+            .collect()
+    }
+
+    fn marker(frame: &TrackFrame, index: GridIndex) -> TrackedMarker {
+        *frame.markers.iter().find(|m| m.index == index).unwrap()
+    }
+
+    #[test]
+    fn second_tier_candidates_fill_in_only_within_the_gate_and_for_the_nearest_marker() {
+        let centre = GridIndex::new(2, 2);
+        let east = GridIndex::new(2, 3);
+        let (mut t, lattice) = small(TrackerConfig::default());
+        let accepted = frame_without(&lattice, &[centre], None);
+        // Without a second tier the missed marker is only predicted.
+        let plain = t.clone().update(&accepted);
+        assert_eq!(marker(&plain, centre).status, MarkerStatus::Predicted);
+        // A candidate 1.1 px off its neighbour-based position (gate 0.2 x 10 px): taken, tracked
+        // exactly there.
+        let near = Point2::new(21.0, 19.5);
+        let far = Point2::new(22.5, 20.0);
+        let out = t.clone().update_tiered(&accepted, &[far, near]);
+        let m = marker(&out, centre);
+        assert_eq!(
+            (m.status, m.position_px, m.detection, m.second_tier),
+            (MarkerStatus::Tracked, Some(near), Some(1), true)
+        );
+        assert_eq!(out.count(MarkerStatus::Tracked), 25);
+        assert!(out.markers.iter().filter(|m| m.second_tier).count() == 1);
+        // 2.5 px off (0.25 pitch): outside the gate, not taken.
+        let out = t.update_tiered(&accepted, &[far]);
+        assert_eq!(marker(&out, centre).status, MarkerStatus::Predicted);
+        // A candidate next to a tracked marker is never taken from it, nor given to a neighbour.
+        let out = t.update_tiered(
+            &lattice.iter().map(|l| l.1).collect::<Vec<_>>(),
+            &[Point2::new(20.5, 20.0)],
+        );
+        assert_eq!(out.count(MarkerStatus::Tracked), 25);
+        assert!(
+            out.markers
+                .iter()
+                .all(|m| !m.second_tier && m.detection.is_some())
+        );
+
+        // Nearest-marker rule, with a wide gate (0.45 pitch): a candidate 3.8 px east of the missed
+        // marker is taken while its east neighbour sits on the lattice, not once that neighbour's
+        // detection is 3 px closer (the candidate is then nearer to it than to the missed marker).
+        let wide = TrackerConfig {
+            second_tier_gate_pitch: 0.45,
+            ..TrackerConfig::default()
+        };
+        let candidate = Point2::new(23.8, 20.0);
+        let (mut t, _) = small(wide.clone());
+        let out = t.update_tiered(&accepted, &[candidate]);
+        assert_eq!(marker(&out, centre).position_px, Some(candidate));
+        let (mut t, _) = small(wide);
+        let squeezed = frame_without(&lattice, &[centre], Some((east, -3.0, 0.0)));
+        let out = t.update_tiered(&squeezed, &[candidate]);
+        assert_eq!(marker(&out, east).status, MarkerStatus::Tracked);
+        assert!(!marker(&out, east).second_tier);
+        assert_eq!(marker(&out, centre).status, MarkerStatus::Predicted);
+
+        // Two missed neighbours and one candidate: it goes to the marker it is near.
+        let (mut t, _) = small(TrackerConfig::default());
+        let two = frame_without(&lattice, &[centre, east], None);
+        let out = t.update_tiered(&two, &[Point2::new(28.5, 20.0)]);
+        assert_eq!(marker(&out, east).position_px, Some(Point2::new(28.5, 20.0)));
+        assert_eq!(marker(&out, centre).status, MarkerStatus::Predicted);
+        // Non-finite second-tier points are skipped and counted.
+        let out = t.update_tiered(&two, &[Point2::new(f64::NAN, 1.0)]);
+        assert_eq!(out.non_finite, 1);
+        // The gate is checked like the others.
+        let bad = TrackerConfig {
+            second_tier_gate_pitch: 0.6,
+            ..TrackerConfig::default()
+        };
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("second_tier_gate_pitch")
+        );
+        let off = TrackerConfig {
+            second_tier_gate_pitch: 0.0,
+            ..TrackerConfig::default()
+        };
+        let (mut t, _) = small(off);
+        let out = t.update_tiered(&accepted, &[near]);
+        assert_eq!(
+            marker(&out, centre).status,
+            MarkerStatus::Predicted,
+            "gate 0: second tier ignored"
+        );
     }
 
     #[test]
