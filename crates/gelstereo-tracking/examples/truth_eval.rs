@@ -22,7 +22,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // PER_RECORDING=1: one line per recording with gross-slip errors.
     let per_recording = std::env::var("PER_RECORDING").is_ok();
     // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, SLIP_DRIFT,
-    // MIN_SHEAR, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
+    // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
@@ -90,6 +90,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         if let Some(v) = std::env::var("DRIFT_NOISE").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.drift_noise_factor = v;
+        }
+        if let Some(v) = std::env::var("STICK_SHEAR_PER_DEPTH")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
+            slip_cfg.stick_shear_per_depth = v;
         }
         if let Some(v) = std::env::var("SHEAR_NOISE").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.shear_noise_factor = v;
