@@ -24,11 +24,15 @@
 //!   times its RMS radius) exceeds the mean shear, the plateau is taken on the angular displacement
 //!   of the markers off the centre: sticking points turn by the object's angle, slipping ones lag.
 //!   A stick fraction below `twist_gross_fraction` is gross slip (a symmetric contact does not move
-//!   its centroid when it spins, so the drift cannot see it).
+//!   its centroid when it spins, so the drift cannot see it), and so is the indentation turning
+//!   across the gel once its turn, summed over the contact, exceeds `twist_turn_ratio` x the
+//!   contact's elastic rotation: under torsion the stuck core shrinks as the object turns on and
+//!   slides last (Lubkin, "The torsion of elastic spheres in contact", J. Appl. Mech. 18, 1951).
 //!
-//! The shear has to exceed `min_shear_mm` before anything but stick is reported, so that pressing
-//! alone (whose lateral spreading is radial) is never called slip; and nothing but `no_contact` is
-//! reported without contact.
+//! The shear has to exceed `min_shear_mm` (less for a shallow contact: `stick_shear_per_depth` x
+//! its depth, a sliding contact's shear being at the friction limit) before anything but stick is
+//! reported, so that pressing alone (whose lateral spreading is radial) is never called slip; and
+//! nothing but `no_contact` is reported without contact.
 
 use gelstereo_core::SlipState;
 use nalgebra::{Point3, Vector3};
@@ -50,9 +54,10 @@ pub struct SlipConfig {
     /// and the seed-303 / 404 sets (0.3-0.5 alike on exact 3-D; a floor of 0.02 mm instead gave
     /// false gross slip from images: noisy drifts of contacts that used to stick).
     pub stick_shear_per_depth: f64,
-    /// ... but not below this many times the frame's depth noise: a contact touching down is
-    /// shallow, its mean shear noise (3: at 0.01 mm of 3-D noise the fixed `min_shear_mm` again;
-    /// neutral on the train / val splits and the seed-303 / 404 sets, exact, noisy and from images).
+    /// The depth-relative threshold is at least this many times the frame's depth noise: a contact
+    /// touching down is shallow and its mean shear mostly noise. 3: with 0.01 mm of 3-D noise the
+    /// fixed `min_shear_mm` again; neutral on the train / val splits and the seed-303 / 404 sets
+    /// (exact, noisy and from images), kept as that guard.
     pub shear_noise_factor: f64,
     /// Stick fraction below which the contact is in partial slip (0.9, as the simulator's ground truth).
     pub stick_fraction: f64,
