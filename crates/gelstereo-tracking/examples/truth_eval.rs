@@ -3,7 +3,8 @@
 //! of `docs/tracking.md`, used to choose the defaults of `ContactConfig` and `SlipConfig`.
 //!
 //! `cargo run --release -p gelstereo-tracking --example truth_eval -- [--noise MM] REC...`
-//! (a recording folder per experiment; `VERBOSE=1` prints every contact frame).
+//! (a recording folder per experiment; `VERBOSE=1` prints every contact frame, `PER_RECORDING=1`
+//! the gross-slip errors of each recording).
 
 use std::path::Path;
 
@@ -18,7 +19,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         args.drain(..2);
     }
     let verbose = std::env::var("VERBOSE").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, SLIP_DRIFT, MIN_SHEAR, SHEAR_PER_DEPTH, TWIST_GROSS.
+    // PER_RECORDING=1: one line per recording with gross-slip errors.
+    let per_recording = std::env::var("PER_RECORDING").is_ok();
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, SLIP_DRIFT,
+    // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_threshold = v;
@@ -87,11 +91,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(v) = std::env::var("DRIFT_NOISE").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.drift_noise_factor = v;
         }
+        if let Some(v) = std::env::var("STICK_SHEAR_PER_DEPTH")
+            .ok()
+            .and_then(|v| v.parse().ok())
+        {
+            slip_cfg.stick_shear_per_depth = v;
+        }
+        if let Some(v) = std::env::var("SHEAR_NOISE").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.shear_noise_factor = v;
+        }
+        if let Some(v) = std::env::var("TURN_RATIO").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.twist_turn_ratio = v;
+        }
         if let Some(v) = std::env::var("TWIST_GROSS").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.twist_gross_fraction = v;
         }
         let mut det = SlipDetector::new(slip_cfg)?;
         let (mut gt_onset, mut est_onset) = (None, None);
+        let (tp0, fp0, fn0) = (tp, fp, fneg);
         let mut touched = false;
         for (f, gt) in truth.iter().enumerate() {
             let c = surface.analyze(&per_frame[f], &contact_cfg)?;
@@ -128,7 +145,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             if verbose && (gt.contact || c.contact) {
                 println!(
-                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4}",
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4}",
                     rec.display(),
                     c.contact_area_mm2,
                     gt.contact_area_mm2,
@@ -141,14 +158,27 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     sl.stick_fraction,
                     sl.drift_mm,
                     sl.shear_mm.norm(),
-                    sl.rotation_rad
+                    sl.rotation_rad,
+                    sl.turned_rad
                 );
             }
         }
-        match (gt_onset, est_onset) {
-            (Some(a), Some(b)) => onset_err.push(b as i64 - a as i64),
-            (None, None) => {}
-            _ => onset_err.push(999),
+        let onset = match (gt_onset, est_onset) {
+            (Some(a), Some(b)) => Some(b as i64 - a as i64),
+            (None, None) => None,
+            _ => Some(999),
+        };
+        onset_err.extend(onset);
+        if per_recording && (fp > fp0 || fneg > fn0 || onset.is_some_and(|o| o.abs() > 2)) {
+            println!(
+                "{}: gross tp {} fp {} fn {}, onset {:?} (truth {:?})",
+                rec.display(),
+                tp - tp0,
+                fp - fp0,
+                fneg - fn0,
+                onset,
+                gt_onset
+            );
         }
     }
     let pct = |a: usize| 100.0 * a as f64 / cmp.max(1) as f64;

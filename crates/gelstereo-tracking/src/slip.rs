@@ -24,11 +24,15 @@
 //!   times its RMS radius) exceeds the mean shear, the plateau is taken on the angular displacement
 //!   of the markers off the centre: sticking points turn by the object's angle, slipping ones lag.
 //!   A stick fraction below `twist_gross_fraction` is gross slip (a symmetric contact does not move
-//!   its centroid when it spins, so the drift cannot see it).
+//!   its centroid when it spins, so the drift cannot see it), and so is the indentation turning
+//!   across the gel once its turn, summed over the contact, exceeds `twist_turn_ratio` x the
+//!   contact's elastic rotation: under torsion the stuck core shrinks as the object turns on and
+//!   slides last (Lubkin, "The torsion of elastic spheres in contact", J. Appl. Mech. 18, 1951).
 //!
-//! The shear has to exceed `min_shear_mm` before anything but stick is reported, so that pressing
-//! alone (whose lateral spreading is radial) is never called slip; and nothing but `no_contact` is
-//! reported without contact.
+//! The shear has to exceed `min_shear_mm` (less for a shallow contact: `stick_shear_per_depth` x
+//! its depth, a sliding contact's shear being at the friction limit) before anything but stick is
+//! reported, so that pressing alone (whose lateral spreading is radial) is never called slip; and
+//! nothing but `no_contact` is reported without contact.
 
 use gelstereo_core::SlipState;
 use nalgebra::{Point3, Vector3};
@@ -40,8 +44,21 @@ use crate::error::{Result, config_err};
 /// (`docs/tracking.md`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SlipConfig {
-    /// Mean tangential displacement in the contact below which the contact sticks, mm.
+    /// Mean tangential displacement in the contact below which the contact sticks, mm (or less for
+    /// shallow contacts, see `stick_shear_per_depth`).
     pub min_shear_mm: f64,
+    /// A contact shallower than `min_shear_mm / stick_shear_per_depth` sticks below this fraction of
+    /// its largest depth of mean shear instead: a contact slides at the friction limit, a shear
+    /// about 0.5-0.8 x its depth in the simulator, so a flat cylinder 0.05 mm deep slides at
+    /// 0.025-0.03 mm, which the fixed 0.03 mm kept in `stick`. 0.5, chosen on the train / val splits
+    /// and the seed-303 / 404 sets (0.3-0.5 alike on exact 3-D; a floor of 0.02 mm instead gave
+    /// false gross slip from images: noisy drifts of contacts that used to stick).
+    pub stick_shear_per_depth: f64,
+    /// The depth-relative threshold is at least this many times the frame's depth noise: a contact
+    /// touching down is shallow and its mean shear mostly noise. 3: with 0.01 mm of 3-D noise the
+    /// fixed `min_shear_mm` again; neutral on the train / val splits and the seed-303 / 404 sets
+    /// (exact, noisy and from images), kept as that guard.
+    pub shear_noise_factor: f64,
     /// Stick fraction below which the contact is in partial slip (0.9, as the simulator's ground truth).
     pub stick_fraction: f64,
     /// Relative tolerance of the displacement plateau.
@@ -68,12 +85,20 @@ pub struct SlipConfig {
     /// a fitted rotation is noisier than a centroid; 1.5-3 all did better than no such test on the
     /// train / val splits and a seed-202 set, 2 best with noise).
     pub turn_threshold_factor: f64,
+    /// Under a twist, gross slip also needs the indentation to have turned across the gel, in total
+    /// since the contact began, by this many times the contact's elastic rotation (the least-squares
+    /// rotation of the contact markers). 2, chosen on the train / val splits and the seed-303 / 404
+    /// sets among 0-6: without it (0) the turn started gross slip 3-14 frames before the
+    /// simulator's stuck share fell to 3 %.
+    pub twist_turn_ratio: f64,
 }
 
 impl Default for SlipConfig {
     fn default() -> Self {
         Self {
             min_shear_mm: 0.03,
+            stick_shear_per_depth: 0.5,
+            shear_noise_factor: 3.0,
             stick_fraction: 0.9,
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
@@ -82,6 +107,7 @@ impl Default for SlipConfig {
             min_shear_per_depth: 0.25,
             drift_noise_factor: 1.5,
             turn_threshold_factor: 2.0,
+            twist_turn_ratio: 2.0,
         }
     }
 }
@@ -105,6 +131,14 @@ impl SlipConfig {
                 self.turn_threshold_factor,
             ));
         }
+        for (field, v) in [
+            ("twist_turn_ratio", self.twist_turn_ratio),
+            ("shear_noise_factor", self.shear_noise_factor),
+        ] {
+            if !(v.is_finite() && (0.0..100.0).contains(&v)) {
+                return Err(config_err(field, "a factor in [0, 100)", v));
+            }
+        }
         if !(self.drift_noise_factor.is_finite() && (0.0..100.0).contains(&self.drift_noise_factor)) {
             return Err(config_err(
                 "drift_noise_factor",
@@ -117,6 +151,7 @@ impl SlipConfig {
             ("plateau_tolerance", self.plateau_tolerance),
             ("twist_gross_fraction", self.twist_gross_fraction),
             ("min_shear_per_depth", self.min_shear_per_depth),
+            ("stick_shear_per_depth", self.stick_shear_per_depth),
         ] {
             if !(v.is_finite() && v > 0.0 && v < 1.0) {
                 return Err(config_err(field, "a fraction in (0, 1)", v));
@@ -141,6 +176,9 @@ pub struct SlipFrame {
     /// In-plane rotation of the contact markers about their centroid (least squares, translation
     /// removed), rad, signed about the surface normal (zero without contact or without shear).
     pub rotation_rad: f64,
+    /// Material rotation of the indentation accumulated since the contact began, in the sense of
+    /// the twist, rad (zero without a twist).
+    pub turned_rad: f64,
 }
 
 /// Classifies frames one after the other (it keeps the material centroids of the last frames).
@@ -155,6 +193,8 @@ pub struct SlipDetector {
     drifting: usize,
     /// 3 x 3 mean depths of the last frames in contact, oldest first (at most `DRIFT_WINDOW`).
     depths: std::collections::VecDeque<Vec<Option<f64>>>,
+    /// Material rotation of the indentation accumulated over the contact, rad.
+    turned_rad: f64,
 }
 
 /// Frames over which the drift is measured (its per-frame value is averaged over them, which
@@ -171,6 +211,7 @@ impl SlipDetector {
             sliding: false,
             drifting: 0,
             depths: std::collections::VecDeque::new(),
+            turned_rad: 0.0,
         })
     }
 
@@ -180,6 +221,7 @@ impl SlipDetector {
         self.depths.clear();
         self.sliding = false;
         self.drifting = 0;
+        self.turned_rad = 0.0;
     }
 
     /// Classifies the next frame.
@@ -189,12 +231,14 @@ impl SlipDetector {
             self.depths.clear();
             self.sliding = false;
             self.drifting = 0;
+            self.turned_rad = 0.0;
             return SlipFrame {
                 state: SlipState::NoContact,
                 shear_mm: Vector3::zeros(),
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
                 rotation_rad: 0.0,
+                turned_rad: self.turned_rad,
             };
         }
         let oldest = self.history.front().copied();
@@ -238,6 +282,7 @@ impl SlipDetector {
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
                 rotation_rad: 0.0,
+                turned_rad: self.turned_rad,
             };
         }
         let count = tangential.len() as f64;
@@ -258,13 +303,18 @@ impl SlipDetector {
         let omega = if den > 0.0 { num / den } else { 0.0 };
         let radius_mm = (den / count).sqrt();
         let twist_mm = omega.abs() * radius_mm;
-        if shear.norm() < self.config.min_shear_mm && twist_mm < self.config.min_shear_mm {
+        let min_shear = self.config.min_shear_mm.min(
+            (self.config.stick_shear_per_depth * frame.max_depth_mm)
+                .max(self.config.shear_noise_factor * frame.depth_noise_mm),
+        );
+        if shear.norm() < min_shear && twist_mm < min_shear {
             return SlipFrame {
                 state: latched,
                 shear_mm: shear,
                 stick_fraction: 1.0,
                 drift_mm: 0.0,
                 rotation_rad: omega,
+                turned_rad: self.turned_rad,
             };
         }
         if twist_mm > shear.norm() {
@@ -288,14 +338,22 @@ impl SlipDetector {
             // Torsional gross slip: the indentation turns across the gel (the twist analogue of the
             // drift): the rotation of the depth pattern in material coordinates, at the contact's
             // RMS radius, per frame, in the sense of the twist.
-            let turn_mm = match (&old_depth, frame.material_centroid_mm) {
+            let turn_rad = match (&old_depth, frame.material_centroid_mm) {
                 (Some(old), Some(c)) if depth_span > 0 => {
                     material_rotation(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
-                        .map_or(0.0, |t| t * omega.signum() * radius_mm / depth_span as f64)
+                        .map_or(0.0, |t| t * omega.signum() / depth_span as f64)
                 }
                 _ => 0.0,
             };
+            let turn_mm = turn_rad * radius_mm;
             let turning = turn_mm > self.config.turn_threshold_factor * drift_threshold;
+            if turning {
+                self.turned_rad += turn_rad;
+            }
+            // Torsion never slides the centre at once (Lubkin): the stuck core shrinks as the
+            // object turns on, so the whole contact slips only once the indentation has turned by
+            // a multiple of the contact's elastic twist (the field's rotation `omega`).
+            let turning = turning && self.turned_rad >= self.config.twist_turn_ratio * omega.abs();
             self.drifting = if turning { self.drifting + 1 } else { 0 };
             self.sliding |= stick_fraction < self.config.twist_gross_fraction || self.drifting >= 2;
             let state = if self.sliding || turning {
@@ -311,6 +369,7 @@ impl SlipDetector {
                 stick_fraction,
                 drift_mm: turn_mm,
                 rotation_rad: omega,
+                turned_rad: self.turned_rad,
             };
         }
         let dir = shear / shear.norm();
@@ -347,6 +406,7 @@ impl SlipDetector {
             stick_fraction,
             drift_mm: drift,
             rotation_rad: omega,
+            turned_rad: self.turned_rad,
         }
     }
 }
@@ -482,6 +542,59 @@ mod tests {
     }
 
     #[test]
+    fn a_shallow_contact_sliding_at_its_friction_limit_is_gross_slip() {
+        // A Gaussian indentation 0.04 mm deep (width 1 mm) whose surface is dragged by
+        // min(slide, 0.8 w) along x (the friction limit) while its material centre moves 0.03 mm a
+        // frame: a whole-contact slide with a mean shear below 0.03 mm.
+        let frame = |material_x: f64, slide_mm: f64| -> Vec<Option<[f64; 3]>> {
+            GridShape::REFERENCE
+                .indices()
+                .map(|i| {
+                    let (x, y) = ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
+                    let w = 0.04 * (-((x - material_x).powi(2) + y * y) / 2.0).exp();
+                    Some([x + slide_mm.min(0.8 * w), y, 24.0 - w])
+                })
+                .collect()
+        };
+        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
+            .iter()
+            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
+            .collect();
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let script = [
+            (0.0, 0.0),
+            (0.0, 0.01),
+            (0.03, 0.1),
+            (0.06, 0.1),
+            (0.09, 0.1),
+            (0.12, 0.1),
+        ];
+        let run = |config: SlipConfig| -> Vec<SlipState> {
+            let mut det = SlipDetector::new(config).unwrap();
+            script
+                .iter()
+                .map(|&(m, s)| {
+                    det.update(&surface, &surface.analyze(&frame(m, s), &cfg).unwrap())
+                        .state
+                })
+                .collect()
+        };
+        let states = run(SlipConfig::default());
+        assert_eq!(states[..2], [SlipState::Stick; 2], "{states:?}");
+        assert!(
+            states[4..].iter().all(|s| *s == SlipState::GrossSlip),
+            "{states:?}"
+        );
+        // A fixed 0.03 mm shear threshold keeps it in stick.
+        let fixed = run(SlipConfig {
+            stick_shear_per_depth: 0.99,
+            ..SlipConfig::default()
+        });
+        assert!(!fixed.contains(&SlipState::GrossSlip), "{fixed:?}");
+    }
+
+    #[test]
     fn a_twist_sticks_then_slips_from_the_edge() {
         // Cap of radius 8 mm, depth 0.6 mm; the contact turns by `angle` rad about its centre, each
         // point limited to 0.8 w (Cattaneo–Mindlin for torsion).
@@ -547,24 +660,29 @@ mod tests {
             .collect();
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let cfg = ContactConfig::default();
-        let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
-        let script = [
-            (0.0, 0.0),
-            (0.0, 0.02),
-            (0.0, 0.04),
-            (0.0, 0.06),
-            (0.03, 0.08),
-            (0.06, 0.10),
-            (0.09, 0.12),
-        ];
-        let states: Vec<SlipState> = script
-            .iter()
-            .map(|(phi, omega)| {
-                det.update(&surface, &surface.analyze(&frame(*phi, *omega), &cfg).unwrap())
-                    .state
-            })
-            .collect();
-        assert!(!states[..4].contains(&SlipState::GrossSlip), "{states:?}");
-        assert_eq!(states[6], SlipState::GrossSlip, "{states:?}");
+        let mut script = vec![(0.0, 0.0), (0.0, 0.02), (0.0, 0.04), (0.0, 0.06)];
+        script.extend((1..=10).map(|k| (0.03 * f64::from(k), 0.12)));
+        let states = |config: SlipConfig| -> Vec<SlipState> {
+            let mut det = SlipDetector::new(config).unwrap();
+            script
+                .iter()
+                .map(|(phi, omega)| {
+                    det.update(&surface, &surface.analyze(&frame(*phi, *omega), &cfg).unwrap())
+                        .state
+                })
+                .collect()
+        };
+        let onset = |s: &[SlipState]| s.iter().position(|s| *s == SlipState::GrossSlip);
+        // Not while it only twists, nor as soon as it turns (the stuck core shrinks as it turns
+        // on), but once it has turned by twice the contact's elastic rotation, and then to the end.
+        let with_ratio = states(SlipConfig::default());
+        assert!(onset(&with_ratio).is_some_and(|f| f >= 8), "{with_ratio:?}");
+        assert!(with_ratio.ends_with(&[SlipState::GrossSlip; 4]), "{with_ratio:?}");
+        let without = states(SlipConfig {
+            twist_turn_ratio: 0.0,
+            ..SlipConfig::default()
+        });
+        assert!(onset(&without) < onset(&with_ratio), "{without:?}");
+        assert!(onset(&without).is_some_and(|f| f >= 4), "{without:?}");
     }
 }
