@@ -9,9 +9,9 @@
 //!    `gate_pitch` x the marker's local pitch (a kiddo k-d tree over the detections), assigned
 //!    one-to-one, closest pairs first.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
-//!    median frame-to-frame motion of the markers associated around it (lattice neighbours within
-//!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting double; the
-//!    global median motion where no neighbour was associated). This follows the gel's smooth
+//!    median frame-to-frame motion of the markers associated around it (its 8 lattice neighbours,
+//!    weights 1 and 1/2, its own motion counting 2; the global median motion where none of them
+//!    was associated). This follows the gel's smooth
 //!    deformation field and absorbs sudden starts and stops that the constant-velocity model
 //!    misses; a median, so that a few wrong associations do not drag the markers around them.
 //! 4. **Fine association** from scratch with the corrected predictions and the tighter gate
@@ -50,9 +50,9 @@ pub struct TrackerConfig {
     /// Fraction of the last frame-to-frame motion added to the prediction (1 = constant velocity).
     /// 0.8 damps overshoot when the motion stops; the neighbour correction does the rest.
     pub velocity_factor: f64,
-    /// Lattice radius (steps) of the neighbours whose prediction errors correct a marker's
-    /// prediction and that keep a missed marker `predicted` rather than `lost`. 2: a marker with
-    /// its whole 5 x 5 neighbourhood missed has no local support.
+    /// Lattice radius (steps) of the neighbours that keep a missed marker `predicted` rather than
+    /// `lost` (the motion correction uses the 8-neighbours). 2: a marker with its whole 5 x 5
+    /// neighbourhood missed has no local support.
     pub support_radius: u16,
     /// Candidates per marker in each association pass (nearest detections within the gate).
     pub candidates: usize,
@@ -61,7 +61,7 @@ pub struct TrackerConfig {
     /// 0 ignores the second tier. See [`Tracker::update_tiered`].
     pub second_tier_gate_pitch: f64,
     /// A fine association is dropped when the marker's frame-to-frame motion differs from the
-    /// weighted median motion of its associated neighbours (at least 3) by more than this fraction
+    /// weighted median motion of its associated 8-neighbours (at least 3) by more than this fraction
     /// of the local pitch; 0 disables the check. 0.2: on the v1 val split 0.3 and 0.25 left id
     /// swaps where a sliding cube edge merges and shifts detections (`exp_0015`), 0.2 none there.
     pub motion_outlier_pitch: f64,
@@ -322,7 +322,7 @@ impl Tracker {
             .collect();
 
         let coarse = self.associate(&pred, &points, tree.as_ref(), self.config.gate_pitch);
-        let (step1, _) = self.local_motion(&points, &coarse, 2.0);
+        let (step1, _) = self.local_motion(&points, &coarse, false);
         let pred2: Vec<Point2> = (0..n)
             .map(|i| {
                 Point2::new(
@@ -335,7 +335,8 @@ impl Tracker {
         if self.config.motion_outlier_pitch > 0.0 {
             self.drop_motion_outliers(&points, &mut fine, self.config.motion_outlier_pitch);
         }
-        let (step2, around) = self.local_motion(&points, &fine, 2.0);
+        // Only the markers left without a detection use it (fill, second-tier gate).
+        let (step2, around) = self.local_motion(&points, &fine, true);
 
         let mut taken = vec![false; points.len()];
         let mut placed: Vec<(Point2, MarkerStatus, Option<usize>)> = Vec::with_capacity(n);
@@ -367,17 +368,10 @@ impl Tracker {
                 (p, s, None)
             });
         }
-        // The second tier is gated around the last position moved like the neighbours this frame
-        // (closer to the truth than the reference-anchored fill when the marker was tracked in
-        // the previous frame; fewer wrong associations on the val split).
-        let centres: Vec<Point2> = (0..n)
-            .map(|i| {
-                Point2::new(
-                    self.current_px[i].x + step2[i][0],
-                    self.current_px[i].y + step2[i][1],
-                )
-            })
-            .collect();
+        // The second tier is gated around a missed marker's step-5 position: its last position
+        // moved like its neighbours this frame (fewer wrong associations on the val split than
+        // the former reference-anchored fill).
+        let centres: Vec<Point2> = placed.iter().map(|p| p.0).collect();
         let second = self.take_second_tier(&placed, &centres, &points2);
         let mut markers = Vec::with_capacity(n);
         for (i, &(mut pos, mut status, mut det)) in placed.iter().enumerate() {
@@ -509,66 +503,106 @@ impl Tracker {
     }
 
     /// Unassigns every association whose frame-to-frame motion differs from the weighted median
-    /// motion of at least 3 associated markers around it (itself excluded) by more than `limit` x
+    /// motion of at least 3 associated 8-neighbours (itself excluded) by more than `limit` x
     /// its local pitch: a marker that jumps against its neighbours took a detection that is not
     /// its own (a merged or shifted blob, or its neighbour's marker).
     fn drop_motion_outliers(&self, points: &[[f64; 2]], assoc: &mut [u32], limit: f64) {
-        let (around, count) = self.local_motion(points, assoc, 0.0);
-        for i in 0..assoc.len() {
-            if assoc[i] == NONE || count[i] < 3 {
+        let step = self.steps(points, assoc);
+        let (mut bx, mut by) = (Vec::new(), Vec::new());
+        for (i, e) in step.iter().enumerate() {
+            let Some(e) = e else { continue };
+            self.gather(i, &step, 0.0, &mut bx, &mut by);
+            if bx.len() < 3 {
                 continue;
             }
-            let d = points[assoc[i] as usize];
-            let (ex, ey) = (d[0] - self.current_px[i].x, d[1] - self.current_px[i].y);
-            if (ex - around[i][0]).hypot(ey - around[i][1]) > limit * self.pitch_px[i] {
+            let g = limit * self.pitch_px[i];
+            // The median lies in the box of the neighbours' motions: when every corner of that box
+            // is within the limit, so is the median (most markers; sorting costs).
+            let far = |e: f64, v: &[(f64, f64)]| v.iter().map(|p| (e - p.0).abs()).fold(0.0, f64::max);
+            if far(e[0], &bx).hypot(far(e[1], &by)) <= g {
+                continue;
+            }
+            let m = [weighted_median(&mut bx), weighted_median(&mut by)];
+            if (e[0] - m[0]).hypot(e[1] - m[1]) > g {
                 assoc[i] = NONE;
             }
         }
     }
 
-    /// Per slot: the frame-to-frame motion of the associated markers around it (weighted median,
-    /// per coordinate, over the lattice neighbours within the support radius, weights 1/d^2 in
-    /// lattice steps, its own motion weighing `own_weight`; the global median motion where none
-    /// was associated), and how many of its neighbours (itself excluded) were associated. A
-    /// median, not a mean: a few wrong associations in a patch (merged or shifted detections under
-    /// a sliding edge) must not drag the predictions of the markers around them.
-    fn local_motion(&self, points: &[[f64; 2]], assoc: &[u32], own_weight: f64) -> (Vec<[f64; 2]>, Vec<u16>) {
-        let n = self.ids.len();
-        let step: Vec<Option<[f64; 2]>> = (0..n)
+    /// Frame-to-frame motion of each slot associated in `assoc`.
+    fn steps(&self, points: &[[f64; 2]], assoc: &[u32]) -> Vec<Option<[f64; 2]>> {
+        (0..self.ids.len())
             .map(|i| {
                 (assoc[i] != NONE).then(|| {
                     let d = points[assoc[i] as usize];
                     [d[0] - self.current_px[i].x, d[1] - self.current_px[i].y]
                 })
             })
-            .collect();
+            .collect()
+    }
+
+    /// Fills `bx` / `by` with the (motion, weight) pairs around `slot`: its own motion weighing
+    /// `own_weight` (none when 0), each associated 8-neighbour 1/d^2 (1 or 1/2). Returns the
+    /// number of associated neighbours within the support radius.
+    fn gather(
+        &self,
+        slot: usize,
+        step: &[Option<[f64; 2]>],
+        own_weight: f64,
+        bx: &mut Vec<(f64, f64)>,
+        by: &mut Vec<(f64, f64)>,
+    ) -> u16 {
+        bx.clear();
+        by.clear();
+        if let Some(e) = step[slot].filter(|_| own_weight > 0.0) {
+            bx.push((e[0], own_weight));
+            by.push((e[1], own_weight));
+        }
+        let mut c = 0u16;
+        for &(j, w) in &self.neighbours[slot] {
+            if let Some(e) = step[j as usize] {
+                // The median over the 8-neighbourhood (weights 1 and 1/2): nine values sort fast.
+                if w >= 0.5 {
+                    bx.push((e[0], w));
+                    by.push((e[1], w));
+                }
+                c += 1;
+            }
+        }
+        c
+    }
+
+    /// Per slot: the frame-to-frame motion of the associated markers around it (weighted median,
+    /// per coordinate, over its 8 lattice neighbours, weights 1 and 1/2, its own motion weighing
+    /// 2; the global median motion where none was associated), and how many of its neighbours
+    /// within the support radius (itself excluded) were associated; with
+    /// `unassociated_only`, only for the slots without a detection in `assoc` (zero elsewhere).
+    /// A median, not a mean: a few wrong associations in a patch (merged or shifted detections
+    /// under a sliding edge) must not drag the predictions of the markers around them.
+    fn local_motion(
+        &self,
+        points: &[[f64; 2]],
+        assoc: &[u32],
+        unassociated_only: bool,
+    ) -> (Vec<[f64; 2]>, Vec<u16>) {
+        let n = self.ids.len();
+        let step = self.steps(points, assoc);
         let sx: Vec<f64> = step.iter().flatten().map(|e| e[0]).collect();
         let sy: Vec<f64> = step.iter().flatten().map(|e| e[1]).collect();
         let global = [median(sx).unwrap_or(0.0), median(sy).unwrap_or(0.0)];
-        let mut motion = Vec::with_capacity(n);
-        let mut count = Vec::with_capacity(n);
-        let (mut bx, mut by) = (Vec::<(f64, f64)>::new(), Vec::<(f64, f64)>::new());
+        let mut motion = vec![[0.0; 2]; n];
+        let mut count = vec![0u16; n];
+        let (mut bx, mut by) = (Vec::new(), Vec::new());
         for i in 0..n {
-            bx.clear();
-            by.clear();
-            if let Some(e) = step[i].filter(|_| own_weight > 0.0) {
-                bx.push((e[0], own_weight));
-                by.push((e[1], own_weight));
+            if unassociated_only && step[i].is_some() {
+                continue;
             }
-            let mut c = 0u16;
-            for &(j, w) in &self.neighbours[i] {
-                if let Some(e) = step[j as usize] {
-                    bx.push((e[0], w));
-                    by.push((e[1], w));
-                    c += 1;
-                }
-            }
-            count.push(c);
-            motion.push(if bx.is_empty() {
+            count[i] = self.gather(i, &step, 2.0, &mut bx, &mut by);
+            motion[i] = if bx.is_empty() {
                 global
             } else {
                 [weighted_median(&mut bx), weighted_median(&mut by)]
-            });
+            };
         }
         (motion, count)
     }
