@@ -9,9 +9,9 @@
 //!    `gate_pitch` x the marker's local pitch (a kiddo k-d tree over the detections), assigned
 //!    one-to-one, closest pairs first.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
-//!    median frame-to-frame motion of the markers associated around it (its 8 lattice neighbours,
-//!    weights 1 and 1/2, its own motion counting 2; the global median motion where none of them
-//!    was associated). This follows the gel's smooth
+//!    median frame-to-frame motion of the markers associated around it (lattice neighbours within
+//!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting 2; the
+//!    global median motion where none was associated). This follows the gel's smooth
 //!    deformation field and absorbs sudden starts and stops that the constant-velocity model
 //!    misses; a median, so that a few wrong associations do not drag the markers around them.
 //! 4. **Fine association** from scratch with the corrected predictions and the tighter gate
@@ -50,9 +50,11 @@ pub struct TrackerConfig {
     /// Fraction of the last frame-to-frame motion added to the prediction (1 = constant velocity).
     /// 0.8 damps overshoot when the motion stops; the neighbour correction does the rest.
     pub velocity_factor: f64,
-    /// Lattice radius (steps) of the neighbours that keep a missed marker `predicted` rather than
-    /// `lost` (the motion correction uses the 8-neighbours). 2: a marker with its whole 5 x 5
-    /// neighbourhood missed has no local support.
+    /// Lattice radius (steps) of the neighbours whose motion corrects a marker's prediction and
+    /// that keep a missed marker `predicted` rather than `lost`. 2: a marker with its whole 5 x 5
+    /// neighbourhood missed has no local support; the median over the 8-neighbourhood alone
+    /// dropped the sudden slide of `data/sample/press-slide` (the 3 x 3 patch splits at the edge
+    /// of the sliding contact).
     pub support_radius: u16,
     /// Candidates per marker in each association pass (nearest detections within the gate).
     pub candidates: usize,
@@ -61,7 +63,7 @@ pub struct TrackerConfig {
     /// 0 ignores the second tier. See [`Tracker::update_tiered`].
     pub second_tier_gate_pitch: f64,
     /// A fine association is dropped when the marker's frame-to-frame motion differs from the
-    /// weighted median motion of its associated 8-neighbours (at least 3) by more than this fraction
+    /// weighted median motion of its associated neighbours (at least 3) by more than this fraction
     /// of the local pitch; 0 disables the check. 0.2: on the v1 val split 0.3 and 0.25 left id
     /// swaps where a sliding cube edge merges and shifts detections (`exp_0015`), 0.2 none there.
     pub motion_outlier_pitch: f64,
@@ -503,7 +505,7 @@ impl Tracker {
     }
 
     /// Unassigns every association whose frame-to-frame motion differs from the weighted median
-    /// motion of at least 3 associated 8-neighbours (itself excluded) by more than `limit` x
+    /// motion of at least 3 associated neighbours within the support radius (itself excluded) by more than `limit` x
     /// its local pitch: a marker that jumps against its neighbours took a detection that is not
     /// its own (a merged or shifted blob, or its neighbour's marker).
     fn drop_motion_outliers(&self, points: &[[f64; 2]], assoc: &mut [u32], limit: f64) {
@@ -511,8 +513,7 @@ impl Tracker {
         let (mut bx, mut by) = (Vec::new(), Vec::new());
         for (i, e) in step.iter().enumerate() {
             let Some(e) = e else { continue };
-            self.gather(i, &step, 0.0, &mut bx, &mut by);
-            if bx.len() < 3 {
+            if self.gather(i, &step, 0.0, &mut bx, &mut by) < 3 {
                 continue;
             }
             let g = limit * self.pitch_px[i];
@@ -542,8 +543,8 @@ impl Tracker {
     }
 
     /// Fills `bx` / `by` with the (motion, weight) pairs around `slot`: its own motion weighing
-    /// `own_weight` (none when 0), each associated 8-neighbour 1/d^2 (1 or 1/2). Returns the
-    /// number of associated neighbours within the support radius.
+    /// `own_weight` (none when 0), each associated lattice neighbour within the support radius
+    /// 1/d^2. Returns the number of those neighbours.
     fn gather(
         &self,
         slot: usize,
@@ -561,11 +562,8 @@ impl Tracker {
         let mut c = 0u16;
         for &(j, w) in &self.neighbours[slot] {
             if let Some(e) = step[j as usize] {
-                // The median over the 8-neighbourhood (weights 1 and 1/2): nine values sort fast.
-                if w >= 0.5 {
-                    bx.push((e[0], w));
-                    by.push((e[1], w));
-                }
+                bx.push((e[0], w));
+                by.push((e[1], w));
                 c += 1;
             }
         }
@@ -573,9 +571,9 @@ impl Tracker {
     }
 
     /// Per slot: the frame-to-frame motion of the associated markers around it (weighted median,
-    /// per coordinate, over its 8 lattice neighbours, weights 1 and 1/2, its own motion weighing
-    /// 2; the global median motion where none was associated), and how many of its neighbours
-    /// within the support radius (itself excluded) were associated; with
+    /// per coordinate, over the lattice neighbours within the support radius, weights 1/d^2 in
+    /// lattice steps, its own motion weighing 2; the global median motion where none was
+    /// associated), and how many of its neighbours (itself excluded) were associated; with
     /// `unassociated_only`, only for the slots without a detection in `assoc` (zero elsewhere).
     /// A median, not a mean: a few wrong associations in a patch (merged or shifted detections
     /// under a sliding edge) must not drag the predictions of the markers around them.
