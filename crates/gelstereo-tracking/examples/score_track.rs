@@ -5,7 +5,8 @@
 //! gross-slip F1 per frame, onset delay, and slip reported before contact.
 //!
 //! `cargo run --release -p gelstereo-tracking --example score_track -- REC OUT [REC OUT ...]`
-//! (`REC` a simulated recording, `OUT` the folder `gelstereo track` wrote for it).
+//! (`REC` a simulated recording, `OUT` the folder `gelstereo track` wrote for it). `--swaps` first
+//! lists every swapped id: recording, id, and each ground-truth marker it mapped to with its frames.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -42,7 +43,11 @@ fn quantile(v: &mut [f64], q: f64) -> f64 {
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let list_swaps = args.first().is_some_and(|a| a == "--swaps");
+    if list_swaps {
+        args.remove(0);
+    }
     if args.len() < 2 || !args.len().is_multiple_of(2) {
         return Err("usage: score_track REC OUT [REC OUT ...]".into());
     }
@@ -84,6 +89,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // Id swaps: output ids that map (nearest visible ground-truth marker within r) to more than
         // one ground-truth marker over the recording.
         let mut maps: BTreeMap<GridIndex, BTreeSet<GridIndex>> = BTreeMap::new();
+        // Per output id and ground-truth marker: first frame, last frame, frames.
+        let mut spans: BTreeMap<(GridIndex, GridIndex), (u32, u32, u32)> = BTreeMap::new();
         let mut est_by_frame: BTreeMap<u32, Vec<&MarkerRecord>> = BTreeMap::new();
         for m in &est_rows {
             est_by_frame.entry(m.frame).or_default().push(m);
@@ -102,6 +109,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     if let Some((dist, id)) = nearest.filter(|n| n.0 <= r) {
                         let _ = dist;
                         maps.entry(m.index).or_default().insert(id);
+                        let e = spans.entry((m.index, id)).or_insert((*f, *f, 0));
+                        e.1 = *f;
+                        e.2 += 1;
                     }
                 }
                 // A tracked marker must sit on its own marker in each view it has a position in.
@@ -126,6 +136,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let frac = tracked as f64 / visible as f64;
                 worst_tracked = worst_tracked.min(frac);
                 tracked_fracs.push(frac);
+            }
+        }
+        if list_swaps {
+            for (id, set) in maps.iter().filter(|(_, s)| s.len() > 1) {
+                let parts: Vec<String> = set
+                    .iter()
+                    .map(|g| {
+                        let (a, b, c) = spans[&(*id, *g)];
+                        format!("{g} in {c} frames {a}-{b}")
+                    })
+                    .collect();
+                println!("swap {} id {id}: {}", rec.display(), parts.join("; "));
             }
         }
         ids_total += maps.len();

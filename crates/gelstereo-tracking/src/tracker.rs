@@ -9,18 +9,22 @@
 //!    `gate_pitch` x the marker's local pitch (a kiddo k-d tree over the detections), assigned
 //!    one-to-one, closest pairs first.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
-//!    mean frame-to-frame motion of the markers associated around it (lattice neighbours within
-//!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting double; the
-//!    global median motion where no neighbour was associated). This follows the gel's smooth
-//!    deformation field and absorbs sudden starts and stops that the constant-velocity model misses.
+//!    median frame-to-frame motion of the markers associated around it (lattice neighbours within
+//!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting 2; the
+//!    global median motion where none was associated). This follows the gel's smooth
+//!    deformation field and absorbs sudden starts and stops that the constant-velocity model
+//!    misses; a median, so that a few wrong associations do not drag the markers around them.
 //! 4. **Fine association** from scratch with the corrected predictions and the tighter gate
 //!    `refine_gate_pitch`, again one-to-one, closest first. One-to-one assignment plus gates below
-//!    half a pitch are what keep ids from swapping.
-//! 5. Markers left without a detection are placed at their reference position plus the weighted mean
-//!    displacement of their associated neighbours (no memory: a marker that took a wrong detection
-//!    once does not carry the error on): `predicted` when at least one lattice neighbour within
-//!    `support_radius` was tracked in this frame, `lost` otherwise. Lost and predicted markers keep
-//!    being predicted, so they are re-acquired as soon as a detection shows up near their prediction.
+//!    half a pitch are what keep ids from swapping. **Motion check**: an association whose motion
+//!    differs from the weighted median motion of its associated neighbours (at least 3, itself
+//!    excluded) by more than `motion_outlier_pitch` x the pitch is dropped: a marker does not
+//!    jump against its neighbours; a detection that makes it do so is a merged or shifted blob or
+//!    its neighbour's marker.
+//! 5. Markers left without a detection are placed at their last position plus that neighbour
+//!    motion: `predicted` when at least one lattice neighbour within `support_radius` was
+//!    associated in this frame, `lost` otherwise. Lost and predicted markers keep being predicted,
+//!    so they are re-acquired as soon as a detection shows up near their prediction.
 
 use std::num::NonZeroUsize;
 
@@ -46,9 +50,11 @@ pub struct TrackerConfig {
     /// Fraction of the last frame-to-frame motion added to the prediction (1 = constant velocity).
     /// 0.8 damps overshoot when the motion stops; the neighbour correction does the rest.
     pub velocity_factor: f64,
-    /// Lattice radius (steps) of the neighbours whose prediction errors correct a marker's
-    /// prediction and that keep a missed marker `predicted` rather than `lost`. 2: a marker with
-    /// its whole 5 x 5 neighbourhood missed has no local support.
+    /// Lattice radius (steps) of the neighbours whose motion corrects a marker's prediction and
+    /// that keep a missed marker `predicted` rather than `lost`. 2: a marker with its whole 5 x 5
+    /// neighbourhood missed has no local support; the median over the 8-neighbourhood alone
+    /// dropped the sudden slide of `data/sample/press-slide` (the 3 x 3 patch splits at the edge
+    /// of the sliding contact).
     pub support_radius: u16,
     /// Candidates per marker in each association pass (nearest detections within the gate).
     pub candidates: usize,
@@ -56,6 +62,11 @@ pub struct TrackerConfig {
     /// the local pitch, around the neighbour-based position of a marker left without a detection;
     /// 0 ignores the second tier. See [`Tracker::update_tiered`].
     pub second_tier_gate_pitch: f64,
+    /// A fine association is dropped when the marker's frame-to-frame motion differs from the
+    /// weighted median motion of its associated neighbours (at least 3) by more than this fraction
+    /// of the local pitch; 0 disables the check. 0.2: on the v1 val split 0.3 and 0.25 left id
+    /// swaps where a sliding cube edge merges and shifts detections (`exp_0015`), 0.2 none there.
+    pub motion_outlier_pitch: f64,
 }
 
 impl Default for TrackerConfig {
@@ -67,6 +78,7 @@ impl Default for TrackerConfig {
             support_radius: 2,
             candidates: 3,
             second_tier_gate_pitch: 0.2,
+            motion_outlier_pitch: 0.2,
         }
     }
 }
@@ -85,6 +97,9 @@ impl TrackerConfig {
         frac("refine_gate_pitch", self.refine_gate_pitch)?;
         if self.second_tier_gate_pitch != 0.0 {
             frac("second_tier_gate_pitch", self.second_tier_gate_pitch)?;
+        }
+        if self.motion_outlier_pitch != 0.0 {
+            frac("motion_outlier_pitch", self.motion_outlier_pitch)?;
         }
         if !(self.velocity_factor.is_finite() && (0.0..=1.5).contains(&self.velocity_factor)) {
             return Err(config_err(
@@ -309,7 +324,7 @@ impl Tracker {
             .collect();
 
         let coarse = self.associate(&pred, &points, tree.as_ref(), self.config.gate_pitch);
-        let (step1, _) = self.local_motion(&points, &coarse);
+        let (step1, _) = self.local_motion(&points, &coarse, false);
         let pred2: Vec<Point2> = (0..n)
             .map(|i| {
                 Point2::new(
@@ -318,8 +333,12 @@ impl Tracker {
                 )
             })
             .collect();
-        let fine = self.associate(&pred2, &points, tree.as_ref(), self.config.refine_gate_pitch);
-        let (step2, support) = self.local_motion(&points, &fine);
+        let mut fine = self.associate(&pred2, &points, tree.as_ref(), self.config.refine_gate_pitch);
+        if self.config.motion_outlier_pitch > 0.0 {
+            self.drop_motion_outliers(&points, &mut fine, self.config.motion_outlier_pitch);
+        }
+        // Only the markers left without a detection use it (fill, second-tier gate).
+        let (step2, around) = self.local_motion(&points, &fine, true);
 
         let mut taken = vec![false; points.len()];
         let mut placed: Vec<(Point2, MarkerStatus, Option<usize>)> = Vec::with_capacity(n);
@@ -333,16 +352,17 @@ impl Tracker {
                     Some(finite[d]),
                 )
             } else {
-                // Anchored on the reference and the neighbours' displacement: no memory, so a
-                // marker that took a wrong detection once does not carry the error on.
-                let p = match self.neighbour_displacement(i, &points, &fine) {
-                    Some(d) => Point2::new(self.reference_px[i].x + d[0], self.reference_px[i].y + d[1]),
-                    None => Point2::new(
-                        self.current_px[i].x + step2[i][0],
-                        self.current_px[i].y + step2[i][1],
-                    ),
-                };
-                let s = if support[i] {
+                // The last position moved like its neighbours this frame. Not re-anchored on the
+                // reference plus the neighbours' mean displacement: under a sliding edge the
+                // displacement field changes by a pitch within two lattice steps, and that fill
+                // put missed markers 0.3-0.6 pitch off, onto their neighbour's detection (val
+                // exp_0015, train exp_0010). A wrong detection cannot be carried on either: the
+                // motion check below drops it.
+                let p = Point2::new(
+                    self.current_px[i].x + step2[i][0],
+                    self.current_px[i].y + step2[i][1],
+                );
+                let s = if around[i] > 0 {
                     MarkerStatus::Predicted
                 } else {
                     MarkerStatus::Lost
@@ -350,17 +370,10 @@ impl Tracker {
                 (p, s, None)
             });
         }
-        // The second tier is gated around the last position moved like the neighbours this frame
-        // (closer to the truth than the reference-anchored fill when the marker was tracked in
-        // the previous frame; fewer wrong associations on the val split).
-        let centres: Vec<Point2> = (0..n)
-            .map(|i| {
-                Point2::new(
-                    self.current_px[i].x + step2[i][0],
-                    self.current_px[i].y + step2[i][1],
-                )
-            })
-            .collect();
+        // The second tier is gated around a missed marker's step-5 position: its last position
+        // moved like its neighbours this frame (fewer wrong associations on the val split than
+        // the former reference-anchored fill).
+        let centres: Vec<Point2> = placed.iter().map(|p| p.0).collect();
         let second = self.take_second_tier(&placed, &centres, &points2);
         let mut markers = Vec::with_capacity(n);
         for (i, &(mut pos, mut status, mut det)) in placed.iter().enumerate() {
@@ -491,62 +504,120 @@ impl Tracker {
         out
     }
 
-    /// Weighted mean displacement against the reference of the associated lattice neighbours of
-    /// `slot` (weights 1/d^2 in lattice steps); `None` without any.
-    fn neighbour_displacement(&self, slot: usize, points: &[[f64; 2]], assoc: &[u32]) -> Option<[f64; 2]> {
-        let (mut dx, mut dy, mut sw) = (0.0, 0.0, 0.0);
-        for &(j, w) in &self.neighbours[slot] {
-            let j = j as usize;
-            if assoc[j] != NONE {
-                let d = points[assoc[j] as usize];
-                dx += w * (d[0] - self.reference_px[j].x);
-                dy += w * (d[1] - self.reference_px[j].y);
-                sw += w;
+    /// Unassigns every association whose frame-to-frame motion differs from the weighted median
+    /// motion of at least 3 associated neighbours within the support radius (itself excluded) by more than `limit` x
+    /// its local pitch: a marker that jumps against its neighbours took a detection that is not
+    /// its own (a merged or shifted blob, or its neighbour's marker).
+    fn drop_motion_outliers(&self, points: &[[f64; 2]], assoc: &mut [u32], limit: f64) {
+        let step = self.steps(points, assoc);
+        let (mut bx, mut by) = (Vec::new(), Vec::new());
+        for (i, e) in step.iter().enumerate() {
+            let Some(e) = e else { continue };
+            if self.gather(i, &step, 0.0, &mut bx, &mut by) < 3 {
+                continue;
+            }
+            let g = limit * self.pitch_px[i];
+            // The median lies in the box of the neighbours' motions: when every corner of that box
+            // is within the limit, so is the median (most markers; sorting costs).
+            let far = |e: f64, v: &[(f64, f64)]| v.iter().map(|p| (e - p.0).abs()).fold(0.0, f64::max);
+            if far(e[0], &bx).hypot(far(e[1], &by)) <= g {
+                continue;
+            }
+            let m = [weighted_median(&mut bx), weighted_median(&mut by)];
+            if (e[0] - m[0]).hypot(e[1] - m[1]) > g {
+                assoc[i] = NONE;
             }
         }
-        (sw > 0.0).then(|| [dx / sw, dy / sw])
     }
 
-    /// Per slot: the frame-to-frame motion of the associated markers around it (weighted mean over
-    /// the lattice neighbours within the support radius, its own motion counting like two direct
-    /// neighbours; the global median motion where none was associated), and whether any marker
-    /// within the support radius was associated.
-    fn local_motion(&self, points: &[[f64; 2]], assoc: &[u32]) -> (Vec<[f64; 2]>, Vec<bool>) {
-        let n = self.ids.len();
-        let step: Vec<Option<[f64; 2]>> = (0..n)
+    /// Frame-to-frame motion of each slot associated in `assoc`.
+    fn steps(&self, points: &[[f64; 2]], assoc: &[u32]) -> Vec<Option<[f64; 2]>> {
+        (0..self.ids.len())
             .map(|i| {
                 (assoc[i] != NONE).then(|| {
                     let d = points[assoc[i] as usize];
                     [d[0] - self.current_px[i].x, d[1] - self.current_px[i].y]
                 })
             })
-            .collect();
+            .collect()
+    }
+
+    /// Fills `bx` / `by` with the (motion, weight) pairs around `slot`: its own motion weighing
+    /// `own_weight` (none when 0), each associated lattice neighbour within the support radius
+    /// 1/d^2. Returns the number of those neighbours.
+    fn gather(
+        &self,
+        slot: usize,
+        step: &[Option<[f64; 2]>],
+        own_weight: f64,
+        bx: &mut Vec<(f64, f64)>,
+        by: &mut Vec<(f64, f64)>,
+    ) -> u16 {
+        bx.clear();
+        by.clear();
+        if let Some(e) = step[slot].filter(|_| own_weight > 0.0) {
+            bx.push((e[0], own_weight));
+            by.push((e[1], own_weight));
+        }
+        let mut c = 0u16;
+        for &(j, w) in &self.neighbours[slot] {
+            if let Some(e) = step[j as usize] {
+                bx.push((e[0], w));
+                by.push((e[1], w));
+                c += 1;
+            }
+        }
+        c
+    }
+
+    /// Per slot: the frame-to-frame motion of the associated markers around it (weighted median,
+    /// per coordinate, over the lattice neighbours within the support radius, weights 1/d^2 in
+    /// lattice steps, its own motion weighing 2; the global median motion where none was
+    /// associated), and how many of its neighbours (itself excluded) were associated; with
+    /// `unassociated_only`, only for the slots without a detection in `assoc` (zero elsewhere).
+    /// A median, not a mean: a few wrong associations in a patch (merged or shifted detections
+    /// under a sliding edge) must not drag the predictions of the markers around them.
+    fn local_motion(
+        &self,
+        points: &[[f64; 2]],
+        assoc: &[u32],
+        unassociated_only: bool,
+    ) -> (Vec<[f64; 2]>, Vec<u16>) {
+        let n = self.ids.len();
+        let step = self.steps(points, assoc);
         let sx: Vec<f64> = step.iter().flatten().map(|e| e[0]).collect();
         let sy: Vec<f64> = step.iter().flatten().map(|e| e[1]).collect();
         let global = [median(sx).unwrap_or(0.0), median(sy).unwrap_or(0.0)];
-        let mut motion = Vec::with_capacity(n);
-        let mut support = Vec::with_capacity(n);
+        let mut motion = vec![[0.0; 2]; n];
+        let mut count = vec![0u16; n];
+        let (mut bx, mut by) = (Vec::new(), Vec::new());
         for i in 0..n {
-            let (mut mx, mut my, mut mw) = (0.0, 0.0, 0.0);
-            if let Some(e) = step[i] {
-                mx += 2.0 * e[0];
-                my += 2.0 * e[1];
-                mw += 2.0;
+            if unassociated_only && step[i].is_some() {
+                continue;
             }
-            let mut any = step[i].is_some();
-            for &(j, w) in &self.neighbours[i] {
-                if let Some(e) = step[j as usize] {
-                    mx += w * e[0];
-                    my += w * e[1];
-                    mw += w;
-                    any = true;
-                }
-            }
-            support.push(any);
-            motion.push(if mw > 0.0 { [mx / mw, my / mw] } else { global });
+            count[i] = self.gather(i, &step, 2.0, &mut bx, &mut by);
+            motion[i] = if bx.is_empty() {
+                global
+            } else {
+                [weighted_median(&mut bx), weighted_median(&mut by)]
+            };
         }
-        (motion, support)
+        (motion, count)
     }
+}
+
+/// Weighted median of (value, weight) pairs (reorders them); the lower one at an exact half.
+fn weighted_median(v: &mut [(f64, f64)]) -> f64 {
+    v.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+    let half = 0.5 * v.iter().map(|p| p.1).sum::<f64>();
+    let mut acc = 0.0;
+    for &(x, w) in v.iter() {
+        acc += w;
+        if acc >= half {
+            return x;
+        }
+    }
+    v.last().map_or(0.0, |p| p.0)
 }
 
 /// The finite points of `detections`: their positions in `detections` and their coordinates.
@@ -798,8 +869,11 @@ mod tests {
         // Nearest-marker rule, with a wide gate (0.45 pitch): a candidate 3.8 px east of the missed
         // marker is taken while its east neighbour sits on the lattice, not once that neighbour's
         // detection is 3 px closer (the candidate is then nearer to it than to the missed marker).
+        // (The motion check is off: the squeezed neighbour jumps 0.3 pitch against a still
+        // lattice, which it would drop.)
         let wide = TrackerConfig {
             second_tier_gate_pitch: 0.45,
+            motion_outlier_pitch: 0.0,
             ..TrackerConfig::default()
         };
         let candidate = Point2::new(23.8, 20.0);
@@ -887,5 +961,64 @@ mod tests {
             ..Default::default()
         };
         assert!(cfg.validate().unwrap_err().to_string().contains("gate_pitch"));
+    }
+
+    #[test]
+    fn a_detection_drifting_onto_a_neighbour_does_not_take_its_id_along() {
+        // A 7 x 9 lattice (pitch 10 px) slides right at 0.5 px per frame. From frame 4 the
+        // markers (3, 4) and (3, 5) show as one blob that drifts from (3, 5) onto (3, 4), 2.5 px
+        // per frame against the lattice (the merged detections under the sliding cube edge of val
+        // `exp_0015` and train `exp_0010`), then both are found again. Before the motion check,
+        // (3, 5) followed the blob onto its neighbour's place: the scorer's id swap.
+        let shape = GridShape { rows: 7, cols: 9 };
+        let (a, b) = (GridIndex::new(3, 4), GridIndex::new(3, 5));
+        let at = |i: GridIndex, f: u32| {
+            Point2::new(
+                10.0 * f64::from(i.col) + 0.5 * f64::from(f),
+                10.0 * f64::from(i.row),
+            )
+        };
+        let reference: Vec<(GridIndex, Point2)> = shape.indices().map(|i| (i, at(i, 0))).collect();
+        let mut t = Tracker::new(shape, &reference, TrackerConfig::default()).unwrap();
+        for f in 1..=12u32 {
+            let merged = (4..=7).contains(&f);
+            let mut dets: Vec<(Option<GridIndex>, Point2)> = shape
+                .indices()
+                .filter(|i| !merged || (*i != a && *i != b))
+                .map(|i| (Some(i), at(i, f)))
+                .collect();
+            if merged {
+                let p = at(b, f);
+                dets.push((None, Point2::new(p.x - 2.5 * f64::from(f - 3), p.y)));
+            }
+            let out = t.update(&dets.iter().map(|d| d.1).collect::<Vec<_>>());
+            for m in &out.markers {
+                let p = m.position_px.unwrap();
+                // The scorer's id swap: an id within a quarter pitch of another marker.
+                let other = shape
+                    .indices()
+                    .find(|&i| i != m.index && p.distance(at(i, f)) <= 2.5);
+                assert!(
+                    other.is_none(),
+                    "frame {f}: {} ({:?}) on {other:?}",
+                    m.index,
+                    m.status
+                );
+                if let Some(k) = m.detection {
+                    assert!(
+                        dets[k].0.is_none_or(|i| i == m.index),
+                        "frame {f}: {} took another's detection",
+                        m.index
+                    );
+                }
+            }
+            if f >= 9 {
+                assert_eq!(
+                    out.count(MarkerStatus::Tracked),
+                    63,
+                    "frame {f}: both found again"
+                );
+            }
+        }
     }
 }
