@@ -23,7 +23,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let tracked = args.first().is_some_and(|a| a == "--tracked");
     if tracked {
         args.remove(0);
-        if args.len() % 2 != 0 {
+        if !args.len().is_multiple_of(2) {
             return Err("--tracked takes pairs REC OUT".into());
         }
     }
