@@ -4,7 +4,9 @@
 //!
 //! `cargo run --release -p gelstereo-tracking --example truth_eval -- [--noise MM] REC...`
 //! (a recording folder per experiment; `VERBOSE=1` prints every contact frame, `PER_RECORDING=1`
-//! the gross-slip errors of each recording).
+//! the gross-slip errors of each recording). `--tracked REC OUT ...` replays contact and slip on
+//! the 3-D positions a `gelstereo track` run wrote to `OUT/markers.csv` instead (from images, with
+//! no localization: a fast loop for slip rules; `score_track` gives the figures of record).
 
 use std::path::Path;
 
@@ -17,6 +19,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if args.first().is_some_and(|a| a == "--noise") && args.len() > 1 {
         noise = args[1].parse()?;
         args.drain(..2);
+    }
+    let tracked = args.first().is_some_and(|a| a == "--tracked");
+    if tracked {
+        args.remove(0);
+        if !args.len().is_multiple_of(2) {
+            return Err("--tracked takes pairs REC OUT".into());
+        }
     }
     let verbose = std::env::var("VERBOSE").is_ok();
     // PER_RECORDING=1: one line per recording with gross-slip errors.
@@ -50,9 +59,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         state ^= state << 17;
         (state >> 11) as f64 / (1u64 << 53) as f64
     };
-    for rec in &args {
+    let pairs: Vec<(&String, &String)> = if tracked {
+        args.chunks(2).map(|p| (&p[0], &p[1])).collect()
+    } else {
+        args.iter().map(|a| (a, a)).collect()
+    };
+    for (rec, positions) in pairs {
         let rec = Path::new(rec);
-        let markers = CsvTable::read(&rec.join("markers.csv"))?;
+        let markers = CsvTable::read(&Path::new(positions).join("markers.csv"))?;
         let frames = CsvTable::read(&rec.join("frames.csv"))?;
         let rows: Vec<MarkerRecord> = (0..markers.len())
             .map(|r| MarkerRecord::from_table(&markers, r))
@@ -72,7 +86,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 slot[lin] = Some(p.map(|v| v + noise * (2.0 * uniform() - 1.0) * 3f64.sqrt()));
             }
         }
-        let surface = ReferenceSurface::new(shape, &per_frame[0])?;
+        let surface = match ReferenceSurface::new(shape, &per_frame[0]) {
+            Ok(s) => s,
+            // A track run that found no reference lattice reports no contact in every frame (as
+            // `score_track` scores it).
+            Err(e) if tracked => {
+                eprintln!("{}: {e}; scored as no contact", rec.display());
+                let gt_gross = truth.iter().filter(|g| g.slip == SlipState::GrossSlip).count();
+                fneg += gt_gross;
+                for gt in &truth {
+                    conf[gt.slip as usize][SlipState::NoContact as usize] += 1;
+                }
+                if gt_gross > 0 {
+                    onset_err.push(999);
+                }
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
         // The gel thickness of the recording's sensor (as `gelstereo track` reads it from meta.json).
         let mut contact_cfg = contact_cfg.clone();
         if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
@@ -110,7 +141,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (mut gt_onset, mut est_onset) = (None, None);
         let (tp0, fp0, fn0) = (tp, fp, fneg);
         let mut touched = false;
+        let session_cfg = gelstereo_tracking::SessionConfig::default();
+        let reference = per_frame[0].clone();
         for (f, gt) in truth.iter().enumerate() {
+            // A track run's written positions again through its outlier test and fill (markers it
+            // dropped within the noise floor were written as measured), as the session analyses them.
+            if tracked {
+                gelstereo_tracking::session::reject_outliers(
+                    shape,
+                    &reference,
+                    &mut per_frame[f],
+                    session_cfg.outlier_threshold,
+                    session_cfg.outlier_noise_mm,
+                );
+                per_frame[f] =
+                    gelstereo_tracking::session::fill_from_neighbours(shape, &reference, &per_frame[f]);
+            }
             let c = surface.analyze(&per_frame[f], &contact_cfg)?;
             let sl = det.update(&surface, &c);
             touched |= gt.contact;

@@ -411,7 +411,7 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
 /// when larger, the median residual over the lattice (then predicted from its neighbours).
 /// Needs at least 3 measured neighbours. Returns the dropped markers: lattice position, position
 /// and residual, mm.
-fn reject_outliers(
+pub fn reject_outliers(
     shape: GridShape,
     reference: &[Option<[f64; 3]>],
     current: &mut [Option<[f64; 3]>],
@@ -475,7 +475,7 @@ fn reject_outliers(
 
 /// Dense positions where missing entries with a reference take the reference plus the mean
 /// displacement of their present 8-neighbours (that have a reference).
-fn fill_from_neighbours(
+pub fn fill_from_neighbours(
     shape: GridShape,
     reference: &[Option<[f64; 3]>],
     current: &[Option<[f64; 3]>],

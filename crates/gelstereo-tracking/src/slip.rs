@@ -70,7 +70,12 @@ pub struct SlipConfig {
     /// `drift_noise_factor`). 0.01: the noise-free floor.
     pub drift_mm_per_frame: f64,
     /// Mean shear, as a fraction of the largest depth, below which a drift is not taken for gross
-    /// slip (0.25, chosen on the training sets: it removes drifts of growing contacts while pressing).
+    /// slip: it removes drifts of growing contacts while pressing, and from images the noisy drift
+    /// of contacts still being sheared towards the friction limit (0.5-0.8 x the depth in the
+    /// simulator). 0.35, chosen among 0.25-0.45 on the train / val splits and the seed-303 / 404
+    /// sets: the same on exact and noisy 3-D as the former 0.25, and from images (Marknet-MRE)
+    /// the early onsets of slides at 0.22-0.33 went (seeds 303 + 404 0.850 -> 0.866); above 0.4
+    /// slides from images were missed.
     pub min_shear_per_depth: f64,
     /// Under a twist (rotation about the contact larger than the mean shear), the stick fraction
     /// below which the contact slides as a whole (0.1, chosen on the training sets).
@@ -104,7 +109,7 @@ impl Default for SlipConfig {
             plateau_min_mm: 0.02,
             drift_mm_per_frame: 0.01,
             twist_gross_fraction: 0.1,
-            min_shear_per_depth: 0.25,
+            min_shear_per_depth: 0.35,
             drift_noise_factor: 1.5,
             turn_threshold_factor: 2.0,
             twist_turn_ratio: 2.0,
@@ -592,6 +597,45 @@ mod tests {
             ..SlipConfig::default()
         });
         assert!(!fixed.contains(&SlipState::GrossSlip), "{fixed:?}");
+    }
+
+    #[test]
+    fn a_drift_while_the_shear_is_below_the_friction_limit_is_not_gross_slip() {
+        // The cap of `frame` (depth 0.6 mm) dragged by 0.2 mm (the stick-region limit 0.8 w is
+        // above it in the contact's centre) while its material centre drifts by 0.03 mm a frame,
+        // as a noisy drift from images does: its mean shear is 0.25-0.35 x the depth, below the
+        // friction limit of a sliding contact.
+        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
+            .iter()
+            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
+            .collect();
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let run = |config: SlipConfig| -> Vec<SlipFrame> {
+            let mut det = SlipDetector::new(config).unwrap();
+            (0..5)
+                .map(|k| {
+                    let c = surface.analyze(&frame(0.03 * f64::from(k), 0.2), &cfg).unwrap();
+                    det.update(&surface, &c)
+                })
+                .collect()
+        };
+        let frames = run(SlipConfig::default());
+        for f in &frames {
+            let ratio = f.shear_mm.norm() / 0.6;
+            assert!((0.25..0.35).contains(&ratio), "{ratio}");
+        }
+        assert!(frames[2..].iter().all(|f| f.drift_mm > 0.02), "{frames:?}");
+        assert!(
+            frames.iter().all(|f| f.state != SlipState::GrossSlip),
+            "{frames:?}"
+        );
+        // The former 0.25 took the drift for a slide.
+        let before = run(SlipConfig {
+            min_shear_per_depth: 0.25,
+            ..SlipConfig::default()
+        });
+        assert_eq!(before.last().map(|f| f.state), Some(SlipState::GrossSlip));
     }
 
     #[test]
