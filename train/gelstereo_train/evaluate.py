@@ -24,6 +24,7 @@ from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
     MIN_PITCH_SUPPORT,
+    PROBE_BELOW,
     FitConfig,
     Layout,
     PostConfig,
@@ -36,6 +37,7 @@ from .postprocess import (
     postprocess,
     preprocess,
     preprocess_layout,
+    probe_layout,
     relayout_needed,
 )
 
@@ -44,7 +46,8 @@ class MarknetRunner:
     """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image.
 
     Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
-    docs/model-contract.md: a first pass without a pitch, then, when the measured marker pitch asks for a
+    docs/model-contract.md: a first pass without a pitch (probed again at ``PROBE_SCALE`` x the scale when it
+    finds fewer than ``PROBE_BELOW`` confident candidates), then, when the measured marker pitch asks for a
     scale more than ``RELAYOUT_SCALE_CHANGE`` away, a second pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
@@ -93,10 +96,18 @@ class MarknetRunner:
         return decode_layout(raw, self.stride, (img.shape[1], img.shape[0]), lay)
 
     def fitted(self, img: np.ndarray) -> tuple[np.ndarray, Layout]:
-        """Decoded candidates of one image and the layout they came from (two passes when needed)."""
+        """Decoded candidates of one image and the layout they came from (up to three passes)."""
         lay = self.layout(img)
         dec = self.run_layout(img, lay)
-        if self.fit is not None and int((dec[:, 2] > self.post.conf_keep).sum()) >= MIN_PITCH_SUPPORT:
+        def confident(d: np.ndarray) -> int:
+            return int((d[:, 2] > self.post.conf_keep).sum())
+
+        if self.fit is not None and confident(dec) < PROBE_BELOW:
+            probe = probe_layout(img.shape[1], img.shape[0], self.fit)
+            probed = self.run_layout(img, probe)
+            if confident(probed) > confident(dec):
+                lay, dec = probe, probed
+        if self.fit is not None and confident(dec) >= MIN_PITCH_SUPPORT:
             pitch = pitch_px(dec[dec[:, 2] > self.post.conf_low], self.post.conf_keep)
             better = self.layout(img, pitch)
             if relayout_needed(lay, better):

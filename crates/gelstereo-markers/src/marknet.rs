@@ -75,6 +75,16 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 /// (`MIN_PITCH_SUPPORT` in the trainer).
 pub const MIN_PITCH_SUPPORT: usize = 8;
 
+/// A first pass without a known pitch that finds fewer confident candidates than this is run once more
+/// at [`PROBE_SCALE`] times the scale (`PROBE_BELOW` in the trainer): a sensor whose marker pitch falls
+/// below the network's range at the nominal fit (a 10 px pitch on an 800 x 600 image at 416 x 320)
+/// shows only a scattered few markers there, whose nearest-neighbour distances overstate the pitch, so
+/// the measured pitch alone never asks for the larger scale. Real sensors have 80 markers or more.
+pub const PROBE_BELOW: usize = 32;
+
+/// Scale of the probe relative to the nominal fit (`PROBE_SCALE` in the trainer).
+pub const PROBE_SCALE: f64 = 2.0;
+
 /// Where an image lies in the network input: resized to `scaled_width x scaled_height` and placed at
 /// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest mirrored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -142,9 +152,15 @@ pub fn fit_layout(
     if p > 0.0 && !(fit.pitch_min_px..=fit.pitch_max_px).contains(&(p * s)) {
         s = fit.pitch_target_px / p;
     }
+    layout_at_scale(w, h, p, s, fit.multiple)
+}
+
+/// The layout of a `w x h` image at scale `s` with a margin of `p` px (capped so that no input side
+/// exceeds [`MAX_INPUT_SIDE_PX`]), its input sides rounded up to multiples of `multiple`.
+fn layout_at_scale(w: f64, h: f64, p: f64, s: f64, multiple: u32) -> InputLayout {
     let max_side = f64::from(MAX_INPUT_SIDE_PX);
-    s = s.min(max_side / (w + p)).min(max_side / (h + p));
-    let m = f64::from(fit.multiple.max(1));
+    let s = s.min(max_side / (w + p)).min(max_side / (h + p));
+    let m = f64::from(multiple.max(1));
     let ceil_to = |v: f64| (((v / m - 1e-9).ceil().max(1.0)) * m) as u32;
     let (input_width, input_height) = (ceil_to(s * (w + p)), ceil_to(s * (h + p)));
     let scaled_width = ((s * w).round() as u32).clamp(1, input_width);
@@ -157,6 +173,14 @@ pub fn fit_layout(
         offset_x: (input_width - scaled_width) / 2,
         offset_y: (input_height - scaled_height) / 2,
     }
+}
+
+/// The probe of the "auto" fit: the isotropic layout of an image of `size` at [`PROBE_SCALE`] times the
+/// nominal fit's scale, no margin (sides capped at [`MAX_INPUT_SIDE_PX`]).
+pub fn probe_layout(size: ImageSize, nominal_width: u32, nominal_height: u32, fit: &AutoFit) -> InputLayout {
+    let (w, h) = (f64::from(size.width), f64::from(size.height));
+    let nominal = (f64::from(nominal_width) / w).min(f64::from(nominal_height) / h);
+    layout_at_scale(w, h, 0.0, PROBE_SCALE * nominal, fit.multiple)
 }
 
 /// ONNX Runtime session options shared by Marknet and MRE.
@@ -780,13 +804,30 @@ impl Marknet {
             .into_iter()
             .map(with_pitch)
             .collect();
-        if self.auto_fit().is_none() {
+        let Some(fit) = self.auto_fit().copied() else {
             return Ok(found);
+        };
+        let confident = |dets: &[Detection]| dets.iter().filter(|d| d.confidence > conf_keep).count();
+        let (iw, ih) = (self.contract.input_width, self.contract.input_height);
+        let probes: Vec<(usize, InputLayout)> = (0..images.len())
+            .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]) && confident(&found[i].0) < PROBE_BELOW)
+            .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
+            .collect();
+        if !probes.is_empty() {
+            let probe_images: Vec<&Mat> = probes.iter().map(|&(i, _)| images[i]).collect();
+            let probe_sizes: Vec<ImageSize> = probes.iter().map(|&(i, _)| sizes[i]).collect();
+            let probe_layouts: Vec<InputLayout> = probes.iter().map(|&(_, l)| l).collect();
+            let probed = self.decode_pass(&probe_images, &probe_sizes, &probe_layouts, min_confidence)?;
+            for ((i, layout), dets) in probes.into_iter().zip(probed) {
+                if confident(&dets) > confident(&found[i].0) {
+                    found[i] = with_pitch(dets);
+                    layouts[i] = layout;
+                }
+            }
         }
         let mut redo = Vec::new();
         for (i, (dets, pitch)) in found.iter().enumerate() {
-            let confident = dets.iter().filter(|d| d.confidence > conf_keep).count();
-            if confident < MIN_PITCH_SUPPORT {
+            if confident(dets) < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
             }
             let Some(pitch) = *pitch else {
