@@ -106,8 +106,9 @@ RELAYOUT_SCALE_CHANGE = 0.1  # a second pass when the measured pitch moves the s
 MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a measured pitch
 
 
-PROBE_BELOW = 32  # a first pass with fewer confident candidates is probed at PROBE_SCALE x the scale
-PROBE_SCALE = 2.0
+PROBE_SCALE = 2.0  # a first pass without a pitch is run again at this x the scale (see MarknetRunner.fitted)
+PROBE_MIN_GAIN = 2.0  # times the first pass's confident candidates the probe must find
+PROBE_MIN_COVER = 0.5  # share of the first pass's covered area (confident x pitch^2) the probe must cover
 
 
 def probe_layout(w: int, h: int, fit: FitConfig) -> Layout:

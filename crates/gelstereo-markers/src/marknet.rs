@@ -75,15 +75,24 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 /// (`MIN_PITCH_SUPPORT` in the trainer).
 pub const MIN_PITCH_SUPPORT: usize = 8;
 
-/// A first pass without a known pitch that finds fewer confident candidates than this is run once more
-/// at [`PROBE_SCALE`] times the scale (`PROBE_BELOW` in the trainer): a sensor whose marker pitch falls
-/// below the network's range at the nominal fit (a 10 px pitch on an 800 x 600 image at 416 x 320)
-/// shows only a scattered few markers there, whose nearest-neighbour distances overstate the pitch, so
-/// the measured pitch alone never asks for the larger scale. Real sensors have 80 markers or more.
-pub const PROBE_BELOW: usize = 32;
-
-/// Scale of the probe relative to the nominal fit (`PROBE_SCALE` in the trainer).
+/// Scale of the probe relative to the nominal fit (`PROBE_SCALE` in the trainer). A first pass without
+/// a known pitch is run once more at this scale; the probe measures the pitch instead when it finds
+/// [`PROBE_MIN_GAIN`] times as many confident candidates, covering at least [`PROBE_MIN_COVER`] of the
+/// area the first pass's cover. A
+/// sensor whose marker pitch falls below the network's range at the nominal fit (a 10 px pitch on an
+/// 800 x 600 image, 5 px at 416 x 320) shows only a scattered few markers there, whose nearest-neighbour
+/// distances overstate the pitch, so that pass alone never asks for the larger scale. A stream pays the
+/// probe once per image size (the pitch is remembered).
 pub const PROBE_SCALE: f64 = 2.0;
+
+/// How many times the first pass's confident candidates the probe must find (`PROBE_MIN_GAIN` in the
+/// trainer): a sensor the nominal fit serves keeps its first pass (a few more finds at another scale
+/// would only move the layout a little), one it fails gains several times over.
+pub const PROBE_MIN_GAIN: f64 = 2.0;
+
+/// Share of the first pass's covered area (confident candidates x pitch^2) the probe must cover
+/// (`PROBE_MIN_COVER` in the trainer).
+pub const PROBE_MIN_COVER: f64 = 0.5;
 
 /// Where an image lies in the network input: resized to `scaled_width x scaled_height` and placed at
 /// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest mirrored.
@@ -810,7 +819,7 @@ impl Marknet {
         let confident = |dets: &[Detection]| dets.iter().filter(|d| d.confidence > conf_keep).count();
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
         let probes: Vec<(usize, InputLayout)> = (0..images.len())
-            .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]) && confident(&found[i].0) < PROBE_BELOW)
+            .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
             .collect();
         if !probes.is_empty() {
@@ -819,8 +828,16 @@ impl Marknet {
             let probe_layouts: Vec<InputLayout> = probes.iter().map(|&(_, l)| l).collect();
             let probed = self.decode_pass(&probe_images, &probe_sizes, &probe_layouts, min_confidence)?;
             for ((i, layout), dets) in probes.into_iter().zip(probed) {
-                if confident(&dets) > confident(&found[i].0) {
-                    found[i] = with_pitch(dets);
+                let probe = with_pitch(dets);
+                // The area its confident finds cover (count x pitch^2, original px^2): about the gel's
+                // for a lattice and for a thinned-out one alike; a small part of it for several finds
+                // per oversized marker (the pitch then measures the spread of the duplicates).
+                let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
+                    confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
+                };
+                let gain = confident(&probe.0) as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
+                if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
+                    found[i] = probe;
                     layouts[i] = layout;
                 }
             }
