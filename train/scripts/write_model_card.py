@@ -97,6 +97,9 @@ def main(argv=None) -> int:
              f"wall clock, {a['threads']} threads, AdamW lr {a['lr']} (warm-up, cosine), loss alpha "
              f"{a['alpha']} x BCE + beta {a['beta']} x Euclidean distance; MRE {mre_meta.get('seconds')} s "
              f"(data + training). Trained {meta['trained']}.")
+    def from_train(path: str) -> str:  # checkpoints under train/ named as the commands here run (from train/)
+        return path.split("/train/", 1)[1] if "/train/" in path else path
+
     chain, init = [], meta.get("init")
     while init:  # warm starts: the runs whose weights this one continued
         chain.append(init)
@@ -105,7 +108,7 @@ def main(argv=None) -> int:
         steps = meta["steps"] + sum(c.get("steps") or 0 for c in chain)
         minutes = (meta["train_seconds"] + sum(c.get("train_seconds") or 0 for c in chain)) / 60
         L.append("- Warm start: continued from " + ", which continued from ".join(
-            f"`{c['path']}` ({c.get('steps')} steps, {(c.get('train_seconds') or 0) / 60:.1f} min, trained "
+            f"`{from_train(c['path'])}` ({c.get('steps')} steps, {(c.get('train_seconds') or 0) / 60:.1f} min, trained "
             f"{c.get('trained')})" for c in chain) + f"; {steps} steps and {minutes:.1f} min of training in all.")
     L.append(f"- Machine: {machine}\n")
     L.append("Exact commands (from `train/`):\n")
@@ -113,7 +116,7 @@ def main(argv=None) -> int:
     canonical = a.get("canonical", meta.get("aug", {}).get("canonical"))
     opts = (f" --stem {a['stem']}" if "stem" in a else "") + (f" --canonical {canonical}" if canonical else "")
     opts += f" --lr {a['lr']}" if a.get("lr") != 3e-3 else ""
-    opts += f" --init {a['init']}" if a.get("init") else ""
+    opts += f" --init {from_train(a['init'])}" if a.get("init") else ""
     L.append(f"../.venv/bin/python -m gelstereo_train.train_marknet --data {meta['data_root']} --out RUN/marknet.pt "
              f"--minutes {a['minutes']} --threads {a['threads']} --seed {a['seed']}{opts}")
     L.append(f"../.venv/bin/python -m gelstereo_train.train_mre --data {meta['data_root']} --marknet RUN/marknet.pt "
