@@ -348,17 +348,6 @@ fn padded_fit_maps_back_to_the_image() {
     assert!("squash".parse::<gelstereo_markers::InputFit>().is_err());
 }
 
-/// Same count, and every wanted detection has its own found one within the tolerances (order-free:
-/// rows of equal y may sort differently after a rounding difference).
-fn assert_matched(got: &[Detection], want: &[Detection], tol_px: f64, tol_c: f32, what: &str) {
-    assert_eq!(got.len(), want.len(), "{what}: count");
-    assert_eq!(
-        unmatched(got, want, tol_px, tol_c),
-        0,
-        "{what}: detections off the expected ones"
-    );
-}
-
 /// How many of `want` have no detection of `got` of their own within the tolerances.
 fn unmatched(got: &[Detection], want: &[Detection], tol_px: f64, tol_c: f32) -> usize {
     let mut used = vec![false; got.len()];
