@@ -48,8 +48,8 @@ class MarknetRunner:
 
     Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
     docs/model-contract.md: a first pass without a pitch and a probe at ``PROBE_SCALE`` x its scale (kept
-    when it finds ``PROBE_MIN_GAIN`` x as many confident candidates, covering at least ``PROBE_MIN_COVER``
-    of the area the first pass's cover); then, when the pitch measured on the kept one asks for a scale more than
+    when it finds at least ``MIN_PITCH_SUPPORT`` and ``PROBE_MIN_GAIN`` x as many confident candidates,
+    covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover); then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a last pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
@@ -116,7 +116,9 @@ class MarknetRunner:
 
         probe = probe_layout(img.shape[1], img.shape[0], self.fit)
         probed = self.run_layout(img, probe)
-        if confident(probed) >= PROBE_MIN_GAIN * confident(dec) and cover(probed) >= PROBE_MIN_COVER * cover(dec):
+        n = confident(probed)
+        gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * confident(dec)
+        if gain and cover(probed) >= PROBE_MIN_COVER * cover(dec):
             lay, dec = probe, probed
         if confident(dec) >= MIN_PITCH_SUPPORT:
             pitch = pitch_of(dec)

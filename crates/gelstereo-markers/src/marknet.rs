@@ -76,13 +76,13 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 pub const MIN_PITCH_SUPPORT: usize = 8;
 
 /// Scale of the probe relative to the nominal fit (`PROBE_SCALE` in the trainer). A first pass without
-/// a known pitch is run once more at this scale; the probe measures the pitch instead when it finds
-/// [`PROBE_MIN_GAIN`] times as many confident candidates, covering at least [`PROBE_MIN_COVER`] of the
-/// area the first pass's cover. A
-/// sensor whose marker pitch falls below the network's range at the nominal fit (a 10 px pitch on an
-/// 800 x 600 image, 5 px at 416 x 320) shows only a scattered few markers there, whose nearest-neighbour
-/// distances overstate the pitch, so that pass alone never asks for the larger scale. A stream pays the
-/// probe once per image size (the pitch is remembered).
+/// a known pitch is run once more at this scale; the probe measures the pitch instead when it finds at
+/// least [`MIN_PITCH_SUPPORT`] and [`PROBE_MIN_GAIN`] times as many confident candidates, covering at
+/// least [`PROBE_MIN_COVER`] of the area the first pass's cover. A sensor whose marker pitch falls below
+/// the network's range at the nominal fit (a 10 px pitch on an 800 x 600 image, 5 px at 416 x 320) shows
+/// only a scattered few markers there, whose nearest-neighbour distances overstate the pitch, so that
+/// pass alone never asks for the larger scale. A stream pays the probe once per image size (the pitch
+/// is remembered).
 pub const PROBE_SCALE: f64 = 2.0;
 
 /// How many times the first pass's confident candidates the probe must find (`PROBE_MIN_GAIN` in the
@@ -835,7 +835,9 @@ impl Marknet {
                 let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
                     confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
                 };
-                let gain = confident(&probe.0) as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
+                let n = confident(&probe.0);
+                let gain =
+                    n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
                 if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
                     found[i] = probe;
                     layouts[i] = layout;
