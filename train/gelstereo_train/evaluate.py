@@ -24,6 +24,8 @@ from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
     MIN_PITCH_SUPPORT,
+    PROBE_MIN_COVER,
+    PROBE_MIN_GAIN,
     FitConfig,
     Layout,
     PostConfig,
@@ -36,6 +38,7 @@ from .postprocess import (
     postprocess,
     preprocess,
     preprocess_layout,
+    probe_layout,
     relayout_needed,
 )
 
@@ -44,8 +47,10 @@ class MarknetRunner:
     """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image.
 
     Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
-    docs/model-contract.md: a first pass without a pitch, then, when the measured marker pitch asks for a
-    scale more than ``RELAYOUT_SCALE_CHANGE`` away, a second pass at that scale (each image on its own, as
+    docs/model-contract.md: a first pass without a pitch and a probe at ``PROBE_SCALE`` x its scale (kept
+    when it finds at least ``MIN_PITCH_SUPPORT`` and ``PROBE_MIN_GAIN`` x as many confident candidates,
+    covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover); then, when the pitch measured on the kept one asks for a scale more than
+    ``RELAYOUT_SCALE_CHANGE`` away, a last pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
     def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
@@ -93,11 +98,30 @@ class MarknetRunner:
         return decode_layout(raw, self.stride, (img.shape[1], img.shape[0]), lay)
 
     def fitted(self, img: np.ndarray) -> tuple[np.ndarray, Layout]:
-        """Decoded candidates of one image and the layout they came from (two passes when needed)."""
+        """Decoded candidates of one image and the layout they came from (up to three passes)."""
         lay = self.layout(img)
         dec = self.run_layout(img, lay)
-        if self.fit is not None and int((dec[:, 2] > self.post.conf_keep).sum()) >= MIN_PITCH_SUPPORT:
-            pitch = pitch_px(dec[dec[:, 2] > self.post.conf_low], self.post.conf_keep)
+        if self.fit is None:
+            return dec, lay
+
+        def confident(d: np.ndarray) -> int:
+            return int((d[:, 2] > self.post.conf_keep).sum())
+
+        def pitch_of(d: np.ndarray) -> float:
+            return pitch_px(d[d[:, 2] > self.post.conf_low], self.post.conf_keep)
+
+        def cover(d: np.ndarray) -> float:  # the area its confident finds cover, see PROBE_MIN_COVER
+            p = pitch_of(d)
+            return confident(d) * (p * p if np.isfinite(p) else 0.0)
+
+        probe = probe_layout(img.shape[1], img.shape[0], self.fit)
+        probed = self.run_layout(img, probe)
+        n = confident(probed)
+        gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * confident(dec)
+        if gain and cover(probed) >= PROBE_MIN_COVER * cover(dec):
+            lay, dec = probe, probed
+        if confident(dec) >= MIN_PITCH_SUPPORT:
+            pitch = pitch_of(dec)
             better = self.layout(img, pitch)
             if relayout_needed(lay, better):
                 lay = better

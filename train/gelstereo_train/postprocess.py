@@ -89,6 +89,11 @@ def fit_layout(w: int, h: int, pitch_px: float | None, fit: FitConfig = FitConfi
     s = min(nw / (w + p), nh / (h + p))
     if p > 0 and not lo <= p * s <= hi:
         s = fit.pitch_target_px / p
+    return _layout_at_scale(w, h, p, s, fit)
+
+
+def _layout_at_scale(w: int, h: int, p: float, s: float, fit: FitConfig) -> Layout:
+    """The layout of a w x h image at scale s with a margin of p px, capped at fit.max_side."""
     s = min(s, fit.max_side / (w + p), fit.max_side / (h + p))
     iw = _ceil_to(s * (w + p), fit.multiple)
     ih = _ceil_to(s * (h + p), fit.multiple)
@@ -99,6 +104,20 @@ def fit_layout(w: int, h: int, pitch_px: float | None, fit: FitConfig = FitConfi
 
 RELAYOUT_SCALE_CHANGE = 0.1  # a second pass when the measured pitch moves the scale by more than this
 MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a measured pitch
+
+
+PROBE_SCALE = 2.0  # a first pass without a pitch is run again at this x the scale (see MarknetRunner.fitted)
+PROBE_MIN_GAIN = 2.0  # times the first pass's confident candidates the probe must find
+PROBE_MIN_COVER = 0.5  # share of the first pass's covered area (confident x pitch^2) the probe must cover
+
+
+def probe_layout(w: int, h: int, fit: FitConfig) -> Layout:
+    """The probe of the "auto" fit: isotropic, PROBE_SCALE x the nominal fit's scale, no margin (capped at
+    fit.max_side). A sensor whose pitch falls below the network's range at the nominal fit shows only a
+    scattered few markers there, whose nearest-neighbour distances overstate the pitch, so the measured
+    pitch alone never asks for the larger scale. Mirrors ``probe_layout`` in gelstereo-markers."""
+    nh, nw = fit.nominal_hw
+    return _layout_at_scale(w, h, 0.0, PROBE_SCALE * min(nw / w, nh / h), fit)
 
 
 def relayout_needed(used: Layout, wanted: Layout) -> bool:

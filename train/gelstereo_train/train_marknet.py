@@ -81,6 +81,22 @@ def load_checkpoint(path: Path | str) -> tuple[Marknet, dict]:
     return model.eval(), ck["meta"]
 
 
+def load_init(model: Marknet, path: Path) -> dict:
+    """Copies a checkpoint's weights into `model`; its architecture must be the one asked for. Returns the
+    checkpoint's training record (steps, seconds, its own warm start) for this run's metadata."""
+    if not path.is_file():
+        raise SystemExit(f"--init {path}: no such checkpoint file")
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    want = {"stride": model.stride, "candidates": model.candidates, "width": model.width, "stem": model.stem_kind}
+    have = ck.get("arch") if isinstance(ck, dict) else None
+    if have != want:
+        raise SystemExit(f"--init {path}: checkpoint architecture {have} differs from the one asked for {want} "
+                         "(give the same --grid, --candidates, --width and --stem)")
+    model.load_state_dict(ck["model"])
+    meta = ck.get("meta", {})
+    return {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
+
+
 def train(args, log=print) -> Path:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -94,6 +110,10 @@ def train(args, log=print) -> Path:
 
     stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
     model = Marknet(stride=stride, candidates=args.candidates, width=args.width, stem=args.stem)
+    init, init_record = getattr(args, "init", None), None
+    if init is not None:
+        init_record = load_init(model, Path(init))
+        log(f"initialised from {init} (warm start: fine-tunes those weights under this run's schedule)")
     log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
     model = model.to(memory_format=torch.channels_last)
@@ -151,6 +171,7 @@ def train(args, log=print) -> Path:
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "aug": dataclasses.asdict(cfg),
         "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
+        "init": init_record,
     }
     save_checkpoint(Path(args.out), model, meta)
     log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
@@ -205,6 +226,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
                    help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
                    "shipped model was trained) or auto (the auto layout)")
+    p.add_argument("--init", type=Path, default=None,
+                   help="start from this Marknet checkpoint's weights (same architecture) instead of random ones")
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     return p

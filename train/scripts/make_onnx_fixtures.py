@@ -40,6 +40,7 @@ from gelstereo_train.postprocess import (  # noqa: E402
     PostConfig,
     decode_to_original,
     fit_layout,
+    probe_layout,
     postprocess,
     preprocess,
 )
@@ -101,9 +102,9 @@ def build_models():
 
 def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
     """The "auto" fit (contract gelstereo-marknet/2): the same network exported with a dynamic input as
-    ``marknet_tiny_auto.onnx``; ``expected_auto.json`` holds fit_layout for a table of sizes and pitches
-    and, per image, the first-pass layout, the final layout and the post-processed output of the
-    two-pass fit (no pitch remembered), as MarknetRunner computes them."""
+    ``marknet_tiny_auto.onnx``; ``expected_auto.json`` holds fit_layout for a table of sizes and pitches,
+    probe_layout for a table of sizes and, per image, the first-pass layout, the final layout and the
+    post-processed output of the multi-pass fit (no pitch remembered), as MarknetRunner computes them."""
     fit = FitConfig(nominal_hw=INPUT_HW)
     md = marknet_metadata(net, INPUT_HW, "fixture: random weights (train/scripts/make_onnx_fixtures.py)",
                           "2026-11-22T00:00:00Z", post, fit=fit)
@@ -124,12 +125,16 @@ def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
         for pitch in (None, 5.0, 10.0, 16.0, 31.0):
             stretch_cases.append({"width": w, "height": h, "pitch_px": pitch,
                                   "layout": lay_dict(fit_layout(w, h, pitch, FitConfig(prefer_stretch=True)))})
+    probe_cases = []
+    for w, h in ((640, 480), (320, 240), (800, 600), (64, 64), (1280, 720), (2000, 1500), (5000, 40), (40, 5000)):
+        probe_cases.append({"width": w, "height": h, "layout": lay_dict(probe_layout(w, h, FitConfig()))})
     auto = {
         "generator": "train/scripts/make_onnx_fixtures.py",
         "tolerance": "positions 0.05 px, conf 0.01 (resize implementations differ by rounding)",
         "export_max_abs_diff": diff,
         "fit_layout_nominal_416": cases,
         "fit_layout_nominal_416_prefer_stretch": stretch_cases,
+        "probe_layout_nominal_416": probe_cases,
         "images": {},
     }
     for name in ("dots_80x60.png", "dots_160x120.png"):

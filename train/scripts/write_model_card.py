@@ -32,6 +32,7 @@ def main(argv=None) -> int:
     p.add_argument("run", type=Path)
     p.add_argument("--models", type=Path, default=Path(__file__).resolve().parents[2] / "data" / "models")
     p.add_argument("--notes", type=Path, default=None, help="markdown appended as 'Notes'")
+    p.add_argument("--title", default="Shipped models: `marknet.onnx`, `mre.onnx`", help="the card's heading")
     args = p.parse_args(argv)
     run, models = args.run, args.models
     ck = torch.load(run / "marknet.pt", map_location="cpu", weights_only=False)
@@ -43,7 +44,7 @@ def main(argv=None) -> int:
     props = {e.key: e.value for e in onnx.load(str(models / "marknet.onnx")).metadata_props}
     a = meta["args"]
     L = []
-    L.append("# Shipped models: `marknet.onnx`, `mre.onnx`\n")
+    L.append(f"# {args.title}\n")
     L.append("Marknet + MRE (Liu et al., *Real-Time Marker Localization Learning for GelStereo Tactile Sensing*), "
              "trained in PyTorch by `train/` on simulated data only, exported per `docs/model-contract.md`.\n")
     L.append("## Files\n")
@@ -96,11 +97,28 @@ def main(argv=None) -> int:
              f"wall clock, {a['threads']} threads, AdamW lr {a['lr']} (warm-up, cosine), loss alpha "
              f"{a['alpha']} x BCE + beta {a['beta']} x Euclidean distance; MRE {mre_meta.get('seconds')} s "
              f"(data + training). Trained {meta['trained']}.")
+    def from_train(path: str) -> str:  # checkpoints under train/ named as the commands here run (from train/)
+        return path.split("/train/", 1)[1] if "/train/" in path else path
+
+    chain, init = [], meta.get("init")
+    while init:  # warm starts: the runs whose weights this one continued
+        chain.append(init)
+        init = init.get("init")
+    if chain:
+        steps = meta["steps"] + sum(c.get("steps") or 0 for c in chain)
+        minutes = (meta["train_seconds"] + sum(c.get("train_seconds") or 0 for c in chain)) / 60
+        L.append("- Warm start: continued from " + ", which continued from ".join(
+            f"`{from_train(c['path'])}` ({c.get('steps')} steps, {(c.get('train_seconds') or 0) / 60:.1f} min, trained "
+            f"{c.get('trained')})" for c in chain) + f"; {steps} steps and {minutes:.1f} min of training in all.")
     L.append(f"- Machine: {machine}\n")
     L.append("Exact commands (from `train/`):\n")
     L.append("```sh")
+    canonical = a.get("canonical", meta.get("aug", {}).get("canonical"))
+    opts = (f" --stem {a['stem']}" if "stem" in a else "") + (f" --canonical {canonical}" if canonical else "")
+    opts += f" --lr {a['lr']}" if a.get("lr") != 3e-3 else ""
+    opts += f" --init {from_train(a['init'])}" if a.get("init") else ""
     L.append(f"../.venv/bin/python -m gelstereo_train.train_marknet --data {meta['data_root']} --out RUN/marknet.pt "
-             f"--minutes {a['minutes']} --threads {a['threads']} --seed {a['seed']}")
+             f"--minutes {a['minutes']} --threads {a['threads']} --seed {a['seed']}{opts}")
     L.append(f"../.venv/bin/python -m gelstereo_train.train_mre --data {meta['data_root']} --marknet RUN/marknet.pt "
              "--out RUN/mre.pt")
     L.append("../.venv/bin/python -m gelstereo_train.export --marknet RUN/marknet.pt --mre RUN/mre.pt "

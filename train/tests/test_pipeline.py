@@ -101,3 +101,23 @@ def test_evaluate_runs_on_onnx_and_checkpoint_alike(trained, tiny_root, tmp_path
         assert a[method]["all"]["PT"] == b[method]["all"]["PT"]
     # the blob baseline finds the clean rendered dots
     assert a["blob"]["easy"]["recall"] > 0.9
+
+
+def test_warm_start_continues_from_a_checkpoint_of_the_same_architecture(trained, tiny_root, tmp_path):
+    ck, _, _ = trained
+    base = ["--data", str(tiny_root), "--steps", "1", "--lr", "0", "--batch", "2", "--crop", "64",
+            "--input-size", "128", "--candidates", "3"]
+    out = tmp_path / "warm.pt"
+    train_marknet.train(train_marknet.parser().parse_args(base + ["--out", str(out), "--width", "4",
+                                                                   "--init", str(ck)]), log=lambda *_: None)
+    warm, meta = train_marknet.load_checkpoint(out)
+    start, start_meta = train_marknet.load_checkpoint(ck)
+    # One step at learning rate 0: the weights are the checkpoint's (BatchNorm statistics move), and the
+    # record names where they came from.
+    for (k, a), b in zip(warm.named_parameters(), start.parameters()):
+        assert torch.equal(a, b), k
+    assert meta["init"]["path"] == str(ck) and meta["init"]["steps"] == start_meta["steps"] == 3
+    # Another architecture is refused with the difference named.
+    with pytest.raises(SystemExit, match="width"):
+        train_marknet.train(train_marknet.parser().parse_args(base + ["--out", str(tmp_path / "x.pt"), "--width",
+                                                                       "8", "--init", str(ck)]), log=lambda *_: None)

@@ -68,7 +68,7 @@ def test_postprocess_thresholds_and_mre_acceptance():
 
 
 def test_auto_layout_brings_the_pitch_into_range_and_decodes_back():
-    from gelstereo_train.postprocess import FitConfig, decode_layout, fit_layout, preprocess_layout
+    from gelstereo_train.postprocess import FitConfig, decode_layout, fit_layout, preprocess_layout, probe_layout
 
     # Reference sensor: 640x480, 16 px pitch -> inside the nominal 416 with a pitch of margin.
     lay = fit_layout(640, 480, 16.0)
@@ -78,6 +78,11 @@ def test_auto_layout_brings_the_pitch_into_range_and_decodes_back():
     assert fit_layout(320, 240, 31.0).scaled_w == round(320 * 12 / 31)
     assert (fit_layout(640, 480, None).scaled_w, fit_layout(640, 480, None).scaled_h) == (416, 312)
     assert fit_layout(100000, 50, 10.0, FitConfig()).input_w <= 2048
+    # The probe doubles the nominal fit's scale: an 800x600 sensor whose 11 px pitch is 5.6 px at the
+    # nominal 416x320 is looked at with 11.4 px, inside the trained range.
+    probe = probe_layout(800, 600, FitConfig())
+    assert (probe.scaled_w, probe.scaled_h) == (832, 624) and 9.0 <= 11.0 * probe.scaled_w / 800 <= 24.0
+    assert probe_layout(100000, 50, FitConfig()).input_w <= 2048
     # A marker whose centre is drawn at a known place comes back there through the layout.
     img = np.zeros((60, 80, 3), np.uint8)
     lay = fit_layout(80, 60, 13.0, FitConfig(nominal_hw=(64, 64)))

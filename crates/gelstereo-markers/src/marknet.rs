@@ -75,6 +75,25 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 /// (`MIN_PITCH_SUPPORT` in the trainer).
 pub const MIN_PITCH_SUPPORT: usize = 8;
 
+/// Scale of the probe relative to the nominal fit (`PROBE_SCALE` in the trainer). A first pass without
+/// a known pitch is run once more at this scale; the probe measures the pitch instead when it finds at
+/// least [`MIN_PITCH_SUPPORT`] and [`PROBE_MIN_GAIN`] times as many confident candidates, covering at
+/// least [`PROBE_MIN_COVER`] of the area the first pass's cover. A sensor whose marker pitch falls below
+/// the network's range at the nominal fit (a 10 px pitch on an 800 x 600 image, 5 px at 416 x 320) shows
+/// only a scattered few markers there, whose nearest-neighbour distances overstate the pitch, so that
+/// pass alone never asks for the larger scale. A stream pays the probe once per image size (the pitch
+/// is remembered).
+pub const PROBE_SCALE: f64 = 2.0;
+
+/// How many times the first pass's confident candidates the probe must find (`PROBE_MIN_GAIN` in the
+/// trainer): a sensor the nominal fit serves keeps its first pass (a few more finds at another scale
+/// would only move the layout a little), one it fails gains several times over.
+pub const PROBE_MIN_GAIN: f64 = 2.0;
+
+/// Share of the first pass's covered area (confident candidates x pitch^2) the probe must cover
+/// (`PROBE_MIN_COVER` in the trainer).
+pub const PROBE_MIN_COVER: f64 = 0.5;
+
 /// Where an image lies in the network input: resized to `scaled_width x scaled_height` and placed at
 /// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest mirrored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -142,9 +161,15 @@ pub fn fit_layout(
     if p > 0.0 && !(fit.pitch_min_px..=fit.pitch_max_px).contains(&(p * s)) {
         s = fit.pitch_target_px / p;
     }
+    layout_at_scale(w, h, p, s, fit.multiple)
+}
+
+/// The layout of a `w x h` image at scale `s` with a margin of `p` px (capped so that no input side
+/// exceeds [`MAX_INPUT_SIDE_PX`]), its input sides rounded up to multiples of `multiple`.
+fn layout_at_scale(w: f64, h: f64, p: f64, s: f64, multiple: u32) -> InputLayout {
     let max_side = f64::from(MAX_INPUT_SIDE_PX);
-    s = s.min(max_side / (w + p)).min(max_side / (h + p));
-    let m = f64::from(fit.multiple.max(1));
+    let s = s.min(max_side / (w + p)).min(max_side / (h + p));
+    let m = f64::from(multiple.max(1));
     let ceil_to = |v: f64| (((v / m - 1e-9).ceil().max(1.0)) * m) as u32;
     let (input_width, input_height) = (ceil_to(s * (w + p)), ceil_to(s * (h + p)));
     let scaled_width = ((s * w).round() as u32).clamp(1, input_width);
@@ -157,6 +182,14 @@ pub fn fit_layout(
         offset_x: (input_width - scaled_width) / 2,
         offset_y: (input_height - scaled_height) / 2,
     }
+}
+
+/// The probe of the "auto" fit: the isotropic layout of an image of `size` at [`PROBE_SCALE`] times the
+/// nominal fit's scale, no margin (sides capped at [`MAX_INPUT_SIDE_PX`]).
+pub fn probe_layout(size: ImageSize, nominal_width: u32, nominal_height: u32, fit: &AutoFit) -> InputLayout {
+    let (w, h) = (f64::from(size.width), f64::from(size.height));
+    let nominal = (f64::from(nominal_width) / w).min(f64::from(nominal_height) / h);
+    layout_at_scale(w, h, 0.0, PROBE_SCALE * nominal, fit.multiple)
 }
 
 /// ONNX Runtime session options shared by Marknet and MRE.
@@ -780,13 +813,40 @@ impl Marknet {
             .into_iter()
             .map(with_pitch)
             .collect();
-        if self.auto_fit().is_none() {
+        let Some(fit) = self.auto_fit().copied() else {
             return Ok(found);
+        };
+        let confident = |dets: &[Detection]| dets.iter().filter(|d| d.confidence > conf_keep).count();
+        let (iw, ih) = (self.contract.input_width, self.contract.input_height);
+        let probes: Vec<(usize, InputLayout)> = (0..images.len())
+            .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
+            .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
+            .collect();
+        if !probes.is_empty() {
+            let probe_images: Vec<&Mat> = probes.iter().map(|&(i, _)| images[i]).collect();
+            let probe_sizes: Vec<ImageSize> = probes.iter().map(|&(i, _)| sizes[i]).collect();
+            let probe_layouts: Vec<InputLayout> = probes.iter().map(|&(_, l)| l).collect();
+            let probed = self.decode_pass(&probe_images, &probe_sizes, &probe_layouts, min_confidence)?;
+            for ((i, layout), dets) in probes.into_iter().zip(probed) {
+                let probe = with_pitch(dets);
+                // The area its confident finds cover (count x pitch^2, original px^2): about the gel's
+                // for a lattice and for a thinned-out one alike; a small part of it for several finds
+                // per oversized marker (the pitch then measures the spread of the duplicates).
+                let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
+                    confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
+                };
+                let n = confident(&probe.0);
+                let gain =
+                    n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
+                if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
+                    found[i] = probe;
+                    layouts[i] = layout;
+                }
+            }
         }
         let mut redo = Vec::new();
         for (i, (dets, pitch)) in found.iter().enumerate() {
-            let confident = dets.iter().filter(|d| d.confidence > conf_keep).count();
-            if confident < MIN_PITCH_SUPPORT {
+            if confident(dets) < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
             }
             let Some(pitch) = *pitch else {
