@@ -9,11 +9,11 @@
 //!    `gate_pitch` x the marker's local pitch (a kiddo k-d tree over the detections), assigned
 //!    one-to-one, closest pairs first.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
-//!    median frame-to-frame motion of the markers associated around it (lattice neighbours within
+//!    mean frame-to-frame motion of the markers associated around it (lattice neighbours within
 //!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting 2; the
 //!    global median motion where none was associated). This follows the gel's smooth
 //!    deformation field and absorbs sudden starts and stops that the constant-velocity model
-//!    misses; a median, so that a few wrong associations do not drag the markers around them.
+//!    misses.
 //! 4. **Fine association** from scratch with the corrected predictions and the tighter gate
 //!    `refine_gate_pitch`, again one-to-one, closest first. One-to-one assignment plus gates below
 //!    half a pitch are what keep ids from swapping. **Motion check**: an association whose motion
@@ -21,8 +21,9 @@
 //!    excluded) by more than `motion_outlier_pitch` x the pitch is dropped: a marker does not
 //!    jump against its neighbours; a detection that makes it do so is a merged or shifted blob or
 //!    its neighbour's marker.
-//! 5. Markers left without a detection are placed at their last position plus that neighbour
-//!    motion: `predicted` when at least one lattice neighbour within `support_radius` was
+//! 5. Markers left without a detection are placed at their last position plus the weighted
+//!    *median* motion of their associated neighbours (a few wrong associations in the patch must
+//!    not carry them onto a neighbour's place): `predicted` when at least one lattice neighbour within `support_radius` was
 //!    associated in this frame, `lost` otherwise. Lost and predicted markers keep being predicted,
 //!    so they are re-acquired as soon as a detection shows up near their prediction.
 
@@ -324,7 +325,10 @@ impl Tracker {
             .collect();
 
         let coarse = self.associate(&pred, &points, tree.as_ref(), self.config.gate_pitch);
-        let (step1, _) = self.local_motion(&points, &coarse, false);
+        // The coarse association is gated wide and has no motion check yet: a weighted mean is
+        // enough to re-centre the predictions (the same fine associations as a median on the
+        // v1 train / val splits and the seed-505 set) at half the association's cost.
+        let (step1, _) = self.local_motion(&points, &coarse, Centre::MeanOfAll);
         let pred2: Vec<Point2> = (0..n)
             .map(|i| {
                 Point2::new(
@@ -338,7 +342,7 @@ impl Tracker {
             self.drop_motion_outliers(&points, &mut fine, self.config.motion_outlier_pitch);
         }
         // Only the markers left without a detection use it (fill, second-tier gate).
-        let (step2, around) = self.local_motion(&points, &fine, true);
+        let (step2, around) = self.local_motion(&points, &fine, Centre::MedianOfUnassociated);
 
         let mut taken = vec![false; points.len()];
         let mut placed: Vec<(Point2, MarkerStatus, Option<usize>)> = Vec::with_capacity(n);
@@ -570,19 +574,13 @@ impl Tracker {
         c
     }
 
-    /// Per slot: the frame-to-frame motion of the associated markers around it (weighted median,
-    /// per coordinate, over the lattice neighbours within the support radius, weights 1/d^2 in
-    /// lattice steps, its own motion weighing 2; the global median motion where none was
-    /// associated), and how many of its neighbours (itself excluded) were associated; with
-    /// `unassociated_only`, only for the slots without a detection in `assoc` (zero elsewhere).
-    /// A median, not a mean: a few wrong associations in a patch (merged or shifted detections
-    /// under a sliding edge) must not drag the predictions of the markers around them.
-    fn local_motion(
-        &self,
-        points: &[[f64; 2]],
-        assoc: &[u32],
-        unassociated_only: bool,
-    ) -> (Vec<[f64; 2]>, Vec<u16>) {
+    /// Per slot: the frame-to-frame motion of the associated markers around it (per coordinate,
+    /// over the lattice neighbours within the support radius, weights 1/d^2 in lattice steps, its
+    /// own motion weighing 2; the global median motion where none was associated), and how many
+    /// of its neighbours (itself excluded) were associated. See [`Centre`] for which slots and
+    /// which statistic.
+    fn local_motion(&self, points: &[[f64; 2]], assoc: &[u32], centre: Centre) -> (Vec<[f64; 2]>, Vec<u16>) {
+        let unassociated_only = centre == Centre::MedianOfUnassociated;
         let n = self.ids.len();
         let step = self.steps(points, assoc);
         let sx: Vec<f64> = step.iter().flatten().map(|e| e[0]).collect();
@@ -596,14 +594,32 @@ impl Tracker {
                 continue;
             }
             count[i] = self.gather(i, &step, 2.0, &mut bx, &mut by);
-            motion[i] = if bx.is_empty() {
-                global
-            } else {
-                [weighted_median(&mut bx), weighted_median(&mut by)]
+            motion[i] = match centre {
+                _ if bx.is_empty() => global,
+                Centre::MeanOfAll => [weighted_mean(&bx), weighted_mean(&by)],
+                Centre::MedianOfUnassociated => [weighted_median(&mut bx), weighted_median(&mut by)],
             };
         }
         (motion, count)
     }
+}
+
+/// Which slots [`Tracker::local_motion`] fills and how.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Centre {
+    /// Every slot, weighted mean: the re-prediction after the coarse association.
+    MeanOfAll,
+    /// Only the slots without a detection (zero elsewhere), weighted median: where a missed
+    /// marker is placed and its second tier gated. A median, not a mean: a few wrong
+    /// associations in a patch (merged or shifted detections under a sliding edge) must not
+    /// carry a missed marker onto its neighbour's place.
+    MedianOfUnassociated,
+}
+
+/// Weighted mean of (value, weight) pairs (weights positive, at least one pair).
+fn weighted_mean(v: &[(f64, f64)]) -> f64 {
+    let (sum, weight) = v.iter().fold((0.0, 0.0), |(s, w), p| (s + p.0 * p.1, w + p.1));
+    sum / weight
 }
 
 /// Weighted median of (value, weight) pairs (reorders them); the lower one at an exact half.
