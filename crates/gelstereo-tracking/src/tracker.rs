@@ -421,10 +421,9 @@ impl Tracker {
         points: &[[f64; 2]],
     ) -> Vec<u32> {
         let n = placed.len();
-        let mut out = vec![NONE; n];
         let gate = self.config.second_tier_gate_pitch;
         let Some(tree) = kd_tree(points).filter(|_| gate > 0.0) else {
-            return out;
+            return vec![NONE; n];
         };
         let k = NonZeroUsize::new(self.config.candidates.clamp(1, points.len())).unwrap_or(NonZeroUsize::MIN);
         let mut cands: Vec<(f64, u32, u32)> = Vec::new();
@@ -458,16 +457,7 @@ impl Tracker {
                 }
             }
         }
-        cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        let mut used = vec![false; points.len()];
-        for (_, i, d) in cands {
-            let (iu, du) = (i as usize, d as usize);
-            if out[iu] == NONE && !used[du] {
-                out[iu] = d;
-                used[du] = true;
-            }
-        }
-        out
+        assign_closest_first(cands, n, points.len())
     }
 
     /// One-to-one association, closest pairs first, within `gate` x local pitch of each prediction.
@@ -480,8 +470,9 @@ impl Tracker {
         gate: f64,
     ) -> Vec<u32> {
         let n = pred.len();
-        let mut out = vec![NONE; n];
-        let Some(tree) = tree else { return out };
+        let Some(tree) = tree else {
+            return vec![NONE; n];
+        };
         let k = NonZeroUsize::new(self.config.candidates.clamp(1, points.len().max(1)))
             .unwrap_or(NonZeroUsize::MIN);
         let mut cands: Vec<(f64, u32, u32)> = Vec::with_capacity(n * 2);
@@ -496,16 +487,7 @@ impl Tracker {
                 cands.push((item.distance, i as u32, item.item));
             }
         }
-        cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
-        let mut used = vec![false; points.len()];
-        for (_, i, d) in cands {
-            let (iu, du) = (i as usize, d as usize);
-            if out[iu] == NONE && du < used.len() && !used[du] {
-                out[iu] = d;
-                used[du] = true;
-            }
-        }
-        out
+        assign_closest_first(cands, n, points.len())
     }
 
     /// Unassigns every association whose frame-to-frame motion differs from the weighted median
@@ -602,6 +584,23 @@ impl Tracker {
         }
         (motion, count)
     }
+}
+
+/// One-to-one assignment of (squared distance, slot, detection) candidates, closest pairs first
+/// (ties by slot, then detection, so the result does not depend on the candidates' order): the
+/// detection of each of the `slots`, or [`NONE`].
+fn assign_closest_first(mut cands: Vec<(f64, u32, u32)>, slots: usize, detections: usize) -> Vec<u32> {
+    cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let mut out = vec![NONE; slots];
+    let mut used = vec![false; detections];
+    for (_, i, d) in cands {
+        let (iu, du) = (i as usize, d as usize);
+        if out[iu] == NONE && du < detections && !used[du] {
+            out[iu] = d;
+            used[du] = true;
+        }
+    }
+    out
 }
 
 /// Which slots [`Tracker::local_motion`] fills and how.
