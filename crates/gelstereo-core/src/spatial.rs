@@ -10,6 +10,17 @@ use crate::Point2;
 /// The most cells along one side; a wider spread of points gets larger cells.
 const MAX_CELLS_PER_SIDE: f64 = 2048.0;
 
+/// The bounding box `[x_min, y_min, x_max, y_max]` of `points`; all zero when there are none.
+fn bounds(points: &[Point2]) -> [f64; 4] {
+    if points.is_empty() {
+        return [0.0; 4];
+    }
+    points.iter().fold(
+        [f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY],
+        |[x0, y0, x1, y1], p| [x0.min(p.x), y0.min(p.y), x1.max(p.x), y1.max(p.y)],
+    )
+}
+
 /// Points sorted into square cells.
 #[derive(Debug, Clone)]
 pub struct Buckets {
@@ -27,17 +38,7 @@ pub struct Buckets {
 impl Buckets {
     /// Sorts `points` (all finite) into cells of about `cell_px` pixels.
     pub fn new(points: &[Point2], cell_px: f64) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) =
-            (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for p in points {
-            x0 = x0.min(p.x);
-            y0 = y0.min(p.y);
-            x1 = x1.max(p.x);
-            y1 = y1.max(p.y);
-        }
-        if points.is_empty() {
-            (x0, y0, x1, y1) = (0.0, 0.0, 0.0, 0.0);
-        }
+        let [x0, y0, x1, y1] = bounds(points);
         let span = (x1 - x0).max(y1 - y0).max(1.0);
         let cell = if cell_px.is_finite() && cell_px > 0.0 {
             cell_px
@@ -83,14 +84,7 @@ impl Buckets {
     /// Sorts `points` into cells of about one point each on average (side sqrt(area / n)), the size
     /// for nearest-neighbour queries when no pitch is known.
     pub fn with_one_point_per_cell(points: &[Point2]) -> Self {
-        let (mut x0, mut y0, mut x1, mut y1) =
-            (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for p in points {
-            x0 = x0.min(p.x);
-            y0 = y0.min(p.y);
-            x1 = x1.max(p.x);
-            y1 = y1.max(p.y);
-        }
+        let [x0, y0, x1, y1] = bounds(points);
         let (w, h) = ((x1 - x0).max(1e-6), (y1 - y0).max(1e-6));
         Self::new(points, (w * h / points.len().max(1) as f64).sqrt())
     }

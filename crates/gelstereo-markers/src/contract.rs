@@ -465,6 +465,21 @@ mod tests {
         MarknetContract::from_model(Path::new("m.onnx"), meta, inp, out)
     }
 
+    /// The error `parse` reports for `meta` with `key` set to `value` (removed for `None`).
+    fn error_with(
+        mut meta: BTreeMap<String, String>,
+        key: &str,
+        value: Option<&str>,
+        inp: &[TensorSpec],
+        out: &[TensorSpec],
+    ) -> String {
+        match value {
+            Some(v) => meta.insert(key.to_owned(), v.to_owned()),
+            None => meta.remove(key),
+        };
+        parse(&meta, inp, out).unwrap_err().to_string()
+    }
+
     #[test]
     fn a_conforming_marknet_is_accepted_with_default_thresholds() {
         let c = parse(
@@ -524,12 +539,7 @@ mod tests {
             ("preferred_layout", Some("squash"), "'preferred_layout'"),
         ];
         for (key, value, needle) in cases {
-            let mut meta = dynamic_meta();
-            match value {
-                Some(v) => meta.insert(key.to_owned(), v.to_owned()),
-                None => meta.remove(key),
-            };
-            let err = parse(&meta, &inp, &out).unwrap_err().to_string();
+            let err = error_with(dynamic_meta(), key, value, &inp, &out);
             assert!(err.contains(needle), "{key}={value:?}: {err}");
         }
     }
@@ -554,12 +564,7 @@ mod tests {
             ("dataset", None, "'dataset'"),
         ];
         for (key, value, needle) in cases {
-            let mut meta = marknet_meta();
-            match value {
-                Some(v) => meta.insert(key.to_owned(), v.to_owned()),
-                None => meta.remove(key),
-            };
-            let err = parse(&meta, &good_in, &good_out).unwrap_err().to_string();
+            let err = error_with(marknet_meta(), key, value, &good_in, &good_out);
             assert!(
                 err.contains(needle) && err.contains("m.onnx"),
                 "{key}={value:?}: {err}"

@@ -822,29 +822,23 @@ impl Marknet {
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
             .collect();
-        if !probes.is_empty() {
-            let probe_images: Vec<&Mat> = probes.iter().map(|&(i, _)| images[i]).collect();
-            let probe_sizes: Vec<ImageSize> = probes.iter().map(|&(i, _)| sizes[i]).collect();
-            let probe_layouts: Vec<InputLayout> = probes.iter().map(|&(_, l)| l).collect();
-            let probed = self.decode_pass(&probe_images, &probe_sizes, &probe_layouts, min_confidence)?;
-            for ((i, layout), dets) in probes.into_iter().zip(probed) {
-                let probe = with_pitch(dets);
-                // The area its confident finds cover (count x pitch^2, original px^2): about the gel's
-                // for a lattice and for a thinned-out one alike; a small part of it for several finds
-                // per oversized marker (the pitch then measures the spread of the duplicates).
-                let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
-                    confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
-                };
-                let n = confident(&probe.0);
-                let gain =
-                    n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
-                if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
-                    found[i] = probe;
-                    layouts[i] = layout;
-                }
+        // The area a pass's confident finds cover (count x pitch^2, original px^2): about the gel's
+        // for a lattice and for a thinned-out one alike; a small part of it for several finds per
+        // oversized marker (the pitch then measures the spread of the duplicates).
+        let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
+            confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
+        };
+        let probed = self.decode_subset(images, &sizes, &probes, min_confidence)?;
+        for ((i, layout), dets) in probes.into_iter().zip(probed) {
+            let probe = with_pitch(dets);
+            let n = confident(&probe.0);
+            let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
+            if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
+                found[i] = probe;
+                layouts[i] = layout;
             }
         }
-        let mut redo = Vec::new();
+        let mut redo: Vec<(usize, InputLayout)> = Vec::new();
         for (i, (dets, pitch)) in found.iter().enumerate() {
             if confident(dets) < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
@@ -856,22 +850,35 @@ impl Marknet {
             let relayout = layouts[i].needs_relayout(&wanted);
             if relayout {
                 layouts[i] = wanted;
-                redo.push(i);
+                redo.push((i, wanted));
             }
             if self.remember_pitch && (relayout || !self.pitch_memory.contains_key(&sizes[i])) {
                 self.pitch_memory.insert(sizes[i], pitch);
             }
         }
-        if !redo.is_empty() {
-            let again_images: Vec<&Mat> = redo.iter().map(|&i| images[i]).collect();
-            let again_sizes: Vec<ImageSize> = redo.iter().map(|&i| sizes[i]).collect();
-            let again_layouts: Vec<InputLayout> = redo.iter().map(|&i| layouts[i]).collect();
-            let again = self.decode_pass(&again_images, &again_sizes, &again_layouts, min_confidence)?;
-            for (i, dets) in redo.into_iter().zip(again) {
-                found[i] = with_pitch(dets);
-            }
+        let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;
+        for ((i, _), dets) in redo.into_iter().zip(again) {
+            found[i] = with_pitch(dets);
         }
         Ok(found)
+    }
+
+    /// [`decode_pass`](Self::decode_pass) over the images picked by `subset` (index into `images`
+    /// and `sizes`, layout to run it at), in the order of `subset`; nothing runs for an empty one.
+    fn decode_subset(
+        &mut self,
+        images: &[&Mat],
+        sizes: &[ImageSize],
+        subset: &[(usize, InputLayout)],
+        min_confidence: f32,
+    ) -> Result<Vec<Vec<Detection>>> {
+        if subset.is_empty() {
+            return Ok(Vec::new());
+        }
+        let picked: Vec<&Mat> = subset.iter().map(|&(i, _)| images[i]).collect();
+        let picked_sizes: Vec<ImageSize> = subset.iter().map(|&(i, _)| sizes[i]).collect();
+        let layouts: Vec<InputLayout> = subset.iter().map(|&(_, l)| l).collect();
+        self.decode_pass(&picked, &picked_sizes, &layouts, min_confidence)
     }
 
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run

@@ -645,18 +645,23 @@ mod tests {
         pts.iter().filter_map(|p| rig.project(p)).unzip()
     }
 
-    #[test]
-    fn stereo_session_tracks_triangulates_and_measures_a_press() {
-        let rig = rig();
-        let rest = scene(0.0);
-        let (l, r) = views(&rig, &rest);
-        assert_eq!(l.len(), 529);
+    /// A session whose reference is the unloaded scene seen by `rig`, and that scene's two views.
+    fn session_at_rest(rig: &StereoRig) -> (StereoSession, Vec<Point2>, Vec<Point2>) {
+        let (l, r) = views(rig, &scene(0.0));
         let ids: Vec<GridIndex> = GridShape::REFERENCE.indices().collect();
         let lref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(l.iter().copied()).collect();
         let rref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(r.iter().copied()).collect();
         let tri = Triangulator::new(rig.clone(), TriangulationConfig::default()).unwrap();
-        let mut s =
+        let s =
             StereoSession::new(GridShape::REFERENCE, &lref, &rref, tri, SessionConfig::default()).unwrap();
+        (s, l, r)
+    }
+
+    #[test]
+    fn stereo_session_tracks_triangulates_and_measures_a_press() {
+        let rig = rig();
+        let (mut s, l, r) = session_at_rest(&rig);
+        assert_eq!(l.len(), 529);
         let f0 = s.track(0, &l, &r).unwrap();
         assert!(!f0.summary.contact && f0.summary.slip == SlipState::NoContact);
         assert_eq!(f0.markers.len(), 529);
@@ -722,13 +727,7 @@ mod tests {
     #[test]
     fn a_marker_found_only_in_the_second_tier_is_tracked_in_3d() {
         let rig = rig();
-        let (l, r) = views(&rig, &scene(0.0));
-        let ids: Vec<GridIndex> = GridShape::REFERENCE.indices().collect();
-        let lref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(l.iter().copied()).collect();
-        let rref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(r.iter().copied()).collect();
-        let tri = Triangulator::new(rig.clone(), TriangulationConfig::default()).unwrap();
-        let mut s =
-            StereoSession::new(GridShape::REFERENCE, &lref, &rref, tri, SessionConfig::default()).unwrap();
+        let (mut s, _, _) = session_at_rest(&rig);
         let det = |p: &Point2| Detection {
             position: *p,
             confidence: 0.9,

@@ -129,27 +129,15 @@ impl SlipConfig {
                 return Err(config_err(field, "a length in (0, 10) mm", v));
             }
         }
-        if !(self.turn_threshold_factor.is_finite() && (0.0..100.0).contains(&self.turn_threshold_factor)) {
-            return Err(config_err(
-                "turn_threshold_factor",
-                "a factor in [0, 100)",
-                self.turn_threshold_factor,
-            ));
-        }
         for (field, v) in [
+            ("turn_threshold_factor", self.turn_threshold_factor),
             ("twist_turn_ratio", self.twist_turn_ratio),
             ("shear_noise_factor", self.shear_noise_factor),
+            ("drift_noise_factor", self.drift_noise_factor),
         ] {
             if !(v.is_finite() && (0.0..100.0).contains(&v)) {
                 return Err(config_err(field, "a factor in [0, 100)", v));
             }
-        }
-        if !(self.drift_noise_factor.is_finite() && (0.0..100.0).contains(&self.drift_noise_factor)) {
-            return Err(config_err(
-                "drift_noise_factor",
-                "a factor in [0, 100)",
-                self.drift_noise_factor,
-            ));
         }
         for (field, v) in [
             ("stick_fraction", self.stick_fraction),
@@ -502,10 +490,14 @@ mod tests {
             .collect()
     }
 
+    /// `positions` pressed flat onto the reference plane 24 mm from the camera (the unloaded gel).
+    fn flattened(positions: &[Option<[f64; 3]>]) -> Vec<Option<[f64; 3]>> {
+        positions.iter().map(|p| p.map(|p| [p[0], p[1], 24.0])).collect()
+    }
+
     #[test]
     fn press_slide_goes_stick_partial_gross_and_release_is_no_contact() {
-        let rest = frame(0.0, 0.0);
-        let flat: Vec<Option<[f64; 3]>> = rest.iter().map(|p| p.map(|p| [p[0], p[1], 24.0])).collect();
+        let flat = flattened(&frame(0.0, 0.0));
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
         let cfg = ContactConfig::default();
@@ -561,10 +553,7 @@ mod tests {
                 })
                 .collect()
         };
-        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
-            .iter()
-            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
-            .collect();
+        let flat = flattened(&frame(0.0, 0.0));
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let cfg = ContactConfig::default();
         let script = [
@@ -605,10 +594,7 @@ mod tests {
         // above it in the contact's centre) while its material centre drifts by 0.03 mm a frame,
         // as a noisy drift from images does: its mean shear is 0.25-0.35 x the depth, below the
         // friction limit of a sliding contact.
-        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
-            .iter()
-            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
-            .collect();
+        let flat = flattened(&frame(0.0, 0.0));
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let cfg = ContactConfig::default();
         let run = |config: SlipConfig| -> Vec<SlipFrame> {
@@ -659,7 +645,7 @@ mod tests {
                 })
                 .collect()
         };
-        let flat: Vec<Option<[f64; 3]>> = twist(0.0).iter().map(|p| p.map(|p| [p[0], p[1], 24.0])).collect();
+        let flat = flattened(&twist(0.0));
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let cfg = ContactConfig::default();
         let mut states = Vec::new();
@@ -698,10 +684,7 @@ mod tests {
                 })
                 .collect()
         };
-        let flat: Vec<Option<[f64; 3]>> = frame(0.0, 0.0)
-            .iter()
-            .map(|p| p.map(|p| [p[0], p[1], 24.0]))
-            .collect();
+        let flat = flattened(&frame(0.0, 0.0));
         let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
         let cfg = ContactConfig::default();
         let mut script = vec![(0.0, 0.0), (0.0, 0.02), (0.0, 0.04), (0.0, 0.06)];

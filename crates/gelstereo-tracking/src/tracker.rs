@@ -425,24 +425,15 @@ impl Tracker {
         let Some(tree) = kd_tree(points).filter(|_| gate > 0.0) else {
             return vec![NONE; n];
         };
-        let k = NonZeroUsize::new(self.config.candidates.clamp(1, points.len())).unwrap_or(NonZeroUsize::MIN);
         let mut cands: Vec<(f64, u32, u32)> = Vec::new();
         for (i, &(_, status, _)) in placed.iter().enumerate() {
-            let p = centres[i];
             // Only a marker the neighbours place (predicted): a lost one has no prior to check
             // the candidate against.
             if status != MarkerStatus::Predicted {
                 continue;
             }
-            let g = gate * self.pitch_px[i];
-            let found = tree
-                .query(&[p.x, p.y])
-                .nearest_n::<SquaredEuclidean<f64>>(k)
-                .within(g * g)
-                .execute();
-            for item in found {
-                let c = Point2::new(points[item.item as usize][0], points[item.item as usize][1]);
-                let d2 = item.distance;
+            for (d2, item) in self.within_gate(&tree, points.len(), i, centres[i], gate) {
+                let c = Point2::new(points[item as usize][0], points[item as usize][1]);
                 let nearest_is_mine = self.neighbours[i].iter().all(|&(j, _)| {
                     let q = if placed[j as usize].1 == MarkerStatus::Tracked {
                         placed[j as usize].0
@@ -453,7 +444,7 @@ impl Tracker {
                     dx * dx + dy * dy > d2
                 });
                 if nearest_is_mine {
-                    cands.push((d2, i as u32, item.item));
+                    cands.push((d2, i as u32, item));
                 }
             }
         }
@@ -473,21 +464,34 @@ impl Tracker {
         let Some(tree) = tree else {
             return vec![NONE; n];
         };
-        let k = NonZeroUsize::new(self.config.candidates.clamp(1, points.len().max(1)))
-            .unwrap_or(NonZeroUsize::MIN);
         let mut cands: Vec<(f64, u32, u32)> = Vec::with_capacity(n * 2);
         for (i, p) in pred.iter().enumerate() {
-            let g = gate * self.pitch_px[i];
-            let found = tree
-                .query(&[p.x, p.y])
-                .nearest_n::<SquaredEuclidean<f64>>(k)
-                .within(g * g)
-                .execute();
-            for item in found {
-                cands.push((item.distance, i as u32, item.item));
+            for (d2, item) in self.within_gate(tree, points.len(), i, *p, gate) {
+                cands.push((d2, i as u32, item));
             }
         }
         assign_closest_first(cands, n, points.len())
+    }
+
+    /// The nearest detections (at most `candidates`, of the `detections` in `tree`) within `gate` x
+    /// the local pitch of `slot` around `centre`: (squared distance, detection).
+    fn within_gate(
+        &self,
+        tree: &ImmutableKdTree<f64, 2>,
+        detections: usize,
+        slot: usize,
+        centre: Point2,
+        gate: f64,
+    ) -> impl Iterator<Item = (f64, u32)> {
+        let k = NonZeroUsize::new(self.config.candidates.clamp(1, detections.max(1)))
+            .unwrap_or(NonZeroUsize::MIN);
+        let g = gate * self.pitch_px[slot];
+        tree.query(&[centre.x, centre.y])
+            .nearest_n::<SquaredEuclidean<f64>>(k)
+            .within(g * g)
+            .execute()
+            .into_iter()
+            .map(|found| (found.distance, found.item))
     }
 
     /// Unassigns every association whose frame-to-frame motion differs from the weighted median
