@@ -30,7 +30,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let verbose = std::env::var("VERBOSE").is_ok();
     // PER_RECORDING=1: one line per recording with gross-slip errors.
     let per_recording = std::env::var("PER_RECORDING").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, SLIP_DRIFT,
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
     // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
@@ -133,6 +133,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         if let Some(v) = std::env::var("SHEAR_NOISE").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.shear_noise_factor = v;
+        }
+        if let Some(v) = std::env::var("CORE_DEPTH").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.core_depth_fraction = v;
         }
         if let Some(v) = std::env::var("TURN_RATIO").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.twist_turn_ratio = v;
