@@ -4,7 +4,7 @@
 //!
 //! `cargo run --release -p gelstereo-tracking --example truth_eval -- [--noise MM] REC...`
 //! (a recording folder per experiment; `VERBOSE=1` prints every contact frame, `PER_RECORDING=1`
-//! the gross-slip errors of each recording). `--tracked REC OUT ...` replays contact and slip on
+//! each recording's geometry medians and gross-slip errors). `--tracked REC OUT ...` replays contact and slip on
 //! the 3-D positions a `gelstereo track` run wrote to `OUT/markers.csv` instead (from images, with
 //! no localization: a fast loop for slip rules; `score_track` gives the figures of record).
 
@@ -30,7 +30,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let verbose = std::env::var("VERBOSE").is_ok();
     // PER_RECORDING=1: one line per recording with gross-slip errors.
     let per_recording = std::env::var("PER_RECORDING").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, SLIP_DRIFT,
+    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
     // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
     if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
@@ -44,6 +44,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     if let Some(v) = std::env::var("LOAD_ITERATIONS").ok().and_then(|v| v.parse().ok()) {
         contact_cfg.load_iterations = v;
+    }
+    if let Some(v) = std::env::var("CENTROID_DEPTH").ok().and_then(|v| v.parse().ok()) {
+        contact_cfg.centroid_depth_fraction = v;
     }
     let (mut area_ok, mut depth_ok, mut cent_ok, mut cmp) = (0usize, 0usize, 0usize, 0usize);
     let mut conf = [[0usize; 4]; 4];
@@ -131,6 +134,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(v) = std::env::var("SHEAR_NOISE").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.shear_noise_factor = v;
         }
+        if let Some(v) = std::env::var("CORE_DEPTH").ok().and_then(|v| v.parse().ok()) {
+            slip_cfg.core_depth_fraction = v;
+        }
         if let Some(v) = std::env::var("TURN_RATIO").ok().and_then(|v| v.parse().ok()) {
             slip_cfg.twist_turn_ratio = v;
         }
@@ -140,6 +146,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut det = SlipDetector::new(slip_cfg)?;
         let (mut gt_onset, mut est_onset) = (None, None);
         let (tp0, fp0, fn0) = (tp, fp, fneg);
+        let (r0, c0) = (ratios.len(), cerrs.len());
+        let mut derrs = Vec::new();
         let mut touched = false;
         let session_cfg = gelstereo_tracking::SessionConfig::default();
         let reference = per_frame[0].clone();
@@ -187,6 +195,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 ratios.push(1.0 + ae);
                 cerrs.push(ce);
                 depth_ok += usize::from(de.abs() <= 0.05);
+                derrs.push(de);
                 cent_ok += usize::from(ce <= 0.2);
             }
             if verbose && (gt.contact || c.contact) {
@@ -215,6 +224,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             _ => Some(999),
         };
         onset_err.extend(onset);
+        if per_recording && cerrs.len() > c0 {
+            // The recording's geometry: median area ratio, signed depth error and centroid error.
+            let median = |v: &[f64]| {
+                let mut v = v.to_vec();
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            };
+            println!(
+                "{}: geometry {} frames, area ratio {:.2}, depth error {:+.3} mm, centroid error {:.3} mm ({} within 0.2 mm)",
+                rec.display(),
+                cerrs.len() - c0,
+                median(&ratios[r0..]),
+                median(&derrs),
+                median(&cerrs[c0..]),
+                cerrs[c0..].iter().filter(|e| **e <= 0.2).count()
+            );
+        }
         if per_recording && (fp > fp0 || fneg > fn0 || onset.is_some_and(|o| o.abs() > 2)) {
             println!(
                 "{}: gross tp {} fp {} fn {}, onset {:?} (truth {:?})",

@@ -55,10 +55,19 @@ pub struct SlipConfig {
     /// false gross slip from images: noisy drifts of contacts that used to stick).
     pub stick_shear_per_depth: f64,
     /// The depth-relative threshold is at least this many times the frame's depth noise: a contact
-    /// touching down is shallow and its mean shear mostly noise. 3: with 0.01 mm of 3-D noise the
-    /// fixed `min_shear_mm` again; neutral on the train / val splits and the seed-303 / 404 sets
-    /// (exact, noisy and from images), kept as that guard.
+    /// touching down is shallow and its mean shear mostly noise. 4 (3 until 2026-11-22 10:10): with
+    /// the contact markers taken within the indentation's core (`core_depth_fraction`), a false
+    /// contact of image noise (0.02-0.04 mm deep) keeps fewer markers and a noisier mean shear;
+    /// 4 keeps it in `stick` (seed-404 `test/exp_0004` frame 2, replayed from images); no other
+    /// change on the train / val splits or the seed-303 / 404 sets, exact, noisy or from images.
     pub shear_noise_factor: f64,
+    /// The shear, its plateau and the twist are measured on the contact markers whose 3 x 3 mean
+    /// depth exceeds this fraction of its maximum (0.3). From images the deconvolved load's noise
+    /// puts markers away from the indentation into the contact, whose near-zero shear dilutes
+    /// the contact's (train `exp_0058`: 0.02-0.05 mm of mean shear from images against 0.17 mm
+    /// on exact 3-D, a slide never seen); on exact 3-D the load's contact lies within that core.
+    /// Chosen among 0.2-0.5 on the train / val splits and the seed-303 / 404 sets (docs/tracking.md).
+    pub core_depth_fraction: f64,
     /// Stick fraction below which the contact is in partial slip (0.9, as the simulator's ground truth).
     pub stick_fraction: f64,
     /// Relative tolerance of the displacement plateau.
@@ -103,7 +112,8 @@ impl Default for SlipConfig {
         Self {
             min_shear_mm: 0.03,
             stick_shear_per_depth: 0.5,
-            shear_noise_factor: 3.0,
+            shear_noise_factor: 4.0,
+            core_depth_fraction: 0.3,
             stick_fraction: 0.9,
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
@@ -144,6 +154,7 @@ impl SlipConfig {
             ("plateau_tolerance", self.plateau_tolerance),
             ("twist_gross_fraction", self.twist_gross_fraction),
             ("min_shear_per_depth", self.min_shear_per_depth),
+            ("core_depth_fraction", self.core_depth_fraction),
             ("stick_shear_per_depth", self.stick_shear_per_depth),
         ] {
             if !(v.is_finite() && v > 0.0 && v < 1.0) {
@@ -257,8 +268,12 @@ impl SlipDetector {
         let reference = surface.positions_mm();
         let mut tangential = Vec::new();
         let mut at = Vec::new();
+        // The contact markers within the indentation's core: from images, the deconvolved load's
+        // noise adds markers away from the indentation whose near-zero shear dilutes the contact's.
+        let core = self.config.core_depth_fraction * smoothed.iter().flatten().copied().fold(0.0, f64::max);
         for (k, d) in frame.displacement_mm.iter().enumerate() {
-            if let (true, Some(d), Some(n), Some(x)) = (frame.in_contact[k], d, normals[k], reference[k]) {
+            let in_core = frame.in_contact[k] && smoothed[k].is_some_and(|z| z > core);
+            if let (true, Some(d), Some(n), Some(x)) = (in_core, d, normals[k], reference[k]) {
                 tangential.push(d - n * d.dot(&n));
                 at.push(x.coords);
             }
@@ -536,6 +551,42 @@ mod tests {
                 NoContact
             ]
         );
+    }
+
+    #[test]
+    fn spurious_contact_markers_away_from_the_indentation_do_not_hide_a_slide() {
+        // The cap slides across the gel (0.1 mm a frame beyond the friction limit). From images,
+        // the deconvolved load's noise also puts markers far from the indentation into the contact
+        // (here 30 of a corner, 0.02 mm of noise depth, no displacement): they would dilute the
+        // contact's mean shear and plateau.
+        let flat = flattened(&frame(0.0, 0.0));
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let script = [(0.0, 0.0), (0.0, 0.02), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6)];
+        let run = |config: SlipConfig| -> Vec<SlipState> {
+            let mut det = SlipDetector::new(config).unwrap();
+            script
+                .iter()
+                .map(|&(m, s)| {
+                    let mut c = surface.analyze(&frame(m, s), &cfg).unwrap();
+                    for k in (0..5).flat_map(|r| (0..6).map(move |col| r * 23 + col)) {
+                        c.in_contact[k] = true;
+                        c.depth_mm[k] = Some(0.02);
+                        c.displacement_mm[k] = Some(Vector3::new(0.0, 0.0, -0.02));
+                    }
+                    det.update(&surface, &c).state
+                })
+                .collect()
+        };
+        let states = run(SlipConfig::default());
+        assert_eq!(states[..2], [SlipState::Stick; 2], "{states:?}");
+        assert_eq!(states[3..], [SlipState::GrossSlip; 2], "{states:?}");
+        // Every contact marker (the core fraction at its floor, as before 2026-11-22 10:10).
+        let all = run(SlipConfig {
+            core_depth_fraction: 1e-6,
+            ..SlipConfig::default()
+        });
+        assert!(!all[3..].contains(&SlipState::GrossSlip), "{all:?}");
     }
 
     #[test]
