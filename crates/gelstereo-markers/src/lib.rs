@@ -24,6 +24,7 @@ pub mod marknet;
 pub mod metrics;
 pub mod overlay;
 pub mod postprocess;
+mod resize;
 pub mod runtime;
 pub mod yolo;
 

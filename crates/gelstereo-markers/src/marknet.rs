@@ -12,8 +12,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
-use opencv::imgproc;
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
@@ -21,6 +20,7 @@ use ort::value::{TensorRef, ValueType};
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::postprocess::{DecodeGeometry, Selection, decode, estimate_pitch_px};
+use crate::resize::{Border, Image, ResizeScratch, resize_into_planar};
 use crate::{
     CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
     check_image, cv_err, runtime,
@@ -288,13 +288,6 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
     })
 }
 
-/// An 8-bit pixel value as the network's [0, 1] float, `v / 255` (correctly rounded; a plain division
-/// vectorises, where a lookup table does not).
-#[inline(always)]
-fn unit(v: u8) -> f32 {
-    f32::from(v) / 255.0
-}
-
 /// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
 /// (the contract's whole-image stretch would distort markers beyond what training covered).
 pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32) -> Result<()> {
@@ -314,99 +307,33 @@ pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32)
 }
 
 /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`) and writes it into `plane` as
-/// planar RGB f32 in [0, 1]. `resized` and `padded` are scratch images kept between calls.
+/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`, or for tiny images repeated)
+/// and writes it into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one
+/// pass bit-identical to OpenCV's resize + copyMakeBorder ([`crate::resize`]). `scratch` is kept
+/// between calls.
 pub(crate) fn write_layout(
     image: &Mat,
     layout: &InputLayout,
-    resized: &mut Mat,
-    padded: &mut Mat,
+    scratch: &mut ResizeScratch,
     plane: &mut [f32],
 ) -> Result<()> {
-    let (nw, nh) = (layout.scaled_width as i32, layout.scaled_height as i32);
-    let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
+    let owned;
+    let image = if image.is_continuous() {
         image
     } else {
-        imgproc::resize(image, resized, Size::new(nw, nh), 0.0, 0.0, imgproc::INTER_LINEAR)
-            .map_err(cv_err("resize to the network input"))?;
-        resized
-    };
-    let src: &Mat = if layout.fills_input() {
-        scaled
-    } else {
-        let (top, left) = (layout.offset_y as i32, layout.offset_x as i32);
-        let bottom = layout.input_height as i32 - nh - top;
-        let right = layout.input_width as i32 - nw - left;
-        // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
-        let mode = if top.max(bottom) < nh && left.max(right) < nw {
-            opencv::core::BORDER_REFLECT_101
-        } else {
-            opencv::core::BORDER_REPLICATE
-        };
-        opencv::core::copy_make_border(
-            scaled,
-            padded,
-            top,
-            bottom,
-            left,
-            right,
-            mode,
-            opencv::core::Scalar::default(),
-        )
-        .map_err(cv_err("padding to the network input"))?;
-        padded
-    };
-    write_planar_rgb(src, plane)
-}
-
-/// Writes `src` (8-bit grey, BGR or BGRA, already of the network input size) into `plane` as planar
-/// RGB f32 in [0, 1] (`plane.len()` = 3 x pixels; grey is replicated, alpha dropped).
-pub(crate) fn write_planar_rgb(src: &Mat, plane: &mut [f32]) -> Result<()> {
-    let owned;
-    let src = if src.is_continuous() {
-        src
-    } else {
-        owned = src
+        owned = image
             .try_clone()
             .map_err(cv_err("copy of a non-continuous image"))?;
         &owned
     };
-    let bytes = src.data_bytes().map_err(cv_err("image data"))?;
-    let hw = plane.len() / 3;
-    let (r, rest) = plane.split_at_mut(hw);
-    let (g, b) = rest.split_at_mut(hw);
-    // Index loops over slices cut to the same length: bounds checks vanish and the loops vectorise.
-    match src.channels().max(1) as usize {
-        1 => {
-            let m = hw.min(bytes.len());
-            let (r, g, b) = (&mut r[..m], &mut g[..m], &mut b[..m]);
-            for (i, &v) in bytes[..m].iter().enumerate() {
-                let v = unit(v);
-                (r[i], g[i], b[i]) = (v, v, v);
-            }
-        }
-        3 => {
-            let m = hw.min(bytes.len() / 3);
-            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..3 * m]);
-            for i in 0..m {
-                (b[i], g[i], r[i]) = (unit(px[3 * i]), unit(px[3 * i + 1]), unit(px[3 * i + 2]));
-            }
-        }
-        2 => {
-            return Err(Error::Image {
-                property: "channels",
-                expected: "1 (grey), 3 (BGR) or 4 (BGRA)".into(),
-                found: "2".into(),
-            });
-        }
-        n => {
-            let m = hw.min(bytes.len() / n);
-            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..n * m]);
-            for i in 0..m {
-                (b[i], g[i], r[i]) = (unit(px[n * i]), unit(px[n * i + 1]), unit(px[n * i + 2]));
-            }
-        }
-    }
+    let size = check_image(image)?;
+    let view = Image {
+        bytes: image.data_bytes().map_err(cv_err("image data"))?,
+        width: size.width as usize,
+        height: size.height as usize,
+        channels: image.channels() as usize,
+    };
+    resize_into_planar(&view, layout, Border::for_layout(layout), scratch, plane);
     Ok(())
 }
 
@@ -499,8 +426,7 @@ pub struct Marknet {
     /// Marker pitch (original px) measured per image size, for the "auto" fit of the next image.
     pitch_memory: HashMap<ImageSize, f64>,
     remember_pitch: bool,
-    resized: Mat,
-    padded: Mat,
+    resize: ResizeScratch,
     input: Vec<f32>,
     times: LocalizationTimes,
     clock: Option<CpuClock>,
@@ -541,8 +467,7 @@ impl Marknet {
             fit: InputFit::Auto,
             pitch_memory: HashMap::new(),
             remember_pitch: true,
-            resized: Mat::default(),
-            padded: Mat::default(),
+            resize: ResizeScratch::default(),
             input: Vec::new(),
             times: LocalizationTimes::default(),
             clock: None,
@@ -646,7 +571,7 @@ impl Marknet {
         }
         let hw = (layout.input_width * layout.input_height) as usize;
         let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        write_layout(image, layout, &mut self.resized, &mut self.padded, plane)
+        write_layout(image, layout, &mut self.resize, plane)
     }
 
     /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
@@ -997,7 +922,8 @@ mod tests {
     use opencv::prelude::*;
 
     /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
-    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped).
+    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped) when the image is the
+    /// input's size.
     #[test]
     fn planar_rgb_is_exact_for_grey_bgr_and_bgra() -> Result<()> {
         for (typ, n) in [(CV_8UC1, 1usize), (CV_8UC3, 3), (CV_8UC4, 4)] {
@@ -1010,7 +936,8 @@ mod tests {
             let bytes = m.data_bytes().map_err(cv_err("test"))?.to_vec();
             let hw = (w * h) as usize;
             let mut plane = vec![-1.0f32; 3 * hw];
-            write_planar_rgb(&m, &mut plane)?;
+            let same = InputLayout::stretch(w as u32, h as u32);
+            write_layout(&m, &same, &mut ResizeScratch::default(), &mut plane)?;
             for p in 0..hw {
                 let px = &bytes[n * p..n * p + n];
                 let (r, g, b) = if n == 1 {
