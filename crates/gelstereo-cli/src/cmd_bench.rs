@@ -472,6 +472,17 @@ fn load_average() -> String {
         .join(" ")
 }
 
+/// Makes the calling thread one of the threads of rayon's global pool (a no-op once that pool
+/// exists). The two views' parallel stages of one frame then start on this thread and hand one half
+/// to the pool's other thread; from outside the pool each stage would wait for a pool thread to
+/// wake up first, and gain nothing when none wakes in time.
+pub fn join_rayon_pool() {
+    // An error means the pool exists already (started by an earlier call): nothing to do.
+    let _ = rayon::ThreadPoolBuilder::new()
+        .use_current_thread()
+        .build_global();
+}
+
 /// The pipeline benchmark: per-stage medians and p90 in latency mode (one frame at a time, frames
 /// decoded into memory first), the whole pipeline per stereo frame, CPU time per frame, and the
 /// throughput mode (localization of frames in parallel on worker threads, one ONNX Runtime session
@@ -561,6 +572,7 @@ pub fn run_pipeline(b: &PipelineBench) -> anyhow::Result<()> {
     localizer.set_cpu_clock(process_cpu_clock_ns);
     // Latency mode: the two views in parallel wherever the stages allow (the throughput mode's
     // localizers and tracker keep to their own thread: the cores are busy with other frames there).
+    join_rayon_pool();
     localizer.set_parallel(true);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let workers = if b.workers == 0 { cores } else { b.workers };

@@ -670,6 +670,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let method = choose_method(args);
     let mut localizer = args.localizer.localizer(method)?;
     // One frame at a time: the two views' stages in parallel where a core is free (same results).
+    crate::cmd_bench::join_rayon_pool();
     localizer.set_parallel(true);
     let truth = if args.from_ground_truth {
         let Some(dir) = args.input.as_deref().filter(|p| p.join("markers.csv").is_file()) else {
