@@ -307,8 +307,9 @@ impl StereoSession {
             Some(([p.x, p.y, p.z], t.max_reprojection_error_px()))
         };
         let points: Vec<Option<([f64; 3], f64)>> = if self.parallel {
-            // One piece per thread: 529 markers take ~0.5 ms, a piece more costs a wake-up.
-            let piece = n.div_ceil(rayon::current_num_threads()).max(1);
+            // One piece per thread: 529 markers take ~0.5 ms, a piece more costs a wake-up (rayon
+            // halves a range while each half keeps at least `piece`).
+            let piece = (n / rayon::current_num_threads()).max(1);
             px.par_iter().with_min_len(piece).map(triangulate).collect()
         } else {
             px.iter().map(triangulate).collect()
