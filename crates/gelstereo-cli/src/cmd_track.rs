@@ -669,6 +669,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     config.planar.pitch_mm = args.pitch_mm;
     let method = choose_method(args);
     let mut localizer = args.localizer.localizer(method)?;
+    // One frame at a time: the two views' stages in parallel where a core is free (same results).
+    crate::cmd_bench::join_rayon_pool();
+    localizer.set_parallel(true);
     let truth = if args.from_ground_truth {
         let Some(dir) = args.input.as_deref().filter(|p| p.join("markers.csv").is_file()) else {
             bail!("--from-ground-truth needs a simulated recording with a markers.csv");
@@ -781,13 +784,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let l: Vec<(GridIndex, Point2)> = lat.left().reference_view().markers().collect();
                     let r: Vec<(GridIndex, Point2)> = lat.right().reference_view().markers().collect();
                     let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
-                    Ok(Session::Stereo(Box::new(StereoSession::new(
-                        shape,
-                        &l,
-                        &r,
-                        tri,
-                        config.clone(),
-                    )?)))
+                    let mut session = StereoSession::new(shape, &l, &r, tri, config.clone())?;
+                    session.set_parallel(true);
+                    Ok(Session::Stereo(Box::new(session)))
                 }),
                 _ => ReferenceLattice::from_detections(&dets.left.accepted, shape, IndexingConfig::default())
                     .map_err(anyhow::Error::from)

@@ -12,15 +12,16 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual, Size};
-use opencv::imgproc;
+use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
+use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::postprocess::{DecodeGeometry, Selection, decode, estimate_pitch_px};
+use crate::resize::{Border, Image, ResizeScratch, resize_into_planar};
 use crate::{
     CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
     check_image, cv_err, runtime,
@@ -288,13 +289,6 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
     })
 }
 
-/// An 8-bit pixel value as the network's [0, 1] float, `v / 255` (correctly rounded; a plain division
-/// vectorises, where a lookup table does not).
-#[inline(always)]
-fn unit(v: u8) -> f32 {
-    f32::from(v) / 255.0
-}
-
 /// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
 /// (the contract's whole-image stretch would distort markers beyond what training covered).
 pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32) -> Result<()> {
@@ -314,100 +308,63 @@ pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32)
 }
 
 /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`) and writes it into `plane` as
-/// planar RGB f32 in [0, 1]. `resized` and `padded` are scratch images kept between calls.
+/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`, or for tiny images repeated)
+/// and writes it into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one
+/// pass bit-identical to OpenCV's resize + copyMakeBorder ([`crate::resize`]). `scratch` is kept
+/// between calls.
 pub(crate) fn write_layout(
     image: &Mat,
     layout: &InputLayout,
-    resized: &mut Mat,
-    padded: &mut Mat,
+    scratch: &mut ResizeScratch,
     plane: &mut [f32],
 ) -> Result<()> {
-    let (nw, nh) = (layout.scaled_width as i32, layout.scaled_height as i32);
-    let scaled: &Mat = if nw == image.cols() && nh == image.rows() {
+    let owned;
+    let image = if image.is_continuous() {
         image
     } else {
-        imgproc::resize(image, resized, Size::new(nw, nh), 0.0, 0.0, imgproc::INTER_LINEAR)
-            .map_err(cv_err("resize to the network input"))?;
-        resized
-    };
-    let src: &Mat = if layout.fills_input() {
-        scaled
-    } else {
-        let (top, left) = (layout.offset_y as i32, layout.offset_x as i32);
-        let bottom = layout.input_height as i32 - nh - top;
-        let right = layout.input_width as i32 - nw - left;
-        // Mirroring needs a border smaller than the image; tiny images repeat their edge instead.
-        let mode = if top.max(bottom) < nh && left.max(right) < nw {
-            opencv::core::BORDER_REFLECT_101
-        } else {
-            opencv::core::BORDER_REPLICATE
-        };
-        opencv::core::copy_make_border(
-            scaled,
-            padded,
-            top,
-            bottom,
-            left,
-            right,
-            mode,
-            opencv::core::Scalar::default(),
-        )
-        .map_err(cv_err("padding to the network input"))?;
-        padded
-    };
-    write_planar_rgb(src, plane)
-}
-
-/// Writes `src` (8-bit grey, BGR or BGRA, already of the network input size) into `plane` as planar
-/// RGB f32 in [0, 1] (`plane.len()` = 3 x pixels; grey is replicated, alpha dropped).
-pub(crate) fn write_planar_rgb(src: &Mat, plane: &mut [f32]) -> Result<()> {
-    let owned;
-    let src = if src.is_continuous() {
-        src
-    } else {
-        owned = src
+        owned = image
             .try_clone()
             .map_err(cv_err("copy of a non-continuous image"))?;
         &owned
     };
-    let bytes = src.data_bytes().map_err(cv_err("image data"))?;
-    let hw = plane.len() / 3;
-    let (r, rest) = plane.split_at_mut(hw);
-    let (g, b) = rest.split_at_mut(hw);
-    // Index loops over slices cut to the same length: bounds checks vanish and the loops vectorise.
-    match src.channels().max(1) as usize {
-        1 => {
-            let m = hw.min(bytes.len());
-            let (r, g, b) = (&mut r[..m], &mut g[..m], &mut b[..m]);
-            for (i, &v) in bytes[..m].iter().enumerate() {
-                let v = unit(v);
-                (r[i], g[i], b[i]) = (v, v, v);
-            }
-        }
-        3 => {
-            let m = hw.min(bytes.len() / 3);
-            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..3 * m]);
-            for i in 0..m {
-                (b[i], g[i], r[i]) = (unit(px[3 * i]), unit(px[3 * i + 1]), unit(px[3 * i + 2]));
-            }
-        }
-        2 => {
-            return Err(Error::Image {
-                property: "channels",
-                expected: "1 (grey), 3 (BGR) or 4 (BGRA)".into(),
-                found: "2".into(),
-            });
-        }
-        n => {
-            let m = hw.min(bytes.len() / n);
-            let (r, g, b, px) = (&mut r[..m], &mut g[..m], &mut b[..m], &bytes[..n * m]);
-            for i in 0..m {
-                (b[i], g[i], r[i]) = (unit(px[n * i]), unit(px[n * i + 1]), unit(px[n * i + 2]));
-            }
-        }
-    }
+    let size = check_image(image)?;
+    let view = Image {
+        bytes: image.data_bytes().map_err(cv_err("image data"))?,
+        width: size.width as usize,
+        height: size.height as usize,
+        channels: image.channels() as usize,
+    };
+    resize_into_planar(&view, layout, Border::for_layout(layout), scratch, plane);
     Ok(())
+}
+
+/// Checks `image` and writes it into `plane` under `layout` ([`write_layout`]); `stretch_to`: the
+/// network input a whole-image stretch must keep the aspect ratio of ([`check_aspect`]).
+///
+/// The trainer divides by 255 before resizing; resizing the 8-bit image first differs by at most
+/// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
+fn preprocess(
+    image: &Mat,
+    layout: &InputLayout,
+    stretch_to: Option<(u32, u32)>,
+    scratch: &mut ResizeScratch,
+    plane: &mut [f32],
+) -> Result<()> {
+    let size = check_image(image)?;
+    if let Some((w, h)) = stretch_to {
+        check_aspect(size, w, h)?;
+    }
+    write_layout(image, layout, scratch, plane)
+}
+
+/// `items` mapped by `f`, in order: on rayon's thread pool when `parallel` and there are several
+/// (the images of a batch), else on the calling thread.
+fn map_images<T: Send, R: Send>(parallel: bool, items: Vec<T>, f: impl Fn(T) -> R + Sync + Send) -> Vec<R> {
+    if parallel && items.len() > 1 {
+        items.into_par_iter().map(f).collect()
+    } else {
+        items.into_iter().map(f).collect()
+    }
 }
 
 /// Opens an ONNX model and returns its `metadata_props`, sorted by key (what `gelstereo doctor` reports).
@@ -499,8 +456,10 @@ pub struct Marknet {
     /// Marker pitch (original px) measured per image size, for the "auto" fit of the next image.
     pitch_memory: HashMap<ImageSize, f64>,
     remember_pitch: bool,
-    resized: Mat,
-    padded: Mat,
+    /// Scratch of each batch slot's preprocessing.
+    resize: Vec<ResizeScratch>,
+    /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
+    parallel: bool,
     input: Vec<f32>,
     times: LocalizationTimes,
     clock: Option<CpuClock>,
@@ -541,8 +500,8 @@ impl Marknet {
             fit: InputFit::Auto,
             pitch_memory: HashMap::new(),
             remember_pitch: true,
-            resized: Mat::default(),
-            padded: Mat::default(),
+            resize: Vec::new(),
+            parallel: false,
             input: Vec::new(),
             times: LocalizationTimes::default(),
             clock: None,
@@ -628,25 +587,17 @@ impl Marknet {
         self.layout(size, self.pitch_memory.get(&size).copied())
     }
 
+    /// Whether the images of a batch (the two views of a stereo pair) are preprocessed, decoded and
+    /// post-processed in parallel on rayon's thread pool (default: no). Same results; it lowers the
+    /// latency of one pair where a core is free, and only adds overhead where the cores are already
+    /// busy (e.g. several localizers working on frames in parallel).
+    pub fn set_parallel(&mut self, parallel: bool) {
+        self.parallel = parallel;
+    }
+
     /// Whether MRE post-processing is on (`marknet-mre`).
     pub fn has_mre(&self) -> bool {
         self.mre.is_some()
-    }
-
-    /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-    /// centres, no antialiasing; mirrored padding) and writes it as planar RGB f32 in [0, 1] into batch
-    /// slot `slot`.
-    ///
-    /// The trainer divides by 255 before resizing; resizing the 8-bit image first differs by at most
-    /// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
-    fn preprocess(&mut self, image: &Mat, layout: &InputLayout, slot: usize) -> Result<()> {
-        let size = check_image(image)?;
-        if self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.contract.auto_fit.is_none()) {
-            check_aspect(size, self.contract.input_width, self.contract.input_height)?;
-        }
-        let hw = (layout.input_width * layout.input_height) as usize;
-        let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        write_layout(image, layout, &mut self.resized, &mut self.padded, plane)
     }
 
     /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
@@ -660,9 +611,24 @@ impl Marknet {
         let c0 = self.clock.and_then(|c| c());
         let t0 = std::time::Instant::now();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
-        for (slot, (image, layout)) in images.iter().zip(layouts).enumerate() {
-            self.preprocess(image, layout, slot)?;
+        if self.resize.len() < images.len() {
+            self.resize.resize_with(images.len(), ResizeScratch::default);
         }
+        // A stretch must keep the aspect ratio within bounds (the "auto" and "pad" layouts keep it).
+        let stretch =
+            self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.contract.auto_fit.is_none());
+        let stretch_to = stretch.then_some((self.contract.input_width, self.contract.input_height));
+        let slots = images
+            .iter()
+            .zip(layouts)
+            .zip(self.input.chunks_exact_mut(3 * iw * ih))
+            .zip(self.resize.iter_mut())
+            .collect();
+        map_images(self.parallel, slots, |(((image, layout), plane), scratch)| {
+            preprocess(image, layout, stretch_to, scratch, plane)
+        })
+        .into_iter()
+        .collect::<Result<()>>()?;
         let t1 = std::time::Instant::now();
         let c1 = self.clock.and_then(|c| c());
         let run = onnx_err(&self.path, "inference");
@@ -746,15 +712,17 @@ impl Marknet {
 
     /// Runs `images` under `layouts` (grouped into one batch per input size) and decodes each image's
     /// candidates with c > `min_confidence`, in its own pixels; candidates in the mirrored padding are
-    /// dropped (reflections, not markers of the image).
+    /// dropped (reflections, not markers of the image). Each image's with its pitch estimate
+    /// (post-processing step 2, [`estimate_pitch_px`] at `conf_keep`).
     fn decode_pass(
         &mut self,
         images: &[&Mat],
         sizes: &[ImageSize],
         layouts: &[InputLayout],
         min_confidence: f32,
-    ) -> Result<Vec<Vec<Detection>>> {
-        let mut found = vec![Vec::new(); images.len()];
+    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
+        let mut found = vec![(Vec::new(), None); images.len()];
+        let conf_keep = self.post.conf_keep;
         let mut pending: Vec<usize> = (0..images.len()).collect();
         while let Some(&lead) = pending.first() {
             let key = (layouts[lead].input_width, layouts[lead].input_height);
@@ -766,17 +734,22 @@ impl Marknet {
             let batch_layouts: Vec<InputLayout> = group.iter().map(|&i| layouts[i]).collect();
             let raw = self.run_batch(&batch_images, &batch_layouts)?;
             let per_image = raw.len() / group.len().max(1);
-            for (k, &i) in group.iter().enumerate() {
-                let mut dets = decode(
-                    &raw[k * per_image..(k + 1) * per_image],
-                    &self.geometry_for(sizes[i], &layouts[i]),
-                    min_confidence,
-                );
+            let jobs = group
+                .iter()
+                .map(|&i| (i, self.geometry_for(sizes[i], &layouts[i])))
+                .zip(raw.chunks(per_image.max(1)))
+                .collect();
+            let decoded = map_images(self.parallel, jobs, |((i, geometry), raw)| {
+                let mut dets = decode(raw, &geometry, min_confidence);
                 if !layouts[i].fills_input() {
                     let (w, h) = (f64::from(sizes[i].width) - 0.5, f64::from(sizes[i].height) - 0.5);
                     dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
                 }
-                found[i] = dets;
+                let pitch = estimate_pitch_px(&dets, conf_keep);
+                (i, (dets, pitch))
+            });
+            for (i, d) in decoded {
+                found[i] = d;
             }
         }
         Ok(found)
@@ -804,15 +777,7 @@ impl Marknet {
             .collect::<Result<Vec<_>>>()?;
         let mut layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
         let conf_keep = self.post.conf_keep;
-        let with_pitch = |dets: Vec<Detection>| {
-            let pitch = estimate_pitch_px(&dets, conf_keep);
-            (dets, pitch)
-        };
-        let mut found: Vec<(Vec<Detection>, Option<f64>)> = self
-            .decode_pass(images, &sizes, &layouts, min_confidence)?
-            .into_iter()
-            .map(with_pitch)
-            .collect();
+        let mut found = self.decode_pass(images, &sizes, &layouts, min_confidence)?;
         let Some(fit) = self.auto_fit().copied() else {
             return Ok(found);
         };
@@ -829,8 +794,7 @@ impl Marknet {
             confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
         };
         let probed = self.decode_subset(images, &sizes, &probes, min_confidence)?;
-        for ((i, layout), dets) in probes.into_iter().zip(probed) {
-            let probe = with_pitch(dets);
+        for ((i, layout), probe) in probes.into_iter().zip(probed) {
             let n = confident(&probe.0);
             let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
             if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
@@ -857,8 +821,8 @@ impl Marknet {
             }
         }
         let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;
-        for ((i, _), dets) in redo.into_iter().zip(again) {
-            found[i] = with_pitch(dets);
+        for ((i, _), d) in redo.into_iter().zip(again) {
+            found[i] = d;
         }
         Ok(found)
     }
@@ -871,7 +835,7 @@ impl Marknet {
         sizes: &[ImageSize],
         subset: &[(usize, InputLayout)],
         min_confidence: f32,
-    ) -> Result<Vec<Vec<Detection>>> {
+    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
         if subset.is_empty() {
             return Ok(Vec::new());
         }
@@ -919,10 +883,9 @@ impl Marknet {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates_with_pitch(images, post.conf_low)?;
-        let selections: Vec<Selection> = candidates
-            .into_iter()
-            .map(|(c, pitch_px)| Selection::with_pitch(c, pitch_px, &post, with_mre))
-            .collect();
+        let selections = map_images(self.parallel, candidates, |(c, pitch_px)| {
+            Selection::with_pitch(c, pitch_px, &post, with_mre)
+        });
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections
                 .into_iter()
@@ -972,6 +935,10 @@ impl Localizer for Marknet {
         self.clock = Some(clock);
     }
 
+    fn set_parallel(&mut self, parallel: bool) {
+        Marknet::set_parallel(self, parallel);
+    }
+
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
         let t = self.detect_stereo_tiered(pair)?;
         Ok(StereoPair::new(t.left.accepted, t.right.accepted))
@@ -997,7 +964,8 @@ mod tests {
     use opencv::prelude::*;
 
     /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
-    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped).
+    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped) when the image is the
+    /// input's size.
     #[test]
     fn planar_rgb_is_exact_for_grey_bgr_and_bgra() -> Result<()> {
         for (typ, n) in [(CV_8UC1, 1usize), (CV_8UC3, 3), (CV_8UC4, 4)] {
@@ -1010,7 +978,8 @@ mod tests {
             let bytes = m.data_bytes().map_err(cv_err("test"))?.to_vec();
             let hw = (w * h) as usize;
             let mut plane = vec![-1.0f32; 3 * hw];
-            write_planar_rgb(&m, &mut plane)?;
+            let same = InputLayout::stretch(w as u32, h as u32);
+            write_layout(&m, &same, &mut ResizeScratch::default(), &mut plane)?;
             for p in 0..hw {
                 let px = &bytes[n * p..n * p + n];
                 let (r, g, b) = if n == 1 {

@@ -196,23 +196,31 @@ pub fn deduplicate(candidates: &mut Vec<Detection>, radius_px: f64) {
     let cell_px = radius_px.max((max_x - min_x).max(max_y - min_y) / 256.0);
     let cols = ((max_x - min_x) / cell_px) as usize + 1;
     let rows = ((max_y - min_y) / cell_px) as usize + 1;
-    let mut grid: Vec<Vec<Point2>> = vec![Vec::new(); cols * rows];
+    // Each cell's kept positions as a linked list (`head` of the cell, `next` of each kept one):
+    // no allocation per cell.
+    const NONE: u32 = u32::MAX;
+    let mut head = vec![NONE; cols * rows];
+    let mut kept: Vec<(Point2, u32)> = Vec::with_capacity(candidates.len());
     let r2 = radius_px * radius_px;
     candidates.retain(|d| {
         let cx = ((d.position.x - min_x) / cell_px) as usize;
         let cy = ((d.position.y - min_y) / cell_px) as usize;
         for ny in cy.saturating_sub(1)..=(cy + 1).min(rows - 1) {
             for nx in cx.saturating_sub(1)..=(cx + 1).min(cols - 1) {
-                let clash = grid[ny * cols + nx].iter().any(|k| {
-                    let (dx, dy) = (k.x - d.position.x, k.y - d.position.y);
-                    dx * dx + dy * dy < r2
-                });
-                if clash {
-                    return false;
+                let mut k = head[ny * cols + nx];
+                while k != NONE {
+                    let (p, next) = kept[k as usize];
+                    let (dx, dy) = (p.x - d.position.x, p.y - d.position.y);
+                    if dx * dx + dy * dy < r2 {
+                        return false;
+                    }
+                    k = next;
                 }
             }
         }
-        grid[cy * cols + cx].push(d.position);
+        let cell = &mut head[cy * cols + cx];
+        kept.push((d.position, *cell));
+        *cell = (kept.len() - 1) as u32;
         true
     });
 }

@@ -32,6 +32,7 @@ use crate::contract::{TensorSpec, check_signature};
 use crate::marknet::{
     InputLayout, Opened, SessionOptions, check_aspect, onnx_err, open_session, write_layout,
 };
+use crate::resize::ResizeScratch;
 use crate::{Error, Localizer, Result, check_image, sort_detections};
 
 /// The `contract` value of a YOLO model this loader understands.
@@ -406,9 +407,7 @@ pub struct YoloLocalizer {
     session: Session,
     contract: YoloContract,
     post: YoloPost,
-    resized: Mat,
-    /// Scratch of `write_layout` (unused: a stretch has no border).
-    padded: Mat,
+    resize: ResizeScratch,
     input: Vec<f32>,
 }
 
@@ -437,8 +436,7 @@ impl YoloLocalizer {
             session,
             post: contract.post,
             contract,
-            resized: Mat::default(),
-            padded: Mat::default(),
+            resize: ResizeScratch::default(),
             input: Vec::new(),
         })
     }
@@ -467,7 +465,7 @@ impl YoloLocalizer {
         let layout = InputLayout::stretch(iw, ih);
         let hw = (iw * ih) as usize;
         let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        write_layout(image, &layout, &mut self.resized, &mut self.padded, plane)?;
+        write_layout(image, &layout, &mut self.resize, plane)?;
         Ok(size)
     }
 

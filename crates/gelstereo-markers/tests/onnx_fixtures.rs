@@ -256,6 +256,33 @@ fn onnx_runtime_pipeline_matches_python() {
     }
 }
 
+/// With the two views worked on in parallel, a stereo pair gives exactly the sequential results,
+/// under the fixed input and under the auto fit (probe and relayout passes, then from memory).
+#[test]
+fn parallel_views_give_the_same_detections() {
+    let a = image("dots_160x120.png");
+    let mut b = Mat::default();
+    opencv::core::flip(&a, &mut b, 1).unwrap();
+    let pair = StereoPair::new(a, b);
+    let post = post_of(&expected());
+    let fixed = || marknet().with_mre(mre()).unwrap();
+    let auto = || {
+        let mut m = Marknet::load(&fixtures().join("marknet_tiny_auto.onnx"), &options()).unwrap();
+        m.set_postprocess(post);
+        m
+    };
+    for make in [&fixed as &dyn Fn() -> Marknet, &auto] {
+        let (mut sequential, mut parallel) = (make(), make());
+        parallel.set_parallel(true);
+        for pass in 0..2 {
+            let want = sequential.detect_stereo_tiered(&pair).unwrap();
+            let got = parallel.detect_stereo_tiered(&pair).unwrap();
+            assert!(!want.left.accepted.is_empty(), "pass {pass}");
+            assert_eq!((&got.left, &got.right), (&want.left, &want.right), "pass {pass}");
+        }
+    }
+}
+
 #[test]
 fn bad_inputs_give_clear_errors() {
     let mut m = marknet();

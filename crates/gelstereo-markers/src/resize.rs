@@ -1,0 +1,621 @@
+//! The network input from an 8-bit image in one pass: OpenCV's bilinear `resize` (`INTER_LINEAR`)
+//! re-done bit for bit, fused with the border of `copyMakeBorder` (mirrored, `BORDER_REFLECT_101`, or
+//! replicated) and the planar RGB f32 conversion (`v / 255`; B, G, R to R, G, B, grey replicated,
+//! alpha dropped).
+//!
+//! Why: OpenCV's resize, its border copy and a separate conversion pass cost 0.55 ms per 640 x 480
+//! view, a sixth of the fast model's whole pipeline; one pass over the output rows with planar
+//! intermediate rows costs about a third of that. Bit for bit: the same fixed-point arithmetic as
+//! OpenCV 4's `cv::hal::resize` for 8-bit images (`resizeGeneric_` with `HResizeLinear<uchar, int,
+//! short>` and `VResizeLinear<uchar, int, short>`, whose scalar and SIMD paths agree):
+//!
+//! - taps: `f = float((d + 0.5) * scale - 0.5)`, `s = floor(f)`, weights
+//!   `round_even((1 - (f - s)) * 2048)` and `round_even((f - s) * 2048)`; columns out of the image are
+//!   clamped to its first or last with weight 1 (2048, 0), rows are clipped while their weights stay;
+//! - horizontal (exact): `h = s0 * a0 + s1 * a1`;
+//! - vertical: `((b0 * (h0 >> 4)) >> 16) + ((b1 * (h1 >> 4)) >> 16) + 2) >> 2`.
+//!
+//! OpenCV swaps in its area filter for a scale of exactly 2 in both directions; for 8-bit images that
+//! filter's `(a + b + c + d + 2) >> 2` equals the bilinear formula at weights (1024, 1024). The
+//! tests compare with `imgproc::resize` + `copy_make_border` on many sizes, both directions and
+//! every channel count.
+
+use crate::marknet::InputLayout;
+
+/// OpenCV's fixed-point weight scale of 8-bit bilinear resizing (`INTER_RESIZE_COEF_SCALE`).
+const COEF_SCALE: f32 = 2048.0;
+
+/// One output column's (or row's) two source taps and their fixed-point weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Tap {
+    first: usize,
+    second: usize,
+    w0: i16,
+    w1: i16,
+}
+
+/// OpenCV's `saturate_cast<short>(float)`: round half to even, then saturate.
+fn weight(v: f32) -> i16 {
+    v.round_ties_even()
+        .clamp(f32::from(i16::MIN), f32::from(i16::MAX)) as i16
+}
+
+/// The taps of a `src`-long axis resized to `dst`, as `cv::hal::resize` computes them. `clamp_weights`:
+/// the column rule (a tap outside the image is the edge pixel at full weight); rows keep their
+/// fractional weights and only clip their indices.
+fn taps(src: usize, dst: usize, clamp_weights: bool) -> Vec<Tap> {
+    let scale = 1.0 / (dst as f64 / src as f64);
+    let last = src as i64 - 1;
+    (0..dst)
+        .map(|d| {
+            let f = ((d as f64 + 0.5) * scale - 0.5) as f32;
+            let floor = f.floor();
+            let mut frac = f - floor;
+            let mut s = floor as i64;
+            if clamp_weights && s < 0 {
+                (s, frac) = (0, 0.0);
+            }
+            if clamp_weights && s >= last {
+                (s, frac) = (last, 0.0);
+            }
+            let clip = |i: i64| i.clamp(0, last) as usize;
+            Tap {
+                first: clip(s),
+                second: clip(s + 1),
+                w0: weight((1.0 - frac) * COEF_SCALE),
+                w1: weight(frac * COEF_SCALE),
+            }
+        })
+        .collect()
+}
+
+/// Which border fills the network input around the resized image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Border {
+    /// `BORDER_REFLECT_101` (needs borders smaller than the image).
+    Reflect101,
+    /// `BORDER_REPLICATE`.
+    Replicate,
+}
+
+impl Border {
+    /// The border of `layout`: mirrored, unless a border is as wide as the image (tiny images), then
+    /// the edge repeated.
+    pub(crate) fn for_layout(layout: &InputLayout) -> Self {
+        let (nw, nh) = (layout.scaled_width, layout.scaled_height);
+        let right = layout.input_width - nw - layout.offset_x;
+        let bottom = layout.input_height - nh - layout.offset_y;
+        if layout.offset_y.max(bottom) < nh && layout.offset_x.max(right) < nw {
+            Border::Reflect101
+        } else {
+            Border::Replicate
+        }
+    }
+
+    /// The image index a border index `i` (may be negative or past the end) takes its value from.
+    fn source(self, i: i64, len: usize) -> usize {
+        let last = len as i64 - 1;
+        let j = match self {
+            Border::Reflect101 if i < 0 => -i,
+            Border::Reflect101 if i > last => 2 * last - i,
+            _ => i,
+        };
+        j.clamp(0, last) as usize
+    }
+}
+
+/// What [`resize_into_planar`] keeps between calls: the taps of the latest sizes, the source row
+/// split into channel rows, and two rows resized horizontally (planar, `h >> 4` as i16: the only
+/// form the vertical pass reads).
+#[derive(Debug)]
+pub(crate) struct ResizeScratch {
+    sizes: (usize, usize, usize, usize),
+    columns: Vec<Tap>,
+    rows: Vec<Tap>,
+    /// The columns in blocks of 8 for the SSSE3 kernel (`None`: scalar, e.g. a downscale beyond 2x
+    /// whose 8 columns span more than 16 source pixels, or no SSSE3).
+    blocks: Option<simd::Blocks>,
+    /// Use SIMD kernels where the CPU has them (tests turn it off to check the scalar path).
+    allow_simd: bool,
+    /// One source row, one channel row after another, each `width + 16` long (the SIMD kernel reads
+    /// 16 bytes from a block's first column).
+    split: Vec<u8>,
+    /// Source row held by each of the two buffers.
+    held: [Option<usize>; 2],
+    /// Per buffer: the channel rows, each `nw` rounded up to 8 long.
+    buffers: [Vec<i16>; 2],
+}
+
+impl Default for ResizeScratch {
+    /// Scratch that uses the CPU's SIMD kernels (SSE2 / SSSE3 on x86-64) where it has them.
+    fn default() -> Self {
+        Self {
+            sizes: (0, 0, 0, 0),
+            columns: Vec::new(),
+            rows: Vec::new(),
+            blocks: None,
+            allow_simd: true,
+            split: Vec::new(),
+            held: [None, None],
+            buffers: [Vec::new(), Vec::new()],
+        }
+    }
+}
+
+/// An 8-bit image as [`resize_into_planar`] reads it.
+pub(crate) struct Image<'a> {
+    /// Row-major interleaved pixels, no row padding.
+    pub bytes: &'a [u8],
+    pub width: usize,
+    pub height: usize,
+    /// 1 (grey), 3 (BGR) or 4 (BGRA).
+    pub channels: usize,
+}
+
+/// Resizes `image` into `layout` (bilinear, exactly OpenCV's `INTER_LINEAR`), fills the rest of the
+/// input with `border`, and writes planar RGB f32 in [0, 1] into `plane` (3 x input pixels).
+pub(crate) fn resize_into_planar(
+    image: &Image,
+    layout: &InputLayout,
+    border: Border,
+    scratch: &mut ResizeScratch,
+    plane: &mut [f32],
+) {
+    let (nw, nh) = (layout.scaled_width as usize, layout.scaled_height as usize);
+    let (iw, ih) = (layout.input_width as usize, layout.input_height as usize);
+    let (ox, oy) = (layout.offset_x as usize, layout.offset_y as usize);
+    let hw = iw * ih;
+    let sizes = (image.width, image.height, nw, nh);
+    if scratch.sizes != sizes || scratch.columns.len() != nw {
+        scratch.sizes = sizes;
+        scratch.columns = taps(image.width, nw, true);
+        scratch.rows = taps(image.height, nh, false);
+        scratch.blocks = simd::Blocks::new(&scratch.columns).filter(|_| scratch.allow_simd);
+    }
+    // Grey: one channel row, copied into the other two planes; BGRA's alpha is not read.
+    let planes = if image.channels == 1 { 1 } else { 3 };
+    let (padded_width, nw8) = (image.width + 16, nw.div_ceil(8) * 8);
+    scratch.split.resize(planes * padded_width, 0);
+    for b in &mut scratch.buffers {
+        b.resize(planes * nw8, 0);
+    }
+    scratch.held = [None, None];
+    let stride = image.width * image.channels;
+    let ResizeScratch {
+        columns,
+        rows,
+        blocks,
+        allow_simd,
+        split,
+        held,
+        buffers,
+        ..
+    } = scratch;
+    for (dy, tap) in rows.iter().enumerate() {
+        // The two source rows, each resized horizontally once (consecutive output rows share one).
+        if held[0] != Some(tap.first) && held[1] == Some(tap.first) {
+            buffers.swap(0, 1);
+            held.swap(0, 1);
+        }
+        for (k, sy) in [(0, tap.first), (1, tap.second)] {
+            if held[k] == Some(sy) {
+                continue;
+            }
+            let src = &image.bytes[sy * stride..(sy + 1) * stride];
+            split_channels(src, image.channels, planes, padded_width, split, *allow_simd);
+            for c in 0..planes {
+                let row = &split[c * padded_width..(c + 1) * padded_width];
+                let out = &mut buffers[k][c * nw8..(c + 1) * nw8];
+                match blocks {
+                    Some(b) => b.horizontal(row, out),
+                    None => horizontal(row, columns, out),
+                }
+            }
+            held[k] = Some(sy);
+        }
+        let y = oy + dy;
+        for c in 0..planes {
+            let h0 = &buffers[0][c * nw8..c * nw8 + nw];
+            let h1 = &buffers[1][c * nw8..c * nw8 + nw];
+            // Source channel c is B, G, R: planes R, G, B.
+            let p = if planes == 1 { 0 } else { 2 - c };
+            let out = &mut plane[p * hw + y * iw + ox..p * hw + y * iw + ox + nw];
+            simd::vertical(h0, h1, tap.w0, tap.w1, out, *allow_simd);
+        }
+    }
+    // Left and right borders of the image rows, then whole border rows.
+    let (right, bottom) = (iw - ox - nw, ih - oy - nh);
+    for p in 0..planes {
+        let pl = &mut plane[p * hw..(p + 1) * hw];
+        for y in oy..oy + nh {
+            let row = &mut pl[y * iw..(y + 1) * iw];
+            for x in (0..ox).chain(ox + nw..ox + nw + right) {
+                row[x] = row[ox + border.source(x as i64 - ox as i64, nw)];
+            }
+        }
+        for y in (0..oy).chain(oy + nh..oy + nh + bottom) {
+            let from = oy + border.source(y as i64 - oy as i64, nh);
+            pl.copy_within(from * iw..(from + 1) * iw, y * iw);
+        }
+    }
+    if planes == 1 {
+        let (grey, rest) = plane.split_at_mut(hw);
+        rest[..hw].copy_from_slice(grey);
+        rest[hw..2 * hw].copy_from_slice(grey);
+    }
+}
+
+/// Splits one interleaved source row into `planes` channel rows of `padded_width` each (B, G, R;
+/// grey: one).
+fn split_channels(
+    src: &[u8],
+    channels: usize,
+    planes: usize,
+    padded_width: usize,
+    split: &mut [u8],
+    allow_simd: bool,
+) {
+    let width = src.len() / channels;
+    if channels == 1 {
+        split[..width].copy_from_slice(src);
+        return;
+    }
+    if channels == 3 && simd::split_bgr(src, split, padded_width, allow_simd) {
+        return;
+    }
+    let (b, rest) = split.split_at_mut(padded_width);
+    let (g, r) = rest.split_at_mut(padded_width);
+    for (i, px) in src.chunks_exact(channels).enumerate() {
+        (b[i], g[i], r[i]) = (px[0], px[1], px[2]);
+    }
+    debug_assert_eq!(planes, 3);
+}
+
+/// One channel row resized horizontally (scalar): `h >> 4` of OpenCV's `h = s0 * a0 + s1 * a1`.
+fn horizontal(row: &[u8], columns: &[Tap], out: &mut [i16]) {
+    for (o, t) in out.iter_mut().zip(columns) {
+        let h = i32::from(row[t.first]) * i32::from(t.w0) + i32::from(row[t.second]) * i32::from(t.w1);
+        *o = (h >> 4) as i16;
+    }
+}
+
+/// One output row of one channel from two horizontally resized rows (scalar): OpenCV's
+/// `((b0 * h0) >> 16) + ((b1 * h1) >> 16) + 2) >> 2`, then `v / 255`.
+fn vertical(h0: &[i16], h1: &[i16], b0: i16, b1: i16, out: &mut [f32]) {
+    let (b0, b1) = (i32::from(b0), i32::from(b1));
+    for ((o, &s0), &s1) in out.iter_mut().zip(h0).zip(h1) {
+        let v = (((b0 * i32::from(s0)) >> 16) + ((b1 * i32::from(s1)) >> 16) + 2) >> 2;
+        *o = f32::from(v.clamp(0, 255) as u8) / 255.0;
+    }
+}
+
+/// The SIMD kernels (x86-64: SSE2, which every x86-64 CPU has, and SSSE3's byte shuffle, checked
+/// at run time). The same integer arithmetic as the scalar kernels, 8 values at a time; the tests
+/// check both paths against OpenCV.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod simd {
+    use std::arch::x86_64::{
+        __m128i, _mm_add_epi16, _mm_cvtepi32_ps, _mm_div_ps, _mm_loadu_si128, _mm_madd_epi16,
+        _mm_mulhi_epi16, _mm_or_si128, _mm_packs_epi32, _mm_set1_epi16, _mm_set1_ps, _mm_setzero_si128,
+        _mm_shuffle_epi8, _mm_srai_epi16, _mm_srai_epi32, _mm_storeu_ps, _mm_storeu_si128, _mm_unpackhi_epi8,
+        _mm_unpackhi_epi16, _mm_unpacklo_epi8, _mm_unpacklo_epi16,
+    };
+
+    use super::Tap;
+
+    /// 16 bytes from the start of `s` (which must hold at least 16).
+    fn load(s: &[u8]) -> __m128i {
+        let s = &s[..16];
+        // SAFETY: `s` holds 16 bytes (checked by the slice above); unaligned loads are allowed.
+        unsafe { _mm_loadu_si128(s.as_ptr().cast()) }
+    }
+
+    /// 8 i16 from the start of `s` (which must hold at least 8).
+    fn load_i16(s: &[i16]) -> __m128i {
+        let s = &s[..8];
+        // SAFETY: `s` holds 8 i16 = 16 bytes (checked by the slice above).
+        unsafe { _mm_loadu_si128(s.as_ptr().cast()) }
+    }
+
+    /// The output columns in blocks of 8: the block's first source column (a 16-byte window of the
+    /// channel row starts there), the byte shuffle that picks each column's two taps out of the
+    /// window, and the weights in the same order, as `_mm_madd_epi16` pairs them.
+    #[derive(Debug)]
+    pub(super) struct Blocks {
+        start: Vec<usize>,
+        shuffle: Vec<[u8; 16]>,
+        weights: Vec<[i16; 16]>,
+    }
+
+    impl Blocks {
+        /// `None` without SSSE3, or when 8 consecutive columns span more than 15 source pixels.
+        pub(super) fn new(columns: &[Tap]) -> Option<Self> {
+            if !std::arch::is_x86_feature_detected!("ssse3") || columns.is_empty() {
+                return None;
+            }
+            let mut b = Self {
+                start: Vec::new(),
+                shuffle: Vec::new(),
+                weights: Vec::new(),
+            };
+            for first in (0..columns.len()).step_by(8) {
+                let start = columns[first].first;
+                let (mut shuffle, mut weights) = ([0u8; 16], [0i16; 16]);
+                for j in 0..8 {
+                    // Columns past the end repeat the last one (written to the padding of `out`).
+                    let t = columns[(first + j).min(columns.len() - 1)];
+                    // The second tap is the next pixel or (at the right edge) has weight 0.
+                    let offset = t.first - start;
+                    if offset + 1 > 15 || (t.second != t.first + 1 && t.w1 != 0) {
+                        return None;
+                    }
+                    shuffle[2 * j] = offset as u8;
+                    shuffle[2 * j + 1] = offset as u8 + 1;
+                    weights[2 * j] = t.w0;
+                    weights[2 * j + 1] = t.w1;
+                }
+                b.start.push(start);
+                b.shuffle.push(shuffle);
+                b.weights.push(weights);
+            }
+            Some(b)
+        }
+
+        /// One channel row (`row` padded by 16 bytes past the image) resized horizontally into
+        /// `out` (`h >> 4`, 8 columns per block; `out` holds whole blocks).
+        pub(super) fn horizontal(&self, row: &[u8], out: &mut [i16]) {
+            // SAFETY: `Blocks` exists only where SSSE3 was detected (`Blocks::new`).
+            unsafe { self.horizontal_ssse3(row, out) }
+        }
+
+        #[target_feature(enable = "ssse3")]
+        fn horizontal_ssse3(&self, row: &[u8], out: &mut [i16]) {
+            let zero = _mm_setzero_si128();
+            let blocks = self.start.iter().zip(&self.shuffle).zip(&self.weights);
+            for (((&start, shuffle), weights), out) in blocks.zip(out.chunks_exact_mut(8)) {
+                let pairs = _mm_shuffle_epi8(load(&row[start..]), load(shuffle));
+                let lo = _mm_madd_epi16(_mm_unpacklo_epi8(pairs, zero), load_i16(weights));
+                let hi = _mm_madd_epi16(_mm_unpackhi_epi8(pairs, zero), load_i16(&weights[8..]));
+                let h = _mm_packs_epi32(_mm_srai_epi32(lo, 4), _mm_srai_epi32(hi, 4));
+                // SAFETY: `out` (one chunk) holds 8 i16.
+                unsafe { _mm_storeu_si128(out.as_mut_ptr().cast(), h) };
+            }
+        }
+    }
+
+    /// BGR row into three channel rows (`split`: B, G, R, each `padded_width` long), 16 pixels per
+    /// step with SSSE3 shuffles; false (nothing done) without SSSE3 or when not allowed.
+    pub(super) fn split_bgr(src: &[u8], split: &mut [u8], padded_width: usize, allow: bool) -> bool {
+        if !allow || !std::arch::is_x86_feature_detected!("ssse3") {
+            return false;
+        }
+        // SAFETY: SSSE3 is present (checked above).
+        unsafe { split_bgr_ssse3(src, split, padded_width) };
+        true
+    }
+
+    /// `SPLIT_MASKS[c][part]` picks channel `c` of 16 BGR pixels out of their `part`-th 16 bytes
+    /// (0x80: a zero byte).
+    const SPLIT_MASKS: [[[u8; 16]; 3]; 3] = {
+        let mut m = [[[0x80u8; 16]; 3]; 3];
+        let mut c = 0;
+        while c < 3 {
+            let mut j = 0;
+            while j < 16 {
+                let byte = 3 * j + c;
+                m[c][byte / 16][j] = (byte % 16) as u8;
+                j += 1;
+            }
+            c += 1;
+        }
+        m
+    };
+
+    #[target_feature(enable = "ssse3")]
+    fn split_bgr_ssse3(src: &[u8], split: &mut [u8], padded_width: usize) {
+        let masks = SPLIT_MASKS.map(|m| m.map(|m| load(&m)));
+        let width = src.len() / 3;
+        let whole = width / 16;
+        for (k, px) in src.chunks_exact(48).enumerate() {
+            let v = [load(px), load(&px[16..]), load(&px[32..])];
+            for (c, m) in masks.iter().enumerate() {
+                let r = _mm_or_si128(
+                    _mm_or_si128(_mm_shuffle_epi8(v[0], m[0]), _mm_shuffle_epi8(v[1], m[1])),
+                    _mm_shuffle_epi8(v[2], m[2]),
+                );
+                let d = &mut split[c * padded_width + 16 * k..c * padded_width + 16 * k + 16];
+                // SAFETY: `d` holds 16 bytes (checked by the slice above).
+                unsafe { _mm_storeu_si128(d.as_mut_ptr().cast(), r) };
+            }
+        }
+        for i in 16 * whole..width {
+            for c in 0..3 {
+                split[c * padded_width + i] = src[3 * i + c];
+            }
+        }
+    }
+
+    /// [`super::vertical`] 8 values at a time (SSE2: `_mm_mulhi_epi16` is OpenCV's
+    /// `(b * h) >> 16` on i16, the division by 255 is IEEE like the scalar one).
+    pub(super) fn vertical(h0: &[i16], h1: &[i16], b0: i16, b1: i16, out: &mut [f32], allow: bool) {
+        let n = out.len().min(h0.len()).min(h1.len());
+        let whole = if allow { n / 8 * 8 } else { 0 };
+        // SAFETY: SSE2 is part of every x86-64 CPU.
+        unsafe { vertical_sse2(&h0[..whole], &h1[..whole], b0, b1, &mut out[..whole]) };
+        super::vertical(&h0[whole..n], &h1[whole..n], b0, b1, &mut out[whole..n]);
+    }
+
+    #[target_feature(enable = "sse2")]
+    fn vertical_sse2(h0: &[i16], h1: &[i16], b0: i16, b1: i16, out: &mut [f32]) {
+        let (w0, w1, two, zero) = (
+            _mm_set1_epi16(b0),
+            _mm_set1_epi16(b1),
+            _mm_set1_epi16(2),
+            _mm_setzero_si128(),
+        );
+        let scale = _mm_set1_ps(255.0);
+        for ((o, s0), s1) in out
+            .chunks_exact_mut(8)
+            .zip(h0.chunks_exact(8))
+            .zip(h1.chunks_exact(8))
+        {
+            let sum = _mm_add_epi16(
+                _mm_mulhi_epi16(load_i16(s0), w0),
+                _mm_mulhi_epi16(load_i16(s1), w1),
+            );
+            let v = _mm_srai_epi16(_mm_add_epi16(sum, two), 2);
+            let lo = _mm_div_ps(_mm_cvtepi32_ps(_mm_unpacklo_epi16(v, zero)), scale);
+            let hi = _mm_div_ps(_mm_cvtepi32_ps(_mm_unpackhi_epi16(v, zero)), scale);
+            // SAFETY: `o` (one chunk) holds 8 f32.
+            unsafe {
+                _mm_storeu_ps(o.as_mut_ptr(), lo);
+                _mm_storeu_ps(o.as_mut_ptr().add(4), hi);
+            }
+        }
+    }
+}
+
+/// Other targets: the scalar kernels only.
+#[cfg(not(target_arch = "x86_64"))]
+mod simd {
+    use super::Tap;
+
+    #[derive(Debug)]
+    pub(super) enum Blocks {}
+
+    impl Blocks {
+        pub(super) fn new(_: &[Tap]) -> Option<Self> {
+            None
+        }
+
+        pub(super) fn horizontal(&self, _: &[u8], _: &mut [i16]) {
+            match *self {}
+        }
+    }
+
+    pub(super) fn split_bgr(_: &[u8], _: &mut [u8], _: usize, _: bool) -> bool {
+        false
+    }
+
+    pub(super) fn vertical(h0: &[i16], h1: &[i16], b0: i16, b1: i16, out: &mut [f32], _: bool) {
+        super::vertical(h0, h1, b0, b1, out);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Mat, Scalar, Size};
+    use opencv::imgproc;
+    use opencv::prelude::*;
+
+    /// A pseudo-random image (xorshift), so that every rounding path is hit.
+    fn noise(w: i32, h: i32, typ: i32, seed: u64) -> Mat {
+        let mut m = Mat::new_rows_cols_with_default(h, w, typ, Scalar::all(0.0)).expect("test image");
+        let mut s = seed | 1;
+        for v in m.data_bytes_mut().expect("bytes") {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            *v = (s >> 24) as u8;
+        }
+        m
+    }
+
+    fn layout(iw: u32, ih: u32, nw: u32, nh: u32, ox: u32, oy: u32) -> InputLayout {
+        InputLayout {
+            input_width: iw,
+            input_height: ih,
+            scaled_width: nw,
+            scaled_height: nh,
+            offset_x: ox,
+            offset_y: oy,
+        }
+    }
+
+    /// The reference: OpenCV's resize and copyMakeBorder, then `v / 255` into planar R, G, B.
+    fn opencv_planar(image: &Mat, l: &InputLayout) -> Vec<f32> {
+        let mut resized = Mat::default();
+        let size = Size::new(l.scaled_width as i32, l.scaled_height as i32);
+        imgproc::resize(image, &mut resized, size, 0.0, 0.0, imgproc::INTER_LINEAR).expect("resize");
+        let mode = match Border::for_layout(l) {
+            Border::Reflect101 => opencv::core::BORDER_REFLECT_101,
+            Border::Replicate => opencv::core::BORDER_REPLICATE,
+        };
+        let mut padded = Mat::default();
+        let (top, left) = (l.offset_y as i32, l.offset_x as i32);
+        let bottom = (l.input_height - l.scaled_height) as i32 - top;
+        let right = (l.input_width - l.scaled_width) as i32 - left;
+        opencv::core::copy_make_border(
+            &resized,
+            &mut padded,
+            top,
+            bottom,
+            left,
+            right,
+            mode,
+            Scalar::default(),
+        )
+        .expect("border");
+        let n = padded.channels() as usize;
+        let hw = (l.input_width * l.input_height) as usize;
+        let bytes = padded.data_bytes().expect("bytes");
+        let mut plane = vec![0.0f32; 3 * hw];
+        for p in 0..hw {
+            let px = &bytes[n * p..n * p + n];
+            let rgb = if n == 1 { [px[0]; 3] } else { [px[2], px[1], px[0]] };
+            for (c, v) in rgb.into_iter().enumerate() {
+                plane[c * hw + p] = f32::from(v) / 255.0;
+            }
+        }
+        plane
+    }
+
+    /// The fused pass equals OpenCV's resize + border + planar conversion bit for bit: downscales
+    /// (the reference sensor into the fast and the shipped model's inputs), upscales (a GelSight
+    /// Mini brought to the trained pitch), scale exactly 2 and 1, odd sizes, every channel count,
+    /// mirrored and replicated borders.
+    #[test]
+    fn fused_resize_is_bit_identical_to_opencv() {
+        let cases = [
+            (640, 480, layout(416, 320, 406, 304, 5, 8)),
+            (640, 480, layout(416, 416, 416, 416, 0, 0)),
+            (640, 480, layout(320, 240, 320, 240, 0, 0)),
+            (640, 480, layout(640, 480, 640, 480, 0, 0)),
+            (800, 600, layout(512, 384, 501, 376, 6, 4)),
+            (320, 240, layout(608, 448, 598, 448, 5, 0)),
+            (320, 240, layout(640, 480, 579, 434, 30, 23)),
+            (37, 29, layout(64, 48, 59, 47, 2, 1)),
+            (33, 31, layout(40, 40, 12, 10, 14, 15)),
+        ];
+        for allow_simd in [true, false] {
+            let mut scratch = ResizeScratch {
+                allow_simd,
+                ..ResizeScratch::default()
+            };
+            for (k, &(w, h, l)) in cases.iter().enumerate() {
+                for (typ, channels) in [(CV_8UC3, 3), (CV_8UC1, 1), (CV_8UC4, 4)] {
+                    let img = noise(w, h, typ, 17 + k as u64);
+                    let want = opencv_planar(&img, &l);
+                    let mut got = vec![-1.0f32; want.len()];
+                    let image = Image {
+                        bytes: img.data_bytes().expect("bytes"),
+                        width: w as usize,
+                        height: h as usize,
+                        channels,
+                    };
+                    resize_into_planar(&image, &l, Border::for_layout(&l), &mut scratch, &mut got);
+                    let bad = got
+                        .iter()
+                        .zip(&want)
+                        .position(|(a, b)| a.to_bits() != b.to_bits());
+                    assert_eq!(
+                        bad, None,
+                        "{w}x{h}, {channels} channel(s), {l:?}, SIMD {allow_simd}"
+                    );
+                }
+            }
+        }
+    }
+}
