@@ -566,8 +566,10 @@ impl Tracker {
     /// farther than `limit` x its local pitch from where the lattice of its associated neighbours
     /// puts it ([`lattice_position`](Self::lattice_position)).
     fn drop_lattice_outliers(&self, points: &[[f64; 2]], assoc: &mut [u32], limit: f64) {
+        // Fits on the associations before this pass: the result does not depend on slot order.
         let snapshot = assoc.to_vec();
         for i in 0..self.ids.len() {
+            // Weights >= 0.5 are the 8-neighbourhood (d^2 <= 2).
             if snapshot[i] == NONE
                 || self.neighbours[i]
                     .iter()
@@ -626,6 +628,7 @@ impl Tracker {
             sxv / s - mx * mv,
             syv / s - my * mv,
         );
+        // Neighbours along one line (or nearly) leave the map across it undetermined.
         let det = cxx * cyy - cxy * cxy;
         let p2 = self.pitch_px[slot] * self.pitch_px[slot];
         if det < 0.01 * p2 * p2 {
