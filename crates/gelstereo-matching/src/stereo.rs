@@ -11,7 +11,10 @@ use gelstereo_geometry::StereoRig;
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::grow::NONE;
-use crate::lattice::{IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch};
+use crate::lattice::{
+    GridPlacement, IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch,
+    placed_assignment,
+};
 use crate::{Error, Result};
 
 /// The epipolar geometry of a calibrated rig, for distances of right points to left points'
@@ -189,6 +192,19 @@ pub fn pair_by_index(
     Ok((pairs, rejected))
 }
 
+/// Where both views' markers sit on the whole grid ([`StereoLattice::from_reference_placed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StereoPlacement {
+    /// The left view's placement (defines the ids).
+    pub left: GridPlacement,
+    /// The right view's.
+    pub right: GridPlacement,
+    /// Markers placed in both views.
+    pub paired: usize,
+    /// Of those, pairs within `max_epipolar_px` (the others are dropped from the right view).
+    pub within_epipolar: usize,
+}
+
 /// The reference lattices of both views with aligned identities, and the stereo geometry.
 #[derive(Debug, Clone)]
 pub struct StereoLattice {
@@ -212,6 +228,123 @@ impl StereoLattice {
         right: &[Detection],
         shape: GridShape,
         config: StereoConfig,
+    ) -> Result<Self> {
+        Self::from_reference_with(rig, left, right, shape, config, (true, true))
+    }
+
+    /// [`from_reference`](Self::from_reference) for a view that shows only the visible part of a
+    /// larger grid, `shape` = [`ReferenceLattice::visible_shape`] of the left view, of the sensor's
+    /// `full` grid: the visible top-left marker is (0, 0). The right view's own extent only decides
+    /// a column (row) offset that the epipolar constraint leaves open where both views can show
+    /// every column (row) of the sensor (`shape` has all of `full`'s); otherwise the alignment
+    /// fails with a named error.
+    pub fn from_visible_reference(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        full: GridShape,
+        config: StereoConfig,
+    ) -> Result<Self> {
+        Self::from_reference_with(
+            rig,
+            left,
+            right,
+            shape,
+            config,
+            (shape.rows >= full.rows, shape.cols >= full.cols),
+        )
+    }
+
+    /// Indexes the reference frame of both views on the whole `shape` grid where a view may show
+    /// only part of it: each view's markers are placed by `expected` (every node's rest position
+    /// per view, row-major, e.g. the sensor description's lattice projected through the
+    /// calibration: [`ReferenceLattice::from_detections_placed`]), so ids are the sensor's grid
+    /// indices and the left/right offset follows. Right markers off their left namesakes' epipolar
+    /// lines are dropped; the alignment fails when fewer than half of the markers indexed in both
+    /// views pair within `max_epipolar_px` (a description of another sensor).
+    pub fn from_reference_placed(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        expected: (&[Option<Point2>], &[Option<Point2>]),
+        config: StereoConfig,
+    ) -> Result<(Self, StereoPlacement)> {
+        if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
+            return Err(Error::Config {
+                field: "max_epipolar_px",
+                expected: "a distance > 0 px".into(),
+                found: config.max_epipolar_px.to_string(),
+            });
+        }
+        let epipolar = EpipolarGeometry::new(rig)?;
+        let (left_lattice, left_place) =
+            ReferenceLattice::from_detections_placed(left, shape, expected.0, config.indexing.clone())?;
+        if right.is_empty() {
+            return Err(Error::StereoAlignment {
+                reason: "the right reference frame has no detections".into(),
+            });
+        }
+        let mut a = placed_assignment(right, shape, expected.1, &config.indexing)?;
+        let (mut paired, mut within) = (0usize, 0usize);
+        for (n, idx) in shape.indices().enumerate() {
+            let d = a.node_det[n];
+            if d == NONE || !left_lattice.observed(idx) {
+                continue;
+            }
+            paired += 1;
+            let e = left_lattice
+                .node_position(idx)
+                .and_then(|l| epipolar.distance_px(l, a.points[d as usize]));
+            if e.is_some_and(|e| e <= config.max_epipolar_px) {
+                within += 1;
+            } else {
+                a.node_det[n] = NONE;
+            }
+        }
+        if within * 2 < paired || paired == 0 {
+            return Err(Error::StereoAlignment {
+                reason: format!(
+                    "{within} of {paired} markers placed on the grid in both views lie within {} px of their \
+                     left namesakes' epipolar lines: expected at least half; check that the sensor description \
+                     and the calibration belong to this recording",
+                    config.max_epipolar_px
+                ),
+            });
+        }
+        let right_lattice = ReferenceLattice::from_assignment_of(
+            a.points,
+            shape,
+            &a.node_det,
+            a.pitch_px,
+            config.indexing.clone(),
+            a.nodes_in_view,
+        )?;
+        let placement = StereoPlacement {
+            left: left_place,
+            right: a.placement,
+            paired,
+            within_epipolar: within,
+        };
+        Ok((
+            Self {
+                left: left_lattice,
+                right: right_lattice,
+                epipolar,
+                config,
+            },
+            placement,
+        ))
+    }
+
+    fn from_reference_with(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        config: StereoConfig,
+        extent_decides: (bool, bool),
     ) -> Result<Self> {
         if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
             return Err(Error::Config {
@@ -309,12 +442,20 @@ impl StereoLattice {
         } else {
             // The window of the right lattice's own rows and columns that holds the most markers
             // (a stray row of dust beside the lattice does not move it); it decides when every
-            // one of its rows and columns is occupied.
+            // one of its rows and columns is occupied. Per direction: an offset all rivals share
+            // stands; else the window decides where allowed (`extent_decides`: not for a direction
+            // in which the sensor's grid overfills the view, where the windows say nothing).
             let (row_counts, col_counts) = scratch.counts();
             let (wr, wc) = (best_window(&row_counts, h), best_window(&col_counts, w));
-            let full = !row_counts[wr..wr + h].contains(&0) && !col_counts[wc..wc + w].contains(&0);
-            let by_extent = (wr as i64, wc as i64);
-            if full && rivals.contains(&by_extent) {
+            let rows_full = extent_decides.0 && !row_counts[wr..wr + h].contains(&0);
+            let cols_full = extent_decides.1 && !col_counts[wc..wc + w].contains(&0);
+            let shared = |of: fn(&(i64, i64)) -> i64| {
+                let v = of(&rivals[0]);
+                rivals.iter().all(|r| of(r) == v).then_some(v)
+            };
+            let r = shared(|r| r.0).or(rows_full.then_some(wr as i64));
+            let c = shared(|r| r.1).or(cols_full.then_some(wc as i64));
+            if let Some(by_extent) = r.zip(c).filter(|rc| rivals.contains(rc)) {
                 by_extent
             } else {
                 return Err(Error::StereoAlignment {
