@@ -880,20 +880,31 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         Some(g) => parse_grid(g)?,
         None => meta_grid.unwrap_or(GridShape::REFERENCE),
     };
+    let calib = match (&args.calib, &args.input) {
+        (Some(c), _) => Some(c.clone()),
+        (None, Some(dir)) if dir.join("calib.yaml").is_file() => {
+            Some(dir.join("calib.yaml").display().to_string())
+        }
+        _ => None,
+    };
     let rig = if stereo {
-        let spec = match (&args.calib, &args.input) {
-            (Some(c), _) => c.clone(),
-            (None, Some(dir)) if dir.join("calib.yaml").is_file() => {
-                dir.join("calib.yaml").display().to_string()
-            }
-            _ => bail!("stereo input needs --calib FILE (or a calib.yaml in the recording)"),
+        let Some(spec) = &calib else {
+            bail!("stereo input needs --calib FILE (or a calib.yaml in the recording)")
         };
-        Some(StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?)
+        Some(StereoRig::load(spec).with_context(|| format!("cannot load the calibration {spec}"))?)
     } else {
         None
     };
-    let expected = match (sensor_spec(args)?, &rig) {
-        (Some(spec), Some(rig)) if spec.grid_shape() == shape => Some(expected_lattice(&spec, rig)?),
+    // The sensor description's lattice is projected through the calibration (a mono run of a
+    // stereo recording uses its left camera); only a grid that overfills the view needs it.
+    let expected = match sensor_spec(args)? {
+        Some(spec) if spec.grid_shape() == shape => {
+            let projection = match &rig {
+                Some(r) => Some(r.clone()),
+                None => calib.as_deref().and_then(|c| StereoRig::load(c).ok()),
+            };
+            projection.map(|r| expected_lattice(&spec, &r)).transpose()?
+        }
         _ => None,
     };
     let mut config = SessionConfig::default();
