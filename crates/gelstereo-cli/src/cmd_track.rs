@@ -68,7 +68,8 @@ pub struct Args {
     /// cut by the border are found (their centres are then biased towards the border).
     #[arg(long, default_value_t = 0, value_name = "PX")]
     pad_border: i32,
-    /// Marker pitch of a mono sensor, mm (to report contact area and centroid in mm).
+    /// Marker pitch, mm: a mono sensor's contact area and centroid in mm; for a stereo grid that
+    /// overfills the view without a sensor description, it settles the right view's column offset.
     #[arg(long, value_name = "MM")]
     pitch_mm: Option<f64>,
     /// Gel thickness, mm (width of the layer response used for the contact region); default: the
@@ -766,12 +767,14 @@ fn touches_border(dets: &[Detection], visible: GridShape, full: GridShape, size:
 
 /// Starts a session on a reference frame whose view shows only part of the `full` lattice: on the
 /// sensor's own grid indices when a sensor description places it, else from the visible top-left
-/// marker (with a warning). Returns the session and the lines to log.
+/// marker (with a warning; `pitch_mm`, the marker pitch, can settle the right view's column
+/// offset). Returns the session and the lines to log.
 fn start_cut(
     dets: &StereoPair<TieredDetections>,
     rig: Option<&StereoRig>,
     full: GridShape,
     expected: Option<&ExpectedLattice>,
+    pitch_mm: Option<f64>,
     size: ImageSize,
     config: &SessionConfig,
 ) -> anyhow::Result<(Session, Vec<String>)> {
@@ -847,9 +850,10 @@ fn start_cut(
                 right,
                 visible,
                 full,
+                pitch_mm,
                 StereoConfig::default(),
             )
-            .context("give the sensor description (--sensor FILE) to place the grid")?;
+            .context("give the sensor description (--sensor FILE) to place the grid, or the marker pitch (--pitch-mm)")?;
             Session::stereo(rig, &lat, visible, config)?
         }
         None => Session::mono(
@@ -1036,8 +1040,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let stereo_rig = matches!(frame, Frame::Stereo(_))
                         .then_some(rig.as_ref())
                         .flatten();
-                    start_cut(&dets, stereo_rig, shape, expected.as_ref(), size, &config)
-                        .with_context(|| format!("{e:#}; indexing the visible part"))
+                    start_cut(
+                        &dets,
+                        stereo_rig,
+                        shape,
+                        expected.as_ref(),
+                        args.pitch_mm,
+                        size,
+                        &config,
+                    )
+                    .with_context(|| format!("{e:#}; indexing the visible part"))
                 }
                 Err(e) => Err(e),
             };

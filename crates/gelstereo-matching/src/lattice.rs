@@ -224,7 +224,7 @@ fn positions_of(detections: &[Detection]) -> Result<Vec<Point2>> {
 }
 
 /// Median of a non-empty slice (sorts it).
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     v.sort_unstable_by(f64::total_cmp);
     v[v.len() / 2]
 }

@@ -157,6 +157,7 @@ fn without_expected_positions_the_visible_top_left_marker_is_the_origin() {
         &r.detections,
         visible,
         SHAPE,
+        None,
         StereoConfig::default(),
     )
     .unwrap();
@@ -187,10 +188,39 @@ fn without_expected_positions_the_visible_top_left_marker_is_the_origin() {
         &r.detections,
         visible,
         SHAPE,
+        None,
         StereoConfig::default(),
     )
     .unwrap_err();
     assert!(matches!(e, Error::StereoAlignment { .. }), "{e}");
+    // With the marker pitch known, the triangulated spacing settles it: true ids minus the
+    // visible top-left's in both views.
+    let stereo = StereoLattice::from_visible_reference(
+        &rig,
+        &l.detections,
+        &r.detections,
+        visible,
+        SHAPE,
+        Some(PITCH_MM),
+        StereoConfig::default(),
+    )
+    .unwrap();
+    let (r0, _, c0, _) = rows_cols(&l);
+    let shift = |t: &[Option<GridIndex>]| -> Vec<Option<GridIndex>> {
+        t.iter()
+            .map(|i| {
+                i.and_then(|i| {
+                    (i.row >= r0 && i.col >= c0 && i.row < r0 + visible.rows && i.col < c0 + visible.cols)
+                        .then(|| GridIndex::new(i.row - r0, i.col - c0))
+                })
+            })
+            .collect()
+    };
+    let sl = score(stereo.left().reference_view(), &shift(&l.truth));
+    let sr = score(stereo.right().reference_view(), &shift(&r.truth));
+    assert_eq!((sl.correct, sl.wrong), (sl.markers, 0), "left {sl:?}");
+    assert_eq!(sr.wrong, 0, "right {sr:?}");
+    assert!(sr.correct as f64 >= 0.9 * sr.markers as f64, "right {sr:?}");
 }
 
 #[test]
