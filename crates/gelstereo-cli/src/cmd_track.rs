@@ -768,7 +768,8 @@ fn touches_border(dets: &[Detection], visible: GridShape, full: GridShape, size:
 /// Starts a session on a reference frame whose view shows only part of the `full` lattice: on the
 /// sensor's own grid indices when a sensor description places it, else from the visible top-left
 /// marker (with a warning; `pitch_mm`, the marker pitch, can settle the right view's column
-/// offset). Returns the session and the lines to log.
+/// offset). Returns the session and the lines to log; `None` when the view does not look cut off
+/// (no description, and no fewer rows or columns than the grid's near the image border).
 fn start_cut(
     dets: &StereoPair<TieredDetections>,
     rig: Option<&StereoRig>,
@@ -777,7 +778,7 @@ fn start_cut(
     pitch_mm: Option<f64>,
     size: ImageSize,
     config: &SessionConfig,
-) -> anyhow::Result<(Session, Vec<String>)> {
+) -> anyhow::Result<Option<(Session, Vec<String>)>> {
     let (left, right) = (&dets.left.accepted, &dets.right.accepted);
     if let Some(x) = expected {
         let (session, line) = match rig {
@@ -832,15 +833,11 @@ fn start_cut(
                 (Session::mono(&lat, full, config)?, line)
             }
         };
-        return Ok((session, vec![line]));
+        return Ok(Some((session, vec![line])));
     }
     let visible = ReferenceLattice::visible_shape(left, full, &IndexingConfig::default())?;
     if !touches_border(left, visible, full, size) {
-        bail!(
-            "{}x{} markers visible and none near the image border: not a grid cut off by the view",
-            visible.rows,
-            visible.cols
-        );
+        return Ok(None);
     }
     let session = match rig {
         Some(rig) => {
@@ -867,7 +864,7 @@ fn start_cut(
          {}x{} markers with the visible top-left marker as (0, 0); ids are not the sensor's grid indices",
         full.rows, full.cols, visible.rows, visible.cols
     );
-    Ok((session, vec![line]))
+    Ok(Some((session, vec![line])))
 }
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
@@ -1040,7 +1037,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let stereo_rig = matches!(frame, Frame::Stereo(_))
                         .then_some(rig.as_ref())
                         .flatten();
-                    start_cut(
+                    match start_cut(
                         &dets,
                         stereo_rig,
                         shape,
@@ -1048,8 +1045,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         args.pitch_mm,
                         size,
                         &config,
-                    )
-                    .with_context(|| format!("{e:#}; indexing the visible part"))
+                    ) {
+                        Ok(Some(started)) => Ok(started),
+                        // Not a cut grid: the whole-lattice error stands (the next frame is tried).
+                        Ok(None) => Err(e),
+                        Err(cut) => Err(cut.context(format!("{e:#}; indexing the visible part"))),
+                    }
                 }
                 Err(e) => Err(e),
             };
