@@ -904,7 +904,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 Some(r) => Some(r.clone()),
                 None => calib.as_deref().and_then(|c| StereoRig::load(c).ok()),
             };
-            projection.map(|r| expected_lattice(&spec, &r)).transpose()?
+            match projection.map(|r| expected_lattice(&spec, &r)).transpose() {
+                Ok(x) => x,
+                Err(e) if args.sensor.is_some() => return Err(e),
+                // A recording's own description that does not build leaves the grid unplaced.
+                Err(_) => None,
+            }
         }
         _ => None,
     };
