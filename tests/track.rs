@@ -281,3 +281,78 @@ fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
         .count();
     assert!(slipping >= 25, "{slipping} slipping frames in 150-205");
 }
+
+/// A sensor whose 28 x 13 grid overfills the 400 x 300 views (data/fixtures, the sensor variant of
+/// `gelstereo simulate --seed 606` train/exp_0006): the whole-lattice indexing refused it; now the
+/// recording's sensor description places the visible markers on the sensor's own grid indices, in
+/// both views, and the reference frame's ids and pairs are the truth's.
+#[test]
+fn a_grid_that_overfills_the_view_is_placed_on_the_sensors_own_indices() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec_root = dir.path().join("sim");
+    let sensor = repo().join("data/fixtures/sensor-overfilled-28x13.json");
+    let out = gelstereo_command()
+        .args([
+            "simulate",
+            "--quiet",
+            "--experiments",
+            "1",
+            "--frames-per-experiment",
+            "30",
+        ])
+        .args(["--seed", "3", "--randomization", "off", "--sensor"])
+        .arg(&sensor)
+        .arg("--out")
+        .arg(&rec_root)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let rec = rec_root.join("train/exp_0000");
+    let out_dir = dir.path().join("out");
+    let (ok, err) = track(&[
+        "--from-ground-truth",
+        "--no-ply",
+        "--overlay-every",
+        "0",
+        "--max-frames",
+        "2",
+        "--out",
+        out_dir.to_str().unwrap(),
+        rec.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("overfills the view: placed by the sensor description"),
+        "{err}"
+    );
+    // Reference frame: every marker the truth shows in both views is tracked under its true id,
+    // with both of its positions (ground-truth positions in, so exactly).
+    let t = CsvTable::read(&rec.join("markers.csv")).unwrap();
+    let mut truth = BTreeMap::new();
+    for r in 0..t.len() {
+        let m = MarkerRecord::from_table(&t, r).unwrap();
+        let both = t.cell(r, "visible_left").unwrap() == "1" && t.cell(r, "visible_right").unwrap() == "1";
+        if m.frame == 0 && both {
+            truth.insert(m.index, m);
+        }
+    }
+    let est: Vec<MarkerRecord> = markers(&out_dir.join("markers.csv"))
+        .into_iter()
+        .filter(|m| m.frame == 0 && m.status == Some(MarkerStatus::Tracked))
+        .collect();
+    assert!(truth.len() > 250, "the fixture shows most of the grid");
+    assert_eq!(
+        est.len(),
+        truth.len(),
+        "tracked in frame 0 vs visible in both views"
+    );
+    for m in &est {
+        let t = truth
+            .get(&m.index)
+            .unwrap_or_else(|| panic!("{} is not visible in the truth", m.index));
+        for (a, b) in [(m.left_px, t.left_px), (m.right_px, t.right_px)] {
+            let (a, b) = (a.unwrap(), b.unwrap());
+            assert!(a.distance(b) < 1e-3, "{}: {a:?} vs truth {b:?}", m.index);
+        }
+    }
+}

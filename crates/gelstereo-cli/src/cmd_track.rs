@@ -24,7 +24,10 @@ use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{Localizer, Method};
 use gelstereo_matching::eval::GroundTruth;
-use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
+use gelstereo_matching::{
+    Error as MatchError, IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice,
+};
+use gelstereo_sim::SensorSpec;
 use gelstereo_tracking::{
     ContactFrame, DenseField, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows,
     interpolate,
@@ -65,13 +68,20 @@ pub struct Args {
     /// cut by the border are found (their centres are then biased towards the border).
     #[arg(long, default_value_t = 0, value_name = "PX")]
     pad_border: i32,
-    /// Marker pitch of a mono sensor, mm (to report contact area and centroid in mm).
+    /// Marker pitch, mm: a mono sensor's contact area and centroid in mm; for a stereo grid that
+    /// overfills the view without a sensor description, it settles the right view's column offset.
     #[arg(long, value_name = "MM")]
     pitch_mm: Option<f64>,
     /// Gel thickness, mm (width of the layer response used for the contact region); default: the
     /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
     #[arg(long, value_name = "MM")]
     gel_thickness_mm: Option<f64>,
+    /// Sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor whose
+    /// marker grid overfills the cameras' view: its lattice, projected through the calibration,
+    /// places the visible markers on the sensor's own grid indices. Default: the recording's
+    /// meta.json `sensor`. Without one such a recording is indexed from its visible top-left marker.
+    #[arg(long, value_name = "FILE")]
+    sensor: Option<PathBuf>,
     /// Re-zero the reference at these frames (comma separated): drift correction.
     #[arg(long, value_delimiter = ',', value_name = "FRAME")]
     rezero_at: Vec<u32>,
@@ -322,6 +332,28 @@ pub(crate) fn meta(input: Option<&Path>) -> (Option<GridShape>, Option<f64>) {
         .and_then(|g| g.get("thickness_mm"))
         .and_then(|t| t.as_f64());
     (grid, thickness)
+}
+
+/// The sensor description: `--sensor FILE`, else the recording's meta.json `sensor` (if any).
+fn sensor_spec(args: &Args) -> anyhow::Result<Option<SensorSpec>> {
+    if let Some(path) = &args.sensor {
+        return Ok(Some(SensorSpec::load(path)?));
+    }
+    let Some(dir) = args.input.as_deref().filter(|p| p.is_dir()) else {
+        return Ok(None);
+    };
+    let Ok(text) = std::fs::read_to_string(dir.join("meta.json")) else {
+        return Ok(None);
+    };
+    // A recording's description that cannot be read only leaves the grid unplaced (older recordings).
+    let spec = serde_json::from_str::<serde_json::Value>(&text)
+        .ok()
+        .and_then(|v| serde_json::from_value::<SensorSpec>(v.get("sensor")?.clone()).ok())
+        .filter(|s| s.validate("meta.json sensor").is_ok());
+    let Some(spec) = spec else {
+        return Ok(None);
+    };
+    Ok(Some(spec))
 }
 
 fn choose_method(args: &Args) -> Method {
@@ -634,6 +666,202 @@ impl Session {
             Session::Mono(s) => s.tracker().ids(),
         }
     }
+
+    fn shape(&self) -> GridShape {
+        match self {
+            Session::Stereo(s) => s.shape(),
+            Session::Mono(s) => s.tracker().shape(),
+        }
+    }
+
+    fn stereo(
+        rig: &StereoRig,
+        lat: &StereoLattice,
+        shape: GridShape,
+        config: &SessionConfig,
+    ) -> anyhow::Result<Self> {
+        let l: Vec<(GridIndex, Point2)> = lat.left().reference_view().markers().collect();
+        let r: Vec<(GridIndex, Point2)> = lat.right().reference_view().markers().collect();
+        let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+        let mut session = StereoSession::new(shape, &l, &r, tri, config.clone())?;
+        // The two views' tracker updates and the triangulation on both cores (one frame at a time).
+        session.set_parallel(true);
+        Ok(Session::Stereo(Box::new(session)))
+    }
+
+    fn mono(lat: &ReferenceLattice, shape: GridShape, config: &SessionConfig) -> anyhow::Result<Self> {
+        let l: Vec<(GridIndex, Point2)> = lat.reference_view().markers().collect();
+        Ok(Session::Mono(Box::new(MonoSession::new(
+            shape,
+            &l,
+            config.clone(),
+        )?)))
+    }
+}
+
+/// The rest positions of a sensor description's markers in both views (row-major; `None` where a
+/// marker does not project), with the calibrated rig; and whether every one falls inside the image.
+fn expected_lattice(spec: &SensorSpec, rig: &StereoRig) -> anyhow::Result<ExpectedLattice> {
+    let sensor = spec.build().context("the sensor description")?;
+    let size = rig.left.image_size;
+    let inside = |q: &Point2| {
+        q.x >= 0.0 && q.y >= 0.0 && q.x <= f64::from(size.width) - 1.0 && q.y <= f64::from(size.height) - 1.0
+    };
+    let (mut left, mut right) = (Vec::new(), Vec::new());
+    for i in spec.grid_shape().indices() {
+        let [x, y] = spec.marker_rest_mm(i.row, i.col);
+        let p = rig.project(&(sensor.left_from_sensor * nalgebra::Point3::new(x, y, 0.0)));
+        left.push(p.map(|p| p.0));
+        right.push(p.map(|p| p.1));
+    }
+    let overfills = left.iter().chain(&right).any(|q| !q.as_ref().is_some_and(inside));
+    Ok(ExpectedLattice {
+        left,
+        right,
+        overfills,
+    })
+}
+
+struct ExpectedLattice {
+    left: Vec<Option<Point2>>,
+    right: Vec<Option<Point2>>,
+    /// Some marker falls outside a view at rest.
+    overfills: bool,
+}
+
+/// Whether the reference failed because the view does not show the whole lattice.
+fn lattice_cut(e: &anyhow::Error) -> bool {
+    matches!(
+        e.downcast_ref::<MatchError>(),
+        Some(MatchError::IncompleteGrid { .. } | MatchError::StereoAlignment { .. })
+    )
+}
+
+/// Whether the left view's markers come within a pitch of the image border (on a side where the
+/// lattice could be cut off) in a direction where fewer rows / columns than `full`'s are visible.
+fn touches_border(dets: &[Detection], visible: GridShape, full: GridShape, size: ImageSize) -> bool {
+    let pts: Vec<Point2> = dets.iter().map(|d| d.position).collect();
+    let mut nn: Vec<f64> = pts
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| {
+            pts.iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| p.distance(*q))
+                .min_by(f64::total_cmp)
+        })
+        .collect();
+    nn.sort_by(f64::total_cmp);
+    let Some(&pitch) = nn.get(nn.len() / 2) else {
+        return false;
+    };
+    let (w, h) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
+    let near = |f: &dyn Fn(&Point2) -> bool| pts.iter().any(f);
+    (visible.cols < full.cols && near(&|p| p.x < pitch || p.x > w - pitch))
+        || (visible.rows < full.rows && near(&|p| p.y < pitch || p.y > h - pitch))
+}
+
+/// Starts a session on a reference frame whose view shows only part of the `full` lattice: on the
+/// sensor's own grid indices when a sensor description places it, else from the visible top-left
+/// marker (with a warning; `pitch_mm`, the marker pitch, can settle the right view's column
+/// offset). Returns the session and the lines to log; `None` when the view does not look cut off
+/// (no description, and no fewer rows or columns than the grid's near the image border).
+fn start_cut(
+    dets: &StereoPair<TieredDetections>,
+    rig: Option<&StereoRig>,
+    full: GridShape,
+    expected: Option<&ExpectedLattice>,
+    pitch_mm: Option<f64>,
+    size: ImageSize,
+    config: &SessionConfig,
+) -> anyhow::Result<Option<(Session, Vec<String>)>> {
+    let (left, right) = (&dets.left.accepted, &dets.right.accepted);
+    if let Some(x) = expected {
+        let (session, line) = match rig {
+            Some(rig) => {
+                let (lat, p) = StereoLattice::from_reference_placed(
+                    rig,
+                    left,
+                    right,
+                    full,
+                    (&x.left, &x.right),
+                    StereoConfig::default(),
+                )?;
+                let line = format!(
+                    "the {}x{} grid overfills the view: placed by the sensor description; left view rows {}..={}, columns \
+                     {}..={} ({} of {} markers agree), right view rows {}..={}, columns {}..={} ({} of {}); {} of {} \
+                     markers seen in both views pair within {} px of the epipolar lines",
+                    full.rows,
+                    full.cols,
+                    p.left.first_row,
+                    p.left.last_row,
+                    p.left.first_col,
+                    p.left.last_col,
+                    p.left.agreeing,
+                    p.left.indexed,
+                    p.right.first_row,
+                    p.right.last_row,
+                    p.right.first_col,
+                    p.right.last_col,
+                    p.right.agreeing,
+                    p.right.indexed,
+                    p.within_epipolar,
+                    p.paired,
+                    StereoConfig::default().max_epipolar_px
+                );
+                (Session::stereo(rig, &lat, full, config)?, line)
+            }
+            None => {
+                let (lat, p) =
+                    ReferenceLattice::from_detections_placed(left, full, &x.left, IndexingConfig::default())?;
+                let line = format!(
+                    "the {}x{} grid overfills the view: placed by the sensor description on rows {}..={}, columns {}..={} \
+                     ({} of {} markers agree)",
+                    full.rows,
+                    full.cols,
+                    p.first_row,
+                    p.last_row,
+                    p.first_col,
+                    p.last_col,
+                    p.agreeing,
+                    p.indexed
+                );
+                (Session::mono(&lat, full, config)?, line)
+            }
+        };
+        return Ok(Some((session, vec![line])));
+    }
+    let visible = ReferenceLattice::visible_shape(left, full, &IndexingConfig::default())?;
+    if !touches_border(left, visible, full, size) {
+        return Ok(None);
+    }
+    let session = match rig {
+        Some(rig) => {
+            let lat = StereoLattice::from_visible_reference(
+                rig,
+                left,
+                right,
+                visible,
+                full,
+                pitch_mm,
+                StereoConfig::default(),
+            )
+            .context("give the sensor description (--sensor FILE) to place the grid, or the marker pitch (--pitch-mm)")?;
+            Session::stereo(rig, &lat, visible, config)?
+        }
+        None => Session::mono(
+            &ReferenceLattice::from_detections(left, visible, IndexingConfig::default())?,
+            visible,
+            config,
+        )?,
+    };
+    let line = format!(
+        "warning: the {}x{} grid overfills the view and no sensor description places it: indexing the visible \
+         {}x{} markers with the visible top-left marker as (0, 0); ids are not the sensor's grid indices",
+        full.rows, full.cols, visible.rows, visible.cols
+    );
+    Ok(Some((session, vec![line])))
 }
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
@@ -646,21 +874,41 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut source = open_source(args)?;
     let stereo = source.is_stereo();
     let (meta_grid, meta_thickness) = meta(args.input.as_deref());
-    let shape = match &args.grid {
+    let mut shape = match &args.grid {
         Some(g) => parse_grid(g)?,
         None => meta_grid.unwrap_or(GridShape::REFERENCE),
     };
+    let calib = match (&args.calib, &args.input) {
+        (Some(c), _) => Some(c.clone()),
+        (None, Some(dir)) if dir.join("calib.yaml").is_file() => {
+            Some(dir.join("calib.yaml").display().to_string())
+        }
+        _ => None,
+    };
     let rig = if stereo {
-        let spec = match (&args.calib, &args.input) {
-            (Some(c), _) => c.clone(),
-            (None, Some(dir)) if dir.join("calib.yaml").is_file() => {
-                dir.join("calib.yaml").display().to_string()
-            }
-            _ => bail!("stereo input needs --calib FILE (or a calib.yaml in the recording)"),
+        let Some(spec) = &calib else {
+            bail!("stereo input needs --calib FILE (or a calib.yaml in the recording)")
         };
-        Some(StereoRig::load(&spec).with_context(|| format!("cannot load the calibration {spec}"))?)
+        Some(StereoRig::load(spec).with_context(|| format!("cannot load the calibration {spec}"))?)
     } else {
         None
+    };
+    // The sensor description's lattice is projected through the calibration (a mono run of a
+    // stereo recording uses its left camera); only a grid that overfills the view needs it.
+    let expected = match sensor_spec(args)? {
+        Some(spec) if spec.grid_shape() == shape => {
+            let projection = match &rig {
+                Some(r) => Some(r.clone()),
+                None => calib.as_deref().and_then(|c| StereoRig::load(c).ok()),
+            };
+            match projection.map(|r| expected_lattice(&spec, &r)).transpose() {
+                Ok(x) => x,
+                Err(e) if args.sensor.is_some() => return Err(e),
+                // A recording's own description that does not build leaves the grid unplaced.
+                Err(_) => None,
+            }
+        }
+        _ => None,
     };
     let mut config = SessionConfig::default();
     if let Some(t) = args.gel_thickness_mm.or(meta_thickness) {
@@ -780,27 +1028,43 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     StereoConfig::default(),
                 )
                 .map_err(anyhow::Error::from)
-                .and_then(|lat| {
-                    let l: Vec<(GridIndex, Point2)> = lat.left().reference_view().markers().collect();
-                    let r: Vec<(GridIndex, Point2)> = lat.right().reference_view().markers().collect();
-                    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
-                    let mut session = StereoSession::new(shape, &l, &r, tri, config.clone())?;
-                    session.set_parallel(true);
-                    Ok(Session::Stereo(Box::new(session)))
-                }),
+                .and_then(|lat| Session::stereo(rig, &lat, shape, &config)),
                 _ => ReferenceLattice::from_detections(&dets.left.accepted, shape, IndexingConfig::default())
                     .map_err(anyhow::Error::from)
-                    .and_then(|lat| {
-                        let l: Vec<(GridIndex, Point2)> = lat.reference_view().markers().collect();
-                        Ok(Session::Mono(Box::new(MonoSession::new(
-                            shape,
-                            &l,
-                            config.clone(),
-                        )?)))
-                    }),
+                    .and_then(|lat| Session::mono(&lat, shape, &config)),
+            };
+            // A grid that overfills the view: only then the visible part is indexed (a lattice that
+            // fits keeps the whole-lattice indexing, and a frame that misses a row the next frame).
+            let started = match started {
+                Ok(s) => Ok((s, Vec::new())),
+                Err(e) if lattice_cut(&e) && expected.as_ref().is_none_or(|x| x.overfills) => {
+                    let size = reference_size.unwrap_or(ImageSize { width: 0, height: 0 });
+                    let stereo_rig = matches!(frame, Frame::Stereo(_))
+                        .then_some(rig.as_ref())
+                        .flatten();
+                    match start_cut(
+                        &dets,
+                        stereo_rig,
+                        shape,
+                        expected.as_ref(),
+                        args.pitch_mm,
+                        size,
+                        &config,
+                    ) {
+                        Ok(Some(started)) => Ok(started),
+                        // Not a cut grid: the whole-lattice error stands (the next frame is tried).
+                        Ok(None) => Err(e),
+                        Err(cut) => Err(cut.context(format!("{e:#}; indexing the visible part"))),
+                    }
+                }
+                Err(e) => Err(e),
             };
             match started {
-                Ok(s) => {
+                Ok((s, notes)) => {
+                    for note in notes {
+                        progress.suspend(|| eprintln!("reference frame {frame_no}: {note}"));
+                    }
+                    shape = s.shape();
                     for (f, _) in pending_flagged.drain(..) {
                         let (m, fs) = flagged_rows(s.ids(), f);
                         outputs.rows(&m, &fs)?;

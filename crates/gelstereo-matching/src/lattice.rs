@@ -75,6 +75,24 @@ impl IndexingConfig {
     }
 }
 
+/// Where a partly visible view's markers sit on the whole grid
+/// ([`ReferenceLattice::from_detections_placed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GridPlacement {
+    /// First and last grid row with an indexed marker.
+    pub first_row: u16,
+    /// Last grid row with an indexed marker.
+    pub last_row: u16,
+    /// First grid column with an indexed marker.
+    pub first_col: u16,
+    /// Last grid column with an indexed marker.
+    pub last_col: u16,
+    /// Indexed markers whose nearest expected node agrees with the chosen offset.
+    pub agreeing: usize,
+    /// Markers indexed in the view.
+    pub indexed: usize,
+}
+
 /// The detections of one view with the grid index of each.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IndexedView {
@@ -206,7 +224,7 @@ fn positions_of(detections: &[Detection]) -> Result<Vec<Point2>> {
 }
 
 /// Median of a non-empty slice (sorts it).
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     v.sort_unstable_by(f64::total_cmp);
     v[v.len() / 2]
 }
@@ -425,6 +443,120 @@ pub(crate) fn best_window(counts: &[usize], size: usize) -> usize {
     best.0
 }
 
+/// A partly visible view's detections assigned to the nodes of the whole grid by the expected
+/// node positions ([`ReferenceLattice::from_detections_placed`]).
+pub(crate) struct PlacedAssignment {
+    pub(crate) points: Vec<Point2>,
+    /// Detection per node of the whole grid (NONE where none).
+    pub(crate) node_det: Vec<u32>,
+    pub(crate) pitch_px: f64,
+    /// Nodes expected within the detections' extent.
+    pub(crate) nodes_in_view: usize,
+    pub(crate) placement: GridPlacement,
+}
+
+pub(crate) fn placed_assignment(
+    detections: &[Detection],
+    shape: GridShape,
+    expected: &[Option<Point2>],
+    config: &IndexingConfig,
+) -> Result<PlacedAssignment> {
+    config.validate()?;
+    if expected.len() != shape.count() {
+        return Err(Error::PriorLength {
+            expected: shape.count(),
+            found: expected.len(),
+        });
+    }
+    let points = positions_of(detections)?;
+    if points.is_empty() {
+        return Err(Error::EmptyView);
+    }
+    let scratch = grow_from_scratch(&points, shape, config)?;
+    let (h, w) = (usize::from(shape.rows), usize::from(shape.cols));
+    let pitch = scratch.pitch_px;
+    // Each indexed marker votes for the offset between its provisional node and the nearest
+    // expected node (within half a pitch); a few hundred of each, so brute force will do.
+    let mut votes: std::collections::BTreeMap<(i64, i64), usize> = std::collections::BTreeMap::new();
+    let mut indexed = 0usize;
+    for (n, &d) in scratch.node_det.iter().enumerate() {
+        if d == NONE {
+            continue;
+        }
+        indexed += 1;
+        let p = points[d as usize];
+        let nearest = expected
+            .iter()
+            .enumerate()
+            .filter_map(|(k, q)| q.map(|q| (q.distance(p), k)))
+            .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        if let Some((dist, k)) = nearest.filter(|x| x.0 <= 0.5 * pitch) {
+            let _ = dist;
+            let (sr, sc) = ((n / scratch.cols) as i64, (n % scratch.cols) as i64);
+            *votes
+                .entry((sr - (k / w) as i64, sc - (k % w) as i64))
+                .or_default() += 1;
+        }
+    }
+    // Most votes first; the lowest offset among equals (deterministic).
+    let best = votes
+        .iter()
+        .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+        .map(|(&o, &v)| (o, v));
+    let Some(((r0, c0), agreeing)) = best.filter(|&(_, v)| 2 * v >= indexed) else {
+        return Err(Error::Placement {
+            agreeing: best.map_or(0, |b| b.1),
+            indexed,
+            pitch_px: pitch,
+        });
+    };
+    let node_det: Vec<u32> = (0..h * w)
+        .map(|n| {
+            let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
+            if r < 0 || c < 0 || r >= scratch.rows as i64 || c >= scratch.cols as i64 {
+                NONE
+            } else {
+                scratch.node_det[r as usize * scratch.cols + c as usize]
+            }
+        })
+        .collect();
+    // Nodes the view can show: expected within the detections' extent (half a pitch beyond).
+    let (lo, hi) = points.iter().fold(
+        (
+            Point2::new(f64::INFINITY, f64::INFINITY),
+            Point2::new(f64::NEG_INFINITY, f64::NEG_INFINITY),
+        ),
+        |(lo, hi), p| {
+            (
+                Point2::new(lo.x.min(p.x), lo.y.min(p.y)),
+                Point2::new(hi.x.max(p.x), hi.y.max(p.y)),
+            )
+        },
+    );
+    let m = 0.5 * pitch;
+    let in_view = expected
+        .iter()
+        .flatten()
+        .filter(|q| q.x >= lo.x - m && q.x <= hi.x + m && q.y >= lo.y - m && q.y <= hi.y + m)
+        .count();
+    let placed: Vec<usize> = (0..h * w).filter(|&n| node_det[n] != NONE).collect();
+    let placement = GridPlacement {
+        first_row: placed.iter().map(|&n| n / w).min().unwrap_or(0) as u16,
+        last_row: placed.iter().map(|&n| n / w).max().unwrap_or(0) as u16,
+        first_col: placed.iter().map(|&n| n % w).min().unwrap_or(0) as u16,
+        last_col: placed.iter().map(|&n| n % w).max().unwrap_or(0) as u16,
+        agreeing,
+        indexed,
+    };
+    Ok(PlacedAssignment {
+        points,
+        node_det,
+        pitch_px: pitch,
+        nodes_in_view: in_view,
+        placement,
+    })
+}
+
 impl ReferenceLattice {
     /// Indexes a reference (no-contact) frame from scratch: estimates the pitch and the lattice
     /// directions, grows the lattice from a seed near the centre, and places the `shape` window on
@@ -470,6 +602,63 @@ impl ReferenceLattice {
         Self::from_assignment(points, shape, &node_det, scratch.pitch_px, config)
     }
 
+    /// The rows x columns of a lattice of at most `max` that a reference view shows: the longest
+    /// unbroken runs of occupied rows and columns of a lattice grown from scratch. For a sensor whose
+    /// grid overfills the camera's view, where [`from_detections`](Self::from_detections) with the
+    /// whole shape fails with [`Error::IncompleteGrid`]; indexing the view with the shape returned
+    /// makes the visible top-left marker (0, 0). Fails with [`Error::TooSmallVisible`] below 3 x 3.
+    pub fn visible_shape(
+        detections: &[Detection],
+        max: GridShape,
+        config: &IndexingConfig,
+    ) -> Result<GridShape> {
+        config.validate()?;
+        let points = positions_of(detections)?;
+        if points.is_empty() {
+            return Err(Error::EmptyView);
+        }
+        let scratch = grow_from_scratch(&points, max, config)?;
+        let (row_counts, col_counts) = scratch.counts();
+        let run = |counts: &[usize], limit: u16| -> u16 {
+            let (mut best, mut cur) = (0usize, 0usize);
+            for &c in counts {
+                cur = if c > 0 { cur + 1 } else { 0 };
+                best = best.max(cur);
+            }
+            u16::try_from(best).unwrap_or(u16::MAX).min(limit)
+        };
+        let (rows, cols) = (run(&row_counts, max.rows), run(&col_counts, max.cols));
+        if rows < 3 || cols < 3 {
+            return Err(Error::TooSmallVisible {
+                found_rows: usize::from(rows),
+                found_cols: usize::from(cols),
+            });
+        }
+        Ok(GridShape { rows, cols })
+    }
+
+    /// Indexes a reference frame that may show only part of the `shape` lattice (a sensor whose
+    /// grid overfills the camera's view) and places the visible markers on the whole grid by
+    /// `expected`: every node's rest position in this view, row-major over `shape` (e.g. the
+    /// sensor description's lattice projected through the calibration; `None` where it does not
+    /// project). The grid offset is the one most indexed markers agree on (nearest expected node
+    /// within half a pitch), so the ids are the sensor's own grid indices.
+    ///
+    /// Fails with [`Error::Placement`] when fewer than half of the indexed markers agree on one
+    /// offset, and with [`Error::TooFewMarkers`] when fewer than `min_reference_fraction` of the
+    /// nodes expected within the detections' extent are found.
+    pub fn from_detections_placed(
+        detections: &[Detection],
+        shape: GridShape,
+        expected: &[Option<Point2>],
+        config: IndexingConfig,
+    ) -> Result<(Self, GridPlacement)> {
+        let a = placed_assignment(detections, shape, expected, &config)?;
+        let lattice =
+            Self::from_assignment_of(a.points, shape, &a.node_det, a.pitch_px, config, a.nodes_in_view)?;
+        Ok((lattice, a.placement))
+    }
+
     /// Builds the lattice from a complete assignment of reference detections to nodes (`node_det`
     /// row-major over `shape`, NONE where missing); fills the missing nodes by prediction.
     pub(crate) fn from_assignment(
@@ -479,13 +668,26 @@ impl ReferenceLattice {
         pitch_px: f64,
         config: IndexingConfig,
     ) -> Result<Self> {
+        Self::from_assignment_of(points, shape, node_det, pitch_px, config, shape.count())
+    }
+
+    /// [`from_assignment`](Self::from_assignment) where `nodes_in_view` of the nodes can be seen
+    /// (the minimum reference fraction applies to them).
+    pub(crate) fn from_assignment_of(
+        points: Vec<Point2>,
+        shape: GridShape,
+        node_det: &[u32],
+        pitch_px: f64,
+        config: IndexingConfig,
+        nodes_in_view: usize,
+    ) -> Result<Self> {
         let (h, w) = (usize::from(shape.rows), usize::from(shape.cols));
         let observed: Vec<bool> = node_det.iter().map(|&d| d != NONE).collect();
         let found = observed.iter().filter(|&&o| o).count();
-        if (found as f64) < config.min_reference_fraction * (h * w) as f64 {
+        if (found as f64) < config.min_reference_fraction * nodes_in_view as f64 {
             return Err(Error::TooFewMarkers {
                 found,
-                expected: h * w,
+                expected: nodes_in_view,
                 min_fraction: config.min_reference_fraction,
             });
         }

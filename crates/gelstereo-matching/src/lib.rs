@@ -28,11 +28,11 @@ mod lattice;
 mod reconstruct;
 mod stereo;
 
-pub use lattice::{IndexedView, IndexingConfig, ReferenceLattice};
+pub use lattice::{GridPlacement, IndexedView, IndexingConfig, ReferenceLattice};
 pub use reconstruct::{FrameReconstruction, MarkerRejection, ReconstructedMarker, StereoReconstructor};
 pub use stereo::{
-    EpipolarGeometry, FrameMatch, MatchedPair, PairRejection, StereoConfig, StereoLattice, StereoPrior,
-    pair_by_index,
+    EpipolarGeometry, FrameMatch, MatchedPair, PairRejection, StereoConfig, StereoLattice, StereoPlacement,
+    StereoPrior, pair_by_index,
 };
 
 use gelstereo_core::GridShape;
@@ -85,6 +85,31 @@ pub enum Error {
         found_rows: usize,
         /// Columns with at least one marker.
         found_cols: usize,
+    },
+    /// A partly visible lattice shows too few rows or columns to be indexed.
+    #[error(
+        "reference frame: only {found_rows} rows x {found_cols} columns of markers visible: expected at \
+         least 3 x 3 to index a partly visible lattice"
+    )]
+    TooSmallVisible {
+        /// Rows seen.
+        found_rows: usize,
+        /// Columns seen.
+        found_cols: usize,
+    },
+    /// The visible markers do not fit the expected (sensor description's) lattice positions.
+    #[error(
+        "reference frame: only {agreeing} of {indexed} indexed markers agree on one grid offset with \
+         the expected lattice positions (nearest node within half a pitch, {pitch_px:.1} px): expected \
+         at least half; check that the sensor description and calibration belong to this recording"
+    )]
+    Placement {
+        /// Markers agreeing with the best offset.
+        agreeing: usize,
+        /// Markers indexed.
+        indexed: usize,
+        /// Marker pitch, px.
+        pitch_px: f64,
     },
     /// The reference frame shows too small a part of the lattice.
     #[error(

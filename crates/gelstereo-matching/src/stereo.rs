@@ -7,11 +7,14 @@
 //! undistorted right image.
 
 use gelstereo_core::{Detection, GridIndex, GridShape, Point2};
-use gelstereo_geometry::StereoRig;
+use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::grow::NONE;
-use crate::lattice::{IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch};
+use crate::lattice::{
+    GridPlacement, IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch, median,
+    placed_assignment,
+};
 use crate::{Error, Result};
 
 /// The epipolar geometry of a calibrated rig, for distances of right points to left points'
@@ -189,6 +192,19 @@ pub fn pair_by_index(
     Ok((pairs, rejected))
 }
 
+/// Where both views' markers sit on the whole grid ([`StereoLattice::from_reference_placed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StereoPlacement {
+    /// The left view's placement (defines the ids).
+    pub left: GridPlacement,
+    /// The right view's.
+    pub right: GridPlacement,
+    /// Markers placed in both views.
+    pub paired: usize,
+    /// Of those, pairs within `max_epipolar_px` (the others are dropped from the right view).
+    pub within_epipolar: usize,
+}
+
 /// The reference lattices of both views with aligned identities, and the stereo geometry.
 #[derive(Debug, Clone)]
 pub struct StereoLattice {
@@ -212,6 +228,129 @@ impl StereoLattice {
         right: &[Detection],
         shape: GridShape,
         config: StereoConfig,
+    ) -> Result<Self> {
+        Self::from_reference_with(rig, left, right, shape, config, (true, true), None)
+    }
+
+    /// [`from_reference`](Self::from_reference) for a view that shows only the visible part of a
+    /// larger grid, `shape` = [`ReferenceLattice::visible_shape`] of the left view, of the sensor's
+    /// `full` grid: the visible top-left marker is (0, 0). The right view's own extent only decides
+    /// a column (row) offset that the epipolar constraint leaves open where both views can show
+    /// every column (row) of the sensor (`shape` has all of `full`'s). Otherwise, with the marker
+    /// pitch `pitch_mm` known, the offset whose triangulated reference lattice has the median
+    /// neighbour spacing nearest the pitch decides (a wrong column offset changes the disparity by
+    /// a pitch and so the depth and the spacing), when it is within 5 % of the pitch and every
+    /// other offset at least 5 % farther; else the alignment fails with a named error.
+    pub fn from_visible_reference(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        full: GridShape,
+        pitch_mm: Option<f64>,
+        config: StereoConfig,
+    ) -> Result<Self> {
+        Self::from_reference_with(
+            rig,
+            left,
+            right,
+            shape,
+            config,
+            (shape.rows >= full.rows, shape.cols >= full.cols),
+            pitch_mm,
+        )
+    }
+
+    /// Indexes the reference frame of both views on the whole `shape` grid where a view may show
+    /// only part of it: each view's markers are placed by `expected` (every node's rest position
+    /// per view, row-major, e.g. the sensor description's lattice projected through the
+    /// calibration: [`ReferenceLattice::from_detections_placed`]), so ids are the sensor's grid
+    /// indices and the left/right offset follows. Right markers off their left namesakes' epipolar
+    /// lines are dropped; the alignment fails when fewer than half of the markers indexed in both
+    /// views pair within `max_epipolar_px` (a description of another sensor).
+    pub fn from_reference_placed(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        expected: (&[Option<Point2>], &[Option<Point2>]),
+        config: StereoConfig,
+    ) -> Result<(Self, StereoPlacement)> {
+        if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
+            return Err(Error::Config {
+                field: "max_epipolar_px",
+                expected: "a distance > 0 px".into(),
+                found: config.max_epipolar_px.to_string(),
+            });
+        }
+        let epipolar = EpipolarGeometry::new(rig)?;
+        let (left_lattice, left_place) =
+            ReferenceLattice::from_detections_placed(left, shape, expected.0, config.indexing.clone())?;
+        if right.is_empty() {
+            return Err(Error::StereoAlignment {
+                reason: "the right reference frame has no detections".into(),
+            });
+        }
+        let mut a = placed_assignment(right, shape, expected.1, &config.indexing)?;
+        let (mut paired, mut within) = (0usize, 0usize);
+        for (n, idx) in shape.indices().enumerate() {
+            let d = a.node_det[n];
+            if d == NONE || !left_lattice.observed(idx) {
+                continue;
+            }
+            paired += 1;
+            let e = left_lattice
+                .node_position(idx)
+                .and_then(|l| epipolar.distance_px(l, a.points[d as usize]));
+            if e.is_some_and(|e| e <= config.max_epipolar_px) {
+                within += 1;
+            } else {
+                a.node_det[n] = NONE;
+            }
+        }
+        if within * 2 < paired || paired == 0 {
+            return Err(Error::StereoAlignment {
+                reason: format!(
+                    "{within} of {paired} markers placed on the grid in both views lie within {} px of their \
+                     left namesakes' epipolar lines: expected at least half; check that the sensor description \
+                     and the calibration belong to this recording",
+                    config.max_epipolar_px
+                ),
+            });
+        }
+        let right_lattice = ReferenceLattice::from_assignment_of(
+            a.points,
+            shape,
+            &a.node_det,
+            a.pitch_px,
+            config.indexing.clone(),
+            a.nodes_in_view,
+        )?;
+        let placement = StereoPlacement {
+            left: left_place,
+            right: a.placement,
+            paired,
+            within_epipolar: within,
+        };
+        Ok((
+            Self {
+                left: left_lattice,
+                right: right_lattice,
+                epipolar,
+                config,
+            },
+            placement,
+        ))
+    }
+
+    fn from_reference_with(
+        rig: &StereoRig,
+        left: &[Detection],
+        right: &[Detection],
+        shape: GridShape,
+        config: StereoConfig,
+        extent_decides: (bool, bool),
+        pitch_mm: Option<f64>,
     ) -> Result<Self> {
         if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
             return Err(Error::Config {
@@ -263,20 +402,38 @@ impl StereoLattice {
             .filter(|(_, d)| **d != NONE)
             .map(|(n, &d)| ((n / scratch.cols) as i64, (n % scratch.cols) as i64, d as usize))
             .collect();
+        // Per offset: right markers on an observed left node, and of those the ones within the
+        // epipolar bound.
+        let fit = |r0: i64, c0: i64| -> (usize, usize) {
+            let (mut overlap, mut within) = (0usize, 0usize);
+            for &(r, c, d) in &assigned {
+                let (gr, gc) = (r - r0, c - c0);
+                if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
+                    continue;
+                }
+                if let Some(l) = &lines[gr as usize * w + gc as usize] {
+                    overlap += 1;
+                    if right_norm[d]
+                        .is_some_and(|x| epipolar.line_distance_px(l, &x) <= config.max_epipolar_px)
+                    {
+                        within += 1;
+                    }
+                }
+            }
+            (overlap, within)
+        };
+        // A grid cut off by the view (`extent_decides` not both): the views overlap more under some
+        // wrong column offsets than under the true one, so an offset scores the share of its
+        // overlap that fits (in 1/1000, over at least a quarter of the markers), not the count.
+        let cut = extent_decides != (true, true);
+        let min_overlap = (assigned.len().min(lines.iter().flatten().count()) / 4).max(6);
         let score = |r0: i64, c0: i64| -> usize {
-            assigned
-                .iter()
-                .filter(|&&(r, c, d)| {
-                    let (gr, gc) = (r - r0, c - c0);
-                    if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
-                        return false;
-                    }
-                    match (&lines[gr as usize * w + gc as usize], &right_norm[d]) {
-                        (Some(l), Some(x)) => epipolar.line_distance_px(l, x) <= config.max_epipolar_px,
-                        _ => false,
-                    }
-                })
-                .count()
+            let (overlap, within) = fit(r0, c0);
+            match cut {
+                false => within,
+                true if overlap >= min_overlap => within * 1000 / overlap,
+                true => 0,
+            }
         };
         let mut scored = Vec::new();
         for r0 in rmin as i64 - h as i64 + 1..=rmax as i64 {
@@ -287,13 +444,18 @@ impl StereoLattice {
         // Highest score first; lowest offsets among equals (deterministic).
         scored.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
         let best = scored[0];
-        let possible = assigned.len().min(lines.iter().flatten().count());
+        let possible = if cut {
+            1000
+        } else {
+            assigned.len().min(lines.iter().flatten().count())
+        };
         if best.0 * 2 < possible {
+            let (_, within) = fit(best.1, best.2);
             return Err(Error::StereoAlignment {
                 reason: format!(
                     "at best {} of {} right markers lie within {} px of their left namesakes' epipolar \
                      lines: expected at least half; check that the calibration belongs to this sensor",
-                    best.0,
+                    within,
                     assigned.len(),
                     config.max_epipolar_px
                 ),
@@ -309,21 +471,101 @@ impl StereoLattice {
         } else {
             // The window of the right lattice's own rows and columns that holds the most markers
             // (a stray row of dust beside the lattice does not move it); it decides when every
-            // one of its rows and columns is occupied.
+            // one of its rows and columns is occupied. Per direction: an offset all rivals share
+            // stands; else the window decides where allowed (`extent_decides`: not for a direction
+            // in which the sensor's grid overfills the view, where the windows say nothing).
             let (row_counts, col_counts) = scratch.counts();
             let (wr, wc) = (best_window(&row_counts, h), best_window(&col_counts, w));
-            let full = !row_counts[wr..wr + h].contains(&0) && !col_counts[wc..wc + w].contains(&0);
-            let by_extent = (wr as i64, wc as i64);
-            if full && rivals.contains(&by_extent) {
+            let rows_full = extent_decides.0 && !row_counts[wr..wr + h].contains(&0);
+            let cols_full = extent_decides.1 && !col_counts[wc..wc + w].contains(&0);
+            let shared = |of: fn(&(i64, i64)) -> i64| {
+                let v = of(&rivals[0]);
+                rivals.iter().all(|r| of(r) == v).then_some(v)
+            };
+            let r = shared(|r| r.0).or(rows_full.then_some(wr as i64));
+            let c = shared(|r| r.1).or(cols_full.then_some(wc as i64));
+            // The metric cue: relative error of the triangulated median neighbour spacing against
+            // the known pitch, per rival.
+            let spacing_errors: Vec<((i64, i64), f64)> = match pitch_mm {
+                Some(p) if r.zip(c).filter(|rc| rivals.contains(rc)).is_none() => {
+                    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+                    rivals
+                        .iter()
+                        .map(|&(r0, c0)| {
+                            let mut at: Vec<Option<nalgebra::Point3<f64>>> = vec![None; h * w];
+                            for &(r, c, d) in &assigned {
+                                let (gr, gc) = (r - r0, c - c0);
+                                if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
+                                    continue;
+                                }
+                                let idx = GridIndex::new(gr as u16, gc as u16);
+                                if let Some(l) = left_lattice
+                                    .observed(idx)
+                                    .then(|| left_lattice.node_position(idx))
+                                    .flatten()
+                                {
+                                    at[gr as usize * w + gc as usize] =
+                                        tri.triangulate(l, points[d]).ok().map(|t| t.p_in_left_mm);
+                                }
+                            }
+                            let mut steps: Vec<f64> = Vec::new();
+                            for n in 0..h * w {
+                                let Some(a) = at[n] else { continue };
+                                let right_n = (n % w + 1 < w).then_some(n + 1);
+                                let below = (n / w + 1 < h).then_some(n + w);
+                                for m in [right_n, below].into_iter().flatten() {
+                                    if let Some(b) = at[m] {
+                                        steps.push((b - a).norm());
+                                    }
+                                }
+                            }
+                            let e = if steps.is_empty() {
+                                f64::INFINITY
+                            } else {
+                                (median(&mut steps) / p - 1.0).abs()
+                            };
+                            ((r0, c0), e)
+                        })
+                        .collect()
+                }
+                _ => Vec::new(),
+            };
+            let by_pitch = spacing_errors
+                .iter()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .filter(|best| {
+                    best.1 <= 0.05
+                        && spacing_errors
+                            .iter()
+                            .all(|o| o.0 == best.0 || o.1 >= best.1 + 0.05)
+                })
+                .map(|best| best.0);
+            if let Some(by_extent) = r.zip(c).filter(|rc| rivals.contains(rc)) {
                 by_extent
+            } else if let Some(by_pitch) = by_pitch {
+                by_pitch
             } else {
+                let cue = if spacing_errors.is_empty() {
+                    String::new()
+                } else {
+                    let v: Vec<String> = spacing_errors
+                        .iter()
+                        .map(|((r0, c0), e)| format!("({r0}, {c0}): {:.0} %", 100.0 * e))
+                        .collect();
+                    format!(
+                        "; triangulated neighbour spacing off the {:.3} mm pitch by offset: {} (expected one \
+                         within 5 % and the others 5 % farther)",
+                        pitch_mm.unwrap_or(f64::NAN),
+                        v.join(", ")
+                    )
+                };
                 return Err(Error::StereoAlignment {
                     reason: format!(
                         "{} row/column offsets of the right lattice fit the epipolar constraint about equally \
                          well (best {} markers) and the right view does not show the whole {} x {} lattice \
-                         (rows {}..={}, columns {}..={} of its own grid)",
+                         (rows {}..={}, columns {}..={} of its own grid){cue}",
                         rivals.len(),
-                        best.0,
+                        fit(best.1, best.2).1,
                         h,
                         w,
                         rmin,
@@ -351,12 +593,29 @@ impl StereoLattice {
                 if ok { d } else { NONE }
             })
             .collect();
-        let right_lattice = ReferenceLattice::from_assignment(
+        // A cut grid: the right view shows only its part of the window, so the minimum reference
+        // fraction counts the right markers that fall in the window.
+        let in_window = if cut {
+            (0..h * w)
+                .filter(|n| {
+                    let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
+                    r >= 0
+                        && c >= 0
+                        && r < scratch.rows as i64
+                        && c < scratch.cols as i64
+                        && scratch.node_det[r as usize * scratch.cols + c as usize] != NONE
+                })
+                .count()
+        } else {
+            h * w
+        };
+        let right_lattice = ReferenceLattice::from_assignment_of(
             points,
             shape,
             &node_det,
             scratch.pitch_px,
             config.indexing.clone(),
+            in_window,
         )?;
         Ok(Self {
             left: left_lattice,

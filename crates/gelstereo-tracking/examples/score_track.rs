@@ -7,6 +7,10 @@
 //! `cargo run --release -p gelstereo-tracking --example score_track -- REC OUT [REC OUT ...]`
 //! (`REC` a simulated recording, `OUT` the folder `gelstereo track` wrote for it). `--swaps` first
 //! lists every swapped id: recording, id, and each ground-truth marker it mapped to with its frames.
+//!
+//! Where `gelstereo track` could not place a grid that overfills the view on the sensor's own
+//! indices (visible top-left marker = (0, 0)), the output's ids are shifted by the whole (row, col)
+//! offset most of the reference frame's markers agree on before scoring; that is printed.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -42,6 +46,55 @@ fn quantile(v: &mut [f64], q: f64) -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// Shifts the estimated ids by the (row, col) offset to the ground truth that most markers of the
+/// reference frame agree on (nearest true marker within `r` px in the left view), when it is
+/// not zero: ids counted from a visible top-left marker instead of the sensor's grid.
+fn align_ids(rec: &Path, est: &mut Vec<MarkerRecord>, truth: &BTreeMap<u32, Vec<Truth>>, r: f64) {
+    // The reference frame: the first with positions (frames before it are written as lost).
+    let Some(first) = est.iter().filter(|m| m.left_px.is_some()).map(|m| m.frame).min() else {
+        return;
+    };
+    let mut votes: BTreeMap<(i32, i32), usize> = BTreeMap::new();
+    for m in est.iter().filter(|m| m.frame == first) {
+        let Some(p) = m.left_px else { continue };
+        let nearest = truth
+            .get(&first)
+            .into_iter()
+            .flatten()
+            .filter_map(|t| t.left.map(|q| (q.distance(p), t.index)))
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((_, t)) = nearest.filter(|n| n.0 <= r) {
+            let d = (
+                i32::from(t.row) - i32::from(m.index.row),
+                i32::from(t.col) - i32::from(m.index.col),
+            );
+            *votes.entry(d).or_default() += 1;
+        }
+    }
+    let total: usize = votes.values().sum();
+    let Some((&(dr, dc), &n)) = votes.iter().max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0))) else {
+        return;
+    };
+    if (dr, dc) == (0, 0) {
+        return;
+    }
+    println!(
+        "{}: ids aligned with the ground truth by ({dr:+}, {dc:+}) rows, columns ({n} of {total} reference markers agree)",
+        rec.display()
+    );
+    est.retain_mut(|m| {
+        let row = u16::try_from(i32::from(m.index.row) + dr);
+        let col = u16::try_from(i32::from(m.index.col) + dc);
+        match (row, col) {
+            (Ok(row), Ok(col)) => {
+                m.index = GridIndex::new(row, col);
+                true
+            }
+            _ => false,
+        }
+    });
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args: Vec<String> = std::env::args().skip(1).collect();
     let list_swaps = args.first().is_some_and(|a| a == "--swaps");
@@ -63,7 +116,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for pair in args.chunks(2) {
         let (rec, out) = (Path::new(&pair[0]), Path::new(&pair[1]));
         let (gt_rows, gt_table) = read_markers(&rec.join("markers.csv"))?;
-        let (est_rows, _) = read_markers(&out.join("markers.csv"))?;
+        let (mut est_rows, _) = read_markers(&out.join("markers.csv"))?;
         let gt_frames = read_frames(&rec.join("frames.csv"))?;
         let est_frames = read_frames(&out.join("frames.csv"))?;
         let mut truth: BTreeMap<u32, Vec<Truth>> = BTreeMap::new();
@@ -88,6 +141,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let r = 0.25 * quantile(&mut d, 0.5);
         // Id swaps: output ids that map (nearest visible ground-truth marker within r) to more than
         // one ground-truth marker over the recording.
+        align_ids(rec, &mut est_rows, &truth, r);
         let mut maps: BTreeMap<GridIndex, BTreeSet<GridIndex>> = BTreeMap::new();
         // Per output id and ground-truth marker: first frame, last frame, frames.
         let mut spans: BTreeMap<(GridIndex, GridIndex), (u32, u32, u32)> = BTreeMap::new();
