@@ -87,6 +87,20 @@ pub struct StereoConfig {
     pub indexing: IndexingConfig,
 }
 
+impl StereoConfig {
+    /// `max_epipolar_px` must be a distance > 0 px.
+    fn check_epipolar(&self) -> Result<()> {
+        if self.max_epipolar_px.is_finite() && self.max_epipolar_px > 0.0 {
+            return Ok(());
+        }
+        Err(Error::Config {
+            field: "max_epipolar_px",
+            expected: "a distance > 0 px".into(),
+            found: self.max_epipolar_px.to_string(),
+        })
+    }
+}
+
 impl Default for StereoConfig {
     fn default() -> Self {
         Self {
@@ -276,13 +290,7 @@ impl StereoLattice {
         expected: (&[Option<Point2>], &[Option<Point2>]),
         config: StereoConfig,
     ) -> Result<(Self, StereoPlacement)> {
-        if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
-            return Err(Error::Config {
-                field: "max_epipolar_px",
-                expected: "a distance > 0 px".into(),
-                found: config.max_epipolar_px.to_string(),
-            });
-        }
+        config.check_epipolar()?;
         let epipolar = EpipolarGeometry::new(rig)?;
         let (left_lattice, left_place) =
             ReferenceLattice::from_detections_placed(left, shape, expected.0, config.indexing.clone())?;
@@ -352,13 +360,7 @@ impl StereoLattice {
         extent_decides: (bool, bool),
         pitch_mm: Option<f64>,
     ) -> Result<Self> {
-        if !(config.max_epipolar_px.is_finite() && config.max_epipolar_px > 0.0) {
-            return Err(Error::Config {
-                field: "max_epipolar_px",
-                expected: "a distance > 0 px".into(),
-                found: config.max_epipolar_px.to_string(),
-            });
-        }
+        config.check_epipolar()?;
         let epipolar = EpipolarGeometry::new(rig)?;
         let left_lattice = ReferenceLattice::from_detections(left, shape, config.indexing.clone())?;
         if right.is_empty() {

@@ -162,16 +162,7 @@ fn without_expected_positions_the_visible_top_left_marker_is_the_origin() {
     )
     .unwrap();
     // Ids = true index minus the visible top-left's, in both views.
-    let shift = |t: &[Option<GridIndex>]| -> Vec<Option<GridIndex>> {
-        t.iter()
-            .map(|i| {
-                i.and_then(|i| {
-                    (i.row >= r0 && i.col >= c0 && i.row <= r1 && i.col <= c1)
-                        .then(|| GridIndex::new(i.row - r0, i.col - c0))
-                })
-            })
-            .collect()
-    };
+    let shift = |t: &[Option<GridIndex>]| relative_to(t, (r0, c0), (r1, c1));
     let sl = score(stereo.left().reference_view(), &shift(&l.truth));
     let sr = score(stereo.right().reference_view(), &shift(&r.truth));
     assert_eq!((sl.correct, sl.wrong), (sl.markers, 0), "left {sl:?}");
@@ -206,16 +197,8 @@ fn without_expected_positions_the_visible_top_left_marker_is_the_origin() {
     )
     .unwrap();
     let (r0, _, c0, _) = rows_cols(&l);
-    let shift = |t: &[Option<GridIndex>]| -> Vec<Option<GridIndex>> {
-        t.iter()
-            .map(|i| {
-                i.and_then(|i| {
-                    (i.row >= r0 && i.col >= c0 && i.row < r0 + visible.rows && i.col < c0 + visible.cols)
-                        .then(|| GridIndex::new(i.row - r0, i.col - c0))
-                })
-            })
-            .collect()
-    };
+    let last = (r0 + visible.rows - 1, c0 + visible.cols - 1);
+    let shift = |t: &[Option<GridIndex>]| relative_to(t, (r0, c0), last);
     let sl = score(stereo.left().reference_view(), &shift(&l.truth));
     let sr = score(stereo.right().reference_view(), &shift(&r.truth));
     assert_eq!((sl.correct, sl.wrong), (sl.markers, 0), "left {sl:?}");
@@ -262,4 +245,18 @@ fn too_small_a_visible_part_or_a_foreign_description_is_a_named_error() {
         ReferenceLattice::from_detections_placed(&l.detections, SHAPE, &el[1..], IndexingConfig::default())
             .unwrap_err();
     assert!(matches!(e, Error::PriorLength { .. }), "{e}");
+}
+
+/// True indices relative to the visible top-left `first` (ids of a grid indexed from what it shows),
+/// `None` outside the visible block `first..=last`.
+fn relative_to(truth: &[Option<GridIndex>], first: (u16, u16), last: (u16, u16)) -> Vec<Option<GridIndex>> {
+    truth
+        .iter()
+        .map(|i| {
+            i.and_then(|i| {
+                (i.row >= first.0 && i.col >= first.1 && i.row <= last.0 && i.col <= last.1)
+                    .then(|| GridIndex::new(i.row - first.0, i.col - first.1))
+            })
+        })
+        .collect()
 }

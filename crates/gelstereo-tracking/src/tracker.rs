@@ -1101,6 +1101,14 @@ mod tests {
         assert!(cfg.validate().unwrap_err().to_string().contains("gate_pitch"));
     }
 
+    /// Marker `i` of a lattice of 10 px pitch sliding right at 0.5 px per frame, at frame `f`.
+    fn sliding_lattice(i: GridIndex, f: u32) -> Point2 {
+        Point2::new(
+            10.0 * f64::from(i.col) + 0.5 * f64::from(f),
+            10.0 * f64::from(i.row),
+        )
+    }
+
     #[test]
     fn a_detection_drifting_onto_a_neighbour_does_not_take_its_id_along() {
         // A 7 x 9 lattice (pitch 10 px) slides right at 0.5 px per frame. From frame 4 the
@@ -1110,12 +1118,7 @@ mod tests {
         // (3, 5) followed the blob onto its neighbour's place: the scorer's id swap.
         let shape = GridShape { rows: 7, cols: 9 };
         let (a, b) = (GridIndex::new(3, 4), GridIndex::new(3, 5));
-        let at = |i: GridIndex, f: u32| {
-            Point2::new(
-                10.0 * f64::from(i.col) + 0.5 * f64::from(f),
-                10.0 * f64::from(i.row),
-            )
-        };
+        let at = sliding_lattice;
         let reference: Vec<(GridIndex, Point2)> = shape.indices().map(|i| (i, at(i, 0))).collect();
         let mut t = Tracker::new(shape, &reference, TrackerConfig::default()).unwrap();
         for f in 1..=12u32 {
@@ -1171,12 +1174,7 @@ mod tests {
     fn slow_drift_onto_a_missed_neighbour(config: TrackerConfig) -> (Option<String>, usize) {
         let shape = GridShape { rows: 7, cols: 9 };
         let (a, b) = (GridIndex::new(3, 4), GridIndex::new(3, 5));
-        let at = |i: GridIndex, f: u32| {
-            Point2::new(
-                10.0 * f64::from(i.col) + 0.5 * f64::from(f),
-                10.0 * f64::from(i.row),
-            )
-        };
+        let at = sliding_lattice;
         let reference: Vec<(GridIndex, Point2)> = shape.indices().map(|i| (i, at(i, 0))).collect();
         let mut t = Tracker::new(shape, &reference, config).unwrap();
         let mut first = None;
