@@ -263,7 +263,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         quantile(&mut cent_err.clone(), 0.5)
     );
     let f1 = 2.0 * tp as f64 / (2 * tp + fp + fneg).max(1) as f64;
-    let ok = onsets.iter().filter(|o| o.abs() <= 2).count();
+    // `unsigned_abs`: `i64::MIN` (a false onset) has no `abs` (it wrapped and counted as within).
+    let ok = onsets.iter().filter(|o| o.unsigned_abs() <= 2).count();
     let fmt: Vec<String> = onsets
         .iter()
         .map(|o| match *o {

@@ -200,7 +200,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             if verbose && (gt.contact || c.contact) {
                 println!(
-                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4}",
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4} noise {:.4}",
                     rec.display(),
                     c.contact_area_mm2,
                     gt.contact_area_mm2,
@@ -214,7 +214,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     sl.drift_mm,
                     sl.shear_mm.norm(),
                     sl.rotation_rad,
-                    sl.turned_rad
+                    sl.turned_rad,
+                    c.depth_noise_mm
                 );
             }
         }

@@ -14,9 +14,11 @@
 //!   contact is in partial slip. This is a rigid-motion fit restricted to translation: the residual
 //!   of the fit is what leaves a marker off the plateau.
 //! - **Gross slip.** While anything sticks, the material under the object stays under it. Once the
-//!   whole contact slides, the contact region moves across the gel: its centroid in material
-//!   (reference) coordinates drifts, in the direction in which the object drags the surface. Gross
-//!   slip is a drift of more than `drift_mm_per_frame` along the shear direction, with a mean shear
+//!   whole contact slides, the contact region moves across the gel: the indentation's depth pattern
+//!   in material (reference) coordinates drifts, in the direction in which the object drags the
+//!   surface (the translation of an optical-flow fit of the pattern between frames; the depth-
+//!   weighted centroid where the fit has too few markers). Gross slip is a drift of more than
+//!   `drift_mm_per_frame` along the shear direction, with a mean shear
 //!   of at least `min_shear_per_depth` x the largest depth (a sliding contact drags the surface at
 //!   the friction limit; pressing alone shears little).
 //!
@@ -174,8 +176,9 @@ pub struct SlipFrame {
     pub shear_mm: Vector3<f64>,
     /// Share of contact markers on the displacement plateau (1 without shear).
     pub stick_fraction: f64,
-    /// Drift of the contact's material centroid per frame (over the last two contact frames), along
-    /// the shear, mm.
+    /// Drift of the indentation across the gel per frame (the shift of its depth pattern in
+    /// material coordinates over the last two contact frames, or of its material centroid where
+    /// the pattern cannot be fitted), along the shear, mm.
     pub drift_mm: f64,
     /// In-plane rotation of the contact markers about their centroid (least squares, translation
     /// removed), rad, signed about the surface normal (zero without contact or without shear).
@@ -348,8 +351,8 @@ impl SlipDetector {
             // RMS radius, per frame, in the sense of the twist.
             let turn_rad = match (&old_depth, frame.material_centroid_mm) {
                 (Some(old), Some(c)) if depth_span > 0 => {
-                    material_rotation(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
-                        .map_or(0.0, |t| t * omega.signum() / depth_span as f64)
+                    material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
+                        .map_or(0.0, |(t, _)| t * omega.signum() / depth_span as f64)
                 }
                 _ => 0.0,
             };
@@ -387,10 +390,23 @@ impl SlipDetector {
         let tol = (self.config.plateau_tolerance * top.abs()).max(self.config.plateau_min_mm);
         let on_plateau = along.iter().filter(|&&p| p >= top - tol).count();
         let stick_fraction = on_plateau as f64 / along.len() as f64;
-        let drift = match (oldest, frame.material_centroid_mm) {
+        // The drift is the shift of the whole 3 x 3 mean depth pattern across the gel (the
+        // translation of the optical-flow fit of `material_motion`), the material centroid's
+        // displacement where the fit has too few markers: the half-maximum centroid moves in
+        // uneven steps on the lattice (about 10 % short of a slow slide on exact 3-D) and jumps
+        // with the noise of the few markers at its threshold (docs/tracking.md, "Drift from the
+        // depth pattern").
+        let flow_drift = match (&old_depth, frame.material_centroid_mm) {
+            (Some(old), Some(c)) if depth_span > 0 => {
+                material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
+                    .map(|(_, shift)| shift.dot(&dir) / depth_span as f64)
+            }
+            _ => None,
+        };
+        let drift = flow_drift.unwrap_or_else(|| match (oldest, frame.material_centroid_mm) {
             (Some(a), Some(b)) if span > 0 => (b - a).dot(&dir) / span as f64,
             _ => 0.0,
-        };
+        });
         // Once the whole contact has slid, it stays in gross slip until it is released: the traction
         // is at the friction limit everywhere, and unloading or further sliding keep it there.
         // It latches after two drifting frames in a row (one noisy frame must not latch it).
@@ -419,19 +435,20 @@ impl SlipDetector {
     }
 }
 
-/// Rotation (rad, about the surface normal) that carries the depth pattern `old` into `new` about
-/// `centre`, both 3 x 3 mean depths over the lattice in material (reference) coordinates: the least
-/// squares of `new - old = a new + b + (translation) . grad - angle (n x (x - c)) . grad` over the
-/// markers deeper than `min_depth_mm` in either frame (the scale and offset absorb pressing, the
-/// translation a drift; the gradient is the central difference along the lattice). `None` when
-/// too few markers or a singular fit.
-fn material_rotation(
+/// Rotation (rad, about the surface normal) and translation (mm, in the lattice plane) that carry
+/// the depth pattern `old` into `new` about `centre`, both 3 x 3 mean depths over the lattice in
+/// material (reference) coordinates: the least squares of `new - old = a new + b + (translation)
+/// . grad - angle (n x (x - c)) . grad` over the markers deeper than `min_depth_mm` in either frame
+/// (the scale and offset absorb pressing; the gradient is the central difference along the
+/// lattice, the translation turned into mm by the mean lattice steps of the fitted markers).
+/// `None` when too few markers or a singular fit.
+fn material_motion(
     surface: &ReferenceSurface,
     old: &[Option<f64>],
     new: &[Option<f64>],
     centre: Point3<f64>,
     min_depth_mm: f64,
-) -> Option<f64> {
+) -> Option<(f64, Vector3<f64>)> {
     let shape = surface.shape();
     let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
     let pos = surface.positions_mm();
@@ -439,6 +456,8 @@ fn material_rotation(
     let mut ata = nalgebra::Matrix5::<f64>::zeros();
     let mut atb = nalgebra::Vector5::<f64>::zeros();
     let mut count = 0;
+    // Mean lattice steps (mm), to turn the fitted translation into a displacement.
+    let (mut step_u, mut step_v) = (Vector3::zeros(), Vector3::zeros());
     for r in 1..rows.saturating_sub(1) {
         for c in 1..cols.saturating_sub(1) {
             let k = r * cols + c;
@@ -471,6 +490,8 @@ fn material_rotation(
                 continue;
             };
             let g_turn = ab.x * gu + ab.y * gv;
+            step_u += eu;
+            step_v += ev;
             let row = nalgebra::Vector5::new(d, 1.0, gu, gv, -g_turn);
             ata += row * row.transpose();
             atb += row * (d - d0);
@@ -481,7 +502,9 @@ fn material_rotation(
         return None;
     }
     let s = ata.cholesky()?.solve(&atb);
-    s[4].is_finite().then_some(s[4])
+    // `new - old = -shift . grad` for a pattern shifted by `shift` lattice steps.
+    let shift = -(step_u * s[2] + step_v * s[3]) / f64::from(count);
+    (s[4].is_finite() && shift.iter().all(|v| v.is_finite())).then_some((s[4], shift))
 }
 
 #[cfg(test)]
@@ -762,5 +785,27 @@ mod tests {
         });
         assert!(onset(&without) < onset(&with_ratio), "{without:?}");
         assert!(onset(&without).is_some_and(|f| f >= 4), "{without:?}");
+    }
+
+    #[test]
+    fn a_slow_slide_just_above_the_drift_floor_is_gross_slip() {
+        // The cap of `frame` slides across the gel by 0.011 mm a frame beyond the friction limit,
+        // just above the noise-free drift floor of 0.01 mm a frame. The drift is the shift of the
+        // whole depth pattern; the half-maximum centroid on the lattice lagged it by about 10 %
+        // (0.018 mm a frame for 0.02), below the floor.
+        let flat = flattened(&frame(0.0, 0.0));
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let cfg = ContactConfig::default();
+        let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
+        let frames: Vec<SlipFrame> = (0..12)
+            .map(|k| {
+                let c = surface.analyze(&frame(0.011 * f64::from(k), 0.6), &cfg).unwrap();
+                det.update(&surface, &c)
+            })
+            .collect();
+        for f in &frames[2..] {
+            assert!((f.drift_mm - 0.011).abs() < 0.001, "{frames:?}");
+            assert_eq!(f.state, SlipState::GrossSlip, "{frames:?}");
+        }
     }
 }
