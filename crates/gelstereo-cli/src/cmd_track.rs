@@ -789,23 +789,12 @@ fn start_cut(
                     StereoConfig::default(),
                 )?;
                 let line = format!(
-                    "the {}x{} grid overfills the view: placed by the sensor description; left view rows {}..={}, columns \
-                     {}..={} ({} of {} markers agree), right view rows {}..={}, columns {}..={} ({} of {}); {} of {} \
-                     markers seen in both views pair within {} px of the epipolar lines",
+                    "the {}x{} grid overfills the view: placed by the sensor description; left view {}, right view {}; \
+                     {} of {} markers seen in both views pair within {} px of the epipolar lines",
                     full.rows,
                     full.cols,
-                    p.left.first_row,
-                    p.left.last_row,
-                    p.left.first_col,
-                    p.left.last_col,
-                    p.left.agreeing,
-                    p.left.indexed,
-                    p.right.first_row,
-                    p.right.last_row,
-                    p.right.first_col,
-                    p.right.last_col,
-                    p.right.agreeing,
-                    p.right.indexed,
+                    p.left,
+                    p.right,
                     p.within_epipolar,
                     p.paired,
                     StereoConfig::default().max_epipolar_px
@@ -816,16 +805,8 @@ fn start_cut(
                 let (lat, p) =
                     ReferenceLattice::from_detections_placed(left, full, &x.left, IndexingConfig::default())?;
                 let line = format!(
-                    "the {}x{} grid overfills the view: placed by the sensor description on rows {}..={}, columns {}..={} \
-                     ({} of {} markers agree)",
-                    full.rows,
-                    full.cols,
-                    p.first_row,
-                    p.last_row,
-                    p.first_col,
-                    p.last_col,
-                    p.agreeing,
-                    p.indexed
+                    "the {}x{} grid overfills the view: placed by the sensor description on {p}",
+                    full.rows, full.cols
                 );
                 (Session::mono(&lat, full, config)?, line)
             }

@@ -93,6 +93,17 @@ pub struct GridPlacement {
     pub indexed: usize,
 }
 
+impl std::fmt::Display for GridPlacement {
+    /// `rows 0..=26, columns 0..=12 (325 of 325 markers agree)`, as `gelstereo track` logs it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "rows {}..={}, columns {}..={} ({} of {} markers agree)",
+            self.first_row, self.last_row, self.first_col, self.last_col, self.agreeing, self.indexed
+        )
+    }
+}
+
 /// The detections of one view with the grid index of each.
 #[derive(Debug, Clone, PartialEq)]
 pub struct IndexedView {
