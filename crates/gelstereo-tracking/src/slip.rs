@@ -328,6 +328,14 @@ impl SlipDetector {
                 turned_rad: self.turned_rad,
             };
         }
+        // How the depth pattern turned and moved across the gel since the oldest kept frame
+        // (`material_motion`); the twist branch uses the turn, the slide branch the shift.
+        let pattern_motion = || match (&old_depth, frame.material_centroid_mm) {
+            (Some(old), Some(c)) if depth_span > 0 => {
+                material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
+            }
+            _ => None,
+        };
         if twist_mm > shear.norm() {
             // A twist: sticking points turn with the object by one angle, slipping ones lag. The
             // plateau is that of the angular displacement of the markers off the centre.
@@ -349,13 +357,7 @@ impl SlipDetector {
             // Torsional gross slip: the indentation turns across the gel (the twist analogue of the
             // drift): the rotation of the depth pattern in material coordinates, at the contact's
             // RMS radius, per frame, in the sense of the twist.
-            let turn_rad = match (&old_depth, frame.material_centroid_mm) {
-                (Some(old), Some(c)) if depth_span > 0 => {
-                    material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
-                        .map_or(0.0, |(t, _)| t * omega.signum() / depth_span as f64)
-                }
-                _ => 0.0,
-            };
+            let turn_rad = pattern_motion().map_or(0.0, |(t, _)| t * omega.signum() / depth_span as f64);
             let turn_mm = turn_rad * radius_mm;
             let turning = turn_mm > self.config.turn_threshold_factor * drift_threshold;
             if turning {
@@ -396,13 +398,7 @@ impl SlipDetector {
         // uneven steps on the lattice (about 10 % short of a slow slide on exact 3-D) and jumps
         // with the noise of the few markers at its threshold (docs/tracking.md, "Drift from the
         // depth pattern").
-        let flow_drift = match (&old_depth, frame.material_centroid_mm) {
-            (Some(old), Some(c)) if depth_span > 0 => {
-                material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
-                    .map(|(_, shift)| shift.dot(&dir) / depth_span as f64)
-            }
-            _ => None,
-        };
+        let flow_drift = pattern_motion().map(|(_, shift)| shift.dot(&dir) / depth_span as f64);
         let drift = flow_drift.unwrap_or_else(|| match (oldest, frame.material_centroid_mm) {
             (Some(a), Some(b)) if span > 0 => (b - a).dot(&dir) / span as f64,
             _ => 0.0,
