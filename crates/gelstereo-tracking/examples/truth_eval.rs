@@ -33,21 +33,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
     // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
-    if let Some(v) = std::env::var("LOAD_THRESHOLD").ok().and_then(|v| v.parse().ok()) {
-        contact_cfg.load_threshold = v;
-    }
-    if let Some(v) = std::env::var("MIN_DEPTH").ok().and_then(|v| v.parse().ok()) {
-        contact_cfg.min_depth_mm = v;
-    }
-    if let Some(v) = std::env::var("CONTACT_NOISE").ok().and_then(|v| v.parse().ok()) {
-        contact_cfg.contact_noise_factor = v;
-    }
-    if let Some(v) = std::env::var("LOAD_ITERATIONS").ok().and_then(|v| v.parse().ok()) {
-        contact_cfg.load_iterations = v;
-    }
-    if let Some(v) = std::env::var("CENTROID_DEPTH").ok().and_then(|v| v.parse().ok()) {
-        contact_cfg.centroid_depth_fraction = v;
-    }
+    override_from_env("LOAD_THRESHOLD", &mut contact_cfg.load_threshold);
+    override_from_env("MIN_DEPTH", &mut contact_cfg.min_depth_mm);
+    override_from_env("CONTACT_NOISE", &mut contact_cfg.contact_noise_factor);
+    override_from_env("LOAD_ITERATIONS", &mut contact_cfg.load_iterations);
+    override_from_env("CENTROID_DEPTH", &mut contact_cfg.centroid_depth_fraction);
+    let mut slip_cfg = SlipConfig::default();
+    override_from_env("SLIP_DRIFT", &mut slip_cfg.drift_mm_per_frame);
+    override_from_env("SHEAR_PER_DEPTH", &mut slip_cfg.min_shear_per_depth);
+    override_from_env("MIN_SHEAR", &mut slip_cfg.min_shear_mm);
+    override_from_env("DRIFT_NOISE", &mut slip_cfg.drift_noise_factor);
+    override_from_env("STICK_SHEAR_PER_DEPTH", &mut slip_cfg.stick_shear_per_depth);
+    override_from_env("SHEAR_NOISE", &mut slip_cfg.shear_noise_factor);
+    override_from_env("CORE_DEPTH", &mut slip_cfg.core_depth_fraction);
+    override_from_env("TURN_RATIO", &mut slip_cfg.twist_turn_ratio);
+    override_from_env("TWIST_GROSS", &mut slip_cfg.twist_gross_fraction);
     let (mut area_ok, mut depth_ok, mut cent_ok, mut cmp) = (0usize, 0usize, 0usize, 0usize);
     let mut conf = [[0usize; 4]; 4];
     let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
@@ -112,38 +112,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
             contact_cfg.gel_thickness_mm = t;
         }
-        let mut slip_cfg = SlipConfig::default();
-        if let Some(v) = std::env::var("SLIP_DRIFT").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.drift_mm_per_frame = v;
-        }
-        if let Some(v) = std::env::var("SHEAR_PER_DEPTH").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.min_shear_per_depth = v;
-        }
-        if let Some(v) = std::env::var("MIN_SHEAR").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.min_shear_mm = v;
-        }
-        if let Some(v) = std::env::var("DRIFT_NOISE").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.drift_noise_factor = v;
-        }
-        if let Some(v) = std::env::var("STICK_SHEAR_PER_DEPTH")
-            .ok()
-            .and_then(|v| v.parse().ok())
-        {
-            slip_cfg.stick_shear_per_depth = v;
-        }
-        if let Some(v) = std::env::var("SHEAR_NOISE").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.shear_noise_factor = v;
-        }
-        if let Some(v) = std::env::var("CORE_DEPTH").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.core_depth_fraction = v;
-        }
-        if let Some(v) = std::env::var("TURN_RATIO").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.twist_turn_ratio = v;
-        }
-        if let Some(v) = std::env::var("TWIST_GROSS").ok().and_then(|v| v.parse().ok()) {
-            slip_cfg.twist_gross_fraction = v;
-        }
-        let mut det = SlipDetector::new(slip_cfg)?;
+        let mut det = SlipDetector::new(slip_cfg.clone())?;
         let (mut gt_onset, mut est_onset) = (None, None);
         let (tp0, fp0, fn0) = (tp, fp, fneg);
         let (r0, c0) = (ratios.len(), cerrs.len());
@@ -292,4 +261,11 @@ fn meta_thickness_mm(path: &Path) -> Option<f64> {
     let rest = text[at..].split_once(':')?.1.trim_start();
     let end = rest.find(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == 'e'))?;
     rest[..end].parse().ok()
+}
+
+/// Sets `field` from the environment variable `name` when it is set and parses (a tuning override).
+fn override_from_env<T: std::str::FromStr>(name: &str, field: &mut T) {
+    if let Some(v) = std::env::var(name).ok().and_then(|v| v.parse().ok()) {
+        *field = v;
+    }
 }
