@@ -802,7 +802,7 @@ impl Marknet {
                 layouts[i] = layout;
             }
         }
-        let mut redo: Vec<(usize, InputLayout)> = Vec::new();
+        let mut wanted: Vec<Option<InputLayout>> = vec![None; images.len()];
         for (i, (dets, pitch)) in found.iter().enumerate() {
             if confident(dets) < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
@@ -810,14 +810,29 @@ impl Marknet {
             let Some(pitch) = *pitch else {
                 continue;
             };
-            let wanted = self.layout(sizes[i], Some(pitch));
-            let relayout = layouts[i].needs_relayout(&wanted);
+            let layout = self.layout(sizes[i], Some(pitch));
+            let relayout = layouts[i].needs_relayout(&layout);
             if relayout {
-                layouts[i] = wanted;
-                redo.push((i, wanted));
+                wanted[i] = Some(layout);
             }
             if self.remember_pitch && (relayout || !self.pitch_memory.contains_key(&sizes[i])) {
                 self.pitch_memory.insert(sizes[i], pitch);
+            }
+        }
+        // With the pitch remembered, every image of a size runs under the layout the next one gets,
+        // including the first (measured under the layout without a pitch, a few % off in scale):
+        // a tracker's reference frame localized at another scale than the frames compared with it
+        // carries a per-marker bias (~0.15 px for the fast model) into every displacement.
+        let mut redo: Vec<(usize, InputLayout)> = Vec::new();
+        for (i, wanted) in wanted.into_iter().enumerate() {
+            let target = if self.remember_pitch && self.pitch_memory.contains_key(&sizes[i]) {
+                Some(self.next_layout(sizes[i]))
+            } else {
+                wanted
+            };
+            if let Some(target) = target.filter(|t| *t != layouts[i]) {
+                layouts[i] = target;
+                redo.push((i, target));
             }
         }
         let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;

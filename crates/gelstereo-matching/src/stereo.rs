@@ -294,11 +294,7 @@ impl StereoLattice {
         let epipolar = EpipolarGeometry::new(rig)?;
         let (left_lattice, left_place) =
             ReferenceLattice::from_detections_placed(left, shape, expected.0, config.indexing.clone())?;
-        if right.is_empty() {
-            return Err(Error::StereoAlignment {
-                reason: "the right reference frame has no detections".into(),
-            });
-        }
+        require_right_detections(right)?;
         let mut a = placed_assignment(right, shape, expected.1, &config.indexing)?;
         let (mut paired, mut within) = (0usize, 0usize);
         for (n, idx) in shape.indices().enumerate() {
@@ -363,11 +359,7 @@ impl StereoLattice {
         config.check_epipolar()?;
         let epipolar = EpipolarGeometry::new(rig)?;
         let left_lattice = ReferenceLattice::from_detections(left, shape, config.indexing.clone())?;
-        if right.is_empty() {
-            return Err(Error::StereoAlignment {
-                reason: "the right reference frame has no detections".into(),
-            });
-        }
+        require_right_detections(right)?;
         let points: Vec<Point2> = right.iter().map(|d| d.position).collect();
         if let Some(i) = points.iter().position(|p| !(p.x.is_finite() && p.y.is_finite())) {
             return Err(Error::NonFiniteDetection {
@@ -732,4 +724,15 @@ impl StereoLattice {
             rejected,
         })
     }
+}
+
+/// The right view's reference frame must show markers to be aligned with the left's (both
+/// reference constructors start with this check).
+fn require_right_detections(right: &[Detection]) -> Result<()> {
+    if right.is_empty() {
+        return Err(Error::StereoAlignment {
+            reason: "the right reference frame has no detections".into(),
+        });
+    }
+    Ok(())
 }
