@@ -34,6 +34,9 @@ class AugConfig:
     crop: tuple[int, int] = (224, 224)  # (height, width) of a training crop, network input pixels
     input_size: tuple[int, int] = (416, 416)  # (height, width) of the canonical network input
     p_canonical: float = 0.5  # share of crops sampled exactly as at inference
+    # Share of crops centred near a marker in contact (where the image has one; else anywhere): contact
+    # markers are ~4 % of the training markers, and the tracker's contact and slip figures rest on them.
+    p_contact: float = 0.0
     # How the canonical crops are scaled: "auto" (the auto layout, isotropic) or "stretch" (whole image to
     # input_size, the first contract's preprocessing, which the shipped model was trained with)
     canonical: str = "auto"
@@ -56,8 +59,10 @@ class AugConfig:
     jpeg_quality: tuple[int, int] = (30, 95)
 
 
-def _window_transform(cfg, h_img, w_img, pitch_px, rng):
-    """Affine map from crop continuous coords u to source continuous coords: p = c + A (u - crop/2)."""
+def _window_transform(cfg, h_img, w_img, pitch_px, rng, focus=None):
+    """Affine map from crop continuous coords u to source continuous coords: p = c + A (u - crop/2).
+    ``focus``: (n, 2) source points (e.g. markers in contact); with probability ``cfg.p_contact`` the
+    crop is centred within a quarter crop of one of them (kept inside the image) instead of anywhere."""
     ch, cw = cfg.crop
     if rng.random() < cfg.p_canonical or not math.isfinite(pitch_px):
         if cfg.canonical == "stretch":
@@ -81,22 +86,32 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng):
     # Half extent of the window in source pixels (bounding box of the rotated crop).
     half = np.abs(a) @ np.array([cw / 2.0, ch / 2.0])
     cen = np.empty(2)
+    near = None
+    if focus is not None and len(focus) and rng.random() < cfg.p_contact:
+        near = np.asarray(focus[rng.integers(len(focus))], np.float64) + 0.5  # continuous coords
+        near = near + rng.uniform(-0.25, 0.25, 2) * 2.0 * half
     for k, size in enumerate((w_img, h_img)):
         lo, hi = half[k], size - half[k]
-        cen[k] = rng.uniform(lo, hi) if hi > lo else size / 2.0
+        if hi <= lo:
+            cen[k] = size / 2.0
+        elif near is not None:
+            cen[k] = min(max(near[k], lo), hi)
+        else:
+            cen[k] = rng.uniform(lo, hi)
     return a, cen
 
 
-def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator):
+def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator, focus=None):
     """Cut one crop per index. Returns a float tensor (B, 3, ch, cw) in [0, 1] and a list of (n, 2)
-    float32 label arrays in crop continuous coordinates."""
+    float32 label arrays in crop continuous coordinates. ``focus``: per image, the (n, 2) points a
+    ``cfg.p_contact`` share of crops is centred near (None: none)."""
     ch, cw = cfg.crop
     out = torch.empty(len(idx), 3, ch, cw)
     labels = []
     for b, i in enumerate(idx):
         img = images[i]
         h_img, w_img = img.shape[:2]
-        a, cen = _window_transform(cfg, h_img, w_img, pitches[i], rng)
+        a, cen = _window_transform(cfg, h_img, w_img, pitches[i], rng, None if focus is None else focus[i])
         half = np.abs(a) @ np.array([cw / 2.0, ch / 2.0])
         # Sub-window of the source that covers the crop (+2 px margin for bilinear taps).
         x0 = int(max(0, math.floor(cen[0] - half[0]) - 2))
@@ -197,8 +212,9 @@ def photometric(x: torch.Tensor, cfg: AugConfig, rng: np.random.Generator) -> to
     return torch.round(x * 255.0) / 255.0
 
 
-def make_batch(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator):
-    """A training batch: (B, 3, ch, cw) float tensor and per-sample label arrays (input pixels)."""
+def make_batch(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator, focus=None):
+    """A training batch: (B, 3, ch, cw) float tensor and per-sample label arrays (input pixels);
+    ``focus`` as in ``sample_crops``."""
     idx = rng.integers(0, len(images), batch)
-    x, labels = sample_crops(images, points, pitches, idx, cfg, rng)
+    x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus)
     return photometric(x, cfg, rng), labels

@@ -119,7 +119,11 @@ def train(args, log=print) -> Path:
     model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
-                    canonical=args.canonical)
+                    canonical=args.canonical, p_contact=args.p_contact)
+    contact = [s.points_px[s.in_contact] for s in samples]
+    if cfg.p_contact > 0:
+        log(f"{sum(len(c) > 0 for c in contact)} of {len(samples)} images show contact markers; "
+            f"{cfg.p_contact:.0%} of crops are centred near one of them there")
     budget_s = args.minutes * 60.0 if args.minutes else None
     warm = 200
     t0 = time.time()
@@ -140,7 +144,7 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng)
+        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng, contact)
         x = x.contiguous(memory_format=torch.channels_last)
         raw = model(x)
         tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
@@ -228,6 +232,9 @@ def parser() -> argparse.ArgumentParser:
                    "shipped model was trained) or auto (the auto layout)")
     p.add_argument("--init", type=Path, default=None,
                    help="start from this Marknet checkpoint's weights (same architecture) instead of random ones")
+    p.add_argument("--p-contact", type=float, default=0.0,
+                   help="share of crops centred near a marker in contact (images with contact only; the shipped "
+                   "models: 0, i.e. anywhere)")
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     return p

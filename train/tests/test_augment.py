@@ -63,3 +63,31 @@ def test_make_batch_on_dataset(tiny_root):
     assert x.shape == (4, 3, 64, 64)
     for lab in labels:
         assert ((lab >= 0) & (lab < 64)).all()
+
+
+
+@pytest.mark.parametrize("canonical", [1.0, 0.0])
+def test_contact_crops_are_centred_near_the_focus(canonical):
+    """With p_contact = 1 every crop holds the focus point (a marker in contact) within about a quarter
+    crop of its centre; with p_contact = 0 crops fall anywhere and mostly miss it."""
+    rng = np.random.default_rng(5)
+    pitch = 20.0
+    pts, _, _ = grid_points(300, 400, pitch, 14, 19)
+    img = render_dots(300, 400, pts, 5.0, rng)
+    focus = pts[[3 * 19 + 5]]  # an interior marker, off the image centre
+    crop = 96
+
+    def focus_in_crop(p_contact):
+        cfg = AugConfig(crop=(crop, crop), input_size=(240, 320), p_canonical=canonical, p_contact=p_contact,
+                        pitch_in_px=(14.0, 24.0))
+        # The focus point is the only label, so labels[0] is where it lands in the crop (if inside).
+        _, labels = sample_crops([img], [focus], np.array([pitch]), np.array([0]), cfg, rng, [focus])
+        return labels[0]
+
+    for _ in range(30):
+        lab = focus_in_crop(1.0)
+        assert len(lab) == 1
+        # a quarter crop of jitter, widened by the rotation and anisotropy of jittered crops
+        assert np.all(np.abs(lab[0] - crop / 2) <= 0.25 * crop * 1.6 + 1.0), lab
+    hits = sum(len(focus_in_crop(0.0)) for _ in range(30))
+    assert hits < 20
