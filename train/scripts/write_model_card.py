@@ -84,7 +84,9 @@ def main(argv=None) -> int:
                 else "the first contract's inference (whole image resized to 416x416)")
              + ", half with marker pitch 9-44 px at the input, "
              "anisotropic scale, flips, +-8 deg rotation; photometric augmentation on 70% "
-             "(colour gains, contrast, gamma, colour shading, grey, polarity, blur, noise, JPEG).")
+             "(colour gains, contrast, gamma, colour shading, grey, polarity, blur, noise, JPEG)."
+             + (f" {a['p_contact']:.0%} of crops centred within a quarter crop of a marker in contact (images "
+                "with contact; the others anywhere)." if a.get("p_contact") else ""))
     rc = mre_meta.get("raw_counts", {})
     rep = mre_meta.get("report", {})
     L.append(f"- MRE: {rc.get('candidates')} uncertain candidates (0.1 < c <= 0.4) from the validation split "
@@ -117,6 +119,7 @@ def main(argv=None) -> int:
     opts = (f" --stem {a['stem']}" if "stem" in a else "") + (f" --canonical {canonical}" if canonical else "")
     opts += f" --lr {a['lr']}" if a.get("lr") != 3e-3 else ""
     opts += f" --init {from_train(a['init'])}" if a.get("init") else ""
+    opts += f" --p-contact {a['p_contact']}" if a.get("p_contact") else ""
     L.append(f"../.venv/bin/python -m gelstereo_train.train_marknet --data {meta['data_root']} --out RUN/marknet.pt "
              f"--minutes {a['minutes']} --threads {a['threads']} --seed {a['seed']}{opts}")
     L.append(f"../.venv/bin/python -m gelstereo_train.train_mre --data {meta['data_root']} --marknet RUN/marknet.pt "
