@@ -23,12 +23,15 @@ import numpy as np
 import onnxruntime as ort
 
 
-def session(path: Path, threads: int, profile: bool = False) -> ort.InferenceSession:
+def session(path: Path, threads: int, profile: Path | None = None) -> ort.InferenceSession:
+    """A CPU session as `gelstereo-markers` opens one; `profile`: write a profile with this prefix."""
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.enable_profiling = profile
+    if profile is not None:
+        so.enable_profiling = True
+        so.profile_file_prefix = str(profile)
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
@@ -44,8 +47,8 @@ def median_ms(s: ort.InferenceSession, x: np.ndarray, runs: int) -> float:
     return float(np.median(times)) * 1e3
 
 
-def costliest_nodes(path: Path, x: np.ndarray, runs: int, top: int = 8) -> list[tuple[str, str, float]]:
-    s = session(path, 1, profile=True)
+def costliest_nodes(path: Path, x: np.ndarray, runs: int, out_dir: Path, top: int = 8) -> list[tuple[str, str, float]]:
+    s = session(path, 1, profile=out_dir / f"{path.stem}_profile")
     median_ms(s, x, runs)
     spent: collections.Counter = collections.Counter()
     what = {}
@@ -114,7 +117,7 @@ def main(argv=None) -> int:
         if args.profile:
             for path in args.models:
                 print(f"\ncostliest nodes of {path} (one thread):")
-                for op, shape, share in costliest_nodes(path, x1, args.runs // 2):
+                for op, shape, share in costliest_nodes(path, x1, args.runs // 2, Path(tmp)):
                     print(f"  {share:5.1f} %  {op:14s} {shape}")
     return 0
 
