@@ -151,56 +151,58 @@ fn without_expected_positions_the_visible_top_left_marker_is_the_origin() {
             cols: c1 - c0 + 1
         }
     );
-    let stereo = StereoLattice::from_visible_reference(
-        &rig,
-        &l.detections,
-        &r.detections,
-        visible,
-        SHAPE,
-        None,
-        StereoConfig::default(),
-    )
-    .unwrap();
+    let stereo = visible_reference(&rig, (&l, &r), visible, None).unwrap();
     // Ids = true index minus the visible top-left's, in both views.
-    let shift = |t: &[Option<GridIndex>]| relative_to(t, (r0, c0), (r1, c1));
-    let sl = score(stereo.left().reference_view(), &shift(&l.truth));
-    let sr = score(stereo.right().reference_view(), &shift(&r.truth));
-    assert_eq!((sl.correct, sl.wrong), (sl.markers, 0), "left {sl:?}");
-    assert_eq!(sr.wrong, 0, "right {sr:?}");
-    assert!(sr.correct as f64 >= 0.9 * sr.markers as f64, "right {sr:?}");
+    assert_ids_from_the_visible_top_left(&stereo, (&l, &r), (r0, c0), (r1, c1));
 
     // Columns cut off too: grid rows lie (nearly) along the epipolar lines, so the column offset
     // is open (a few tenths of a pixel apart); a named error, not a guess.
     let (l, r) = cropped_scene(&rig, 9);
     let visible = ReferenceLattice::visible_shape(&l.detections, SHAPE, &IndexingConfig::default()).unwrap();
-    let e = StereoLattice::from_visible_reference(
-        &rig,
-        &l.detections,
-        &r.detections,
-        visible,
-        SHAPE,
-        None,
-        StereoConfig::default(),
-    )
-    .unwrap_err();
+    let e = visible_reference(&rig, (&l, &r), visible, None).unwrap_err();
     assert!(matches!(e, Error::StereoAlignment { .. }), "{e}");
     // With the marker pitch known, the triangulated spacing settles it: true ids minus the
     // visible top-left's in both views.
-    let stereo = StereoLattice::from_visible_reference(
-        &rig,
-        &l.detections,
-        &r.detections,
-        visible,
-        SHAPE,
-        Some(PITCH_MM),
-        StereoConfig::default(),
-    )
-    .unwrap();
+    let stereo = visible_reference(&rig, (&l, &r), visible, Some(PITCH_MM)).unwrap();
     let (r0, _, c0, _) = rows_cols(&l);
     let last = (r0 + visible.rows - 1, c0 + visible.cols - 1);
-    let shift = |t: &[Option<GridIndex>]| relative_to(t, (r0, c0), last);
-    let sl = score(stereo.left().reference_view(), &shift(&l.truth));
-    let sr = score(stereo.right().reference_view(), &shift(&r.truth));
+    assert_ids_from_the_visible_top_left(&stereo, (&l, &r), (r0, c0), last);
+}
+
+/// `StereoLattice::from_visible_reference` of the whole `SHAPE` on the reference views `views`.
+fn visible_reference(
+    rig: &StereoRig,
+    views: (&ViewDetections, &ViewDetections),
+    visible: GridShape,
+    pitch_mm: Option<f64>,
+) -> Result<StereoLattice, Error> {
+    StereoLattice::from_visible_reference(
+        rig,
+        &views.0.detections,
+        &views.1.detections,
+        visible,
+        SHAPE,
+        pitch_mm,
+        StereoConfig::default(),
+    )
+}
+
+/// Every left marker indexed by its true index minus the visible top-left `first` (block
+/// `first..=last`), no right marker wrong and at least 90 % of them right.
+fn assert_ids_from_the_visible_top_left(
+    stereo: &StereoLattice,
+    views: (&ViewDetections, &ViewDetections),
+    first: (u16, u16),
+    last: (u16, u16),
+) {
+    let sl = score(
+        stereo.left().reference_view(),
+        &relative_to(&views.0.truth, first, last),
+    );
+    let sr = score(
+        stereo.right().reference_view(),
+        &relative_to(&views.1.truth, first, last),
+    );
     assert_eq!((sl.correct, sl.wrong), (sl.markers, 0), "left {sl:?}");
     assert_eq!(sr.wrong, 0, "right {sr:?}");
     assert!(sr.correct as f64 >= 0.9 * sr.markers as f64, "right {sr:?}");
