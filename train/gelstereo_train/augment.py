@@ -87,7 +87,8 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng, focus=None):
     half = np.abs(a) @ np.array([cw / 2.0, ch / 2.0])
     cen = np.empty(2)
     near = None
-    if focus is not None and len(focus) and rng.random() < cfg.p_contact:
+    # No draw at p_contact = 0: the shipped recipes keep their random stream.
+    if cfg.p_contact > 0 and focus is not None and len(focus) and rng.random() < cfg.p_contact:
         near = np.asarray(focus[rng.integers(len(focus))], np.float64) + 0.5  # continuous coords
         near = near + rng.uniform(-0.25, 0.25, 2) * 2.0 * half
     for k, size in enumerate((w_img, h_img)):

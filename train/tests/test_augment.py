@@ -91,3 +91,17 @@ def test_contact_crops_are_centred_near_the_focus(canonical):
         assert np.all(np.abs(lab[0] - crop / 2) <= 0.25 * crop * 1.6 + 1.0), lab
     hits = sum(len(focus_in_crop(0.0)) for _ in range(30))
     assert hits < 20
+
+
+def test_contact_points_do_not_change_the_crops_of_a_recipe_without_contact_crops():
+    """p_contact = 0 (the shipped recipes): passing the contact points draws nothing more, so a seed
+    gives the crops it gave before the option existed."""
+    pitch = 20.0
+    pts, _, _ = grid_points(300, 400, pitch, 14, 19)
+    img = render_dots(300, 400, pts, 5.0, np.random.default_rng(1))
+    cfg = AugConfig(crop=(96, 96), input_size=(240, 320))
+    idx = np.array([0, 1, 2])
+    a = sample_crops([img] * 3, [pts] * 3, np.full(3, pitch), idx, cfg, np.random.default_rng(7))
+    b = sample_crops([img] * 3, [pts] * 3, np.full(3, pitch), idx, cfg, np.random.default_rng(7), [pts[:5]] * 3)
+    assert torch.equal(a[0], b[0])
+    assert all(np.array_equal(x, y) for x, y in zip(a[1], b[1]))
