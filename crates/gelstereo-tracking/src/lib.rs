@@ -19,6 +19,7 @@
 pub mod contact;
 pub mod error;
 pub mod field;
+mod fit;
 pub mod planar;
 pub mod session;
 pub mod slip;

@@ -15,6 +15,7 @@ use rayon::iter::{IndexedParallelIterator, IntoParallelRefIterator, ParallelIter
 
 use crate::contact::{ContactConfig, ContactFrame, ReferenceSurface};
 use crate::error::Result;
+use crate::fit::{affine_at, quadratic_at};
 use crate::planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
 use crate::tracker::{TrackFrame, Tracker, TrackerConfig};
@@ -42,6 +43,12 @@ pub struct SessionConfig {
     /// written as `predicted`; the heavy tail of the localization noise (0.1 px of 2-D noise gives
     /// up to 0.08 mm in 3-D on the reference rig) is a measurement, not a tracking failure.
     pub outlier_min_pitch: f64,
+    /// A marker tracked in both views whose left position lies farther than this fraction of its
+    /// left pitch from where the map between the views of its neighbours puts its right one loses
+    /// one of the two associations (see [`StereoSession`]'s check across views); 0 disables.
+    /// 0.25: with exact positions the affine map is off by up to 0.15 pitch at the deepest marker
+    /// of a contact (v1 val); with the fast model 0.3 left 2 id swaps on val, 0.25 and 0.2 none.
+    pub stereo_outlier_pitch: f64,
 }
 
 impl Default for SessionConfig {
@@ -54,6 +61,7 @@ impl Default for SessionConfig {
             outlier_threshold: 2.0,
             outlier_noise_mm: 0.02,
             outlier_min_pitch: 0.25,
+            stereo_outlier_pitch: 0.25,
         }
     }
 }
@@ -287,6 +295,8 @@ impl StereoSession {
                 self.right.update_tiered(right[0], right[1]),
             )
         };
+        let (mut lf, mut rf) = (lf, rf);
+        self.check_and_assist_across_views(&mut lf, &mut rf);
         let m_associated = mark();
         let n = self.shape.count();
         let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); n];
@@ -397,11 +407,153 @@ impl StereoSession {
         })
     }
 
+    /// Stereo check and assist, after both views are associated. The local map between the views
+    /// is a weighted (1/d^2) fit over a marker's lattice neighbours within the support radius that
+    /// are tracked in both views in this frame ([`transfer`](Self::transfer)).
+    ///
+    /// 1. **Check**: a marker tracked in both views whose left position lies farther than
+    ///    `stereo_outlier_pitch` x its left pitch from where the affine map puts its right one took
+    ///    another marker's detection in one view: the view where it sits farther from its own
+    ///    lattice ([`Tracker::lattice_residual`]) loses the association. The per-view checks
+    ///    cannot see a detection that drifts with the wrong marker; the other view can (fast
+    ///    model, val `exp_0015`: a merged blob 4-8 px off in the left view's oblique contact).
+    ///    Affine, not quadratic: the quadratic map also follows neighbours mislocalized along
+    ///    with the wrong detection (v1 val, fast model: 2 id swaps left against 0).
+    /// 2. **Assist**: a marker tracked in one view but missed in the other is placed in the other
+    ///    through the quadratic map (it follows the curved contact), not where its own neighbours' motion carried its last position: under
+    ///    a sliding contact that lags by up to a pitch within a few frames, onto a neighbour's
+    ///    place, and it wrecks the triangulated point.
+    fn check_and_assist_across_views(&mut self, lf: &mut TrackFrame, rf: &mut TrackFrame) {
+        let limit = self.config.stereo_outlier_pitch;
+        if limit > 0.0 {
+            let mut refuted = Vec::new();
+            for id in &self.ids {
+                let Some((kl, kr)) = self.slots(*id) else { continue };
+                let (Some(l), Some(_)) = (tracked_px(lf, kl), tracked_px(rf, kr)) else {
+                    continue;
+                };
+                let Some(t) = self.transfer(lf, rf, *id, false, ViewMap::Affine) else {
+                    continue;
+                };
+                if l.distance(t) <= limit * self.left.pitch_px()[kl] {
+                    continue;
+                }
+                match (self.left.lattice_residual(kl), self.right.lattice_residual(kr)) {
+                    (Some(a), Some(b)) if a >= b => refuted.push((true, kl)),
+                    (Some(_), Some(_)) => refuted.push((false, kr)),
+                    _ => {}
+                }
+            }
+            for (left, k) in refuted {
+                let (tracker, frame) = if left {
+                    (&mut self.left, &mut *lf)
+                } else {
+                    (&mut self.right, &mut *rf)
+                };
+                if tracker.unassociate(k) {
+                    let m = &mut frame.markers[k];
+                    m.status = MarkerStatus::Predicted;
+                    let detection = m.detection.take();
+                    // `unassigned` lists accepted detections only.
+                    if !std::mem::take(&mut m.second_tier) {
+                        frame.unassigned.extend(detection);
+                    }
+                }
+            }
+        }
+        let mut placements = Vec::new();
+        for id in &self.ids {
+            let Some((kl, kr)) = self.slots(*id) else { continue };
+            let from_left = match (tracked_px(lf, kl), tracked_px(rf, kr)) {
+                (Some(_), None) => true,
+                (None, Some(_)) => false,
+                _ => continue,
+            };
+            if let Some(p) = self.transfer(lf, rf, *id, from_left, ViewMap::Quadratic) {
+                placements.push((from_left, kl, kr, p));
+            }
+        }
+        for (from_left, kl, kr, p) in placements {
+            let (tracker, frame, k) = if from_left {
+                (&mut self.right, &mut *rf, kr)
+            } else {
+                (&mut self.left, &mut *lf, kl)
+            };
+            if tracker.place(k, p) {
+                frame.markers[k].position_px = Some(p);
+                frame.markers[k].status = MarkerStatus::Predicted;
+            }
+        }
+    }
+
+    /// The slots of `id` in the left and right trackers, when it is tracked in both views.
+    fn slots(&self, id: GridIndex) -> Option<(usize, usize)> {
+        let lin = self.shape.linear(id)?;
+        Some((self.left_slot[lin]?, self.right_slot[lin]?))
+    }
+
+    /// Where `id`'s position in one view (the left one when `from_left`) lands in the other, by
+    /// the weighted (1/d^2) `map` between the views of its lattice neighbours within the
+    /// support radius tracked in both views in this frame; `None` when it is not tracked in that
+    /// view or too few neighbours span the map.
+    fn transfer(
+        &self,
+        lf: &TrackFrame,
+        rf: &TrackFrame,
+        id: GridIndex,
+        from_left: bool,
+        map: ViewMap,
+    ) -> Option<Point2> {
+        let (kl, kr) = self.slots(id)?;
+        let (at, pitch) = if from_left {
+            (tracked_px(lf, kl)?, self.left.pitch_px()[kl])
+        } else {
+            (tracked_px(rf, kr)?, self.right.pitch_px()[kr])
+        };
+        let r = i32::from(self.config.tracker.support_radius);
+        let mut pairs = Vec::new();
+        for dr in -r..=r {
+            for dc in -r..=r {
+                let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
+                if (dr == 0 && dc == 0) || row < 0 || col < 0 {
+                    continue;
+                }
+                let Some((nl, nr)) = self.slots(GridIndex::new(row as u16, col as u16)) else {
+                    continue;
+                };
+                if let (Some(pl), Some(pr)) = (tracked_px(lf, nl), tracked_px(rf, nr)) {
+                    let (a, b) = if from_left { (pl, pr) } else { (pr, pl) };
+                    pairs.push(([a.x, a.y], [b.x, b.y], 1.0 / f64::from(dr * dr + dc * dc)));
+                }
+            }
+        }
+        match map {
+            ViewMap::Affine => affine_at(pairs, at, pitch),
+            ViewMap::Quadratic => quadratic_at(&pairs, at, pitch),
+        }
+    }
+
     /// A frame that could not be read or detected: every marker is written as lost and the frame as
     /// without contact, so the tables have no gap; the trackers keep their state.
     pub fn flagged(&self, frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
         flagged_rows(&self.ids, frame)
     }
+}
+
+/// The local map between the views of [`StereoSession::transfer`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ViewMap {
+    Affine,
+    Quadratic,
+}
+
+/// The position of slot `k` in `frame` when it is tracked there.
+fn tracked_px(frame: &TrackFrame, k: usize) -> Option<Point2> {
+    frame
+        .markers
+        .get(k)
+        .filter(|m| m.status == MarkerStatus::Tracked)
+        .and_then(|m| m.position_px)
 }
 
 fn positions(detections: &[Detection]) -> Vec<Point2> {
@@ -807,6 +959,101 @@ mod tests {
             assert_eq!(plain.markers[centre].status, Some(MarkerStatus::Predicted));
         }
         assert!(!truth.is_empty());
+    }
+
+    /// The unloaded lattice with the markers within 1.5 pitch of (11, 11) slid by `shift_mm` in x
+    /// (a patch slipping under an object), at rest elsewhere.
+    fn slid_patch(shift_mm: f64) -> Vec<Point3<f64>> {
+        GridShape::REFERENCE
+            .indices()
+            .zip(scene(0.0))
+            .map(|(i, p)| {
+                let (dr, dc) = (f64::from(i.row) - 11.0, f64::from(i.col) - 11.0);
+                let inside = dr * dr + dc * dc <= 2.25;
+                Point3::new(p.x + if inside { shift_mm } else { 0.0 }, p.y, p.z)
+            })
+            .collect()
+    }
+
+    fn linear(row: u16, col: u16) -> usize {
+        GridShape::REFERENCE.linear(GridIndex::new(row, col)).unwrap()
+    }
+
+    /// Markers missed in one view while the patch around them slides by a pitch are placed in
+    /// that view through the other: where the sliding patch is, not where the mixed motion of
+    /// their own view's neighbours (sliding and at rest) carries them.
+    #[test]
+    fn a_marker_missed_in_one_view_is_placed_through_the_other() {
+        let rig = rig();
+        let (mut s, _, _) = session_at_rest(&rig);
+        let missed = [linear(11, 10), linear(11, 11), linear(11, 12)];
+        for f in 1..=8u32 {
+            let truth = slid_patch(0.1 * f64::from(f));
+            let (l, r) = views(&rig, &truth);
+            let left: Vec<Point2> = l
+                .iter()
+                .enumerate()
+                .filter(|(k, _)| !missed.contains(k))
+                .map(|(_, p)| *p)
+                .collect();
+            let out = s.track(f, &left, &r).unwrap();
+            for &k in &missed {
+                let m = &out.markers[k];
+                assert_eq!(m.status, Some(MarkerStatus::Predicted), "frame {f} {}", m.index);
+                let off = m.left_px.unwrap().distance(l[k]);
+                assert!(
+                    off < 0.05,
+                    "frame {f} {}: {off:.3} px off in the left view",
+                    m.index
+                );
+                let err = (Point3::from(m.position_mm.unwrap()) - truth[k]).norm();
+                assert!(err < 0.01, "frame {f} {}: {err:.4} mm", m.index);
+            }
+        }
+    }
+
+    /// A detection drifting onto a neighbour's place in one view, slowly enough for that view's
+    /// own checks, is refuted by the other view and the marker placed where that view puts it.
+    #[test]
+    fn a_detection_drifting_off_in_one_view_is_refuted_by_the_other() {
+        let rig = rig();
+        let (mut s, l0, r0) = session_at_rest(&rig);
+        let k = linear(11, 11);
+        let pitch = l0[linear(11, 12)].distance(l0[k]);
+        let limit = SessionConfig::default().stereo_outlier_pitch;
+        let mut refuted = false;
+        for f in 1..=6u32 {
+            let mut l = l0.clone();
+            // 0.1 pitch a frame towards (11, 12): within the motion check, and no neighbour is
+            // missed for the lattice check.
+            let drift = 0.1 * f64::from(f);
+            l[k].x += drift * pitch;
+            let out = s.track(f, &l, &r0).unwrap();
+            let m = &out.markers[k];
+            if out.left.markers[k].status == MarkerStatus::Tracked {
+                assert!(!refuted, "frame {f}: re-associated after being refuted");
+                assert!(
+                    drift < limit + 0.05,
+                    "frame {f}: still tracked {drift:.1} pitch off"
+                );
+            } else {
+                assert!(drift > limit - 0.05, "frame {f}: refuted at {drift:.1} pitch");
+                refuted = true;
+                assert_eq!(m.status, Some(MarkerStatus::Predicted));
+                assert!(
+                    m.left_px.unwrap().distance(l0[k]) < 0.05,
+                    "frame {f}: {:?}",
+                    m.left_px
+                );
+                assert_eq!(out.left.markers[k].detection, None);
+                assert!(
+                    out.left.unassigned.contains(&k),
+                    "frame {f}: its detection is free"
+                );
+                assert_eq!(out.right.markers[k].status, MarkerStatus::Tracked);
+            }
+        }
+        assert!(refuted);
     }
 
     #[test]

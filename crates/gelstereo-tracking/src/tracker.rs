@@ -38,6 +38,7 @@ use gelstereo_core::{GridIndex, GridShape, MarkerStatus, Point2};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::error::{Error, Result, config_err};
+use crate::fit::affine_at;
 
 /// Marks "nothing" in dense assignment arrays.
 const NONE: u32 = u32::MAX;
@@ -317,6 +318,36 @@ impl Tracker {
         }
     }
 
+    /// Turns a marker tracked in the latest frame into `predicted` at the same position: its
+    /// detection was found to be another marker's by other evidence (the other view of a stereo
+    /// pair). Returns whether it was tracked.
+    pub fn unassociate(&mut self, slot: usize) -> bool {
+        let tracked = self.status.get(slot) == Some(&MarkerStatus::Tracked);
+        if tracked {
+            self.status[slot] = MarkerStatus::Predicted;
+        }
+        tracked
+    }
+
+    /// Puts a marker that the latest frame left without a detection (`predicted` or `lost`) at
+    /// `position`, px, known from other evidence: the other view of a stereo pair
+    /// ([`crate::session::StereoSession`]). It becomes `predicted` there and the next frame is
+    /// predicted from there. Returns `false`, changing nothing, for a slot out of range, a marker
+    /// tracked in the latest frame or a non-finite position.
+    pub fn place(&mut self, slot: usize, position: Point2) -> bool {
+        let ok = self.status.get(slot).is_some_and(|s| *s != MarkerStatus::Tracked)
+            && position.x.is_finite()
+            && position.y.is_finite();
+        if ok {
+            let old = self.current_px[slot];
+            let m = &mut self.motion_px[slot];
+            *m = [m[0] + position.x - old.x, m[1] + position.y - old.y];
+            self.current_px[slot] = position;
+            self.status[slot] = MarkerStatus::Predicted;
+        }
+        ok
+    }
+
     /// Tracks one frame given its detections (px, any order; NaN or infinite ones are skipped and
     /// counted). An empty list is a valid frame: every marker becomes lost (or predicted, never
     /// silently dropped) and is re-acquired later.
@@ -589,54 +620,36 @@ impl Tracker {
 
     /// Where the lattice puts `slot` in this frame: the weighted (1/d^2) least-squares affine map
     /// from the reference positions of its associated neighbours within the support radius to
-    /// their detections, at its own reference position. `None` with fewer than 4 such neighbours
-    /// or when they do not span both lattice directions.
+    /// their detections, at its own reference position ([`affine_at`]). `None` with fewer
+    /// than 4 such neighbours or when they do not span both lattice directions.
     fn lattice_position(&self, slot: usize, points: &[[f64; 2]], assoc: &[u32]) -> Option<Point2> {
-        let r0 = self.reference_px[slot];
-        let (mut s, mut sx, mut sy, mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        let (mut su, mut sv, mut sxu, mut syu, mut sxv, mut syv) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-        let mut count = 0;
-        for &(j, w) in &self.neighbours[slot] {
-            let Some(&a) = assoc.get(j as usize).filter(|a| **a != NONE) else {
-                continue;
-            };
-            let [u, v] = points[a as usize];
-            count += 1;
+        self.lattice_fit(slot, |j| {
+            let a = *assoc.get(j).filter(|a| **a != NONE)?;
+            Some(points[a as usize])
+        })
+    }
+
+    /// [`lattice_position`](Self::lattice_position) given each neighbour's position in this frame
+    /// (`None`: not associated).
+    fn lattice_fit(&self, slot: usize, position: impl Fn(usize) -> Option<[f64; 2]>) -> Option<Point2> {
+        let pairs = self.neighbours[slot].iter().filter_map(|&(j, w)| {
             let r = self.reference_px[j as usize];
-            let (x, y) = (r.x - r0.x, r.y - r0.y);
-            s += w;
-            sx += w * x;
-            sy += w * y;
-            sxx += w * x * x;
-            sxy += w * x * y;
-            syy += w * y * y;
-            su += w * u;
-            sv += w * v;
-            sxu += w * x * u;
-            syu += w * y * u;
-            sxv += w * x * v;
-            syv += w * y * v;
-        }
-        if count < 4 {
+            Some(([r.x, r.y], position(j as usize)?, w))
+        });
+        affine_at(pairs, self.reference_px[slot], self.pitch_px[slot])
+    }
+
+    /// How far a marker tracked in the latest frame lies from where the lattice of its tracked
+    /// neighbours puts it, as a fraction of its local pitch (see `lattice_outlier_pitch`);
+    /// `None` for a marker not tracked or without enough tracked neighbours around it.
+    pub fn lattice_residual(&self, slot: usize) -> Option<f64> {
+        if *self.status.get(slot)? != MarkerStatus::Tracked {
             return None;
         }
-        let (mx, my, mu, mv) = (sx / s, sy / s, su / s, sv / s);
-        let (cxx, cxy, cyy) = (sxx / s - mx * mx, sxy / s - mx * my, syy / s - my * my);
-        let (cxu, cyu, cxv, cyv) = (
-            sxu / s - mx * mu,
-            syu / s - my * mu,
-            sxv / s - mx * mv,
-            syv / s - my * mv,
-        );
-        // Neighbours along one line (or nearly) leave the map across it undetermined.
-        let det = cxx * cyy - cxy * cxy;
-        let p2 = self.pitch_px[slot] * self.pitch_px[slot];
-        if det < 0.01 * p2 * p2 {
-            return None;
-        }
-        let (bu, cu) = ((cyy * cxu - cxy * cyu) / det, (cxx * cyu - cxy * cxu) / det);
-        let (bv, cv) = ((cyy * cxv - cxy * cyv) / det, (cxx * cyv - cxy * cxv) / det);
-        Some(Point2::new(mu - bu * mx - cu * my, mv - bv * mx - cv * my))
+        let p = self.lattice_fit(slot, |j| {
+            (self.status[j] == MarkerStatus::Tracked).then(|| [self.current_px[j].x, self.current_px[j].y])
+        })?;
+        Some(p.distance(self.current_px[slot]) / self.pitch_px[slot])
     }
 
     /// Frame-to-frame motion of each slot associated in `assoc`.
