@@ -113,6 +113,9 @@ pub struct StereoSession {
     right_slot: Vec<Option<usize>>,
     /// Ids in either view, row-major.
     ids: Vec<GridIndex>,
+    /// Per lattice position: the lattice positions within the tracker's support radius, weights
+    /// 1/d^2 in lattice steps (the maps between the views, [`transfer`](Self::transfer)).
+    around: Vec<Vec<(u32, f64)>>,
     reference_mm: Vec<Option<[f64; 3]>>,
     /// With a clock, [`track`](Self::track) records [`StageMark`]s (for benchmarks).
     stage_clock: Option<CpuClock>,
@@ -162,6 +165,25 @@ impl StereoSession {
         }
         let surface = ReferenceSurface::new(shape, &reference_mm)?;
         let slip = SlipDetector::new(config.slip.clone())?;
+        let r = i32::from(config.tracker.support_radius);
+        let around = shape
+            .indices()
+            .map(|id| {
+                let mut list = Vec::new();
+                for dr in -r..=r {
+                    for dc in -r..=r {
+                        let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
+                        if (dr == 0 && dc == 0) || row < 0 || col < 0 {
+                            continue;
+                        }
+                        if let Some(n) = shape.linear(GridIndex::new(row as u16, col as u16)) {
+                            list.push((n as u32, 1.0 / f64::from(dr * dr + dc * dc)));
+                        }
+                    }
+                }
+                list
+            })
+            .collect();
         config.contact.validate()?;
         Ok(Self {
             shape,
@@ -174,6 +196,7 @@ impl StereoSession {
             left_slot,
             right_slot,
             ids,
+            around,
             reference_mm,
             stage_clock: None,
             stage_marks: Vec::new(),
@@ -426,13 +449,17 @@ impl StereoSession {
     fn check_and_assist_across_views(&mut self, lf: &mut TrackFrame, rf: &mut TrackFrame) {
         let limit = self.config.stereo_outlier_pitch;
         if limit > 0.0 {
+            let both = self.tracked_in_both(lf, rf);
             let mut refuted = Vec::new();
             for id in &self.ids {
-                let Some((kl, kr)) = self.slots(*id) else { continue };
-                let (Some(l), Some(_)) = (tracked_px(lf, kl), tracked_px(rf, kr)) else {
+                let Some(lin) = self.shape.linear(*id) else {
                     continue;
                 };
-                let Some(t) = self.transfer(lf, rf, *id, false, ViewMap::Affine) else {
+                let (Some([l, r]), Some((kl, kr))) = (both[lin], self.slots(*id)) else {
+                    continue;
+                };
+                let pitch = self.right.pitch_px()[kr];
+                let Some(t) = self.transfer(&both, *id, r, pitch, false, ViewMap::Affine) else {
                     continue;
                 };
                 if l.distance(t) <= limit * self.left.pitch_px()[kl] {
@@ -461,15 +488,16 @@ impl StereoSession {
                 }
             }
         }
+        let both = self.tracked_in_both(lf, rf);
         let mut placements = Vec::new();
         for id in &self.ids {
             let Some((kl, kr)) = self.slots(*id) else { continue };
-            let from_left = match (tracked_px(lf, kl), tracked_px(rf, kr)) {
-                (Some(_), None) => true,
-                (None, Some(_)) => false,
+            let (from_left, at, pitch) = match (tracked_px(lf, kl), tracked_px(rf, kr)) {
+                (Some(p), None) => (true, p, self.left.pitch_px()[kl]),
+                (None, Some(p)) => (false, p, self.right.pitch_px()[kr]),
                 _ => continue,
             };
-            if let Some(p) = self.transfer(lf, rf, *id, from_left, ViewMap::Quadratic) {
+            if let Some(p) = self.transfer(&both, *id, at, pitch, from_left, ViewMap::Quadratic) {
                 placements.push((from_left, kl, kr, p));
             }
         }
@@ -486,50 +514,46 @@ impl StereoSession {
         }
     }
 
-    /// The slots of `id` in the left and right trackers, when it is tracked in both views.
+    /// The slots of `id` in the left and right trackers, when it is indexed in both views.
     fn slots(&self, id: GridIndex) -> Option<(usize, usize)> {
         let lin = self.shape.linear(id)?;
         Some((self.left_slot[lin]?, self.right_slot[lin]?))
     }
 
-    /// Where `id`'s position in one view (the left one when `from_left`) lands in the other, by
-    /// the weighted (1/d^2) `map` between the views of its lattice neighbours within the
-    /// support radius tracked in both views in this frame; `None` when it is not tracked in that
-    /// view or too few neighbours span the map.
+    /// Per lattice position: the [left, right] positions of the marker tracked in both views.
+    fn tracked_in_both(&self, lf: &TrackFrame, rf: &TrackFrame) -> Vec<Option<[Point2; 2]>> {
+        (0..self.shape.count())
+            .map(|lin| {
+                let (kl, kr) = (self.left_slot[lin]?, self.right_slot[lin]?);
+                Some([tracked_px(lf, kl)?, tracked_px(rf, kr)?])
+            })
+            .collect()
+    }
+
+    /// Where `at`, `id`'s position in one view (the left one when `from_left`; `pitch` is its
+    /// local pitch there), lands in the other, by the weighted (1/d^2) `map` between the views of
+    /// its lattice neighbours within the support radius tracked in both views (`both`, from
+    /// [`tracked_in_both`](Self::tracked_in_both)); `None` when too few neighbours span the map.
     fn transfer(
         &self,
-        lf: &TrackFrame,
-        rf: &TrackFrame,
+        both: &[Option<[Point2; 2]>],
         id: GridIndex,
+        at: Point2,
+        pitch: f64,
         from_left: bool,
         map: ViewMap,
     ) -> Option<Point2> {
-        let (kl, kr) = self.slots(id)?;
-        let (at, pitch) = if from_left {
-            (tracked_px(lf, kl)?, self.left.pitch_px()[kl])
-        } else {
-            (tracked_px(rf, kr)?, self.right.pitch_px()[kr])
-        };
-        let r = i32::from(self.config.tracker.support_radius);
-        let mut pairs = Vec::new();
-        for dr in -r..=r {
-            for dc in -r..=r {
-                let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
-                if (dr == 0 && dc == 0) || row < 0 || col < 0 {
-                    continue;
-                }
-                let Some((nl, nr)) = self.slots(GridIndex::new(row as u16, col as u16)) else {
-                    continue;
-                };
-                if let (Some(pl), Some(pr)) = (tracked_px(lf, nl), tracked_px(rf, nr)) {
-                    let (a, b) = if from_left { (pl, pr) } else { (pr, pl) };
-                    pairs.push(([a.x, a.y], [b.x, b.y], 1.0 / f64::from(dr * dr + dc * dc)));
-                }
-            }
-        }
+        let (from, to) = if from_left { (0, 1) } else { (1, 0) };
+        let lin = self.shape.linear(id)?;
+        // No allocation on the check's path: it runs for every marker of every frame.
+        let pairs = self.around[lin].iter().filter_map(|&(n, w)| {
+            let p = both[n as usize]?;
+            let (a, b) = (p[from], p[to]);
+            Some(([a.x, a.y], [b.x, b.y], w))
+        });
         match map {
             ViewMap::Affine => affine_at(pairs, at, pitch),
-            ViewMap::Quadratic => quadratic_at(&pairs, at, pitch),
+            ViewMap::Quadratic => quadratic_at(&pairs.collect::<Vec<_>>(), at, pitch),
         }
     }
 
