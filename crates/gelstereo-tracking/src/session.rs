@@ -14,7 +14,7 @@ use nalgebra::{Point3, Vector3};
 use rayon::iter::{IndexedParallelIterator, IntoParallelRefIterator, ParallelIterator};
 
 use crate::contact::{ContactConfig, ContactFrame, ReferenceSurface};
-use crate::error::Result;
+use crate::error::{Result, config_err};
 use crate::fit::{affine_at, quadratic_at};
 use crate::planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
@@ -136,6 +136,14 @@ impl StereoSession {
     ) -> Result<Self> {
         let left = Tracker::new(shape, left, config.tracker.clone())?;
         let right = Tracker::new(shape, right, config.tracker.clone())?;
+        let v = config.stereo_outlier_pitch;
+        if !(v == 0.0 || (v.is_finite() && v > 0.0 && v < 1.0)) {
+            return Err(config_err(
+                "stereo_outlier_pitch",
+                "0 (off) or a fraction of the pitch in (0, 1)",
+                v,
+            ));
+        }
         let slot = |t: &Tracker| {
             let mut s = vec![None; shape.count()];
             for (k, id) in t.ids().iter().enumerate() {
@@ -306,7 +314,7 @@ impl StereoSession {
         };
         self.stage_marks.clear();
         let m_start = mark();
-        let (lf, rf) = if self.parallel {
+        let (mut lf, mut rf) = if self.parallel {
             let (l, r) = (&mut self.left, &mut self.right);
             rayon::join(
                 || l.update_tiered(left[0], left[1]),
@@ -318,7 +326,6 @@ impl StereoSession {
                 self.right.update_tiered(right[0], right[1]),
             )
         };
-        let (mut lf, mut rf) = (lf, rf);
         self.check_and_assist_across_views(&mut lf, &mut rf);
         let m_associated = mark();
         let n = self.shape.count();
@@ -443,9 +450,10 @@ impl StereoSession {
     ///    Affine, not quadratic: the quadratic map also follows neighbours mislocalized along
     ///    with the wrong detection (v1 val, fast model: 2 id swaps left against 0).
     /// 2. **Assist**: a marker tracked in one view but missed in the other is placed in the other
-    ///    through the quadratic map (it follows the curved contact), not where its own neighbours' motion carried its last position: under
-    ///    a sliding contact that lags by up to a pitch within a few frames, onto a neighbour's
-    ///    place, and it wrecks the triangulated point.
+    ///    through the quadratic map (it follows the curved contact), not where its own
+    ///    neighbours' motion carried its last position: under a sliding contact that lags by up
+    ///    to a pitch within a few frames, onto a neighbour's place, and it wrecks the
+    ///    triangulated point.
     fn check_and_assist_across_views(&mut self, lf: &mut TrackFrame, rf: &mut TrackFrame) {
         let limit = self.config.stereo_outlier_pitch;
         if limit > 0.0 {
@@ -1032,6 +1040,36 @@ mod tests {
                 );
                 let err = (Point3::from(m.position_mm.unwrap()) - truth[k]).norm();
                 assert!(err < 0.01, "frame {f} {}: {err:.4} mm", m.index);
+            }
+        }
+    }
+
+    #[test]
+    fn a_stereo_check_limit_outside_its_range_is_refused_by_name() {
+        let rig = rig();
+        let (l, r) = views(&rig, &scene(0.0));
+        let ids: Vec<GridIndex> = GridShape::REFERENCE.indices().collect();
+        let lref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(l).collect();
+        let rref: Vec<(GridIndex, Point2)> = ids.iter().copied().zip(r).collect();
+        let tri = Triangulator::new(rig, TriangulationConfig::default()).unwrap();
+        for (v, ok) in [
+            (0.0, true),
+            (0.25, true),
+            (-0.1, false),
+            (1.0, false),
+            (f64::NAN, false),
+        ] {
+            let config = SessionConfig {
+                stereo_outlier_pitch: v,
+                ..SessionConfig::default()
+            };
+            let made = StereoSession::new(GridShape::REFERENCE, &lref, &rref, tri.clone(), config);
+            match made {
+                Ok(_) => assert!(ok, "{v} accepted"),
+                Err(e) => {
+                    assert!(!ok, "{v} refused: {e}");
+                    assert!(e.to_string().contains("stereo_outlier_pitch"), "{e}");
+                }
             }
         }
     }
