@@ -18,7 +18,7 @@ use crate::error::{Result, config_err};
 use crate::fit::{affine_at, quadratic_at};
 use crate::planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
-use crate::tracker::{TrackFrame, Tracker, TrackerConfig};
+use crate::tracker::{TrackFrame, Tracker, TrackerConfig, lattice_neighbourhood};
 
 /// All settings of a session.
 #[derive(Debug, Clone, PartialEq)]
@@ -173,23 +173,12 @@ impl StereoSession {
         }
         let surface = ReferenceSurface::new(shape, &reference_mm)?;
         let slip = SlipDetector::new(config.slip.clone())?;
-        let r = i32::from(config.tracker.support_radius);
         let around = shape
             .indices()
             .map(|id| {
-                let mut list = Vec::new();
-                for dr in -r..=r {
-                    for dc in -r..=r {
-                        let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
-                        if (dr == 0 && dc == 0) || row < 0 || col < 0 {
-                            continue;
-                        }
-                        if let Some(n) = shape.linear(GridIndex::new(row as u16, col as u16)) {
-                            list.push((n as u32, 1.0 / f64::from(dr * dr + dc * dc)));
-                        }
-                    }
-                }
-                list
+                lattice_neighbourhood(shape, id, config.tracker.support_radius)
+                    .map(|(n, w)| (n as u32, w))
+                    .collect()
             })
             .collect();
         config.contact.validate()?;
@@ -459,15 +448,12 @@ impl StereoSession {
         if limit > 0.0 {
             let both = self.tracked_in_both(lf, rf);
             let mut refuted = Vec::new();
-            for id in &self.ids {
-                let Some(lin) = self.shape.linear(*id) else {
-                    continue;
-                };
-                let (Some([l, r]), Some((kl, kr))) = (both[lin], self.slots(*id)) else {
+            for (lin, pair) in both.iter().enumerate() {
+                let (Some([l, r]), Some((kl, kr))) = (pair, self.slots(lin)) else {
                     continue;
                 };
                 let pitch = self.right.pitch_px()[kr];
-                let Some(t) = self.transfer(&both, *id, r, pitch, false, ViewMap::Affine) else {
+                let Some(t) = self.transfer(&both, lin, *r, pitch, false, ViewMap::Affine) else {
                     continue;
                 };
                 if l.distance(t) <= limit * self.left.pitch_px()[kl] {
@@ -480,51 +466,38 @@ impl StereoSession {
                 }
             }
             for (left, k) in refuted {
-                let (tracker, frame) = if left {
-                    (&mut self.left, &mut *lf)
+                if left {
+                    self.left.unassociate(k, lf);
                 } else {
-                    (&mut self.right, &mut *rf)
-                };
-                if tracker.unassociate(k) {
-                    let m = &mut frame.markers[k];
-                    m.status = MarkerStatus::Predicted;
-                    let detection = m.detection.take();
-                    // `unassigned` lists accepted detections only.
-                    if !std::mem::take(&mut m.second_tier) {
-                        frame.unassigned.extend(detection);
-                    }
+                    self.right.unassociate(k, rf);
                 }
             }
         }
         let both = self.tracked_in_both(lf, rf);
         let mut placements = Vec::new();
-        for id in &self.ids {
-            let Some((kl, kr)) = self.slots(*id) else { continue };
+        for lin in 0..self.shape.count() {
+            let Some((kl, kr)) = self.slots(lin) else { continue };
             let (from_left, at, pitch) = match (tracked_px(lf, kl), tracked_px(rf, kr)) {
                 (Some(p), None) => (true, p, self.left.pitch_px()[kl]),
                 (None, Some(p)) => (false, p, self.right.pitch_px()[kr]),
                 _ => continue,
             };
-            if let Some(p) = self.transfer(&both, *id, at, pitch, from_left, ViewMap::Quadratic) {
+            if let Some(p) = self.transfer(&both, lin, at, pitch, from_left, ViewMap::Quadratic) {
                 placements.push((from_left, kl, kr, p));
             }
         }
         for (from_left, kl, kr, p) in placements {
-            let (tracker, frame, k) = if from_left {
-                (&mut self.right, &mut *rf, kr)
+            if from_left {
+                self.right.place(kr, p, rf);
             } else {
-                (&mut self.left, &mut *lf, kl)
-            };
-            if tracker.place(k, p) {
-                frame.markers[k].position_px = Some(p);
-                frame.markers[k].status = MarkerStatus::Predicted;
+                self.left.place(kl, p, lf);
             }
         }
     }
 
-    /// The slots of `id` in the left and right trackers, when it is indexed in both views.
-    fn slots(&self, id: GridIndex) -> Option<(usize, usize)> {
-        let lin = self.shape.linear(id)?;
+    /// The slots in the left and right trackers of the marker at lattice position `lin`, when it
+    /// is indexed in both views.
+    fn slots(&self, lin: usize) -> Option<(usize, usize)> {
         Some((self.left_slot[lin]?, self.right_slot[lin]?))
     }
 
@@ -532,27 +505,26 @@ impl StereoSession {
     fn tracked_in_both(&self, lf: &TrackFrame, rf: &TrackFrame) -> Vec<Option<[Point2; 2]>> {
         (0..self.shape.count())
             .map(|lin| {
-                let (kl, kr) = (self.left_slot[lin]?, self.right_slot[lin]?);
+                let (kl, kr) = self.slots(lin)?;
                 Some([tracked_px(lf, kl)?, tracked_px(rf, kr)?])
             })
             .collect()
     }
 
-    /// Where `at`, `id`'s position in one view (the left one when `from_left`; `pitch` is its
-    /// local pitch there), lands in the other, by the weighted (1/d^2) `map` between the views of
+    /// Where `at`, the position in one view (the left one when `from_left`; `pitch` is its local
+    /// pitch there) of the marker at lattice position `lin`, lands in the other, by the weighted (1/d^2) `map` between the views of
     /// its lattice neighbours within the support radius tracked in both views (`both`, from
     /// [`tracked_in_both`](Self::tracked_in_both)); `None` when too few neighbours span the map.
     fn transfer(
         &self,
         both: &[Option<[Point2; 2]>],
-        id: GridIndex,
+        lin: usize,
         at: Point2,
         pitch: f64,
         from_left: bool,
         map: ViewMap,
     ) -> Option<Point2> {
         let (from, to) = if from_left { (0, 1) } else { (1, 0) };
-        let lin = self.shape.linear(id)?;
         // No allocation on the check's path: it runs for every marker of every frame.
         let pairs = self.around[lin].iter().filter_map(|&(n, w)| {
             let p = both[n as usize]?;

@@ -236,29 +236,15 @@ impl Tracker {
         }
         let ids: Vec<GridIndex> = sorted.iter().map(|(i, _)| *i).collect();
         let reference_px: Vec<Point2> = sorted.iter().map(|(_, p)| *p).collect();
-        let r = i32::from(config.support_radius);
-        let mut neighbours = Vec::with_capacity(ids.len());
-        for id in &ids {
-            let mut list = Vec::new();
-            for dr in -r..=r {
-                for dc in -r..=r {
-                    if dr == 0 && dc == 0 {
-                        continue;
-                    }
-                    let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
-                    if row < 0 || col < 0 {
-                        continue;
-                    }
-                    let Some(lin) = shape.linear(GridIndex::new(row as u16, col as u16)) else {
-                        continue;
-                    };
-                    if slot_of[lin] != NONE {
-                        list.push((slot_of[lin], 1.0 / f64::from(dr * dr + dc * dc)));
-                    }
-                }
-            }
-            neighbours.push(list);
-        }
+        let neighbours: Vec<Vec<(u32, f64)>> = ids
+            .iter()
+            .map(|id| {
+                lattice_neighbourhood(shape, *id, config.support_radius)
+                    .filter(|&(lin, _)| slot_of[lin] != NONE)
+                    .map(|(lin, w)| (slot_of[lin], w))
+                    .collect()
+            })
+            .collect();
         let pitch_px = local_pitch(&ids, &reference_px, &slot_of, shape)?;
         let n = ids.len();
         Ok(Self {
@@ -320,11 +306,21 @@ impl Tracker {
 
     /// Turns a marker tracked in the latest frame into `predicted` at the same position: its
     /// detection was found to be another marker's by other evidence (the other view of a stereo
-    /// pair). Returns whether it was tracked.
-    pub fn unassociate(&mut self, slot: usize) -> bool {
+    /// pair). `frame` is what the latest update returned; it is kept in step (the marker's
+    /// detection goes back to `unassigned` when it is an accepted one). Returns whether it was
+    /// tracked.
+    pub fn unassociate(&mut self, slot: usize, frame: &mut TrackFrame) -> bool {
         let tracked = self.status.get(slot) == Some(&MarkerStatus::Tracked);
         if tracked {
             self.status[slot] = MarkerStatus::Predicted;
+            if let Some(m) = frame.markers.get_mut(slot) {
+                m.status = MarkerStatus::Predicted;
+                let detection = m.detection.take();
+                // `unassigned` lists accepted detections only.
+                if !std::mem::take(&mut m.second_tier) {
+                    frame.unassigned.extend(detection);
+                }
+            }
         }
         tracked
     }
@@ -332,9 +328,10 @@ impl Tracker {
     /// Puts a marker that the latest frame left without a detection (`predicted` or `lost`) at
     /// `position`, px, known from other evidence: the other view of a stereo pair
     /// ([`crate::session::StereoSession`]). It becomes `predicted` there and the next frame is
-    /// predicted from there. Returns `false`, changing nothing, for a slot out of range, a marker
-    /// tracked in the latest frame or a non-finite position.
-    pub fn place(&mut self, slot: usize, position: Point2) -> bool {
+    /// predicted from there; `frame`, what the latest update returned, is kept in step. Returns
+    /// `false`, changing nothing, for a slot out of range, a marker tracked in the latest frame or
+    /// a non-finite position.
+    pub fn place(&mut self, slot: usize, position: Point2, frame: &mut TrackFrame) -> bool {
         let ok = self.status.get(slot).is_some_and(|s| *s != MarkerStatus::Tracked)
             && position.x.is_finite()
             && position.y.is_finite();
@@ -344,6 +341,10 @@ impl Tracker {
             *m = [m[0] + position.x - old.x, m[1] + position.y - old.y];
             self.current_px[slot] = position;
             self.status[slot] = MarkerStatus::Predicted;
+            if let Some(m) = frame.markers.get_mut(slot) {
+                m.position_px = Some(position);
+                m.status = MarkerStatus::Predicted;
+            }
         }
         ok
     }
@@ -769,6 +770,27 @@ fn weighted_median(v: &mut [(f64, f64)]) -> f64 {
         }
     }
     v.last().map_or(0.0, |p| p.0)
+}
+
+/// The lattice positions (linear, row-major over `shape`) within `radius` steps of `id` in each
+/// direction, `id` itself excluded, each with its weight 1/d^2 in lattice steps: the support of a
+/// marker's neighbour fits, in the tracker and across the views of a stereo session.
+pub(crate) fn lattice_neighbourhood(
+    shape: GridShape,
+    id: GridIndex,
+    radius: u16,
+) -> impl Iterator<Item = (usize, f64)> {
+    let r = i32::from(radius);
+    (-r..=r)
+        .flat_map(move |dr| (-r..=r).map(move |dc| (dr, dc)))
+        .filter_map(move |(dr, dc)| {
+            let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
+            if (dr == 0 && dc == 0) || row < 0 || col < 0 {
+                return None;
+            }
+            let lin = shape.linear(GridIndex::new(row as u16, col as u16))?;
+            Some((lin, 1.0 / f64::from(dr * dr + dc * dc)))
+        })
 }
 
 /// The finite points of `detections`: their positions in `detections` and their coordinates.
