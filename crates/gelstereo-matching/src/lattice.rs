@@ -79,7 +79,7 @@ impl IndexingConfig {
 /// ([`ReferenceLattice::from_detections_placed`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct GridPlacement {
-    /// First and last grid row with an indexed marker.
+    /// First grid row with an indexed marker.
     pub first_row: u16,
     /// Last grid row with an indexed marker.
     pub last_row: u16,
@@ -361,6 +361,15 @@ impl ScratchLattice {
         e
     }
 
+    /// The detection at provisional row `r`, column `c`; NONE where none or outside the grid.
+    pub(crate) fn det_at(&self, r: i64, c: i64) -> u32 {
+        if r < 0 || c < 0 || r >= self.rows as i64 || c >= self.cols as i64 {
+            NONE
+        } else {
+            self.node_det[r as usize * self.cols + c as usize]
+        }
+    }
+
     /// Number of assigned nodes per provisional row and per provisional column.
     pub(crate) fn counts(&self) -> (Vec<usize>, Vec<usize>) {
         let mut rows = vec![0; self.rows];
@@ -501,8 +510,7 @@ pub(crate) fn placed_assignment(
             .enumerate()
             .filter_map(|(k, q)| q.map(|q| (q.distance(p), k)))
             .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        if let Some((dist, k)) = nearest.filter(|x| x.0 <= 0.5 * pitch) {
-            let _ = dist;
+        if let Some((_, k)) = nearest.filter(|x| x.0 <= 0.5 * pitch) {
             let (sr, sc) = ((n / scratch.cols) as i64, (n % scratch.cols) as i64);
             *votes
                 .entry((sr - (k / w) as i64, sc - (k % w) as i64))
@@ -522,14 +530,7 @@ pub(crate) fn placed_assignment(
         });
     };
     let node_det: Vec<u32> = (0..h * w)
-        .map(|n| {
-            let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
-            if r < 0 || c < 0 || r >= scratch.rows as i64 || c >= scratch.cols as i64 {
-                NONE
-            } else {
-                scratch.node_det[r as usize * scratch.cols + c as usize]
-            }
-        })
+        .map(|n| scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0))
         .collect();
     // Nodes the view can show: expected within the detections' extent (half a pitch beyond).
     let (lo, hi) = points.iter().fold(

@@ -572,11 +572,7 @@ impl StereoLattice {
         };
         let node_det: Vec<u32> = (0..h * w)
             .map(|n| {
-                let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
-                if r < 0 || c < 0 || r >= scratch.rows as i64 || c >= scratch.cols as i64 {
-                    return NONE;
-                }
-                let d = scratch.node_det[r as usize * scratch.cols + c as usize];
+                let d = scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0);
                 // Drop right markers that contradict the constraint (where the left one was seen).
                 let ok = d != NONE
                     && match (&lines[n], &right_norm[d as usize]) {
@@ -591,14 +587,7 @@ impl StereoLattice {
         // fraction counts the right markers that fall in the window.
         let in_window = if cut {
             (0..h * w)
-                .filter(|n| {
-                    let (r, c) = ((n / w) as i64 + r0, (n % w) as i64 + c0);
-                    r >= 0
-                        && c >= 0
-                        && r < scratch.rows as i64
-                        && c < scratch.cols as i64
-                        && scratch.node_det[r as usize * scratch.cols + c as usize] != NONE
-                })
+                .filter(|n| scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0) != NONE)
                 .count()
         } else {
             h * w

@@ -160,8 +160,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                         .iter()
                         .filter_map(|t| t.left.map(|q| (q.distance(p), t.index)))
                         .min_by(|a, b| a.0.total_cmp(&b.0));
-                    if let Some((dist, id)) = nearest.filter(|n| n.0 <= r) {
-                        let _ = dist;
+                    if let Some((_, id)) = nearest.filter(|n| n.0 <= r) {
                         maps.entry(m.index).or_default().insert(id);
                         let e = spans.entry((m.index, id)).or_insert((*f, *f, 0));
                         e.1 = *f;
