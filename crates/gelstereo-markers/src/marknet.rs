@@ -235,8 +235,10 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
         path: path.to_path_buf(),
         source,
     })?;
-    let rt = runtime::init()?;
     let load = onnx_err(path, "loading the model");
+    gelstereo_core::limits::check_thread_count(options.intra_threads)
+        .map_err(|e| load(format!("intra-op threads: {e}")))?;
+    let rt = runtime::init()?;
     let mut builder = Session::builder(&rt.environment)
         .map_err(|e| load(e.to_string()))?
         .with_optimization_level(GraphOptimizationLevel::Level3)

@@ -133,6 +133,7 @@ impl Sources {
                 path: path.to_path_buf(),
                 source,
             })?;
+            super::structure::check_calibration_file(path)?;
             let name = path.to_string_lossy().into_owned();
             let fs =
                 FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
