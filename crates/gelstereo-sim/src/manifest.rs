@@ -282,5 +282,29 @@ mod tests {
                 }
             }
         }
+
+        /// The reference sensor description with bytes replaced, inserted or cut: a sensor or an
+        /// error naming the file, never a panic.
+        #[test]
+        fn mutated_sensor_files_load_or_name_the_file(
+            edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>(), 0u8..3), 1..6),
+        ) {
+            let reference = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../calib/reference-sensor.json");
+            let mut bytes = std::fs::read(reference).unwrap();
+            for (at, byte, kind) in edits {
+                let i = at.index(bytes.len().max(1)).min(bytes.len());
+                match kind {
+                    0 if i < bytes.len() => bytes[i] = byte,
+                    1 => bytes.insert(i, byte),
+                    _ => bytes.truncate(i),
+                }
+            }
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("sensor.json");
+            std::fs::write(&path, &bytes).unwrap();
+            if let Err(e) = SensorSpec::load(&path) {
+                prop_assert!(e.to_string().contains("sensor.json"), "{}", e);
+            }
+        }
     }
 }

@@ -395,6 +395,14 @@ impl StereoRig {
         let (Some(left), Some(right)) = (it.next(), it.next()) else {
             return Err(Error::Calibration("internal: two cameras expected".to_owned()));
         };
+        for (camera, key) in [(&left, "D1"), (&right, "D2")] {
+            camera.validate().map_err(|e| Error::BadValue {
+                path: first.clone(),
+                key: key.to_owned(),
+                expected: "distortion that leaves every image pixel a ray".to_owned(),
+                found: e.to_string(),
+            })?;
+        }
         let rig = StereoRig {
             left,
             right,
