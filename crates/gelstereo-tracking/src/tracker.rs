@@ -1275,3 +1275,36 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod gap_probe {
+    use super::*;
+    use crate::synthetic::press_then_slide;
+
+    #[test]
+    fn probe_gap() {
+        for slide in [60.0, 90.0, 120.0, 150.0] {
+            for gap in [1usize, 2] {
+                let seq = press_then_slide(45, 0.03, 0.0, 0.4, slide, 3);
+                let reference: Vec<(GridIndex, Point2)> =
+                    seq.shape.indices().zip(seq.truth[0].iter().copied()).collect();
+                let mut t = Tracker::new(seq.shape, &reference, TrackerConfig::default()).unwrap();
+                let mut line = format!("slide {slide} gap {gap}:");
+                for (f, dets) in seq.detections.iter().enumerate() {
+                    if (25..25 + gap).contains(&f) {
+                        continue;
+                    }
+                    let pts: Vec<Point2> = dets.iter().map(|d| d.0).collect();
+                    let out = t.update(&pts);
+                    if f >= 24 && f < 36 {
+                        let wrong = out.markers.iter().filter(|m| {
+                            m.position_px.is_some_and(|p| p.distance(seq.truth[f][seq.shape.linear(m.index).unwrap()]) > 5.0)
+                        }).count();
+                        line += &format!(" {f}:t{}p{}w{}", out.count(MarkerStatus::Tracked), out.count(MarkerStatus::Predicted), wrong);
+                    }
+                }
+                println!("{line}");
+            }
+        }
+    }
+}
