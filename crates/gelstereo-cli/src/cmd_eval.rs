@@ -86,7 +86,11 @@ fn read_experiment(dir: &Path) -> anyhow::Result<Vec<FrameTruth>> {
 }
 
 /// The experiment folder names of `sensor` according to the dataset's manifest.
-fn experiments_of_sensor(manifest: &DatasetManifest, dataset: &Path, sensor: &str) -> anyhow::Result<Vec<String>> {
+fn experiments_of_sensor(
+    manifest: &DatasetManifest,
+    dataset: &Path,
+    sensor: &str,
+) -> anyhow::Result<Vec<String>> {
     let names: Vec<String> = manifest
         .experiments
         .iter()

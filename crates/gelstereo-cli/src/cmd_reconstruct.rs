@@ -18,8 +18,8 @@ use gelstereo_io::images;
 use gelstereo_io::ply::{MarkerPoint, write_marker_cloud};
 use gelstereo_markers::{Localizer, Method};
 use gelstereo_matching::eval::{Counts, Evaluation, GroundTruth};
-use gelstereo_sim::RecordingMeta;
 use gelstereo_matching::{IndexingConfig, StereoConfig, StereoPrior, StereoReconstructor};
+use gelstereo_sim::RecordingMeta;
 use opencv::prelude::MatTraitConst;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -545,7 +545,8 @@ impl ReconstructionOutputs {
         std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
         let evaluation = out.join("evaluation.json");
         if evaluation.exists() {
-            std::fs::remove_file(&evaluation).with_context(|| format!("cannot remove {}", evaluation.display()))?;
+            std::fs::remove_file(&evaluation)
+                .with_context(|| format!("cannot remove {}", evaluation.display()))?;
         }
         let ply_dir = out.join("ply");
         if ply_dir.is_dir() {
@@ -554,11 +555,13 @@ impl ReconstructionOutputs {
             }
         }
         if ply {
-            std::fs::create_dir_all(&ply_dir).with_context(|| format!("cannot create {}", ply_dir.display()))?;
+            std::fs::create_dir_all(&ply_dir)
+                .with_context(|| format!("cannot create {}", ply_dir.display()))?;
         }
         let open = |name: &str| -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
             let path = out.join(name);
-            let file = std::fs::File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
+            let file =
+                std::fs::File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
             Ok(std::io::BufWriter::new(file))
         };
         Ok(Self {

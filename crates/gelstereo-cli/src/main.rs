@@ -49,9 +49,7 @@ enum Command {
 fn main() -> ExitCode {
     // Loading ONNX Runtime for the banner costs time: only when the banner is asked for.
     // `args_os`: a path that is not UTF-8 is a valid argument (clap reads paths as `OsString`).
-    let wants_version = std::env::args_os()
-        .skip(1)
-        .any(|a| a == "--version" || a == "-V");
+    let wants_version = std::env::args_os().skip(1).any(|a| a == "--version" || a == "-V");
     let version = if wants_version {
         project::version_text()
     } else {
@@ -98,6 +96,8 @@ fn stop_at_frame_boundary_on_signals() {
         interrupt::request();
     });
     if let Err(e) = installed {
-        eprintln!("warning: cannot handle interruption signals ({e}); an interrupted run may leave partial files");
+        eprintln!(
+            "warning: cannot handle interruption signals ({e}); an interrupted run may leave partial files"
+        );
     }
 }

@@ -34,8 +34,11 @@ fn dots() -> Mat {
     img
 }
 
+/// Writes `image` as PNG to `path` (any path, UTF-8 or not).
 fn write(path: &Path, image: &Mat) {
-    assert!(imgcodecs::imwrite(s(path), image, &Vector::new()).unwrap());
+    let mut png = Vector::<u8>::new();
+    assert!(imgcodecs::imencode(".png", image, &mut png, &Vector::new()).unwrap());
+    std::fs::write(path, png.as_slice()).unwrap();
 }
 
 /// Sends `signal` (a `kill` name) to the process `child` once `ready` holds (checked every 20 ms,
@@ -93,7 +96,15 @@ fn deeply_nested_calibrations_are_refused_by_name() {
     std::fs::write(&calib, text).unwrap();
     let out = dir.path().join("out");
     fails_with(
-        &["reconstruct", "--calib", s(&calib), "--from-ground-truth", "--out", s(&out), s(&sample())],
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--out",
+            s(&out),
+            s(&sample()),
+        ],
         &["deep.yaml", "nested", "at most 32"],
     );
 }
@@ -103,17 +114,48 @@ fn deeply_nested_calibrations_are_refused_by_name() {
 fn allocation_and_thread_counts_are_bounded() {
     let calib = sample().join("calib.yaml");
     fails_with(
-        &["reconstruct", "--calib", s(&calib), "--from-ground-truth", "--gt-dust", "1e10", "--out", "x", s(&sample())],
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--gt-dust",
+            "1e10",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
         &["--gt-dust", "0 to 100000"],
     );
     fails_with(
-        &["reconstruct", "--calib", s(&calib), "--from-ground-truth", "--gt-dust", "100001", "--out", "x", s(&sample())],
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--gt-dust",
+            "100001",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
         &["--gt-dust", "0 to 100000"],
     );
-    fails_with(&["bench", "--threads", "100000", s(&sample())], &["--threads", "0 (one per core) to 256"]);
+    fails_with(
+        &["bench", "--threads", "100000", s(&sample())],
+        &["--threads", "0 (one per core) to 256"],
+    );
     fails_with(&["detect", "--threads", "257", "x.png"], &["--threads", "to 256"]);
     fails_with(
-        &["simulate", "--checkerboard", "9x6", "--poses", "100000000000", "--out", "cb"],
+        &[
+            "simulate",
+            "--checkerboard",
+            "9x6",
+            "--poses",
+            "100000000000",
+            "--out",
+            "cb",
+        ],
         &["poses", "1 to 10000"],
     );
 }
@@ -128,14 +170,32 @@ fn simulate_force_never_removes_what_it_did_not_write() {
     let sim = |out: &str| {
         gelstereo_command()
             .current_dir(d)
-            .args(["simulate", "--quiet", "--force", "--experiments", "1", "--frames-per-experiment", "2", "--out", out])
+            .args([
+                "simulate",
+                "--quiet",
+                "--force",
+                "--experiments",
+                "1",
+                "--frames-per-experiment",
+                "2",
+                "--out",
+                out,
+            ])
             .output()
             .unwrap()
     };
     let out = sim(".");
-    assert!(!out.status.success() && text(&out).contains("refusing to replace it"), "{}", text(&out));
+    assert!(
+        !out.status.success() && text(&out).contains("refusing to replace it"),
+        "{}",
+        text(&out)
+    );
     let out = sim("mine.txt");
-    assert!(!out.status.success() && text(&out).contains("a file, not a folder"), "{}", text(&out));
+    assert!(
+        !out.status.success() && text(&out).contains("a file, not a folder"),
+        "{}",
+        text(&out)
+    );
     assert_eq!(std::fs::read_to_string(d.join("mine.txt")).unwrap(), "keep");
     assert!(d.join("sub").is_dir());
     // A dataset it wrote is replaced; one with a file of the user's is not.
@@ -143,7 +203,11 @@ fn simulate_force_never_removes_what_it_did_not_write() {
     assert!(sim("ds").status.success());
     std::fs::write(d.join("ds/notes.txt"), "mine").unwrap();
     let out = sim("ds");
-    assert!(!out.status.success() && text(&out).contains("notes.txt"), "{}", text(&out));
+    assert!(
+        !out.status.success() && text(&out).contains("notes.txt"),
+        "{}",
+        text(&out)
+    );
     assert!(d.join("ds/notes.txt").is_file());
     // A temporary folder left by a killed run (a process that no longer exists) is cleaned up.
     std::fs::create_dir(d.join(".fresh.partial-999999999")).unwrap();
@@ -158,26 +222,40 @@ fn interrupted_simulate_leaves_nothing_behind() {
         let dir = tempfile::tempdir().unwrap();
         let child = gelstereo_command()
             .current_dir(dir.path())
-            .args(["simulate", "--quiet", "--experiments", "2", "--frames-per-experiment", "400", "--out", "ds"])
+            .args([
+                "simulate",
+                "--quiet",
+                "--experiments",
+                "2",
+                "--frames-per-experiment",
+                "400",
+                "--out",
+                "ds",
+            ])
             .stderr(Stdio::piped())
             .spawn()
             .unwrap();
         let partial_with_frames = || {
             std::fs::read_dir(dir.path()).unwrap().flatten().any(|e| {
-                e.file_name().to_string_lossy().contains(".partial-")
-                    && walk_count(&e.path(), "png") >= 4
+                e.file_name().to_string_lossy().contains(".partial-") && walk_count(&e.path(), "png") >= 4
             })
         };
         let (code, err) = signal_when(child, signal, partial_with_frames);
         assert_eq!(code, 130, "SIG{signal}: {err}");
         assert!(err.contains("interrupted"), "{err}");
-        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name()).collect();
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
         assert!(left.is_empty(), "SIG{signal} left {left:?}");
     }
 }
 
 fn walk_count(dir: &Path, ext: &str) -> usize {
-    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
     entries
         .flatten()
         .map(|e| {
@@ -221,7 +299,16 @@ fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
     std::fs::write(out.join("ply/999999.ply"), "stale").unwrap();
     std::fs::write(out.join("evaluation.json"), "{}").unwrap();
     let child = gelstereo_command()
-        .args(["reconstruct", "--method", "blob", "--calib", s(&rec.join("calib.yaml")), "--out", s(&out), s(&rec)])
+        .args([
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&rec.join("calib.yaml")),
+            "--out",
+            s(&out),
+            s(&rec),
+        ])
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
@@ -247,7 +334,11 @@ fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
         .flatten()
         .map(|e| e.file_name().to_string_lossy()[..6].parse().unwrap())
         .collect();
-    assert!(!frames.is_empty() && frames.len() < 480, "{} frames", frames.len());
+    assert!(
+        !frames.is_empty() && frames.len() < 480,
+        "{} frames",
+        frames.len()
+    );
     assert_eq!(frames, plys, "markers.csv and the point clouds disagree");
     assert_eq!(frames.iter().copied().max(), Some(frames.len() as u32 - 1));
 }
@@ -262,9 +353,20 @@ fn detect_keeps_the_previous_csv_when_it_fails() {
     write(&good, &dots());
     let bad = dir.path().join("bad.png");
     std::fs::write(&bad, "not an image").unwrap();
-    fails_with(&["detect", "--method", "blob", "--out", s(&csv), s(&good), s(&bad)], &["bad.png"]);
-    assert!(std::fs::read_to_string(&csv).unwrap().contains("previous,1,2,0.9"));
-    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3, "a temporary file was left");
+    fails_with(
+        &["detect", "--method", "blob", "--out", s(&csv), s(&good), s(&bad)],
+        &["bad.png"],
+    );
+    assert!(
+        std::fs::read_to_string(&csv)
+            .unwrap()
+            .contains("previous,1,2,0.9")
+    );
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        3,
+        "a temporary file was left"
+    );
     let out = gelstereo(&["detect", "--method", "blob", "--out", s(&csv), s(&good)]);
     assert!(out.status.success(), "{}", text(&out));
     assert!(!std::fs::read_to_string(&csv).unwrap().contains("previous"));
@@ -277,12 +379,18 @@ fn truncated_files_and_link_loops_are_reported_with_the_file() {
     let jpg = dir.path().join("cut.jpg");
     let full = std::fs::read(sample().join("left/000005.jpg")).unwrap();
     std::fs::write(&jpg, &full[..full.len() / 2]).unwrap();
-    fails_with(&["detect", "--method", "blob", s(&jpg)], &["cut.jpg", "truncated"]);
+    fails_with(
+        &["detect", "--method", "blob", s(&jpg)],
+        &["cut.jpg", "truncated"],
+    );
     let png = dir.path().join("cut.png");
     write(&png, &dots());
     let bytes = std::fs::read(&png).unwrap();
     std::fs::write(&png, &bytes[..bytes.len() - 20]).unwrap();
-    fails_with(&["detect", "--method", "blob", s(&png)], &["cut.png", "truncated"]);
+    fails_with(
+        &["detect", "--method", "blob", s(&png)],
+        &["cut.png", "truncated"],
+    );
 
     // A video cut short: fewer frames than it declares, with a warning that names it.
     let video = dir.path().join("cut.avi");
@@ -297,7 +405,10 @@ fn truncated_files_and_link_loops_are_reported_with_the_file() {
     std::fs::write(&video, &bytes[..bytes.len() / 2]).unwrap();
     let out = gelstereo(&["detect", "--method", "blob", s(&video)]);
     let t = text(&out);
-    assert!(t.contains("cut.avi: only") && t.contains("of the 40 frames"), "{t}");
+    assert!(
+        t.contains("cut.avi: only") && t.contains("of the 40 frames"),
+        "{t}"
+    );
 
     // A link looping onto itself inside an input folder.
     let folder = dir.path().join("frames");
@@ -315,41 +426,94 @@ fn absurd_inputs_are_refused_by_name() {
     let calib = std::fs::read_to_string(sample().join("calib.yaml")).unwrap();
     let d1 = calib.find("D1:").unwrap();
     let data = d1 + calib[d1..].find("data: [").unwrap() + "data: [".len();
-    let absurd = format!("{} 1e300,{}", &calib[..data], &calib[data..].split_once(',').unwrap().1);
+    let absurd = format!(
+        "{} 1e300,{}",
+        &calib[..data],
+        &calib[data..].split_once(',').unwrap().1
+    );
     let bad_calib = dir.path().join("absurd.yaml");
     std::fs::write(&bad_calib, absurd).unwrap();
     fails_with(
-        &["reconstruct", "--calib", s(&bad_calib), "--from-ground-truth", "--out", "x", s(&sample())],
+        &[
+            "reconstruct",
+            "--calib",
+            s(&bad_calib),
+            "--from-ground-truth",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
         &["absurd.yaml", "'D1'", "no ray"],
     );
     // A garbage meta.json, and a --grid other than the recording's.
     let rec = dir.path().join("rec");
     for side in ["left", "right"] {
         std::fs::create_dir_all(rec.join(side)).unwrap();
-        std::fs::copy(sample().join(side).join("000000.jpg"), rec.join(side).join("000000.jpg")).unwrap();
+        std::fs::copy(
+            sample().join(side).join("000000.jpg"),
+            rec.join(side).join("000000.jpg"),
+        )
+        .unwrap();
     }
     std::fs::write(rec.join("meta.json"), r#"{"grid": {"rows": "many", "cols": 23}}"#).unwrap();
     let calib = sample().join("calib.yaml");
     fails_with(
-        &["reconstruct", "--method", "blob", "--calib", s(&calib), "--out", "x", s(&rec)],
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--out",
+            "x",
+            s(&rec),
+        ],
         &["meta.json", "invalid type"],
     );
     std::fs::copy(sample().join("meta.json"), rec.join("meta.json")).unwrap();
     fails_with(
-        &["reconstruct", "--method", "blob", "--calib", s(&calib), "--grid", "10x10", "--out", "x", s(&rec)],
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--grid",
+            "10x10",
+            "--out",
+            "x",
+            s(&rec),
+        ],
         &["meta.json", "'grid'", "10 x 10", "23 x 23"],
     );
     // Without meta.json, a 10x10 lattice on a 23x23 view is refused by the indexing.
     std::fs::remove_file(rec.join("meta.json")).unwrap();
     fails_with(
-        &["reconstruct", "--method", "blob", "--calib", s(&calib), "--grid", "10x10", "--out", "x", s(&rec)],
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--grid",
+            "10x10",
+            "--out",
+            "x",
+            s(&rec),
+        ],
         &["more than the 10 x 10 lattice"],
     );
     // eval: --frame-step 0 and a garbage dataset.json.
-    fails_with(&["eval", "--dataset", s(dir.path()), "--frame-step", "0"], &["--frame-step", "0"]);
+    fails_with(
+        &["eval", "--dataset", s(dir.path()), "--frame-step", "0"],
+        &["--frame-step", "0"],
+    );
     std::fs::create_dir_all(dir.path().join("test/exp_0000")).unwrap();
     std::fs::write(dir.path().join("dataset.json"), "{\"experiments\": 3}").unwrap();
-    fails_with(&["eval", "--dataset", s(dir.path()), "--methods", "blob"], &["dataset.json"]);
+    fails_with(
+        &["eval", "--dataset", s(dir.path()), "--methods", "blob"],
+        &["dataset.json"],
+    );
 }
 
 /// Issue 18 case 10: a model whose weights are NaN is an error, not zero markers.
@@ -360,7 +524,16 @@ fn a_model_with_nan_weights_is_an_error() {
     let img = dir.path().join("dots.png");
     write(&img, &dots());
     fails_with(
-        &["detect", "--method", "marknet", "--marknet", s(&fixtures.join("marknet_nan.onnx")), "--fit", "stretch", s(&img)],
+        &[
+            "detect",
+            "--method",
+            "marknet",
+            "--marknet",
+            s(&fixtures.join("marknet_nan.onnx")),
+            "--fit",
+            "stretch",
+            s(&img),
+        ],
         &["marknet_nan.onnx", "NaN"],
     );
     // doctor runs the models once on a synthetic marker image and reports the broken one.
@@ -370,20 +543,38 @@ fn a_model_with_nan_weights_is_an_error() {
     std::fs::copy(fixtures.join("mre_tiny.onnx"), models.join("mre.onnx")).unwrap();
     let out = gelstereo(&["doctor", "--models", s(&models)]);
     let t = text(&out);
-    assert!(!out.status.success() && t.contains("Marknet-MRE run") && t.contains("NaN"), "{t}");
+    assert!(
+        !out.status.success() && t.contains("Marknet-MRE run") && t.contains("NaN"),
+        "{t}"
+    );
 }
 
 /// Issue 18 case 11: calibration numbers out of range are refused before OpenCV sees them.
 #[test]
 fn calibrate_ranges_are_checked_before_opencv() {
     let views = sample();
-    for (square, window, needle) in [("1e308", "5", "--square-mm"), ("1.5", "100000", "--subpix-window")] {
+    for (square, window, needle) in [
+        ("1e308", "5", "--square-mm"),
+        ("1.5", "100000", "--subpix-window"),
+    ] {
         let out = gelstereo(&[
-            "calibrate", "--board", "9x6", "--square-mm", square, "--subpix-window", window, "--out", "x.yaml",
-            s(&views.join("left")), s(&views.join("right")),
+            "calibrate",
+            "--board",
+            "9x6",
+            "--square-mm",
+            square,
+            "--subpix-window",
+            window,
+            "--out",
+            "x.yaml",
+            s(&views.join("left")),
+            s(&views.join("right")),
         ]);
         let t = text(&out);
-        assert!(!out.status.success() && t.contains(needle) && !t.contains("OpenCV(") && !t.contains("panicked"), "{t}");
+        assert!(
+            !out.status.success() && t.contains(needle) && !t.contains("OpenCV(") && !t.contains("panicked"),
+            "{t}"
+        );
     }
 }
 
@@ -399,5 +590,8 @@ fn huge_images_are_refused_from_their_header() {
     bytes.extend_from_slice(&[8, 2, 0, 0, 0, 0, 0, 0, 0]);
     bytes.extend_from_slice(b"\0\0\0\0IEND\xae\x42\x60\x82");
     std::fs::write(&png, bytes).unwrap();
-    fails_with(&["detect", "--method", "blob", s(&png)], &["huge.png", "20000x20000", "16384"]);
+    fails_with(
+        &["detect", "--method", "blob", s(&png)],
+        &["huge.png", "20000x20000", "16384"],
+    );
 }

@@ -45,9 +45,7 @@ pub fn parse_count_at_most(text: &str, max: usize) -> Result<usize, String> {
 /// Checks a thread or worker count (0 means one per core) against [`MAX_THREADS`].
 pub fn check_thread_count(n: usize) -> Result<(), String> {
     if n > MAX_THREADS {
-        return Err(format!(
-            "{n} threads: expected 0 (one per core) to {MAX_THREADS}"
-        ));
+        return Err(format!("{n} threads: expected 0 (one per core) to {MAX_THREADS}"));
     }
     Ok(())
 }

@@ -361,8 +361,14 @@ mod tests {
                 Just(String::new()),
                 any::<i64>().prop_map(|v| v.to_string()),
                 any::<f64>().prop_map(|v| v.to_string()),
-                prop_oneof![Just("tracked"), Just("lost"), Just("stick"), Just("no_contact"), Just("1")]
-                    .prop_map(str::to_owned),
+                prop_oneof![
+                    Just("tracked"),
+                    Just("lost"),
+                    Just("stick"),
+                    Just("no_contact"),
+                    Just("1")
+                ]
+                .prop_map(str::to_owned),
                 "[^,\n]{0,8}",
             ]
         }

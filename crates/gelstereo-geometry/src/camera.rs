@@ -239,8 +239,20 @@ impl Camera {
         if self.distortion.is_zero() {
             return Ok(());
         }
-        let (w, h) = (f64::from(self.image_size.width) - 1.0, f64::from(self.image_size.height) - 1.0);
-        for (x, y) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h), (w / 2.0, 0.0), (0.0, h / 2.0), (w, h / 2.0), (w / 2.0, h)] {
+        let (w, h) = (
+            f64::from(self.image_size.width) - 1.0,
+            f64::from(self.image_size.height) - 1.0,
+        );
+        for (x, y) in [
+            (0.0, 0.0),
+            (w, 0.0),
+            (0.0, h),
+            (w, h),
+            (w / 2.0, 0.0),
+            (0.0, h / 2.0),
+            (w, h / 2.0),
+            (w / 2.0, h),
+        ] {
             if self.undistort(Point2::new(x, y)).is_none() {
                 return Err(Error::Calibration(format!(
                     "distortion {:?}: pixel ({x}, {y}) has no ray (undistortion does not converge); \

@@ -13,7 +13,9 @@ use gelstereo_geometry::StereoRig;
 use proptest::prelude::*;
 
 fn data(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/data")
+        .join(name)
 }
 
 /// A YAML value: numbers, words, and flow sequences / maps nested up to 40 deep (past the limit).
@@ -140,6 +142,9 @@ fn deeply_nested_calibrations_are_refused_before_opencv_parses_them() {
         let path = dir.path().join(name);
         std::fs::write(&path, text).unwrap();
         let err = StereoRig::load(path.to_str().unwrap()).unwrap_err().to_string();
-        assert!(err.contains(name) && err.contains("nested") && err.contains("at most 32"), "{err}");
+        assert!(
+            err.contains(name) && err.contains("nested") && err.contains("at most 32"),
+            "{err}"
+        );
     }
 }

@@ -91,7 +91,11 @@ mod tests {
             assert_eq!(std::fs::read_to_string(&path).unwrap(), "old\n");
         }
         assert_eq!(std::fs::read_to_string(&path).unwrap(), "old\n");
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "temporary file left");
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            1,
+            "temporary file left"
+        );
         let mut f = AtomicFile::create(&path).unwrap();
         writeln!(f, "new").unwrap();
         f.commit().unwrap();

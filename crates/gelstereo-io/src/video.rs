@@ -64,7 +64,10 @@ impl VideoFrames {
             });
         };
         let side = |prop| capture.get(prop).map_or(0, |v| v.max(0.0) as u64);
-        let (width, height) = (side(videoio::CAP_PROP_FRAME_WIDTH), side(videoio::CAP_PROP_FRAME_HEIGHT));
+        let (width, height) = (
+            side(videoio::CAP_PROP_FRAME_WIDTH),
+            side(videoio::CAP_PROP_FRAME_HEIGHT),
+        );
         gelstereo_core::limits::check_image_dimensions(width, height).map_err(|what| Error::TooLarge {
             path: path.to_path_buf(),
             what: format!("video frames of {what}"),

@@ -26,8 +26,8 @@ pub fn dot_grid() -> Result<Mat> {
         context: "drawing the self-test image",
         source,
     };
-    let mut image =
-        Mat::new_rows_cols_with_default(320, 320, CV_8UC3, Scalar::new(186.0, 192.0, 196.0, 0.0)).map_err(cv)?;
+    let mut image = Mat::new_rows_cols_with_default(320, 320, CV_8UC3, Scalar::new(186.0, 192.0, 196.0, 0.0))
+        .map_err(cv)?;
     for row in 0..SELF_TEST_GRID {
         for col in 0..SELF_TEST_GRID {
             let centre = Point::new(28 + 24 * col, 28 + 24 * row);

@@ -501,7 +501,11 @@ pub fn begin_output(out: &Path, force: bool) -> Result<PendingOutput> {
             {
                 return Err(not_ours("the current folder or one of its parents"));
             }
-            if std::fs::read_dir(&resolved).map_err(io_err(&resolved))?.next().is_some() {
+            if std::fs::read_dir(&resolved)
+                .map_err(io_err(&resolved))?
+                .next()
+                .is_some()
+            {
                 if !force {
                     return Err(Error::OutputNotEmpty { path: out.to_owned() });
                 }
@@ -510,7 +514,12 @@ pub fn begin_output(out: &Path, force: bool) -> Result<PendingOutput> {
             resolved
         }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => out.to_owned(),
-        Err(e) => return Err(Error::Io { path: out.to_owned(), error: e }),
+        Err(e) => {
+            return Err(Error::Io {
+                path: out.to_owned(),
+                error: e,
+            });
+        }
     };
     let name = out
         .file_name()
@@ -569,15 +578,17 @@ fn check_written_by_us(dir: &Path) -> std::result::Result<(), String> {
         let ours = std::fs::read_to_string(&manifest)
             .ok()
             .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .and_then(|v| v.get("generator")?.as_str().map(|g| g.starts_with("gelstereo-sim ")))
+            .and_then(|v| {
+                v.get("generator")?
+                    .as_str()
+                    .map(|g| g.starts_with("gelstereo-sim "))
+            })
             .unwrap_or(false);
         if !ours {
             continue;
         }
         return match entries.iter().find(|e| !layout.contains(&e.as_str())) {
-            Some(other) => Err(format!(
-                "holds '{other}', which gelstereo-sim does not write"
-            )),
+            Some(other) => Err(format!("holds '{other}', which gelstereo-sim does not write")),
             None => Ok(()),
         };
     }
@@ -596,7 +607,10 @@ fn remove_stale_partials(parent: &Path, name: &str) {
     };
     for entry in entries.flatten() {
         let file_name = entry.file_name().to_string_lossy().into_owned();
-        let Some(pid) = file_name.strip_prefix(&prefix).and_then(|p| p.parse::<u32>().ok()) else {
+        let Some(pid) = file_name
+            .strip_prefix(&prefix)
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
             continue;
         };
         if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {

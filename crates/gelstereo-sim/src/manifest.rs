@@ -212,13 +212,19 @@ mod tests {
         let err = RecordingMeta::parse(p, r#"{"grid": {"rows": "x", "cols": 3}}"#)
             .unwrap_err()
             .to_string();
-        assert!(err.contains("rec/meta.json") && err.contains("invalid type"), "{err}");
+        assert!(
+            err.contains("rec/meta.json") && err.contains("invalid type"),
+            "{err}"
+        );
         let err = RecordingMeta::parse(p, r#"{"grid": {"rows": 1, "cols": 3}}"#)
             .unwrap_err()
             .to_string();
         assert!(err.contains("'grid'"), "{err}");
         let meta = RecordingMeta::parse(p, r#"{"grid": {"rows": 23, "cols": 23}}"#).unwrap();
-        let err = meta.check_grid(GridShape { rows: 10, cols: 10 }).unwrap_err().to_string();
+        let err = meta
+            .check_grid(GridShape { rows: 10, cols: 10 })
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("10 x 10") && err.contains("23 x 23"), "{err}");
         assert!(meta.check_grid(GridShape { rows: 23, cols: 23 }).is_ok());
     }
@@ -226,7 +232,12 @@ mod tests {
     #[test]
     fn garbage_dataset_manifests_are_named() {
         let p = Path::new("ds/dataset.json");
-        for text in ["", "[]", r#"{"generator": "x"}"#, r#"{"generator": "x", "experiments": [{"name": 3}]}"#] {
+        for text in [
+            "",
+            "[]",
+            r#"{"generator": "x"}"#,
+            r#"{"generator": "x", "experiments": [{"name": 3}]}"#,
+        ] {
             let err = DatasetManifest::parse(p, text).unwrap_err().to_string();
             assert!(err.contains("ds/dataset.json"), "{err}");
         }

@@ -774,7 +774,8 @@ impl MonoSession {
         detections: &[Point2],
         second_tier: &[Point2],
     ) -> Result<MonoFrame> {
-        self.tracker.skip_frames(frames_skipped(&mut self.last_frame, frame));
+        self.tracker
+            .skip_frames(frames_skipped(&mut self.last_frame, frame));
         let track = self.tracker.update_tiered(detections, second_tier);
         let planar = self.detector.update(&self.tracker, &track)?;
         let markers = track
@@ -1162,7 +1163,8 @@ mod tests {
                     .iter()
                     .filter(|m| {
                         let truth = seq.truth[f][seq.shape.linear(m.index).unwrap()];
-                        m.position_px.is_some_and(|p| p.distance(truth) > 0.25 * seq.pitch_px)
+                        m.position_px
+                            .is_some_and(|p| p.distance(truth) > 0.25 * seq.pitch_px)
                     })
                     .count();
                 assert_eq!(off, 0, "gap {gap}, frame {f}: {off} markers off their own");

@@ -34,11 +34,13 @@ pub(crate) fn check_calibration_file(path: &Path) -> Result<()> {
         ));
     }
     let text = String::from_utf8_lossy(&bytes);
-    let is_xml = path
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("xml"))
-        || text.trim_start().starts_with('<');
-    let deepest = if is_xml { xml_depth(&text) } else { yaml_depth(&text) };
+    let is_xml =
+        path.extension().is_some_and(|e| e.eq_ignore_ascii_case("xml")) || text.trim_start().starts_with('<');
+    let deepest = if is_xml {
+        xml_depth(&text)
+    } else {
+        yaml_depth(&text)
+    };
     match deepest {
         Some((depth, line)) if depth > MAX_CALIBRATION_DEPTH => Err(syntax(
             path,
@@ -79,7 +81,10 @@ pub(crate) fn yaml_depth(text: &str) -> Option<(usize, usize)> {
             }
             indents.push(column);
             // Block sequence entries on one line (`- - - x`) each open a level.
-            while let Some(after) = rest.strip_prefix('-').filter(|a| a.is_empty() || a.starts_with([' ', '\t'])) {
+            while let Some(after) = rest
+                .strip_prefix('-')
+                .filter(|a| a.is_empty() || a.starts_with([' ', '\t']))
+            {
                 let trimmed = after.trim_start_matches([' ', '\t']);
                 column += rest.len() - trimmed.len();
                 indents.push(column);
@@ -181,9 +186,18 @@ mod tests {
         assert!(yaml_depth(&dashes).unwrap().0 > MAX_CALIBRATION_DEPTH);
         let indented: String = (0..100).map(|k| format!("{}a{k}:\n", " ".repeat(k))).collect();
         assert!(yaml_depth(&indented).unwrap().0 > MAX_CALIBRATION_DEPTH);
-        let xml = format!("<opencv_storage>{}{}</opencv_storage>", "<a>".repeat(50_000), "</a>".repeat(50_000));
+        let xml = format!(
+            "<opencv_storage>{}{}</opencv_storage>",
+            "<a>".repeat(50_000),
+            "</a>".repeat(50_000)
+        );
         assert!(xml_depth(&xml).unwrap().0 > MAX_CALIBRATION_DEPTH);
         // Quoted and commented brackets do not count.
-        assert!(yaml_depth(&format!("name: \"{}\" # {}\n", "[".repeat(100), "{".repeat(100))).unwrap().0 <= 2);
+        assert!(
+            yaml_depth(&format!("name: \"{}\" # {}\n", "[".repeat(100), "{".repeat(100)))
+                .unwrap()
+                .0
+                <= 2
+        );
     }
 }
