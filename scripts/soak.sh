@@ -5,6 +5,7 @@
 # same as after N/10.
 #
 #   scripts/soak.sh [FRAMES=10000] [extra track options...]
+#   GELSTEREO_BIN=target/debug/gelstereo scripts/soak.sh 2000 --method blob
 #
 # Prints the RSS samples (MB) every 10 % of the run and the peak; exits 1 when the peak in the last
 # half of the run exceeds the peak in the first half by more than 10 %.
@@ -24,8 +25,12 @@ for side in left right; do
     done
 done
 cp "$sample/calib.yaml" "$rec/calib.yaml"
-cargo build --release -q -p gelstereo-cli --manifest-path "$root/Cargo.toml"
-bin="$root/target/release/gelstereo"
+# GELSTEREO_BIN: an already built binary (default: a release build made here).
+bin=${GELSTEREO_BIN:-}
+if [[ -z "$bin" ]]; then
+    cargo build --release -q -p gelstereo-cli --manifest-path "$root/Cargo.toml"
+    bin="$root/target/release/gelstereo"
+fi
 start=$(date +%s)
 "$bin" track --quiet --no-ply --overlay-every 0 --out "$work/out" "$@" "$rec" &
 pid=$!
