@@ -72,6 +72,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         detector: args.detector.parse()?,
         ..Default::default()
     };
+    options.validate()?;
     let left = gelstereo_io::images::list_images(&args.left_dir)?;
     let right = gelstereo_io::images::list_images(&args.right_dir)?;
     let mut unpaired = Vec::new();

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use gelstereo_core::{Detection, StereoPair};
+use gelstereo_io::AtomicFile;
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{
@@ -32,8 +33,8 @@ pub struct LocalizerArgs {
     /// SimpleBlobDetector parameters: `tuned` (data/blob_params.json), `default` (OpenCV's), or a JSON file.
     #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
     pub blob_params: String,
-    /// ONNX Runtime intra-op threads (0: one per core).
-    #[arg(long, default_value_t = 0)]
+    /// ONNX Runtime intra-op threads (0: one per core; at most 256).
+    #[arg(long, default_value_t = 0, value_parser = gelstereo_core::limits::parse_thread_count)]
     pub threads: usize,
     /// Never use the CUDA execution provider, even where ONNX Runtime has it.
     #[arg(long)]
@@ -156,9 +157,31 @@ fn expand(inputs: &[PathBuf]) -> anyhow::Result<Vec<Source>> {
     Ok(out)
 }
 
+/// The CSV destination: a file replaced only on success, or standard output.
+enum CsvOut {
+    File(AtomicFile),
+    Stdout(std::io::BufWriter<std::io::StdoutLock<'static>>),
+}
+
+impl Write for CsvOut {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match self {
+            Self::File(f) => f.write(buf),
+            Self::Stdout(s) => s.write(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match self {
+            Self::File(f) => f.flush(),
+            Self::Stdout(s) => s.flush(),
+        }
+    }
+}
+
 /// Where the CSV rows and overlays go.
 struct Sink {
-    csv: Box<dyn Write>,
+    csv: CsvOut,
     overlay: Option<PathBuf>,
     used_names: HashSet<String>,
     mre_band_top: Option<f32>,
@@ -207,16 +230,10 @@ fn stem(p: &Path) -> String {
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = expand(&args.inputs)?;
     let mut localizer = args.localizer.localizer(args.method)?;
-    let csv: Box<dyn Write> = match &args.out {
-        Some(path) => {
-            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-            }
-            let f =
-                std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
-            Box::new(std::io::BufWriter::new(f))
-        }
-        None => Box::new(std::io::BufWriter::new(std::io::stdout().lock())),
+    // An existing --out file is replaced only when every input was read (AtomicFile).
+    let csv = match &args.out {
+        Some(path) => CsvOut::File(AtomicFile::create(path)?),
+        None => CsvOut::Stdout(std::io::BufWriter::new(std::io::stdout().lock())),
     };
     let mut sink = Sink {
         csv,
@@ -283,12 +300,19 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         sink.emit(&name, &format!("{}_{index:06}", stem(path)), &frame, &found)?;
                     }
                 }
+                if let Some(warning) = frames.shortfall_warning() {
+                    eprintln!("warning: {warning}");
+                }
             }
         }
     }
     sink.csv.flush().context("cannot write the CSV output")?;
     if sink.images == 0 {
         bail!("no images were read from the inputs (empty video?)");
+    }
+    let (images, markers) = (sink.images, sink.markers);
+    if let CsvOut::File(file) = sink.csv {
+        file.commit()?;
     }
     let dest = args
         .out
@@ -297,9 +321,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     eprintln!(
         "{}: {} markers in {} images ({:.1} per image), written to {dest}",
         localizer.name(),
-        sink.markers,
-        sink.images,
-        sink.markers as f64 / sink.images as f64
+        markers,
+        images,
+        markers as f64 / images as f64
     );
     Ok(())
 }

@@ -64,6 +64,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             fix: "train/retrain.sh retrains it, or restore data/models/ from git",
         },
         Check {
+            name: "Marknet-MRE run",
+            need: Need::Required,
+            outcome: self_test(&models),
+            fix: "the model files are broken (NaN or untrained weights): restore data/models/ from git or retrain",
+        },
+        Check {
             name: "Calibration files",
             need: Need::Optional,
             outcome: calibrations(&home.join("calib")),
@@ -116,6 +122,25 @@ fn model_summary(path: &Path) -> Result<String, String> {
     }
     let props: Vec<String> = metadata.iter().map(|(k, v)| format!("{k}={v}")).collect();
     Ok(format!("{} [{}]", path.display(), props.join(", ")))
+}
+
+/// Runs Marknet-MRE from `models` once on a synthetic marker image.
+fn self_test(models: &Path) -> Result<String, String> {
+    let config = gelstereo_markers::LocalizerConfig {
+        marknet_path: models.join("marknet.onnx"),
+        mre_path: models.join("mre.onnx"),
+        blob: gelstereo_markers::BlobParams::opencv_defaults().map_err(|e| e.to_string())?,
+        session: gelstereo_markers::SessionOptions::default(),
+        fit: gelstereo_markers::InputFit::Auto,
+        remember_pitch: false,
+    };
+    let mut localizer = gelstereo_markers::create_localizer(gelstereo_markers::Method::MarknetMre, &config)
+        .map_err(|e| format!("{e:#}"))?;
+    let run = gelstereo_markers::self_test::run(localizer.as_mut()).map_err(|e| format!("{e:#}"))?;
+    Ok(format!(
+        "{} of {} markers found on a synthetic marker image",
+        run.found, run.drawn
+    ))
 }
 
 /// Loads every calibration in `dir` (OpenCV YAML/XML files and a `left/right.cameramodel` mrcal pair)

@@ -12,6 +12,7 @@ use gelstereo_io::images;
 use gelstereo_markers::metrics::{self, GroundTruth, SPLITS, SplitTable};
 use gelstereo_markers::{BlobLocalizer, Localizer, Method};
 use gelstereo_matching::eval::GroundTruth as RecordingTruth;
+use gelstereo_sim::DatasetManifest;
 use serde_json::json;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -38,7 +39,8 @@ pub struct Args {
     #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
     hard_blob_params: String,
     /// Evaluate every N-th frame of each experiment (frames 0, N, 2N, ...; the trainer's --frame-step).
-    #[arg(long, default_value_t = 1, value_name = "N")]
+    #[arg(long, default_value_t = 1, value_name = "N",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     frame_step: usize,
     /// Evaluate at most this many frames per experiment (evenly spaced; 0 = all).
     #[arg(long, default_value_t = 0)]
@@ -83,28 +85,25 @@ fn read_experiment(dir: &Path) -> anyhow::Result<Vec<FrameTruth>> {
         .collect())
 }
 
-/// The experiment folder names of `sensor` according to DIR/dataset.json.
-fn experiments_of_sensor(dataset: &Path, sensor: &str) -> anyhow::Result<Vec<String>> {
-    let path = dataset.join("dataset.json");
-    let text = std::fs::read_to_string(&path)
-        .with_context(|| format!("cannot read {} (needed by --sensor)", path.display()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
-    let Some(list) = json["experiments"].as_array() else {
-        bail!("{}: 'experiments': expected a list", path.display());
-    };
-    let names: Vec<String> = list
+/// The experiment folder names of `sensor` according to the dataset's manifest.
+fn experiments_of_sensor(
+    manifest: &DatasetManifest,
+    dataset: &Path,
+    sensor: &str,
+) -> anyhow::Result<Vec<String>> {
+    let names: Vec<String> = manifest
+        .experiments
         .iter()
-        .filter(|e| e["sensor"].as_str() == Some(sensor))
-        .filter_map(|e| e["name"].as_str().map(str::to_owned))
+        .filter(|e| e.sensor == sensor)
+        .map(|e| e.name.clone())
         .collect();
     if names.is_empty() {
-        let mut known: Vec<&str> = list.iter().filter_map(|e| e["sensor"].as_str()).collect();
+        let mut known: Vec<&str> = manifest.experiments.iter().map(|e| e.sensor.as_str()).collect();
         known.sort_unstable();
         known.dedup();
         bail!(
             "{}: no experiment of sensor '{sensor}' (sensors: {})",
-            path.display(),
+            dataset.join("dataset.json").display(),
             known.join(", ")
         );
     }
@@ -142,8 +141,18 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         })
         .collect();
     experiments.sort();
-    if let Some(sensor) = &args.sensor {
-        let wanted = experiments_of_sensor(&args.dataset, sensor)?;
+    // The manifest is checked whenever there is one; --sensor needs it.
+    let manifest = match DatasetManifest::read(&args.dataset) {
+        Ok(m) => Some(m),
+        Err(gelstereo_sim::Error::Io { error, .. })
+            if error.kind() == std::io::ErrorKind::NotFound && args.sensor.is_none() =>
+        {
+            None
+        }
+        Err(e) => return Err(e).context("reading the dataset's manifest (needed by --sensor)"),
+    };
+    if let (Some(sensor), Some(manifest)) = (&args.sensor, &manifest) {
+        let wanted = experiments_of_sensor(manifest, &args.dataset, sensor)?;
         experiments.retain(|e| {
             e.file_name()
                 .is_some_and(|n| wanted.iter().any(|w| w == &n.to_string_lossy()))

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use gelstereo_core::limits;
 use gelstereo_core::table::MARKER_COLUMNS;
 use gelstereo_core::{Detection, GridShape, ImageSize, Point2, StereoPair};
 use gelstereo_geometry::{StereoRig, TriangulationConfig};
@@ -18,6 +19,7 @@ use gelstereo_io::ply::{MarkerPoint, write_marker_cloud};
 use gelstereo_markers::{Localizer, Method};
 use gelstereo_matching::eval::{Counts, Evaluation, GroundTruth};
 use gelstereo_matching::{IndexingConfig, StereoConfig, StereoPrior, StereoReconstructor};
+use gelstereo_sim::RecordingMeta;
 use opencv::prelude::MatTraitConst;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -87,8 +89,9 @@ struct Perturbation {
     /// Fraction of ground-truth markers dropped at random in each view.
     #[arg(long, default_value_t = 0.0)]
     gt_missing: f64,
-    /// Spurious detections added per view, uniformly over the markers' bounding box.
-    #[arg(long, default_value_t = 0)]
+    /// Spurious detections added per view, uniformly over the markers' bounding box (at most 100000).
+    #[arg(long, default_value_t = 0,
+          value_parser = |s: &str| limits::parse_count_at_most(s, limits::MAX_GT_DUST))]
     gt_dust: usize,
 }
 
@@ -173,40 +176,6 @@ fn parse_grid(text: &str) -> anyhow::Result<GridShape> {
     }
 }
 
-/// The grid shape and image size a simulated recording's meta.json states, if any.
-fn read_meta(dir: &Path) -> anyhow::Result<(Option<GridShape>, Option<ImageSize>)> {
-    let path = dir.join("meta.json");
-    if !path.exists() {
-        return Ok((None, None));
-    }
-    let text = std::fs::read_to_string(&path).with_context(|| format!("cannot read {}", path.display()))?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))?;
-    let u = |a: &str, b: Option<&str>| {
-        let x = v.get(a)?;
-        let x = match b {
-            Some(b) => x.get(b)?,
-            None => x,
-        };
-        x.as_u64()
-    };
-    let grid = match (u("grid", Some("rows")), u("grid", Some("cols"))) {
-        (Some(r), Some(c)) => Some(GridShape {
-            rows: u16::try_from(r).with_context(|| format!("{}: grid.rows {r} too large", path.display()))?,
-            cols: u16::try_from(c).with_context(|| format!("{}: grid.cols {c} too large", path.display()))?,
-        }),
-        _ => None,
-    };
-    let size = match (u("image_width", None), u("image_height", None)) {
-        (Some(w), Some(h)) => Some(ImageSize {
-            width: u32::try_from(w)?,
-            height: u32::try_from(h)?,
-        }),
-        _ => None,
-    };
-    Ok((grid, size))
-}
-
 /// Left and right image lists paired by file name.
 fn paired_folders(left: &Path, right: &Path) -> anyhow::Result<Vec<StereoPair<PathBuf>>> {
     let l = images::list_images(left)?;
@@ -282,6 +251,9 @@ fn localize_video(
             source: FrameSource::Given(found),
         });
     }
+    if let Some(warning) = video.shortfall_warning() {
+        eprintln!("warning: {warning}");
+    }
     Ok(frames)
 }
 
@@ -290,15 +262,21 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let rig = StereoRig::load(&args.calib)
         .with_context(|| format!("cannot load the calibration '{}'", args.calib))?;
     let recording = (args.inputs.len() == 1).then(|| args.inputs[0].clone());
-    let (meta_grid, meta_size) = match &recording {
-        Some(dir) => read_meta(dir)?,
-        None => (None, None),
+    let meta = match recording.as_deref().filter(|p| p.is_dir()) {
+        Some(dir) => RecordingMeta::read(dir)?,
+        None => None,
     };
-    let shape = match &args.grid {
-        Some(text) => parse_grid(text)?,
-        None => meta_grid.unwrap_or(GridShape::REFERENCE),
+    let shape = match (&args.grid, &meta) {
+        (Some(text), meta) => {
+            let shape = parse_grid(text)?;
+            if let Some(meta) = meta {
+                meta.check_grid(shape)?;
+            }
+            shape
+        }
+        (None, meta) => meta.as_ref().and_then(|m| m.grid).unwrap_or(GridShape::REFERENCE),
     };
-    if let Some(size) = meta_size {
+    if let Some(size) = meta.as_ref().and_then(|m| m.image_size) {
         rig.check_image_sizes(size, size)
             .context("the recording's meta.json image size does not match the calibration")?;
     }
@@ -439,24 +417,29 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         )
     })?;
 
-    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
-    let ply_dir = args.out.join("ply");
-    if !args.no_ply {
-        std::fs::create_dir_all(&ply_dir).with_context(|| format!("cannot create {}", ply_dir.display()))?;
-    }
+    let outputs = ReconstructionOutputs::create(&args.out, !args.no_ply)?;
+    let ply_dir = outputs.ply_dir.clone();
     let mut csv = MARKER_COLUMNS.join(",");
     csv.push('\n');
+    let mut rows_out = outputs.markers;
+    let mut rejections_out = outputs.rejections;
+    let mut processed = 0usize;
     let mut prior: Option<StereoPrior> = None;
     let (mut localize_ms, mut match_ms, mut reconstructed, mut paired_rejected) =
         (video_localize_ms, 0.0, 0usize, 0usize);
     // Markers seen in both views without a 3-D position, and why (epipolar check, triangulation).
     let mut rejections = String::from("frame,row,col,reason\n");
+    write_frame(&mut rows_out, &mut csv)?;
+    write_frame(&mut rejections_out, &mut rejections)?;
     let mut evaluation = Evaluation::default();
     let r_px = StereoPair::new(
         0.25 * reconstructor.lattice().left().pitch_px(),
         0.25 * reconstructor.lattice().right().pitch_px(),
     );
     for input in &frames {
+        if gelstereo_core::interrupt::requested() {
+            break;
+        }
         let (dets, loc_ms) = detect(input)?;
         localize_ms += loc_ms;
         let t = Instant::now();
@@ -506,11 +489,21 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         if let Some(truth) = truth.as_ref().filter(|_| args.evaluate) {
             evaluation.add_frame(truth, input.frame, &rec, &r_px);
         }
+        // The frame's rows after its PLY, whole and flushed: a run stopped at any point leaves
+        // tables that end at a frame boundary, each row of them with its point cloud.
+        write_frame(&mut rows_out, &mut csv)?;
+        write_frame(&mut rejections_out, &mut rejections)?;
+        processed += 1;
     }
     let csv_path = args.out.join("markers.csv");
-    std::fs::write(&csv_path, csv).with_context(|| format!("cannot write {}", csv_path.display()))?;
-    let rej_path = args.out.join("rejected_pairs.csv");
-    std::fs::write(&rej_path, rejections).with_context(|| format!("cannot write {}", rej_path.display()))?;
+    if processed < frames.len() {
+        bail!(
+            "interrupted after {processed} of {} frames; {} and {} hold those frames",
+            frames.len(),
+            csv_path.display(),
+            args.out.join("rejected_pairs.csv").display()
+        );
+    }
     let n = frames.len() as f64;
     eprintln!(
         "{} frames, {}x{} lattice: {:.1} markers reconstructed per frame ({} pairs rejected in all); \
@@ -536,6 +529,62 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         std::fs::write(&path, text + "\n").with_context(|| format!("cannot write {}", path.display()))?;
         eprintln!("{}", summary_text(&report));
     }
+    Ok(())
+}
+
+/// The files `reconstruct` writes into its output folder, opened afresh: the tables are started
+/// and the point clouds of an earlier run removed, so that no file of an earlier run looks current.
+struct ReconstructionOutputs {
+    markers: std::io::BufWriter<std::fs::File>,
+    rejections: std::io::BufWriter<std::fs::File>,
+    ply_dir: PathBuf,
+}
+
+impl ReconstructionOutputs {
+    fn create(out: &Path, ply: bool) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+        let evaluation = out.join("evaluation.json");
+        if evaluation.exists() {
+            std::fs::remove_file(&evaluation)
+                .with_context(|| format!("cannot remove {}", evaluation.display()))?;
+        }
+        let ply_dir = out.join("ply");
+        if ply_dir.is_dir() {
+            for old in images::list_files_named(&ply_dir, is_frame_ply)? {
+                std::fs::remove_file(&old).with_context(|| format!("cannot remove {}", old.display()))?;
+            }
+        }
+        if ply {
+            std::fs::create_dir_all(&ply_dir)
+                .with_context(|| format!("cannot create {}", ply_dir.display()))?;
+        }
+        let open = |name: &str| -> anyhow::Result<std::io::BufWriter<std::fs::File>> {
+            let path = out.join(name);
+            let file =
+                std::fs::File::create(&path).with_context(|| format!("cannot create {}", path.display()))?;
+            Ok(std::io::BufWriter::new(file))
+        };
+        Ok(Self {
+            markers: open("markers.csv")?,
+            rejections: open("rejected_pairs.csv")?,
+            ply_dir,
+        })
+    }
+}
+
+/// Whether `name` is a point cloud `reconstruct` writes: six digits and `.ply`.
+fn is_frame_ply(name: &str) -> bool {
+    name.strip_suffix(".ply")
+        .is_some_and(|stem| stem.len() == 6 && stem.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// Appends `text` to `out` in one write, flushes, and empties `text`.
+fn write_frame(out: &mut std::io::BufWriter<std::fs::File>, text: &mut String) -> anyhow::Result<()> {
+    use std::io::Write as _;
+    out.write_all(text.as_bytes())
+        .and_then(|()| out.flush())
+        .context("cannot write the output tables")?;
+    text.clear();
     Ok(())
 }
 

@@ -4,6 +4,7 @@
 use std::process::ExitCode;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
+use gelstereo_core::interrupt;
 
 mod cmd_bench;
 mod cmd_calibrate;
@@ -47,7 +48,8 @@ enum Command {
 
 fn main() -> ExitCode {
     // Loading ONNX Runtime for the banner costs time: only when the banner is asked for.
-    let wants_version = std::env::args().skip(1).any(|a| a == "--version" || a == "-V");
+    // `args_os`: a path that is not UTF-8 is a valid argument (clap reads paths as `OsString`).
+    let wants_version = std::env::args_os().skip(1).any(|a| a == "--version" || a == "-V");
     let version = if wants_version {
         project::version_text()
     } else {
@@ -58,6 +60,9 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };
+    if matches!(cli.command, Command::Simulate(_) | Command::Reconstruct(_)) {
+        stop_at_frame_boundary_on_signals();
+    }
     let result = match cli.command {
         Command::Doctor(args) => cmd_doctor::run(&args),
         Command::Detect(args) => cmd_detect::run(&args),
@@ -72,7 +77,27 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            ExitCode::FAILURE
+            if interrupt::requested() {
+                ExitCode::from(interrupt::EXIT_INTERRUPTED)
+            } else {
+                ExitCode::FAILURE
+            }
         }
+    }
+}
+
+/// SIGINT, SIGTERM and SIGHUP ask the running command to stop at its next frame boundary (its outputs
+/// stay whole; see `gelstereo_core::interrupt`); a second signal ends the process at once.
+fn stop_at_frame_boundary_on_signals() {
+    let installed = ctrlc::set_handler(|| {
+        if interrupt::requested() {
+            std::process::exit(i32::from(interrupt::EXIT_INTERRUPTED));
+        }
+        interrupt::request();
+    });
+    if let Err(e) = installed {
+        eprintln!(
+            "warning: cannot handle interruption signals ({e}); an interrupted run may leave partial files"
+        );
     }
 }

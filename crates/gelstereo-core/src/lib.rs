@@ -14,6 +14,8 @@
 //! - Geometry in f64, network tensors in f32.
 
 mod grid;
+pub mod interrupt;
+pub mod limits;
 mod marker;
 pub mod spatial;
 pub mod table;

@@ -350,4 +350,89 @@ mod tests {
         let table = CsvTable::from_text("mem", &text).unwrap();
         assert_eq!(FrameSummary::from_table(&table, 0).unwrap(), s);
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        /// A cell: a number, a word the tables use, empty, or any short text.
+        fn cell() -> impl Strategy<Value = String> {
+            prop_oneof![
+                Just(String::new()),
+                any::<i64>().prop_map(|v| v.to_string()),
+                any::<f64>().prop_map(|v| v.to_string()),
+                prop_oneof![
+                    Just("tracked"),
+                    Just("lost"),
+                    Just("stick"),
+                    Just("no_contact"),
+                    Just("1")
+                ]
+                .prop_map(str::to_owned),
+                "[^,\n]{0,8}",
+            ]
+        }
+
+        fn finite() -> impl Strategy<Value = f64> {
+            -1e6f64..1e6
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(256))]
+
+            /// Any text with a table's header: rows parse or give an error naming the file; never
+            /// a panic.
+            #[test]
+            fn any_table_text_parses_or_names_the_file(
+                rows in proptest::collection::vec(proptest::collection::vec(cell(), 0..16), 0..4),
+                markers in any::<bool>(),
+            ) {
+                let header = if markers { MARKER_COLUMNS.join(",") } else { FRAME_COLUMNS.join(",") };
+                let body: Vec<String> = rows.iter().map(|r| r.join(",")).collect();
+                let text = format!("{header}\n{}", body.join("\n"));
+                match CsvTable::from_text("p.csv", &text) {
+                    Ok(table) => {
+                        for r in 0..table.len() {
+                            let parsed = if markers {
+                                MarkerRecord::from_table(&table, r).map(drop)
+                            } else {
+                                FrameSummary::from_table(&table, r).map(drop)
+                            };
+                            if let Err(e) = parsed {
+                                prop_assert!(e.to_string().contains("p.csv:"), "{}", e);
+                            }
+                        }
+                    }
+                    Err(e) => prop_assert!(e.to_string().contains("p.csv:"), "{}", e),
+                }
+            }
+
+            /// Whatever frames.csv row is written reads back the same (values at their written
+            /// precision).
+            #[test]
+            fn frame_rows_round_trip_for_any_values(
+                frame in any::<u32>(),
+                area in finite(),
+                depth in finite(),
+                centroid in proptest::option::of((finite(), finite())),
+            ) {
+                let s = FrameSummary {
+                    frame,
+                    contact: centroid.is_some(),
+                    contact_area_mm2: area,
+                    max_depth_mm: depth,
+                    centroid_mm: centroid.map(|(x, y)| [x, y]),
+                    slip: SlipState::Stick,
+                };
+                let mut text = FRAME_COLUMNS.join(",");
+                text.push('\n');
+                s.write_csv(&mut text);
+                let table = CsvTable::from_text("mem", &text).unwrap();
+                let back = FrameSummary::from_table(&table, 0).unwrap();
+                prop_assert_eq!(back.frame, frame);
+                prop_assert!((back.contact_area_mm2 - area).abs() <= 1e-6 * area.abs().max(1.0));
+                prop_assert_eq!(back.centroid_mm.is_some(), centroid.is_some());
+            }
+        }
+    }
 }

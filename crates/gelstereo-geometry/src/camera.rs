@@ -229,7 +229,39 @@ impl Camera {
                 });
             }
         }
-        self.distortion.validate()
+        self.distortion.validate()?;
+        self.check_corners_undistort()
+    }
+
+    /// Checks that the image's corners and edge midpoints have rays: absurd distortion coefficients
+    /// (k1 = 1e300) are finite but leave no pixel with a ray, and every marker would be lost.
+    fn check_corners_undistort(&self) -> Result<()> {
+        if self.distortion.is_zero() {
+            return Ok(());
+        }
+        let (w, h) = (
+            f64::from(self.image_size.width) - 1.0,
+            f64::from(self.image_size.height) - 1.0,
+        );
+        for (x, y) in [
+            (0.0, 0.0),
+            (w, 0.0),
+            (0.0, h),
+            (w, h),
+            (w / 2.0, 0.0),
+            (0.0, h / 2.0),
+            (w, h / 2.0),
+            (w / 2.0, h),
+        ] {
+            if self.undistort(Point2::new(x, y)).is_none() {
+                return Err(Error::Calibration(format!(
+                    "distortion {:?}: pixel ({x}, {y}) has no ray (undistortion does not converge); \
+                     expected coefficients under which every image pixel has one",
+                    self.distortion.coeffs
+                )));
+            }
+        }
+        Ok(())
     }
 
     /// The 3x3 camera matrix `K`.

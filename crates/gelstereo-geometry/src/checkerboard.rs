@@ -58,11 +58,11 @@ impl Board {
                 "at least 2x2 inner corners",
             ));
         }
-        if !(square_mm.is_finite() && square_mm > 0.0) {
+        if !(square_mm.is_finite() && square_mm > 0.0 && square_mm <= MAX_SQUARE_MM) {
             return Err(Error::InvalidParameter {
-                name: "square_mm".to_owned(),
+                name: "square_mm (--square-mm)".to_owned(),
                 value: square_mm,
-                expected: "a square size > 0 mm",
+                expected: "a square size above 0 and at most 1000 mm",
             });
         }
         Ok(board)
@@ -135,6 +135,32 @@ pub struct CalibrationOptions {
     pub detector: CornerDetector,
 }
 
+/// Largest checkerboard square accepted, mm (a 1 m square is already far beyond a tactile sensor's
+/// view; larger numbers only overflow OpenCV's float corner coordinates).
+pub const MAX_SQUARE_MM: f64 = 1000.0;
+
+/// Largest `cornerSubPix` half-window accepted, px.
+pub const MAX_SUBPIX_HALF_WINDOW_PX: i32 = 50;
+
+impl CalibrationOptions {
+    /// Checks each field's range, so that OpenCV never sees a value it would assert on.
+    pub fn validate(&self) -> Result<()> {
+        if !(1..=MAX_SUBPIX_HALF_WINDOW_PX).contains(&self.subpix_half_window_px) {
+            return Err(Error::InvalidParameter {
+                name: "subpix_half_window_px (--subpix-window)".to_owned(),
+                value: f64::from(self.subpix_half_window_px),
+                expected: "1 to 50 px (below half a square in the image)",
+            });
+        }
+        if ![4, 5, 8, 12].contains(&self.distortion_coeffs) {
+            return Err(Error::DistortionCount {
+                count: self.distortion_coeffs,
+            });
+        }
+        Ok(())
+    }
+}
+
 impl Default for CalibrationOptions {
     fn default() -> Self {
         Self {
@@ -151,6 +177,7 @@ impl Default for CalibrationOptions {
 /// corner the one nearest the image's top-left (so left and right views agree for a board seen
 /// roughly upright).
 pub fn find_corners(image: &Mat, board: &Board, options: &CalibrationOptions) -> Result<Option<Vec<Point2>>> {
+    options.validate()?;
     let gray = if image.channels() == 1 {
         image.clone()
     } else {
@@ -287,6 +314,7 @@ pub fn calibrate_stereo(
     views: &[StereoCorners],
     options: &CalibrationOptions,
 ) -> Result<CalibrationReport> {
+    options.validate()?;
     let n = board.corner_count();
     for v in views {
         if v.left.len() != n || v.right.len() != n {

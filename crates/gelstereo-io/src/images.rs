@@ -2,6 +2,7 @@
 //! (a folder with `left/` and `right/` sub-folders of images with matching file names, taken in sorted
 //! order, as DESIGN.md defines them).
 
+use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::StereoPair;
@@ -22,7 +23,9 @@ pub fn has_image_extension(path: &Path) -> bool {
 
 /// Reads `path` as an 8-bit, 3-channel BGR image (grey and 16-bit files are converted by OpenCV).
 ///
-/// A missing file gives [`Error::Io`]; a file OpenCV cannot decode gives [`Error::Decode`].
+/// A missing file gives [`Error::Io`]; a file OpenCV cannot decode gives [`Error::Decode`]; a PNG or
+/// JPEG cut short gives [`Error::Truncated`]; an image larger than the limits of
+/// [`gelstereo_core::limits`] gives [`Error::TooLarge`] before any pixel is decoded.
 pub fn read_image(path: &Path) -> Result<Mat> {
     let meta = std::fs::metadata(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
@@ -34,6 +37,7 @@ pub fn read_image(path: &Path) -> Result<Mat> {
             what: "expected an image file, found a folder".into(),
         });
     }
+    check_image_file(path)?;
     let mat = imgcodecs::imread(path, imgcodecs::IMREAD_COLOR).map_err(|source| Error::OpenCv {
         path: path.to_path_buf(),
         source,
@@ -44,6 +48,60 @@ pub fn read_image(path: &Path) -> Result<Mat> {
         });
     }
     Ok(mat)
+}
+
+/// How many bytes at the end of a file are searched for its format's end marker.
+const END_MARKER_WINDOW_BYTES: u64 = 4096;
+
+/// Checks what can be checked before decoding: the dimensions in the header against
+/// [`gelstereo_core::limits::check_image_dimensions`], and that a PNG ends with its `IEND` chunk and a
+/// JPEG with its EOI marker (libjpeg decodes a truncated JPEG partly, with a warning that names no
+/// file). Formats this does not recognise are left to the decoder.
+pub fn check_image_file(path: &Path) -> Result<()> {
+    if let Ok(size) = imagesize::size(path) {
+        gelstereo_core::limits::check_image_dimensions(size.width as u64, size.height as u64).map_err(
+            |what| Error::TooLarge {
+                path: path.to_path_buf(),
+                what,
+            },
+        )?;
+    }
+    let io = |source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let mut head = [0u8; 8];
+    let head_len = read_up_to(&mut file, &mut head).map_err(io)?;
+    let end_marker: &[u8] = match &head[..head_len] {
+        [0x89, b'P', b'N', b'G', ..] => b"IEND",
+        [0xFF, 0xD8, 0xFF, ..] => &[0xFF, 0xD9],
+        _ => return Ok(()),
+    };
+    let len = file.metadata().map_err(io)?.len();
+    let start = len.saturating_sub(END_MARKER_WINDOW_BYTES);
+    file.seek(SeekFrom::Start(start)).map_err(io)?;
+    let mut tail = Vec::new();
+    file.read_to_end(&mut tail).map_err(io)?;
+    if tail.windows(end_marker.len()).any(|w| w == end_marker) {
+        Ok(())
+    } else {
+        Err(Error::Truncated {
+            path: path.to_path_buf(),
+        })
+    }
+}
+
+/// Reads as much of `buf` as the file holds.
+fn read_up_to(file: &mut std::fs::File, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut filled = 0;
+    while filled < buf.len() {
+        match file.read(&mut buf[filled..])? {
+            0 => break,
+            n => filled += n,
+        }
+    }
+    Ok(filled)
 }
 
 /// Writes `image` to `path`; the format follows the extension (PNG for overlays).
@@ -68,7 +126,8 @@ pub fn write_image(path: &Path, image: &Mat) -> Result<()> {
     }
 }
 
-/// The image files directly inside `dir`, sorted by file name.
+/// The image files directly inside `dir`, sorted by file name. An entry with an image extension that
+/// cannot be followed (a symbolic link in a loop or to a missing file) is an error naming it.
 pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(dir).map_err(|source| Error::Io {
         path: dir.to_path_buf(),
@@ -81,8 +140,32 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
             source,
         })?;
         let path = entry.path();
-        if path.is_file() && has_image_extension(&path) {
-            files.push(path);
+        if !has_image_extension(&path) {
+            continue;
+        }
+        match std::fs::metadata(&path) {
+            Ok(meta) if meta.is_file() => files.push(path),
+            Ok(_) => {}
+            // A link that cannot be followed (a loop, or a missing target) is reported, not skipped.
+            Err(source) => return Err(Error::Io { path, source }),
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// The regular files directly inside `dir` whose names `keep` accepts, sorted.
+pub fn list_files_named(dir: &Path, keep: impl Fn(&str) -> bool) -> Result<Vec<PathBuf>> {
+    let io = |source| Error::Io {
+        path: dir.to_path_buf(),
+        source,
+    };
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(io)? {
+        let entry = entry.map_err(io)?;
+        let name = entry.file_name();
+        if name.to_str().is_some_and(&keep) && entry.file_type().map_err(io)?.is_file() {
+            files.push(entry.path());
         }
     }
     files.sort();

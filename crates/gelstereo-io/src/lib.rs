@@ -3,12 +3,15 @@
 //! Images are read as 8-bit BGR [`opencv::core::Mat`]s (OpenCV's channel order); pixel (0, 0) is the
 //! centre of the top-left pixel, as everywhere in gelstereo.
 
+pub mod atomic;
 pub mod images;
 pub mod plot;
 pub mod ply;
 pub mod video;
 
 use std::path::PathBuf;
+
+pub use atomic::AtomicFile;
 
 /// Errors of frame sources and exports. Each names the file it concerns.
 #[derive(Debug, thiserror::Error)]
@@ -28,6 +31,20 @@ pub enum Error {
     Decode {
         /// The file.
         path: PathBuf,
+    },
+    /// A PNG or JPEG that ends before its end marker (cut short by a copy or a crash).
+    #[error("{path}: truncated image (the file ends before its PNG IEND chunk / JPEG end-of-image marker)")]
+    Truncated {
+        /// The file.
+        path: PathBuf,
+    },
+    /// An image or video frame larger than gelstereo reads (`gelstereo_core::limits`).
+    #[error("{path}: {what}")]
+    TooLarge {
+        /// The file.
+        path: PathBuf,
+        /// Its size and the limits.
+        what: String,
     },
     /// A video file could not be opened, or one of its frames could not be decoded.
     #[error("{path}: {what}")]

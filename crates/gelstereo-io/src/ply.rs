@@ -88,9 +88,10 @@ fn write_file(path: &Path, ply: &mut Ply<DefaultElement>) -> Result<()> {
     };
     let mut buf = Vec::new();
     Writer::new().write_ply(&mut buf, ply).map_err(io)?;
-    let mut f = std::fs::File::create(path).map_err(io)?;
+    // Through a temporary file: a run killed mid-write leaves no cut PLY behind.
+    let mut f = crate::AtomicFile::create(path)?;
     f.write_all(&buf).map_err(io)?;
-    Ok(())
+    f.commit()
 }
 
 fn new_ply(comment: &str) -> Ply<DefaultElement> {

@@ -63,10 +63,33 @@ impl VideoFrames {
                 what: "cannot open as a video (corrupt or unsupported codec)".into(),
             });
         };
+        let side = |prop| capture.get(prop).map_or(0, |v| v.max(0.0) as u64);
+        let (width, height) = (
+            side(videoio::CAP_PROP_FRAME_WIDTH),
+            side(videoio::CAP_PROP_FRAME_HEIGHT),
+        );
+        gelstereo_core::limits::check_image_dimensions(width, height).map_err(|what| Error::TooLarge {
+            path: path.to_path_buf(),
+            what: format!("video frames of {what}"),
+        })?;
         Ok(Self {
             path: path.to_path_buf(),
             capture,
             next_index: 0,
+        })
+    }
+
+    /// After the last frame: a warning naming the file when fewer frames were decoded than the
+    /// container declares (a truncated or damaged file), `None` otherwise.
+    pub fn shortfall_warning(&self) -> Option<String> {
+        let declared = self.declared_frame_count();
+        (self.next_index < declared).then(|| {
+            format!(
+                "{}: only {} of the {declared} frames the file declares could be decoded (truncated or \
+                 damaged file)",
+                self.path.display(),
+                self.next_index
+            )
         })
     }
 

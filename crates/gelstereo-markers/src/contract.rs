@@ -624,4 +624,63 @@ mod tests {
         let err = MreContract::from_model(p, &meta, &spec("features", &[-1, 12]), &spec("score", &[-1, 1]));
         assert!(err.unwrap_err().to_string().contains("'features'"));
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        /// A metadata value: a number-like word, a list of them, or any short text.
+        fn value() -> impl Strategy<Value = String> {
+            prop_oneof![
+                any::<i64>().prop_map(|v| v.to_string()),
+                any::<f64>().prop_map(|v| v.to_string()),
+                proptest::collection::vec(any::<f64>(), 0..4).prop_map(|v| format!("{v:?}")),
+                ".{0,12}",
+            ]
+        }
+
+        fn dims() -> impl Strategy<Value = Vec<i64>> {
+            proptest::collection::vec(prop_oneof![Just(-1i64), 0i64..600, any::<i64>()], 0..6)
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(256))]
+
+            /// Metadata with random values under the real keys (and random extra keys), and random
+            /// tensor shapes: a contract or an error naming the model file, never a panic.
+            #[test]
+            fn contract_parsing_never_panics(
+                changes in proptest::collection::vec(
+                    (prop_oneof![
+                        Just("contract".to_owned()), Just("input_height".to_owned()),
+                        Just("input_width".to_owned()), Just("stride".to_owned()),
+                        Just("grid".to_owned()), Just("candidates".to_owned()),
+                        Just("conf_keep".to_owned()), Just("conf_low".to_owned()),
+                        Just("input_size".to_owned()), Just("input_multiple".to_owned()),
+                        Just("pitch_range_px".to_owned()), Just("features".to_owned()),
+                        Just("neighbours".to_owned()), Just("missing_distance".to_owned()),
+                        "[a-z_]{1,10}",
+                    ], proptest::option::of(value())),
+                    0..6,
+                ),
+                input in dims(),
+                output in dims(),
+            ) {
+                let mut meta = marknet_meta();
+                for (key, v) in changes {
+                    match v {
+                        Some(v) => meta.insert(key, v),
+                        None => meta.remove(&key),
+                    };
+                }
+                let p = Path::new("m.onnx");
+                if let Err(e) = MarknetContract::from_model(p, &meta, &spec("image", &input), &spec("out", &output)) {
+                    prop_assert!(e.to_string().contains("m.onnx"), "{}", e);
+                }
+                if let Err(e) = MreContract::from_model(p, &meta, &spec("features", &input), &spec("score", &output)) {
+                    prop_assert!(e.to_string().contains("m.onnx"), "{}", e);
+                }
+            }
+        }
+    }
 }

@@ -26,6 +26,7 @@ pub mod overlay;
 pub mod postprocess;
 mod resize;
 pub mod runtime;
+pub mod self_test;
 pub mod yolo;
 
 use std::path::PathBuf;
@@ -105,6 +106,9 @@ pub enum Error {
         /// What the file has.
         found: String,
     },
+    /// A localizer failed its self-test ([`self_test::run`]).
+    #[error("self-test: {0}")]
+    SelfTest(String),
     /// Inputs to the metrics are inconsistent (e.g. a non-positive radius).
     #[error("metrics: {0}")]
     Metrics(String),

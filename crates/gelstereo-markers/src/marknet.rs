@@ -220,6 +220,18 @@ pub(crate) fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String
     }
 }
 
+/// An error message when a model's output holds NaN: broken weights (or a broken export) would
+/// otherwise give no markers and no word.
+pub(crate) fn check_no_nan(data: &[f32], output: &str) -> std::result::Result<(), String> {
+    match data.iter().position(|v| v.is_nan()) {
+        Some(i) => Err(format!(
+            "output '{output}' holds NaN (value {i} of {}): the model's weights or export are broken",
+            data.len()
+        )),
+        None => Ok(()),
+    }
+}
+
 /// A loaded model: its session, `metadata_props`, and input / output signatures.
 pub(crate) struct Opened {
     pub(crate) session: Session,
@@ -235,8 +247,10 @@ pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Open
         path: path.to_path_buf(),
         source,
     })?;
-    let rt = runtime::init()?;
     let load = onnx_err(path, "loading the model");
+    gelstereo_core::limits::check_thread_count(options.intra_threads)
+        .map_err(|e| load(format!("intra-op threads: {e}")))?;
+    let rt = runtime::init()?;
     let mut builder = Session::builder(&rt.environment)
         .map_err(|e| load(e.to_string()))?
         .with_optimization_level(GraphOptimizationLevel::Level3)
@@ -441,6 +455,7 @@ impl Mre {
                 features.len()
             )));
         }
+        check_no_nan(data, MRE_OUTPUT).map_err(run)?;
         Ok(data.to_vec())
     }
 }
@@ -651,6 +666,7 @@ impl Marknet {
                 c.candidates
             )));
         }
+        check_no_nan(raw, MARKNET_OUTPUT).map_err(run)?;
         let raw = raw.to_vec();
         self.times.preprocess_ms += (t1 - t0).as_secs_f64() * 1e3;
         self.times.network_ms += t1.elapsed().as_secs_f64() * 1e3;

@@ -502,6 +502,7 @@ impl YoloLocalizer {
                 self.contract.rows()
             )));
         }
+        crate::marknet::check_no_nan(raw, YOLO_OUTPUT).map_err(run)?;
         let c = &self.contract;
         Ok(sizes
             .iter()

@@ -608,6 +608,21 @@ impl ReferenceLattice {
                 found_cols,
             });
         }
+        // A whole row or column of markers beyond the window: the lattice asked for is smaller than
+        // the one in view (a wrong --grid), which would silently track a part of it.
+        let beyond = |counts: &[usize], start: usize, len: usize, half_line: usize| {
+            counts
+                .iter()
+                .enumerate()
+                .any(|(k, &c)| !(start..start + len).contains(&k) && c >= half_line.max(2))
+        };
+        if beyond(&row_counts, r0, h, w / 2) || beyond(&col_counts, c0, w, h / 2) {
+            return Err(Error::GridSmallerThanView {
+                expected: shape,
+                found_rows,
+                found_cols,
+            });
+        }
         let node_det: Vec<u32> = (0..h * w)
             .map(|n| scratch.node_det[(r0 + n / w) * scratch.cols + c0 + n % w])
             .collect();

@@ -86,6 +86,20 @@ pub enum Error {
         /// Columns with at least one marker.
         found_cols: usize,
     },
+    /// The reference view shows whole rows or columns of markers beyond the lattice asked for.
+    #[error(
+        "reference frame: found {found_rows} rows x {found_cols} columns of markers, more than the \
+         {} x {} lattice asked for (--grid or the sensor's grid): give the grid the sensor has",
+        expected.rows, expected.cols
+    )]
+    GridSmallerThanView {
+        /// The lattice shape asked for.
+        expected: GridShape,
+        /// Rows with at least one marker.
+        found_rows: usize,
+        /// Columns with at least one marker.
+        found_cols: usize,
+    },
     /// A partly visible lattice shows too few rows or columns to be indexed.
     #[error(
         "reference frame: only {found_rows} rows x {found_cols} columns of markers visible: expected at \

@@ -20,7 +20,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::dataset::{begin_output, finish_output};
+use crate::dataset::begin_output;
 use crate::error::{Error, Result, cv_err, io_err};
 use crate::sensor::Sensor;
 
@@ -199,6 +199,9 @@ pub fn random_poses(sensor: &Sensor, board: &Board, count: usize, seed: u64) -> 
     Ok(poses)
 }
 
+/// Most poses of a checkerboard calibration set (a calibration needs 15 to 50).
+pub const MAX_POSES: usize = 10_000;
+
 /// Writes a checkerboard calibration set (see the module docs) for `sensor` into `out`: `count`
 /// random poses, seed `seed`. Refuses a non-empty `out` unless `force`; nothing half-written is
 /// left as if complete.
@@ -210,15 +213,16 @@ pub fn write_checkerboard_set(
     seed: u64,
     force: bool,
 ) -> Result<()> {
-    if count == 0 {
+    if !(1..=MAX_POSES).contains(&count) {
         return Err(Error::Parameter {
             name: "poses",
-            value: "0".into(),
-            expected: "at least 1".into(),
+            value: count.to_string(),
+            expected: format!("1 to {MAX_POSES}"),
         });
     }
     let poses = random_poses(sensor, board, count, seed)?;
-    let tmp = begin_output(out, force)?;
+    let pending = begin_output(out, force)?;
+    let tmp = &pending.tmp;
     let result = (|| -> Result<()> {
         for v in ["left", "right"] {
             std::fs::create_dir_all(tmp.join(v)).map_err(io_err(tmp.join(v)))?;
@@ -229,6 +233,9 @@ pub fn write_checkerboard_set(
             .par_iter()
             .enumerate()
             .try_for_each(|(i, pose)| -> Result<()> {
+                if gelstereo_core::interrupt::requested() {
+                    return Err(Error::Interrupted);
+                }
                 let imgs = renderer.render(
                     board,
                     pose,
@@ -276,13 +283,8 @@ pub fn write_checkerboard_set(
         std::fs::write(tmp.join("poses.json"), text + "\n").map_err(io_err(tmp.join("poses.json")))?;
         crate::calibration::write_calibration(&sensor.rig, &tmp)
     })();
-    match result {
-        Ok(()) => finish_output(&tmp, out),
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            Err(e)
-        }
-    }
+    result?;
+    pending.finish()
 }
 
 fn encode_grey_png(img: &Mat) -> Result<Vec<u8>> {

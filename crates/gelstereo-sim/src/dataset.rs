@@ -405,6 +405,9 @@ fn write_recording_with(
     let rows: Vec<(String, FrameSummary)> = (0..frames)
         .into_par_iter()
         .map(|f| -> Result<(String, FrameSummary)> {
+            if gelstereo_core::interrupt::requested() {
+                return Err(Error::Interrupted);
+            }
             let fr = sim.frame(f)?;
             for (v, name) in ["left", "right"].iter().enumerate() {
                 let png = encode_png(&fr.images[v])?;
@@ -462,51 +465,158 @@ pub struct DatasetSummary {
     pub frames: u64,
 }
 
-/// Prepares an output folder: refuses a non-empty one unless `force`, returns the temporary sibling
-/// to write into. Call [`finish_output`] with both when everything is written.
-pub fn begin_output(out: &Path, force: bool) -> Result<PathBuf> {
-    if out.exists() {
-        let non_empty = match std::fs::read_dir(out) {
-            Ok(mut it) => it.next().is_some(),
-            Err(e) if out.is_dir() => {
-                return Err(Error::Io {
-                    path: out.to_owned(),
-                    error: e,
-                });
+/// The top-level entries of a dataset and of a checkerboard set, each with its manifest first: the
+/// only folders `--force` replaces are those holding a manifest that gelstereo-sim wrote and nothing
+/// but these entries.
+const OUTPUT_LAYOUTS: [&[&str]; 2] = [
+    &["dataset.json", "train", "val", "test"],
+    &[
+        "poses.json",
+        "left",
+        "right",
+        "corners.csv",
+        "calib.yaml",
+        "left.cameramodel",
+        "right.cameramodel",
+    ],
+];
+
+/// Prepares an output folder: refuses a non-empty one unless `force`, and with `force` refuses
+/// anything gelstereo-sim did not write (a regular file, a link, the current folder, a folder
+/// without a manifest or with files of its own); removes temporary folders left by earlier runs
+/// that were killed. Returns the temporary sibling to write into.
+pub fn begin_output(out: &Path, force: bool) -> Result<PendingOutput> {
+    let not_ours = |why: &str| Error::OutputNotOurs {
+        path: out.to_owned(),
+        why: why.to_owned(),
+    };
+    // `.` or `dir/..` name a folder through its parent: resolve them to a real name.
+    let out = match std::fs::symlink_metadata(out) {
+        Ok(meta) if meta.file_type().is_symlink() => return Err(not_ours("a symbolic link")),
+        Ok(meta) if !meta.is_dir() => return Err(not_ours("a file, not a folder")),
+        Ok(_) => {
+            let resolved = std::fs::canonicalize(out).map_err(io_err(out))?;
+            if let Ok(cwd) = std::env::current_dir()
+                && cwd.starts_with(&resolved)
+            {
+                return Err(not_ours("the current folder or one of its parents"));
             }
-            Err(_) => true,
-        };
-        if non_empty && !force {
-            return Err(Error::OutputNotEmpty { path: out.to_owned() });
+            if std::fs::read_dir(&resolved)
+                .map_err(io_err(&resolved))?
+                .next()
+                .is_some()
+            {
+                if !force {
+                    return Err(Error::OutputNotEmpty { path: out.to_owned() });
+                }
+                check_written_by_us(&resolved).map_err(|why| not_ours(&why))?;
+            }
+            resolved
         }
-    }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => out.to_owned(),
+        Err(e) => {
+            return Err(Error::Io {
+                path: out.to_owned(),
+                error: e,
+            });
+        }
+    };
     let name = out
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
+        .ok_or_else(|| not_ours("not a folder with a name"))?;
     let parent = match out.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
         _ => PathBuf::from("."),
     };
     std::fs::create_dir_all(&parent).map_err(io_err(&parent))?;
+    remove_stale_partials(&parent, &name);
     let tmp = parent.join(format!(".{name}.partial-{}", std::process::id()));
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(io_err(&tmp))?;
     }
     std::fs::create_dir(&tmp).map_err(io_err(&tmp))?;
-    Ok(tmp)
+    Ok(PendingOutput { tmp, out })
 }
 
-/// Moves the finished temporary folder onto `out` (replacing it when it exists).
-pub fn finish_output(tmp: &Path, out: &Path) -> Result<()> {
-    if out.exists() {
-        if out.is_dir() {
-            std::fs::remove_dir_all(out).map_err(io_err(out))?;
-        } else {
-            std::fs::remove_file(out).map_err(io_err(out))?;
+/// An output folder being written: everything goes into [`PendingOutput::tmp`], which
+/// [`PendingOutput::finish`] moves onto the output; dropped unfinished (an error, an interruption),
+/// the temporary folder is removed.
+#[derive(Debug)]
+pub struct PendingOutput {
+    /// The temporary sibling folder to write into.
+    pub tmp: PathBuf,
+    out: PathBuf,
+}
+
+impl PendingOutput {
+    /// Moves the finished temporary folder onto the output (replacing it when it exists:
+    /// [`begin_output`] checked that it is a folder gelstereo-sim wrote).
+    pub fn finish(self) -> Result<()> {
+        if self.out.is_dir() {
+            std::fs::remove_dir_all(&self.out).map_err(io_err(&self.out))?;
+        }
+        std::fs::rename(&self.tmp, &self.out).map_err(io_err(&self.out))
+    }
+}
+
+impl Drop for PendingOutput {
+    fn drop(&mut self) {
+        // After `finish` the temporary folder is gone and this does nothing.
+        let _ = std::fs::remove_dir_all(&self.tmp);
+    }
+}
+
+/// Whether `dir` holds a gelstereo-sim manifest and only the entries of its layout; `Err(why)` if not.
+fn check_written_by_us(dir: &Path) -> std::result::Result<(), String> {
+    let entries: Vec<String> = std::fs::read_dir(dir)
+        .map_err(|e| e.to_string())?
+        .filter_map(|e| e.ok().map(|e| e.file_name().to_string_lossy().into_owned()))
+        .collect();
+    for layout in OUTPUT_LAYOUTS {
+        let manifest = dir.join(layout[0]);
+        let ours = std::fs::read_to_string(&manifest)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| {
+                v.get("generator")?
+                    .as_str()
+                    .map(|g| g.starts_with("gelstereo-sim "))
+            })
+            .unwrap_or(false);
+        if !ours {
+            continue;
+        }
+        return match entries.iter().find(|e| !layout.contains(&e.as_str())) {
+            Some(other) => Err(format!("holds '{other}', which gelstereo-sim does not write")),
+            None => Ok(()),
+        };
+    }
+    Err("holds no dataset.json or poses.json written by gelstereo-sim".to_owned())
+}
+
+/// Removes `.NAME.partial-PID` folders in `parent` whose process no longer runs (left by a run that
+/// was killed). Only on Linux, where a process's liveness is visible in /proc.
+fn remove_stale_partials(parent: &Path, name: &str) {
+    if !cfg!(target_os = "linux") {
+        return;
+    }
+    let prefix = format!(".{name}.partial-");
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let file_name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = file_name
+            .strip_prefix(&prefix)
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(entry.path());
         }
     }
-    std::fs::rename(tmp, out).map_err(io_err(out))
 }
 
 /// Writes a whole dataset to `out` (see the module docs). Refuses a non-empty `out` unless
@@ -519,18 +629,10 @@ pub fn write_dataset(
     progress: &(dyn Fn() + Sync),
 ) -> Result<DatasetSummary> {
     let experiments = plan(config)?;
-    let tmp = begin_output(out, force)?;
-    let result = write_into(&tmp, config, &experiments, progress);
-    match result {
-        Ok(summary) => {
-            finish_output(&tmp, out)?;
-            Ok(summary)
-        }
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            Err(e)
-        }
-    }
+    let pending = begin_output(out, force)?;
+    let summary = write_into(&pending.tmp, config, &experiments, progress)?;
+    pending.finish()?;
+    Ok(summary)
 }
 
 fn write_into(

@@ -44,6 +44,17 @@ pub enum Error {
         /// The folder.
         path: PathBuf,
     },
+    /// `--force` was asked for, but the output is not a folder gelstereo wrote: it is left alone.
+    #[error("{}: {why}; refusing to replace it (choose another output or remove it yourself)", path.display())]
+    OutputNotOurs {
+        /// The file or folder.
+        path: PathBuf,
+        /// Why it is not ours.
+        why: String,
+    },
+    /// The run was stopped (SIGINT / SIGTERM) before it finished; nothing was written.
+    #[error("interrupted: the partial output was removed")]
+    Interrupted,
     /// Reading or writing a file failed at the OS level.
     #[error("{}: {error}", path.display())]
     Io {

@@ -22,6 +22,7 @@ pub mod checkerboard;
 pub mod dataset;
 pub mod error;
 pub mod indenter;
+pub mod manifest;
 pub mod motion;
 pub mod physics;
 pub mod render;
@@ -32,6 +33,7 @@ pub use appearance::Appearance;
 pub use dataset::{DatasetConfig, Experiment, Randomization, Simulator, Split, write_dataset};
 pub use error::{Error, Result};
 pub use indenter::{Indenter, SHAPES};
+pub use manifest::{DatasetManifest, RecordingMeta};
 pub use motion::{MotionKind, Pose, Script};
 pub use sensor::{Sensor, SensorSpec};
 

@@ -194,6 +194,8 @@ pub struct Tracker {
     reference_px: Vec<Point2>,
     current_px: Vec<Point2>,
     motion_px: Vec<[f64; 2]>,
+    /// Frames the next update spans: 1, more after [`Tracker::skip_frames`].
+    steps: u32,
     status: Vec<MarkerStatus>,
     pitch_px: Vec<f64>,
     /// Per slot: lattice neighbours within the support radius (slot, weight 1/d^2), self excluded.
@@ -254,6 +256,7 @@ impl Tracker {
             current_px: reference_px.clone(),
             reference_px,
             motion_px: vec![[0.0; 2]; n],
+            steps: 1,
             status: vec![MarkerStatus::Tracked; n],
             pitch_px,
             neighbours,
@@ -349,6 +352,15 @@ impl Tracker {
         ok
     }
 
+    /// Tells the tracker that `frames` frames of the stream will not be seen (unreadable or
+    /// skipped): the next update predicts the markers that many frames further along their motion,
+    /// and the motion it measures is per frame again. Without this, a marker moving fast moves
+    /// twice its step between two updates, falls outside its gate, and its prediction, left
+    /// behind, never meets its detection again.
+    pub fn skip_frames(&mut self, frames: u32) {
+        self.steps = self.steps.saturating_add(frames);
+    }
+
     /// Tracks one frame given its detections (px, any order; NaN or infinite ones are skipped and
     /// counted). An empty list is a valid frame: every marker becomes lost (or predicted, never
     /// silently dropped) and is re-acquired later.
@@ -373,7 +385,8 @@ impl Tracker {
         let tree = kd_tree(&points);
 
         let n = self.ids.len();
-        let vf = self.config.velocity_factor;
+        let steps = f64::from(std::mem::replace(&mut self.steps, 1));
+        let vf = self.config.velocity_factor * steps;
         let pred: Vec<Point2> = (0..n)
             .map(|i| {
                 Point2::new(
@@ -463,7 +476,10 @@ impl Tracker {
             {
                 status = MarkerStatus::Lost;
             }
-            self.motion_px[i] = [pos.x - self.current_px[i].x, pos.y - self.current_px[i].y];
+            self.motion_px[i] = [
+                (pos.x - self.current_px[i].x) / steps,
+                (pos.y - self.current_px[i].y) / steps,
+            ];
             self.current_px[i] = pos;
             self.status[i] = status;
             markers.push(TrackedMarker {

@@ -10,6 +10,7 @@
 pub mod mrcal;
 pub mod opencv;
 pub(crate) mod pyliteral;
+pub(crate) mod structure;
 
 use std::path::{Path, PathBuf};
 

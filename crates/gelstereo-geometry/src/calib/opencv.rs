@@ -133,6 +133,7 @@ impl Sources {
                 path: path.to_path_buf(),
                 source,
             })?;
+            super::structure::check_calibration_file(path)?;
             let name = path.to_string_lossy().into_owned();
             let fs =
                 FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
@@ -394,6 +395,14 @@ impl StereoRig {
         let (Some(left), Some(right)) = (it.next(), it.next()) else {
             return Err(Error::Calibration("internal: two cameras expected".to_owned()));
         };
+        for (camera, key) in [(&left, "D1"), (&right, "D2")] {
+            camera.validate().map_err(|e| Error::BadValue {
+                path: first.clone(),
+                key: key.to_owned(),
+                expected: "distortion that leaves every image pixel a ray".to_owned(),
+                found: e.to_string(),
+            })?;
+        }
         let rig = StereoRig {
             left,
             right,

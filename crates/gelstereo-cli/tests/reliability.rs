@@ -1,0 +1,597 @@
+//! End-to-end reliability tests of the `gelstereo` binary (docs/reliability.md): bad paths, hostile
+//! files and numbers, interruption by real signals, and outputs that are never lost or left half
+//! written. Inputs are the bundled sample recording (data/sample/press-slide) and files made here.
+
+// A test helper may panic: that is how a test reports failure.
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+#[path = "../../../tests/common/mod.rs"]
+mod common;
+use common::{fails_with, gelstereo, gelstereo_command, repo, text};
+
+use opencv::core::{CV_8UC3, Mat, Point, Scalar, Vector};
+use opencv::{imgcodecs, imgproc, videoio};
+
+fn sample() -> PathBuf {
+    repo().join("data/sample/press-slide")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// A 160x120 image with a few dark discs.
+fn dots() -> Mat {
+    let mut img = Mat::new_rows_cols_with_default(120, 160, CV_8UC3, Scalar::all(210.0)).unwrap();
+    for k in 0..6 {
+        let c = Point::new(20 + 24 * k, 60);
+        imgproc::circle(&mut img, c, 4, Scalar::all(40.0), -1, imgproc::LINE_8, 0).unwrap();
+    }
+    img
+}
+
+/// Writes `image` as PNG to `path` (any path, UTF-8 or not).
+fn write(path: &Path, image: &Mat) {
+    let mut png = Vector::<u8>::new();
+    assert!(imgcodecs::imencode(".png", image, &mut png, &Vector::new()).unwrap());
+    std::fs::write(path, png.as_slice()).unwrap();
+}
+
+/// Sends `signal` (a `kill` name) to the process `child` once `ready` holds (checked every 20 ms,
+/// at most 60 s), then waits for it to end; returns its stderr.
+fn signal_when(mut child: std::process::Child, signal: &str, ready: impl Fn() -> bool) -> (i32, String) {
+    let start = Instant::now();
+    while !ready() {
+        assert!(start.elapsed() < Duration::from_secs(60), "never became ready");
+        assert!(child.try_wait().unwrap().is_none(), "ended before the signal");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let sent = Command::new("kill")
+        .args([&format!("-{signal}"), &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success());
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Issue 18 case 1: a path that is not UTF-8 is an ordinary argument.
+#[test]
+fn non_utf8_paths_give_errors_not_panics() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let name = std::ffi::OsStr::from_bytes(b"x\xff.png");
+    let out = gelstereo_command()
+        .args(["detect", "--method", "blob"])
+        .arg(dir.path().join(name))
+        .output()
+        .unwrap();
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("x\u{FFFD}.png") && !t.contains("panicked"), "{t}");
+    // A real image under such a name is read.
+    write(&dir.path().join(name), &dots());
+    let out = gelstereo_command()
+        .args(["detect", "--method", "blob"])
+        .arg(dir.path().join(name))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+}
+
+/// Issue 18 case 2: a calibration nested 50,000 deep is refused before OpenCV parses it.
+#[test]
+fn deeply_nested_calibrations_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let calib = dir.path().join("deep.yaml");
+    let depth = 50_000;
+    let text = format!("%YAML:1.0\n---\nK1: {}{}\n", "[".repeat(depth), "]".repeat(depth));
+    std::fs::write(&calib, text).unwrap();
+    let out = dir.path().join("out");
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--out",
+            s(&out),
+            s(&sample()),
+        ],
+        &["deep.yaml", "nested", "at most 32"],
+    );
+}
+
+/// Issue 18 cases 3 and 4: numbers that size allocations or thread pools are bounded up front.
+#[test]
+fn allocation_and_thread_counts_are_bounded() {
+    let calib = sample().join("calib.yaml");
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--gt-dust",
+            "1e10",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
+        &["--gt-dust", "0 to 100000"],
+    );
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--from-ground-truth",
+            "--gt-dust",
+            "100001",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
+        &["--gt-dust", "0 to 100000"],
+    );
+    fails_with(
+        &["bench", "--threads", "100000", s(&sample())],
+        &["--threads", "0 (one per core) to 256"],
+    );
+    fails_with(&["detect", "--threads", "257", "x.png"], &["--threads", "to 256"]);
+    fails_with(
+        &[
+            "simulate",
+            "--checkerboard",
+            "9x6",
+            "--poses",
+            "100000000000",
+            "--out",
+            "cb",
+        ],
+        &["poses", "1 to 10000"],
+    );
+}
+
+/// Issue 18 case 5: `simulate --force` replaces only a folder gelstereo-sim wrote.
+#[test]
+fn simulate_force_never_removes_what_it_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("mine.txt"), "keep").unwrap();
+    std::fs::create_dir(d.join("sub")).unwrap();
+    let sim = |out: &str| {
+        gelstereo_command()
+            .current_dir(d)
+            .args([
+                "simulate",
+                "--quiet",
+                "--force",
+                "--experiments",
+                "1",
+                "--frames-per-experiment",
+                "2",
+                "--out",
+                out,
+            ])
+            .output()
+            .unwrap()
+    };
+    let out = sim(".");
+    assert!(
+        !out.status.success() && text(&out).contains("refusing to replace it"),
+        "{}",
+        text(&out)
+    );
+    let out = sim("mine.txt");
+    assert!(
+        !out.status.success() && text(&out).contains("a file, not a folder"),
+        "{}",
+        text(&out)
+    );
+    assert_eq!(std::fs::read_to_string(d.join("mine.txt")).unwrap(), "keep");
+    assert!(d.join("sub").is_dir());
+    // A dataset it wrote is replaced; one with a file of the user's is not.
+    assert!(sim("ds").status.success());
+    assert!(sim("ds").status.success());
+    std::fs::write(d.join("ds/notes.txt"), "mine").unwrap();
+    let out = sim("ds");
+    assert!(
+        !out.status.success() && text(&out).contains("notes.txt"),
+        "{}",
+        text(&out)
+    );
+    assert!(d.join("ds/notes.txt").is_file());
+    // A temporary folder left by a killed run (a process that no longer exists) is cleaned up.
+    std::fs::create_dir(d.join(".fresh.partial-999999999")).unwrap();
+    assert!(sim("fresh").status.success());
+    assert!(!d.join(".fresh.partial-999999999").exists());
+}
+
+/// Issue 18 case 6 (simulate): SIGINT and SIGTERM leave no temporary folder and no output.
+#[test]
+fn interrupted_simulate_leaves_nothing_behind() {
+    for signal in ["INT", "TERM"] {
+        let dir = tempfile::tempdir().unwrap();
+        let child = gelstereo_command()
+            .current_dir(dir.path())
+            .args([
+                "simulate",
+                "--quiet",
+                "--experiments",
+                "2",
+                "--frames-per-experiment",
+                "400",
+                "--out",
+                "ds",
+            ])
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let partial_with_frames = || {
+            std::fs::read_dir(dir.path()).unwrap().flatten().any(|e| {
+                e.file_name().to_string_lossy().contains(".partial-") && walk_count(&e.path(), "png") >= 4
+            })
+        };
+        let (code, err) = signal_when(child, signal, partial_with_frames);
+        assert_eq!(code, 130, "SIG{signal}: {err}");
+        assert!(err.contains("interrupted"), "{err}");
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert!(left.is_empty(), "SIG{signal} left {left:?}");
+    }
+}
+
+fn walk_count(dir: &Path, ext: &str) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .map(|e| {
+            let p = e.path();
+            if p.is_dir() {
+                walk_count(&p, ext)
+            } else {
+                usize::from(p.extension().is_some_and(|x| x == ext))
+            }
+        })
+        .sum()
+}
+
+/// A copy of the sample recording `repeats` times over (frames renumbered), with its calibration.
+fn long_recording(dir: &Path, repeats: usize) -> PathBuf {
+    let rec = dir.join("long");
+    let names: Vec<String> = (0..24).map(|k| format!("{k:06}.jpg")).collect();
+    for side in ["left", "right"] {
+        std::fs::create_dir_all(rec.join(side)).unwrap();
+        for r in 0..repeats {
+            for (k, name) in names.iter().enumerate() {
+                let to = rec.join(side).join(format!("{:06}.jpg", r * 24 + k));
+                std::fs::hard_link(sample().join(side).join(name), &to)
+                    .or_else(|_| std::fs::copy(sample().join(side).join(name), &to).map(drop))
+                    .unwrap();
+            }
+        }
+    }
+    std::fs::copy(sample().join("calib.yaml"), rec.join("calib.yaml")).unwrap();
+    rec
+}
+
+/// Issue 18 case 6 (reconstruct): after SIGTERM, markers.csv ends at a frame boundary with whole
+/// rows and a point cloud for each of its frames; an earlier run's files do not survive a new run.
+#[test]
+fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = long_recording(dir.path(), 20);
+    let out = dir.path().join("out");
+    std::fs::create_dir_all(out.join("ply")).unwrap();
+    std::fs::write(out.join("ply/999999.ply"), "stale").unwrap();
+    std::fs::write(out.join("evaluation.json"), "{}").unwrap();
+    let child = gelstereo_command()
+        .args([
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&rec.join("calib.yaml")),
+            "--out",
+            s(&out),
+            s(&rec),
+        ])
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let ply = out.join("ply");
+    let (code, err) = signal_when(child, "TERM", || {
+        std::fs::read_dir(&ply).map_or(0, |d| d.count()) >= 5
+    });
+    assert_eq!(code, 130, "{err}");
+    assert!(err.contains("interrupted after"), "{err}");
+    assert!(!out.join("ply/999999.ply").exists() && !out.join("evaluation.json").exists());
+    let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
+    assert!(csv.ends_with('\n'));
+    let frames: std::collections::BTreeSet<u32> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            assert_eq!(l.split(',').count(), 14, "cut row {l}");
+            l.split(',').next().unwrap().parse().unwrap()
+        })
+        .collect();
+    let plys: std::collections::BTreeSet<u32> = std::fs::read_dir(&ply)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy()[..6].parse().unwrap())
+        .collect();
+    assert!(
+        !frames.is_empty() && frames.len() < 480,
+        "{} frames",
+        frames.len()
+    );
+    assert_eq!(frames, plys, "markers.csv and the point clouds disagree");
+    assert_eq!(frames.iter().copied().max(), Some(frames.len() as u32 - 1));
+}
+
+/// Issue 18 case 7: `detect --out` keeps the old file when the run fails, and leaves no temporary.
+#[test]
+fn detect_keeps_the_previous_csv_when_it_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("old.csv");
+    std::fs::write(&csv, "image,x,y,confidence\nprevious,1,2,0.9\n").unwrap();
+    let good = dir.path().join("good.png");
+    write(&good, &dots());
+    let bad = dir.path().join("bad.png");
+    std::fs::write(&bad, "not an image").unwrap();
+    fails_with(
+        &["detect", "--method", "blob", "--out", s(&csv), s(&good), s(&bad)],
+        &["bad.png"],
+    );
+    assert!(
+        std::fs::read_to_string(&csv)
+            .unwrap()
+            .contains("previous,1,2,0.9")
+    );
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        3,
+        "a temporary file was left"
+    );
+    let out = gelstereo(&["detect", "--method", "blob", "--out", s(&csv), s(&good)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(!std::fs::read_to_string(&csv).unwrap().contains("previous"));
+}
+
+/// Issue 18 case 8: truncated images and videos, and links that cannot be followed, are named.
+#[test]
+fn truncated_files_and_link_loops_are_reported_with_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let jpg = dir.path().join("cut.jpg");
+    let full = std::fs::read(sample().join("left/000005.jpg")).unwrap();
+    std::fs::write(&jpg, &full[..full.len() / 2]).unwrap();
+    fails_with(
+        &["detect", "--method", "blob", s(&jpg)],
+        &["cut.jpg", "truncated"],
+    );
+    let png = dir.path().join("cut.png");
+    write(&png, &dots());
+    let bytes = std::fs::read(&png).unwrap();
+    std::fs::write(&png, &bytes[..bytes.len() - 20]).unwrap();
+    fails_with(
+        &["detect", "--method", "blob", s(&png)],
+        &["cut.png", "truncated"],
+    );
+
+    // A video cut short: fewer frames than it declares, with a warning that names it.
+    let video = dir.path().join("cut.avi");
+    let fourcc = videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
+    let mut writer =
+        videoio::VideoWriter::new(s(&video), fourcc, 10.0, opencv::core::Size::new(160, 120), true).unwrap();
+    for _ in 0..40 {
+        videoio::VideoWriterTrait::write(&mut writer, &dots()).unwrap();
+    }
+    drop(writer);
+    let bytes = std::fs::read(&video).unwrap();
+    std::fs::write(&video, &bytes[..bytes.len() / 2]).unwrap();
+    let out = gelstereo(&["detect", "--method", "blob", s(&video)]);
+    let t = text(&out);
+    assert!(
+        t.contains("cut.avi: only") && t.contains("of the 40 frames"),
+        "{t}"
+    );
+
+    // A link looping onto itself inside an input folder.
+    let folder = dir.path().join("frames");
+    std::fs::create_dir(&folder).unwrap();
+    write(&folder.join("a.png"), &dots());
+    std::os::unix::fs::symlink(folder.join("loop.png"), folder.join("loop.png")).unwrap();
+    fails_with(&["detect", "--method", "blob", s(&folder)], &["loop.png"]);
+}
+
+/// Issue 18 case 10: silent wrong results become errors naming the file and the field.
+#[test]
+fn absurd_inputs_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    // D1 = 1e300.
+    let calib = std::fs::read_to_string(sample().join("calib.yaml")).unwrap();
+    let d1 = calib.find("D1:").unwrap();
+    let data = d1 + calib[d1..].find("data: [").unwrap() + "data: [".len();
+    let absurd = format!(
+        "{} 1e300,{}",
+        &calib[..data],
+        &calib[data..].split_once(',').unwrap().1
+    );
+    let bad_calib = dir.path().join("absurd.yaml");
+    std::fs::write(&bad_calib, absurd).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--calib",
+            s(&bad_calib),
+            "--from-ground-truth",
+            "--out",
+            "x",
+            s(&sample()),
+        ],
+        &["absurd.yaml", "'D1'", "no ray"],
+    );
+    // A garbage meta.json, and a --grid other than the recording's.
+    let rec = dir.path().join("rec");
+    for side in ["left", "right"] {
+        std::fs::create_dir_all(rec.join(side)).unwrap();
+        std::fs::copy(
+            sample().join(side).join("000000.jpg"),
+            rec.join(side).join("000000.jpg"),
+        )
+        .unwrap();
+    }
+    std::fs::write(rec.join("meta.json"), r#"{"grid": {"rows": "many", "cols": 23}}"#).unwrap();
+    let calib = sample().join("calib.yaml");
+    fails_with(
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--out",
+            "x",
+            s(&rec),
+        ],
+        &["meta.json", "invalid type"],
+    );
+    std::fs::copy(sample().join("meta.json"), rec.join("meta.json")).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--grid",
+            "10x10",
+            "--out",
+            "x",
+            s(&rec),
+        ],
+        &["meta.json", "'grid'", "10 x 10", "23 x 23"],
+    );
+    // Without meta.json, a 10x10 lattice on a 23x23 view is refused by the indexing.
+    std::fs::remove_file(rec.join("meta.json")).unwrap();
+    fails_with(
+        &[
+            "reconstruct",
+            "--method",
+            "blob",
+            "--calib",
+            s(&calib),
+            "--grid",
+            "10x10",
+            "--out",
+            "x",
+            s(&rec),
+        ],
+        &["more than the 10 x 10 lattice"],
+    );
+    // eval: --frame-step 0 and a garbage dataset.json.
+    fails_with(
+        &["eval", "--dataset", s(dir.path()), "--frame-step", "0"],
+        &["--frame-step", "0"],
+    );
+    std::fs::create_dir_all(dir.path().join("test/exp_0000")).unwrap();
+    std::fs::write(dir.path().join("dataset.json"), "{\"experiments\": 3}").unwrap();
+    fails_with(
+        &["eval", "--dataset", s(dir.path()), "--methods", "blob"],
+        &["dataset.json"],
+    );
+}
+
+/// Issue 18 case 10: a model whose weights are NaN is an error, not zero markers.
+#[test]
+fn a_model_with_nan_weights_is_an_error() {
+    let fixtures = repo().join("data/fixtures/onnx");
+    let dir = tempfile::tempdir().unwrap();
+    let img = dir.path().join("dots.png");
+    write(&img, &dots());
+    fails_with(
+        &[
+            "detect",
+            "--method",
+            "marknet",
+            "--marknet",
+            s(&fixtures.join("marknet_nan.onnx")),
+            "--fit",
+            "stretch",
+            s(&img),
+        ],
+        &["marknet_nan.onnx", "NaN"],
+    );
+    // doctor runs the models once on a synthetic marker image and reports the broken one.
+    let models = dir.path().join("models");
+    std::fs::create_dir(&models).unwrap();
+    std::fs::copy(fixtures.join("marknet_nan.onnx"), models.join("marknet.onnx")).unwrap();
+    std::fs::copy(fixtures.join("mre_tiny.onnx"), models.join("mre.onnx")).unwrap();
+    let out = gelstereo(&["doctor", "--models", s(&models)]);
+    let t = text(&out);
+    assert!(
+        !out.status.success() && t.contains("Marknet-MRE run") && t.contains("NaN"),
+        "{t}"
+    );
+}
+
+/// Issue 18 case 11: calibration numbers out of range are refused before OpenCV sees them.
+#[test]
+fn calibrate_ranges_are_checked_before_opencv() {
+    let views = sample();
+    for (square, window, needle) in [
+        ("1e308", "5", "--square-mm"),
+        ("1.5", "100000", "--subpix-window"),
+    ] {
+        let out = gelstereo(&[
+            "calibrate",
+            "--board",
+            "9x6",
+            "--square-mm",
+            square,
+            "--subpix-window",
+            window,
+            "--out",
+            "x.yaml",
+            s(&views.join("left")),
+            s(&views.join("right")),
+        ]);
+        let t = text(&out);
+        assert!(
+            !out.status.success() && t.contains(needle) && !t.contains("OpenCV(") && !t.contains("panicked"),
+            "{t}"
+        );
+    }
+}
+
+/// Issue 18 case 12: an image larger than the limit is refused from its header, before decoding.
+#[test]
+fn huge_images_are_refused_from_their_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("huge.png");
+    // A valid PNG header (IHDR 20000 x 20000) with no pixel data: decoding would need 1.2 GB.
+    let mut bytes = b"\x89PNG\r\n\x1a\n\0\0\0\x0dIHDR".to_vec();
+    bytes.extend_from_slice(&20_000u32.to_be_bytes());
+    bytes.extend_from_slice(&20_000u32.to_be_bytes());
+    bytes.extend_from_slice(&[8, 2, 0, 0, 0, 0, 0, 0, 0]);
+    bytes.extend_from_slice(b"\0\0\0\0IEND\xae\x42\x60\x82");
+    std::fs::write(&png, bytes).unwrap();
+    fails_with(
+        &["detect", "--method", "blob", s(&png)],
+        &["huge.png", "20000x20000", "16384"],
+    );
+}
