@@ -10,6 +10,13 @@
 //!    least two directions [`LatticeCheck::min_angle_deg`] apart, and
 //! 2. such points, joined by those lines, form a patch of at least [`LatticeCheck::min_patch`].
 //!
+//! A point that is no member but has at least [`LatticeCheck::adjacent_members`] members within
+//! `reach_frac` x the lattice's pitch is *on the lattice* too: a marker pushed off its lines in a
+//! pile-up (two dots squeezed until they touch), or next to one, breaks the lines through it and its
+//! neighbours but is still surrounded by the lattice. [`keep_the_lattice`] keeps such a detection
+//! only when the network is sure of it ([`LatticeCheck::adjacent_min_confidence`]): a doubtful find
+//! beside the lattice is as often a membrane's rim as a marker.
+//!
 //! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
 //! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
 //! at the network input: below it the network cannot resolve markers, and what lines up there is its
@@ -42,6 +49,10 @@ pub struct LatticeCheck {
     pub min_support: usize,
     /// Smallest spacing of a lattice at the network input, px.
     pub min_input_pitch_px: f64,
+    /// Members within reach that put a non-member on the lattice.
+    pub adjacent_members: usize,
+    /// Confidence a detection on the lattice but no member needs to be kept.
+    pub adjacent_min_confidence: f32,
 }
 
 impl Default for LatticeCheck {
@@ -54,6 +65,8 @@ impl Default for LatticeCheck {
             max_neighbours: 12,
             min_support: 8,
             min_input_pitch_px: 8.0,
+            adjacent_members: 3,
+            adjacent_min_confidence: 0.9,
         }
     }
 }
@@ -63,6 +76,8 @@ impl Default for LatticeCheck {
 pub struct LatticeFit {
     /// Per point: a member.
     pub member: Vec<bool>,
+    /// Per point: a member or adjacent to [`LatticeCheck::adjacent_members`] of them.
+    pub on_lattice: Vec<bool>,
     /// Number of members.
     pub members: usize,
     /// Median nearest-neighbour distance of the members, original px (`None` with fewer than two).
@@ -111,10 +126,7 @@ fn spans_two_lines(sorted: &[f64], min_angle: f64) -> bool {
         return false;
     };
     let wrap = first + std::f64::consts::PI - last;
-    let widest = sorted
-        .windows(2)
-        .map(|w| w[1] - w[0])
-        .fold(wrap, f64::max);
+    let widest = sorted.windows(2).map(|w| w[1] - w[0]).fold(wrap, f64::max);
     sorted.len() >= 2 && widest < std::f64::consts::PI - min_angle
 }
 
@@ -124,6 +136,7 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
     let n = points.len();
     let mut fit = LatticeFit {
         member: vec![false; n],
+        on_lattice: vec![false; n],
         members: 0,
         pitch_px: None,
         is_lattice: false,
@@ -196,6 +209,16 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
     } else {
         None
     };
+    fit.on_lattice.clone_from(&fit.member);
+    if let Some(pitch) = fit.pitch_px {
+        for (i, &p) in points.iter().enumerate().filter(|&(i, _)| !fit.member[i]) {
+            let mut adjacent = 0;
+            grid.for_each_within(p, check.reach_frac * pitch, |j, _| {
+                adjacent += usize::from(fit.member[j])
+            });
+            fit.on_lattice[i] = adjacent >= check.adjacent_members;
+        }
+    }
     fit.is_lattice = fit.members >= check.min_support
         && fit
             .pitch_px
@@ -203,14 +226,19 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
     fit
 }
 
-/// `found` with its accepted markers that are not lattice members moved to the second tier (all of
-/// them when the accepted markers form no lattice), both tiers sorted by y then x.
-pub fn keep_the_lattice(found: TieredDetections, check: &LatticeCheck, input_per_px: f64) -> TieredDetections {
+/// `found` with its accepted markers moved to the second tier unless they are members, or on the
+/// lattice with a confidence of at least [`LatticeCheck::adjacent_min_confidence`] (all of them when
+/// the accepted markers form no lattice), both tiers sorted by y then x.
+pub fn keep_the_lattice(
+    found: TieredDetections,
+    check: &LatticeCheck,
+    input_per_px: f64,
+) -> TieredDetections {
     let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
     let fit = fit_lattice(&points, check, input_per_px);
     let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
-    for (d, member) in found.accepted.into_iter().zip(fit.member) {
-        if member && fit.is_lattice {
+    for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {
+        if fit.is_lattice && (member || (on && d.confidence >= check.adjacent_min_confidence)) {
             accepted.push(d);
         } else {
             second_tier.push(d);
@@ -230,7 +258,9 @@ mod tests {
 
     fn square(cols: usize, rows: usize, pitch: f64) -> Vec<Point2> {
         (0..rows)
-            .flat_map(|r| (0..cols).map(move |c| Point2::new(c as f64 * pitch + 10.0, r as f64 * pitch + 10.0)))
+            .flat_map(|r| {
+                (0..cols).map(move |c| Point2::new(c as f64 * pitch + 10.0, r as f64 * pitch + 10.0))
+            })
             .collect()
     }
 
@@ -285,10 +315,18 @@ mod tests {
         pts[a].x += 5.0;
         pts[b].x -= 5.0;
         let lattice = pts.len();
-        pts.extend([Point2::new(260.0, 40.0), Point2::new(-40.0, 97.0), Point2::new(120.0, 200.0)]);
+        pts.extend([
+            Point2::new(260.0, 40.0),
+            Point2::new(-40.0, 97.0),
+            Point2::new(120.0, 200.0),
+        ]);
         let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
-        assert!(fit.member[..lattice].iter().all(|m| *m), "{:?}", fit.member);
-        assert!(fit.member[lattice..].iter().all(|m| !*m));
+        assert!(
+            fit.on_lattice[..lattice].iter().all(|m| *m),
+            "{:?}",
+            fit.on_lattice
+        );
+        assert!(fit.on_lattice[lattice..].iter().all(|m| !*m));
     }
 
     #[test]

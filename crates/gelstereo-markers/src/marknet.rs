@@ -228,7 +228,10 @@ impl Pass {
         let (support, layout_pitch_px) = match &post.lattice {
             None => (confident.len(), pitch_px),
             Some(check) => {
-                deduplicate(&mut confident, pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p));
+                deduplicate(
+                    &mut confident,
+                    pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p),
+                );
                 let points: Vec<_> = confident.iter().map(|d| d.position).collect();
                 let fit = fit_lattice(&points, check, input_per_px(size, layout));
                 if fit.is_lattice {

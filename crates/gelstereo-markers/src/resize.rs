@@ -87,7 +87,10 @@ fn median_of_plane(plane: &[f32], iw: usize, (ox, oy, nw, nh): (usize, usize, us
     let mut histogram = [0u32; 256];
     let mut n = 0u32;
     for y in (oy..oy + nh).step_by(FILL_SAMPLE_STEP) {
-        for &v in plane[y * iw + ox..y * iw + ox + nw].iter().step_by(FILL_SAMPLE_STEP) {
+        for &v in plane[y * iw + ox..y * iw + ox + nw]
+            .iter()
+            .step_by(FILL_SAMPLE_STEP)
+        {
             histogram[(v * 255.0).round().clamp(0.0, 255.0) as usize] += 1;
             n += 1;
         }
@@ -154,7 +157,12 @@ pub(crate) struct Image<'a> {
 /// Resizes `image` into `layout` (bilinear, exactly OpenCV's `INTER_LINEAR`), fills the rest of the
 /// input with the resized image's median colour, and writes planar RGB f32 in [0, 1] into `plane`
 /// (3 x input pixels).
-pub(crate) fn resize_into_planar(image: &Image, layout: &InputLayout, scratch: &mut ResizeScratch, plane: &mut [f32]) {
+pub(crate) fn resize_into_planar(
+    image: &Image,
+    layout: &InputLayout,
+    scratch: &mut ResizeScratch,
+    plane: &mut [f32],
+) {
     let (nw, nh) = (layout.scaled_width as usize, layout.scaled_height as usize);
     let (iw, ih) = (layout.input_width as usize, layout.input_height as usize);
     let (ox, oy) = (layout.offset_x as usize, layout.offset_y as usize);
