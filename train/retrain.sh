@@ -6,8 +6,8 @@
 # DATA_DIR (default train/runs/sim-v1, git-ignored) is simulated first when it has no dataset.json.
 # RUN_DIR (default train/runs/<date>) receives checkpoints, logs and reports; the ONNX files go to
 # MODELS_DIR (default data/models). Knobs (environment): MINUTES (Marknet wall-clock budget, 48: the shipped run),
-# THREADS (2), STEM (s2: the shipped architecture; s4: the faster stem), CANONICAL (stretch: as the shipped
-# model was trained; auto), INIT (a Marknet checkpoint to warm-start from, same architecture), LR (peak
+# THREADS (2), STEM (s4: the shipped architecture, one stride-4 stem convolution; s2: a stride-2 stage),
+# CANONICAL (auto: canonical crops in the isotropic auto layout, as the shipped model; stretch), INIT (a Marknet checkpoint to warm-start from, same architecture), LR (peak
 # learning rate, the trainer's 3e-3), P_CONTACT (share of crops centred near a contact, 0), SEED (0), SIM_ARGS (arguments of `gelstereo simulate` besides --out), REAL_VIDEO (zero-shot check).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -35,7 +35,7 @@ fi
 cd "$ROOT/train"
 say "training Marknet for $MINUTES min on $DATA"
 "$PY" -m gelstereo_train.train_marknet --data "$DATA" --out "$RUN/marknet.pt" --minutes "$MINUTES" \
-  --threads "$THREADS" --stem "${STEM:-s2}" --canonical "${CANONICAL:-stretch}" --seed "${SEED:-0}" \
+  --threads "$THREADS" --stem "${STEM:-s4}" --canonical "${CANONICAL:-auto}" --seed "${SEED:-0}" \
   ${INIT:+--init "$INIT"} ${LR:+--lr "$LR"} ${P_CONTACT:+--p-contact "$P_CONTACT"} 2>&1 | tee "$RUN/train_marknet.log"
 say "building the MRE set from the validation split and training the MRE"
 "$PY" -m gelstereo_train.train_mre --data "$DATA" --marknet "$RUN/marknet.pt" --out "$RUN/mre.pt" \

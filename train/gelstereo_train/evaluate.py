@@ -32,6 +32,9 @@ from .postprocess import (
     TorchMRE,
     decode_layout,
     decode_to_original,
+    dedup,
+    input_per_px,
+    lattice_fit,
     fit_config_from_metadata,
     fit_layout,
     pitch_px,
@@ -104,24 +107,33 @@ class MarknetRunner:
         if self.fit is None:
             return dec, lay
 
-        def confident(d: np.ndarray) -> int:
-            return int((d[:, 2] > self.post.conf_keep).sum())
+        wh = (img.shape[1], img.shape[0])
 
-        def pitch_of(d: np.ndarray) -> float:
-            return pitch_px(d[d[:, 2] > self.post.conf_low], self.post.conf_keep)
+        def support(d: np.ndarray, used: Layout) -> tuple[int, float]:
+            """How many confident candidates support the pitch the layout follows, and that pitch (Rust:
+            ``Pass::new``): with the lattice check the members among the de-duplicated confident ones
+            (none without a lattice), else all confident ones and step 2's pitch."""
+            cands = d[d[:, 2] > self.post.conf_low]
+            p = pitch_px(cands, self.post.conf_keep)
+            conf = cands[cands[:, 2] > self.post.conf_keep]
+            if self.post.lattice is None:
+                return len(conf), p
+            conf = conf[dedup(conf, self.post.dedup_radius_frac * p)]
+            member, _, lp, ok = lattice_fit(conf[:, :2], self.post.lattice, input_per_px(wh, used))
+            return (int(member.sum()), lp) if ok else (0, float("nan"))
 
-        def cover(d: np.ndarray) -> float:  # the area its confident finds cover, see PROBE_MIN_COVER
-            p = pitch_of(d)
-            return confident(d) * (p * p if np.isfinite(p) else 0.0)
+        def cover(n: int, p: float) -> float:  # the area the supporting finds cover, see PROBE_MIN_COVER
+            return n * (p * p if np.isfinite(p) else 0.0)
 
         probe = probe_layout(img.shape[1], img.shape[0], self.fit)
         probed = self.run_layout(img, probe)
-        n = confident(probed)
-        gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * confident(dec)
-        if gain and cover(probed) >= PROBE_MIN_COVER * cover(dec):
-            lay, dec = probe, probed
-        if confident(dec) >= MIN_PITCH_SUPPORT:
-            pitch = pitch_of(dec)
+        n_first, p_first = support(dec, lay)
+        n, p_probe = support(probed, probe)
+        gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * n_first
+        if gain and cover(n, p_probe) >= PROBE_MIN_COVER * cover(n_first, p_first):
+            lay, dec, n_first, p_first = probe, probed, n, p_probe
+        if n_first >= MIN_PITCH_SUPPORT and np.isfinite(p_first):
+            pitch = p_first
             better = self.layout(img, pitch)
             if relayout_needed(lay, better):
                 lay = better
@@ -130,7 +142,11 @@ class MarknetRunner:
 
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
         if self.fit is not None:
-            return [self.fitted(im)[0] for im in images]
+            fitted = [self.fitted(im) for im in images]
+            self.layouts = [lay for _, lay in fitted]
+            return [dec for dec, _ in fitted]
+        ih, iw = self.input_hw
+        self.layouts = [Layout(iw, ih, iw, ih, 0, 0) for _ in images]
         out = []
         for i in range(0, len(images), batch):
             chunk = images[i : i + batch]
@@ -177,12 +193,12 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
         t = time.time()
         decoded = runner(imgs, batch=batch)
         t_net += time.time() - t
-        for s, img, dec in zip(chunk, imgs, decoded):
+        for s, img, dec, used in zip(chunk, imgs, decoded, runner.layouts):
             gt = s.points_px
             r = radius_for(gt)
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
-            det = postprocess(dec, post, mre_fn)
+            det = postprocess(dec, post, mre_fn, input_per_px((img.shape[1], img.shape[0]), used))
             lay = runner.layout(img, median_nn_distance(gt))
             in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range

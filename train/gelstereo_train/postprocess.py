@@ -30,6 +30,26 @@ MISSING_DISTANCE = 4.0
 NEIGHBOURS = 10
 
 
+@dataclass(frozen=True)
+class LatticeCheck:
+    """Which candidates sit on a marker lattice (``lattice_members``; the Rust twin is
+    ``gelstereo_markers::lattice``). A point is a member when it lies on equally spaced lines of three
+    points (it and two neighbours, spacing within ``tolerance_frac``) in at least two directions
+    ``min_angle_deg`` apart, and such points joined by those lines form a patch of at least
+    ``min_patch``. Neighbours are searched within ``reach_frac`` x max(own nearest-neighbour distance,
+    median of them)."""
+
+    tolerance_frac: float = 0.2
+    reach_frac: float = 1.6
+    min_angle_deg: float = 30.0
+    min_patch: int = 6
+    max_neighbours: int = 12
+    min_support: int = 8  # members needed for a lattice (and for its pitch to steer the layout)
+    min_input_pitch_px: float = 8.0  # smallest lattice spacing at the network input
+    adjacent_members: int = 3  # members within reach_frac x pitch that put a non-member on the lattice
+    adjacent_min_confidence: float = 0.9  # confidence such a non-member needs to be kept
+
+
 @dataclass
 class PostConfig:
     """Post-processing thresholds (paper values; stored in the model's metadata_props)."""
@@ -39,6 +59,8 @@ class PostConfig:
     conf_marknet_only: float = 0.2  # paper: Marknet alone outputs c > 0.2
     dedup_radius_frac: float = 0.3  # of pitch_px; below half the smallest compressed pitch seen in sim
     accept: float = 0.99  # paper: MRE accepts when y_e > 0.99
+    # The lattice check of the output and of the layout's pitch (None: the contract's steps alone)
+    lattice: LatticeCheck | None = LatticeCheck()
 
 
 @dataclass(frozen=True)
@@ -48,8 +70,7 @@ class FitConfig:
     The scale is isotropic: the image plus one marker pitch of margin is fitted into the nominal input
     (``nominal_hw``); if that puts the marker pitch outside ``pitch_range_px`` at the input, the image is
     scaled to ``pitch_target_px`` instead. The input is the scaled image centred in the smallest multiple
-    of ``multiple`` px around it, the rest filled by mirroring (OpenCV ``BORDER_REFLECT_101``), so a marker
-    cut by the image border is completed by its reflection."""
+    of ``multiple`` px around it, the rest filled with the image's median colour (``preprocess_layout``)."""
 
     nominal_hw: tuple[int, int] = (416, 416)
     multiple: int = 32
@@ -149,20 +170,28 @@ def fit_metadata(fit: FitConfig) -> dict:
     }
 
 
+FILL_SAMPLE_STEP = 4  # the margin's colour: median of every 4th pixel of every 4th row (Rust: resize.rs)
+
+
 def preprocess_layout(rgb: np.ndarray, lay: Layout) -> torch.Tensor:
     """uint8 RGB (H, W, 3) or grey -> float (1, 3, input_h, input_w): rgb/255, bilinear resize to the
-    layout's scaled size (half-pixel centres, no antialiasing), mirrored padding (reflect-101)."""
+    layout's scaled size (half-pixel centres, no antialiasing), the margin filled with the resized
+    image's median colour per channel (lower median of the sampled pixels). A mirrored margin would
+    complete a dot cut by the border into a phantom marker on the edge and pull whole dots near the
+    edge towards their reflections."""
     x = preprocess(rgb, (lay.scaled_h, lay.scaled_w))
-    top, left = lay.oy, lay.ox
-    bottom, right = lay.input_h - lay.scaled_h - top, lay.input_w - lay.scaled_w - left
-    if max(top, bottom) < lay.scaled_h and max(left, right) < lay.scaled_w:
-        return F.pad(x, (left, right, top, bottom), mode="reflect")
-    return F.pad(x, (left, right, top, bottom), mode="replicate")
+    if (lay.scaled_w, lay.scaled_h) == (lay.input_w, lay.input_h):
+        return x
+    step = FILL_SAMPLE_STEP
+    fill = x[0, :, ::step, ::step].reshape(3, -1).median(dim=1).values
+    out = fill.view(1, 3, 1, 1).expand(1, 3, lay.input_h, lay.input_w).clone()
+    out[:, :, lay.oy:lay.oy + lay.scaled_h, lay.ox:lay.ox + lay.scaled_w] = x
+    return out
 
 
 def decode_layout(raw: np.ndarray, stride: int, image_wh: tuple[int, int], lay: Layout) -> np.ndarray:
     """Raw logits (Gy, Gx, m, 3) of one image under a layout -> (n, 3) (x_orig, y_orig, c) in flat order,
-    the candidates in the mirrored padding removed (they are reflections)."""
+    the candidates in the margin removed (a marker whose centre lies outside the image is not reported)."""
     raw = np.asarray(raw, dtype=np.float64)
     gy, gx, m, _ = raw.shape
     sig = 1.0 / (1.0 + np.exp(-raw))
@@ -263,9 +292,11 @@ class Detections:
     mre_scores: np.ndarray  # their scores (NaN when no MRE given)
 
 
-def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None) -> Detections:
+def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None) -> Detections:
     """Steps 2-6 of the module doc on decoded (x_orig, y_orig, c) rows in flat order.
-    ``mre_fn`` maps an (n, 11) float32 array to (n,) probabilities; None = Marknet only."""
+    ``mre_fn`` maps an (n, 11) float32 array to (n,) probabilities; None = Marknet only.
+    With ``cfg.lattice`` and ``input_per_px`` (the layout's input px per original px), both outputs
+    keep only their lattice members (``keep_the_lattice``), as ``gelstereo-markers`` does."""
     cands = decoded[decoded[:, 2] > cfg.conf_low]
     pitch = pitch_px(cands, cfg.conf_keep)
     kept = cands[dedup(cands, cfg.dedup_radius_frac * pitch)]
@@ -280,7 +311,11 @@ def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None) -> Detections
     accept[kept[:, 2] > cfg.conf_keep] = True
     if mre_fn is not None:
         accept[low[scores > cfg.accept]] = True
-    return Detections(kept, pitch, marknet, kept[accept], low, feats, scores)
+    marknet_mre = kept[accept]
+    if cfg.lattice is not None and input_per_px is not None:
+        marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px)
+        marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px)
+    return Detections(kept, pitch, marknet, marknet_mre, low, feats, scores)
 
 
 class TorchMRE:
@@ -306,3 +341,108 @@ def run_marknet(model, rgb_images: list[np.ndarray], input_hw: tuple[int, int], 
             for im, r in zip(chunk, raw):
                 out.append(decode_to_original(r, model.stride, (im.shape[1], im.shape[0]), input_hw[::-1]))
     return out
+
+
+def _nearest_other(p: np.ndarray) -> np.ndarray:
+    """Distance from each point to its nearest other point (inf when alone); chunked brute force."""
+    out = np.full(len(p), np.inf)
+    for s in range(0, len(p), 512):
+        d = np.sqrt(((p[s:s + 512, None, :] - p[None, :, :]) ** 2).sum(-1))
+        d[np.arange(d.shape[0]), np.arange(s, s + d.shape[0])] = np.inf
+        out[s:s + 512] = d.min(axis=1)
+    return out
+
+
+def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) -> np.ndarray:
+    """Boolean mask of the points (n, 2) that sit on a locally consistent lattice (see LatticeCheck)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    n = len(p)
+    member = np.zeros(n, dtype=bool)
+    if n < 3:
+        return member
+    nn = _nearest_other(p)
+    median_nn = float(np.median(nn))
+    angles: list[list[float]] = [[] for _ in range(n)]
+    bonds = []
+    for s in range(0, n, 512):
+        d = np.sqrt(((p[s:s + 512, None, :] - p[None, :, :]) ** 2).sum(-1))
+        for r in range(d.shape[0]):
+            i = s + r
+            reach = check.reach_frac * max(nn[i], median_nn)
+            cand = np.nonzero((d[r] <= reach) & (np.arange(n) != i))[0]
+            # the nearest max_neighbours, ties by index (stable sort of the index-ordered candidates)
+            cand = cand[np.argsort(d[r, cand], kind="stable")][: check.max_neighbours]
+            for a in range(len(cand)):
+                j = cand[a]
+                v = p[j] - p[i]
+                length = math.hypot(v[0], v[1])
+                for b in range(a + 1, len(cand)):
+                    k = cand[b]
+                    miss = p[k] - (p[i] - v)
+                    if math.hypot(miss[0], miss[1]) <= check.tolerance_frac * length:
+                        ang = math.atan2(v[1], v[0]) % math.pi
+                        for q in (i, j, k):
+                            angles[q].append(ang)
+                        bonds.append((i, j))
+                        bonds.append((i, k))
+    min_angle = math.radians(check.min_angle_deg)
+    two_lines = np.zeros(n, dtype=bool)
+    for i in range(n):
+        a = sorted(angles[i])
+        if len(a) < 2:
+            continue
+        # all directions within an arc shorter than min_angle <=> the largest circular gap exceeds pi - min_angle
+        gaps = [a[t + 1] - a[t] for t in range(len(a) - 1)] + [a[0] + math.pi - a[-1]]
+        two_lines[i] = max(gaps) < math.pi - min_angle
+    parent = list(range(n))
+
+    def root(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for i, j in bonds:
+        if two_lines[i] and two_lines[j]:
+            ri, rj = root(i), root(j)
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+    roots = np.array([root(i) for i in range(n)])
+    sizes = np.bincount(roots[two_lines], minlength=n)
+    member = two_lines & (sizes[roots] >= check.min_patch)
+    return member
+
+
+def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float):
+    """(member mask, on-lattice mask, pitch_px or NaN, is_lattice) of ``points`` (Rust:
+    ``lattice::fit_lattice``): a lattice needs ``min_support`` members whose median nearest-neighbour
+    distance is at least ``min_input_pitch_px`` at the network input; a non-member with
+    ``adjacent_members`` members within ``reach_frac`` x that pitch is on the lattice too (a marker
+    pushed off its lines in a pile-up)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    member = lattice_members(p, check)
+    pitch = float(np.median(_nearest_other(p)[member])) if member.sum() >= 2 else float("nan")
+    ok = bool(member.sum() >= check.min_support and np.isfinite(pitch)
+              and pitch * input_per_px >= check.min_input_pitch_px)
+    on = member.copy()
+    if np.isfinite(pitch):
+        for i in np.nonzero(~member)[0]:
+            d = np.hypot(p[member, 0] - p[i, 0], p[member, 1] - p[i, 1])
+            on[i] = int((d <= check.reach_frac * pitch).sum()) >= check.adjacent_members
+    return member, on, pitch, ok
+
+
+def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float) -> np.ndarray:
+    """The rows (x, y, c) of ``markers`` that are lattice members, or on the lattice with a confidence of at
+    least ``adjacent_min_confidence`` (none without a lattice); all of them
+    when ``check`` is None (Rust: ``lattice::keep_the_lattice``)."""
+    if check is None:
+        return markers
+    member, on, _, ok = lattice_fit(markers[:, :2], check, input_per_px)
+    keep = member | (on & (markers[:, 2] >= check.adjacent_min_confidence))
+    return markers[keep] if ok else markers[:0]
+
+
+def input_per_px(image_wh: tuple[int, int], lay: Layout) -> float:
+    """Input px per original px under a layout (geometric mean of the two axes; Rust: ``input_per_px``)."""
+    return math.sqrt(lay.scaled_w / image_wh[0] * lay.scaled_h / image_wh[1])

@@ -21,7 +21,7 @@ import numpy as np
 from .blob import BlobDetector
 from .evaluate import MarknetRunner, load_mre
 from .metrics import match
-from .postprocess import PostConfig, postprocess
+from .postprocess import PostConfig, input_per_px, postprocess
 
 
 def read_frames(video: Path, first: int, last: int) -> list[np.ndarray]:
@@ -44,7 +44,9 @@ def read_frames(video: Path, first: int, last: int) -> list[np.ndarray]:
 
 def check(frames, runner, mre_fn, expect: int, post: PostConfig | None = None) -> dict:
     post = post or PostConfig()
-    dets = [postprocess(d, post, mre_fn) for d in runner(frames)]
+    decoded = runner(frames)
+    dets = [postprocess(d, post, mre_fn, input_per_px((f.shape[1], f.shape[0]), lay))
+            for d, f, lay in zip(decoded, frames, runner.layouts)]
     blob = BlobDetector()
     ref = dets[0].marknet_mre[:, :2]
     pitch = dets[0].pitch_px

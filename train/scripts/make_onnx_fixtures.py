@@ -49,7 +49,8 @@ from gelstereo_train.tinydata import grid_points, render_dots  # noqa: E402
 INPUT_HW = (64, 64)
 # The contract's defaults, except a larger de-duplication radius so that the random net's candidates
 # exercise it (the value is stored in the fixture's metadata_props like any model's).
-FIXTURE_POST = PostConfig(dedup_radius_frac=0.6)
+# The contract's steps alone: a random network's candidates form no marker lattice.
+FIXTURE_POST = PostConfig(dedup_radius_frac=0.6, lattice=None)
 
 
 def build_models():

@@ -98,3 +98,21 @@ def test_auto_layout_brings_the_pitch_into_range_and_decodes_back():
     assert len(hit) == 1 and hit[0, :2].tolist() == pytest.approx(want)
     # Nothing decoded in the mirrored border.
     assert ((out[:, 0] >= -0.5) & (out[:, 0] <= 79.5) & (out[:, 1] >= -0.5) & (out[:, 1] <= 59.5)).all()
+
+
+def test_lattice_check_keeps_a_lattice_and_drops_scatter():
+    """The Python twin of gelstereo_markers::lattice: a square and a hexagonal lattice are all members,
+    uniform random points are not a lattice, a lattice finer than 8 px at the input is none."""
+    from gelstereo_train.postprocess import LatticeCheck, keep_the_lattice, lattice_fit
+
+    square = np.array([(10 + 20.0 * c, 10 + 20.0 * r) for r in range(8) for c in range(10)])
+    member, on, pitch, ok = lattice_fit(square, LatticeCheck(), 1.0)
+    assert member.all() and ok and pitch == 20.0
+    hexagonal = np.array([(20.0 * c + 10.0 * (r % 2), 20.0 * r * np.sqrt(3) / 2) for r in range(10) for c in range(12)])
+    assert lattice_fit(hexagonal, LatticeCheck(), 1.0)[0].all()
+    scatter = np.random.default_rng(3).uniform(0, 640, (2000, 2))
+    assert lattice_fit(scatter, LatticeCheck(), 1.0)[0].sum() <= 20
+    assert not lattice_fit(square, LatticeCheck(), 0.3)[3]
+    rows = np.column_stack([np.vstack([square, [[300.0, 45.0]]]), np.full(81, 0.9)])
+    kept = keep_the_lattice(rows, LatticeCheck(), 1.0)
+    assert len(kept) == 80 and not (kept[:, 0] == 300.0).any()

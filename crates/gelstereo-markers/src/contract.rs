@@ -279,6 +279,7 @@ impl MarknetContract {
             conf_marknet_only: m.fraction("conf_marknet_only", f64::from(d.conf_marknet_only))? as f32,
             dedup_radius_frac: m.fraction("dedup_radius_frac", d.dedup_radius_frac)?,
             accept: d.accept,
+            lattice: d.lattice,
         };
         if postprocess.conf_low >= postprocess.conf_keep {
             return Err(m.err(

@@ -20,6 +20,7 @@
 
 pub mod blob;
 pub mod contract;
+pub mod lattice;
 pub mod marknet;
 pub mod metrics;
 pub mod overlay;

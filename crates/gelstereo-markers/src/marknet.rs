@@ -20,8 +20,9 @@ use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::postprocess::{DecodeGeometry, Selection, decode, estimate_pitch_px};
-use crate::resize::{Border, Image, ResizeScratch, resize_into_planar};
+use crate::lattice::{fit_lattice, keep_the_lattice};
+use crate::postprocess::{DecodeGeometry, Selection, decode, deduplicate, estimate_pitch_px};
+use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::{
     CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
     check_image, cv_err, runtime,
@@ -193,6 +194,69 @@ pub fn probe_layout(size: ImageSize, nominal_width: u32, nominal_height: u32, fi
     layout_at_scale(w, h, 0.0, PROBE_SCALE * nominal, fit.multiple)
 }
 
+/// Input px per original px of an image of `size` under `layout` (geometric mean of the two axes).
+pub fn input_per_px(size: ImageSize, layout: &InputLayout) -> f64 {
+    let sx = f64::from(layout.scaled_width) / f64::from(size.width.max(1));
+    let sy = f64::from(layout.scaled_height) / f64::from(size.height.max(1));
+    (sx * sy).sqrt()
+}
+
+/// One image's candidates from one network pass, and what they say about its layout.
+#[derive(Debug, Clone, Default)]
+struct Pass {
+    /// Candidates with c > the pass's threshold, in the image's pixels, flat order.
+    candidates: Vec<Detection>,
+    /// Post-processing step 2's pitch of the candidates (de-duplication, MRE features).
+    pitch_px: Option<f64>,
+    /// How many confident candidates support `layout_pitch_px`: with the lattice check, the lattice
+    /// members among the de-duplicated confident candidates (0 without a lattice); without it, every
+    /// confident candidate.
+    support: usize,
+    /// The marker pitch the layout follows (`None`: no lattice, the layout stays).
+    layout_pitch_px: Option<f64>,
+}
+
+impl Pass {
+    /// The candidates of an image of `size` run under `layout`, summarised for the layout decision.
+    fn new(candidates: Vec<Detection>, post: &PostProcess, size: ImageSize, layout: &InputLayout) -> Self {
+        let pitch_px = estimate_pitch_px(&candidates, post.conf_keep);
+        let mut confident: Vec<Detection> = candidates
+            .iter()
+            .filter(|d| d.confidence > post.conf_keep)
+            .copied()
+            .collect();
+        let (support, layout_pitch_px) = match &post.lattice {
+            None => (confident.len(), pitch_px),
+            Some(check) => {
+                deduplicate(
+                    &mut confident,
+                    pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p),
+                );
+                let points: Vec<_> = confident.iter().map(|d| d.position).collect();
+                let fit = fit_lattice(&points, check, input_per_px(size, layout));
+                if fit.is_lattice {
+                    (fit.members, fit.pitch_px)
+                } else {
+                    (0, None)
+                }
+            }
+        };
+        Self {
+            candidates,
+            pitch_px,
+            support,
+            layout_pitch_px,
+        }
+    }
+
+    /// The area the supporting candidates cover (count x pitch^2, original px^2): about the gel's for a
+    /// lattice and for a thinned-out one alike; a small part of it for several finds per oversized
+    /// marker (the pitch then measures the spread of the duplicates).
+    fn cover(&self) -> f64 {
+        self.support as f64 * self.layout_pitch_px.map_or(0.0, |p| p * p)
+    }
+}
+
 /// ONNX Runtime session options shared by Marknet and MRE.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SessionOptions {
@@ -322,10 +386,10 @@ pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32)
 }
 
 /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-/// centres, no antialiasing; the border mirrored, `BORDER_REFLECT_101`, or for tiny images repeated)
-/// and writes it into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one
-/// pass bit-identical to OpenCV's resize + copyMakeBorder ([`crate::resize`]). `scratch` is kept
-/// between calls.
+/// centres, no antialiasing; the margin filled with the resized image's median colour) and writes it
+/// into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one pass
+/// bit-identical to OpenCV's resize + copyMakeBorder with that constant ([`crate::resize`]).
+/// `scratch` is kept between calls.
 pub(crate) fn write_layout(
     image: &Mat,
     layout: &InputLayout,
@@ -348,7 +412,7 @@ pub(crate) fn write_layout(
         height: size.height as usize,
         channels: image.channels() as usize,
     };
-    resize_into_planar(&view, layout, Border::for_layout(layout), scratch, plane);
+    resize_into_planar(&view, layout, scratch, plane);
     Ok(())
 }
 
@@ -727,18 +791,17 @@ impl Marknet {
     }
 
     /// Runs `images` under `layouts` (grouped into one batch per input size) and decodes each image's
-    /// candidates with c > `min_confidence`, in its own pixels; candidates in the mirrored padding are
-    /// dropped (reflections, not markers of the image). Each image's with its pitch estimate
-    /// (post-processing step 2, [`estimate_pitch_px`] at `conf_keep`).
+    /// candidates with c > `min_confidence`, in its own pixels; candidates in the padding are dropped
+    /// (a marker whose centre lies outside the image is not reported). Each image's [`Pass`].
     fn decode_pass(
         &mut self,
         images: &[&Mat],
         sizes: &[ImageSize],
         layouts: &[InputLayout],
         min_confidence: f32,
-    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
-        let mut found = vec![(Vec::new(), None); images.len()];
-        let conf_keep = self.post.conf_keep;
+    ) -> Result<Vec<Pass>> {
+        let mut found = vec![Pass::default(); images.len()];
+        let post = self.post;
         let mut pending: Vec<usize> = (0..images.len()).collect();
         while let Some(&lead) = pending.first() {
             let key = (layouts[lead].input_width, layouts[lead].input_height);
@@ -761,8 +824,7 @@ impl Marknet {
                     let (w, h) = (f64::from(sizes[i].width) - 0.5, f64::from(sizes[i].height) - 0.5);
                     dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
                 }
-                let pitch = estimate_pitch_px(&dets, conf_keep);
-                (i, (dets, pitch))
+                (i, Pass::new(dets, &post, sizes[i], &layouts[i]))
             });
             for (i, d) in decoded {
                 found[i] = d;
@@ -777,53 +839,46 @@ impl Marknet {
     /// remembered for its size.
     pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
         let found = self.candidates_with_pitch(images, min_confidence)?;
-        Ok(found.into_iter().map(|(dets, _)| dets).collect())
+        Ok(found.into_iter().map(|(pass, _)| pass.candidates).collect())
     }
 
-    /// [`candidates`](Self::candidates), each image's with its pitch estimate (post-processing step 2
-    /// on those candidates), computed once for both the layout decision and the post-processing.
+    /// [`candidates`](Self::candidates), each image's as a [`Pass`] (with its pitch estimate,
+    /// post-processing step 2, computed once for both the layout decision and the post-processing)
+    /// and the layout it ran under.
     fn candidates_with_pitch(
         &mut self,
         images: &[&Mat],
         min_confidence: f32,
-    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
+    ) -> Result<Vec<(Pass, InputLayout)>> {
         let sizes = images
             .iter()
             .map(|im| check_image(im))
             .collect::<Result<Vec<_>>>()?;
         let mut layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
-        let conf_keep = self.post.conf_keep;
         let mut found = self.decode_pass(images, &sizes, &layouts, min_confidence)?;
         let Some(fit) = self.auto_fit().copied() else {
-            return Ok(found);
+            return Ok(found.into_iter().zip(layouts).collect());
         };
-        let confident = |dets: &[Detection]| dets.iter().filter(|d| d.confidence > conf_keep).count();
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
         let probes: Vec<(usize, InputLayout)> = (0..images.len())
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
             .collect();
-        // The area a pass's confident finds cover (count x pitch^2, original px^2): about the gel's
-        // for a lattice and for a thinned-out one alike; a small part of it for several finds per
-        // oversized marker (the pitch then measures the spread of the duplicates).
-        let cover = |(dets, pitch): &(Vec<Detection>, Option<f64>)| {
-            confident(dets) as f64 * pitch.map_or(0.0, |p| p * p)
-        };
         let probed = self.decode_subset(images, &sizes, &probes, min_confidence)?;
         for ((i, layout), probe) in probes.into_iter().zip(probed) {
-            let n = confident(&probe.0);
-            let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * confident(&found[i].0) as f64;
-            if gain && cover(&probe) >= PROBE_MIN_COVER * cover(&found[i]) {
+            let n = probe.support;
+            let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * found[i].support as f64;
+            if gain && probe.cover() >= PROBE_MIN_COVER * found[i].cover() {
                 found[i] = probe;
                 layouts[i] = layout;
             }
         }
         let mut wanted: Vec<Option<InputLayout>> = vec![None; images.len()];
-        for (i, (dets, pitch)) in found.iter().enumerate() {
-            if confident(dets) < MIN_PITCH_SUPPORT {
+        for (i, pass) in found.iter().enumerate() {
+            if pass.support < MIN_PITCH_SUPPORT {
                 continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
             }
-            let Some(pitch) = *pitch else {
+            let Some(pitch) = pass.layout_pitch_px else {
                 continue;
             };
             let layout = self.layout(sizes[i], Some(pitch));
@@ -855,7 +910,7 @@ impl Marknet {
         for ((i, _), d) in redo.into_iter().zip(again) {
             found[i] = d;
         }
-        Ok(found)
+        Ok(found.into_iter().zip(layouts).collect())
     }
 
     /// [`decode_pass`](Self::decode_pass) over the images picked by `subset` (index into `images`
@@ -866,7 +921,7 @@ impl Marknet {
         sizes: &[ImageSize],
         subset: &[(usize, InputLayout)],
         min_confidence: f32,
-    ) -> Result<Vec<(Vec<Detection>, Option<f64>)>> {
+    ) -> Result<Vec<Pass>> {
         if subset.is_empty() {
             return Ok(Vec::new());
         }
@@ -914,13 +969,30 @@ impl Marknet {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates_with_pitch(images, post.conf_low)?;
-        let selections = map_images(self.parallel, candidates, |(c, pitch_px)| {
-            Selection::with_pitch(c, pitch_px, &post, with_mre)
+        // Input px per original px of each image's final layout, for the lattice check.
+        let scales: Vec<f64> = candidates
+            .iter()
+            .zip(images)
+            .map(|((_, layout), image)| {
+                let size = ImageSize {
+                    width: image.cols().max(0) as u32,
+                    height: image.rows().max(0) as u32,
+                };
+                input_per_px(size, layout)
+            })
+            .collect();
+        let selections = map_images(self.parallel, candidates, |(pass, _)| {
+            Selection::with_pitch(pass.candidates, pass.pitch_px, &post, with_mre)
         });
+        let on_lattice = |found: TieredDetections, scale: f64| match &post.lattice {
+            Some(check) => keep_the_lattice(found, check, scale),
+            None => found,
+        };
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections
                 .into_iter()
-                .map(|s| s.finish_tiered(&[], post.accept))
+                .zip(scales)
+                .map(|(s, scale)| on_lattice(s.finish_tiered(&[], post.accept), scale))
                 .collect());
         };
         let features: Vec<[f32; MRE_FEATURES]> = selections
@@ -931,11 +1003,12 @@ impl Marknet {
         let mut offset = 0;
         Ok(selections
             .into_iter()
-            .map(|s| {
+            .zip(scales)
+            .map(|(s, scale)| {
                 let n = s.pending.len();
                 let mine = scores.get(offset..offset + n).unwrap_or(&[]);
                 offset += n;
-                s.finish_tiered(mine, post.accept)
+                on_lattice(s.finish_tiered(mine, post.accept), scale)
             })
             .collect())
     }

@@ -18,6 +18,7 @@ use gelstereo_core::{Detection, Point2, TieredDetections};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::contract::{MRE_FEATURES, MRE_NEIGHBOURS};
+use crate::lattice::LatticeCheck;
 
 /// Value of a missing neighbour distance in an MRE feature (fewer than 10 other candidates), pitches.
 pub const MISSING_DISTANCE_PITCH: f32 = 4.0;
@@ -37,6 +38,10 @@ pub struct PostProcess {
     pub dedup_radius_frac: f64,
     /// MRE acceptance threshold (paper: 0.99).
     pub accept: f32,
+    /// The lattice check of the output and of the pitch that steers the input layout
+    /// ([`crate::lattice`]); `None`: the contract's steps alone (what the fixtures of a random network
+    /// check).
+    pub lattice: Option<LatticeCheck>,
 }
 
 impl Default for PostProcess {
@@ -47,6 +52,7 @@ impl Default for PostProcess {
             conf_marknet_only: 0.2,
             dedup_radius_frac: 0.3,
             accept: 0.99,
+            lattice: Some(LatticeCheck::default()),
         }
     }
 }

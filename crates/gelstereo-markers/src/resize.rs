@@ -1,7 +1,14 @@
 //! The network input from an 8-bit image in one pass: OpenCV's bilinear `resize` (`INTER_LINEAR`)
-//! re-done bit for bit, fused with the border of `copyMakeBorder` (mirrored, `BORDER_REFLECT_101`, or
-//! replicated) and the planar RGB f32 conversion (`v / 255`; B, G, R to R, G, B, grey replicated,
-//! alpha dropped).
+//! re-done bit for bit, fused with the planar RGB f32 conversion (`v / 255`; B, G, R to R, G, B, grey
+//! replicated, alpha dropped); the margin around the resized image is filled with its median colour
+//! ([`FILL_SAMPLE_STEP`]).
+//!
+//! Why a uniform margin: a mirrored one (OpenCV `BORDER_REFLECT_101`) completes a dot cut by the
+//! border with its reflection into one whole phantom marker centred on the edge, and merges a whole
+//! dot a few px from the edge with its reflection into one blob centred nearer the edge (a row of dots
+//! 6 px from the bottom edge came out 4-5 px too low); a replicated one smears the edge row into
+//! streaks. Against the median colour, the gel's background on a marker sensor, a cut dot stays a cut
+//! dot, which the network was trained to see at the edges of its training crops.
 //!
 //! Why: OpenCV's resize, its border copy and a separate conversion pass cost 0.55 ms per 640 x 480
 //! view, a sixth of the fast model's whole pipeline; one pass over the output rows with planar
@@ -69,39 +76,34 @@ fn taps(src: usize, dst: usize, clamp_weights: bool) -> Vec<Tap> {
         .collect()
 }
 
-/// Which border fills the network input around the resized image.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Border {
-    /// `BORDER_REFLECT_101` (needs borders smaller than the image).
-    Reflect101,
-    /// `BORDER_REPLICATE`.
-    Replicate,
-}
+/// The margin's colour is the median, per channel, of the resized image's pixels in every
+/// `FILL_SAMPLE_STEP`-th row and column (from its first): a few thousand pixels decide it as well as
+/// all of them would.
+pub const FILL_SAMPLE_STEP: usize = 4;
 
-impl Border {
-    /// The border of `layout`: mirrored, unless a border is as wide as the image (tiny images), then
-    /// the edge repeated.
-    pub(crate) fn for_layout(layout: &InputLayout) -> Self {
-        let (nw, nh) = (layout.scaled_width, layout.scaled_height);
-        let right = layout.input_width - nw - layout.offset_x;
-        let bottom = layout.input_height - nh - layout.offset_y;
-        if layout.offset_y.max(bottom) < nh && layout.offset_x.max(right) < nw {
-            Border::Reflect101
-        } else {
-            Border::Replicate
+/// The lower median of one plane's values (each `k / 255`) at the sampled pixels of the resized image
+/// (`nw x nh` at (`ox`, `oy`) in rows of `iw`).
+fn median_of_plane(plane: &[f32], iw: usize, (ox, oy, nw, nh): (usize, usize, usize, usize)) -> f32 {
+    let mut histogram = [0u32; 256];
+    let mut n = 0u32;
+    for y in (oy..oy + nh).step_by(FILL_SAMPLE_STEP) {
+        for &v in plane[y * iw + ox..y * iw + ox + nw]
+            .iter()
+            .step_by(FILL_SAMPLE_STEP)
+        {
+            histogram[(v * 255.0).round().clamp(0.0, 255.0) as usize] += 1;
+            n += 1;
         }
     }
-
-    /// The image index a border index `i` (may be negative or past the end) takes its value from.
-    fn source(self, i: i64, len: usize) -> usize {
-        let last = len as i64 - 1;
-        let j = match self {
-            Border::Reflect101 if i < 0 => -i,
-            Border::Reflect101 if i > last => 2 * last - i,
-            _ => i,
-        };
-        j.clamp(0, last) as usize
+    let rank = n.saturating_sub(1) / 2;
+    let mut seen = 0;
+    for (k, count) in histogram.iter().enumerate() {
+        seen += count;
+        if seen > rank {
+            return f32::from(k as u8) / 255.0;
+        }
     }
+    0.0
 }
 
 /// What [`resize_into_planar`] keeps between calls: the taps of the latest sizes, the source row
@@ -153,11 +155,11 @@ pub(crate) struct Image<'a> {
 }
 
 /// Resizes `image` into `layout` (bilinear, exactly OpenCV's `INTER_LINEAR`), fills the rest of the
-/// input with `border`, and writes planar RGB f32 in [0, 1] into `plane` (3 x input pixels).
+/// input with the resized image's median colour, and writes planar RGB f32 in [0, 1] into `plane`
+/// (3 x input pixels).
 pub(crate) fn resize_into_planar(
     image: &Image,
     layout: &InputLayout,
-    border: Border,
     scratch: &mut ResizeScratch,
     plane: &mut [f32],
 ) {
@@ -223,19 +225,17 @@ pub(crate) fn resize_into_planar(
             simd::vertical(h0, h1, tap.w0, tap.w1, out, *allow_simd);
         }
     }
-    // Left and right borders of the image rows, then whole border rows.
-    let (right, bottom) = (iw - ox - nw, ih - oy - nh);
-    for p in 0..planes {
-        let pl = &mut plane[p * hw..(p + 1) * hw];
-        for y in oy..oy + nh {
-            let row = &mut pl[y * iw..(y + 1) * iw];
-            for x in (0..ox).chain(ox + nw..ox + nw + right) {
-                row[x] = row[ox + border.source(x as i64 - ox as i64, nw)];
+    // Whole margin rows above and below, then the margins left and right of the image rows.
+    if nw < iw || nh < ih {
+        for p in 0..planes {
+            let pl = &mut plane[p * hw..(p + 1) * hw];
+            let fill = median_of_plane(pl, iw, (ox, oy, nw, nh));
+            pl[..oy * iw].fill(fill);
+            pl[(oy + nh) * iw..].fill(fill);
+            for row in pl[oy * iw..(oy + nh) * iw].chunks_exact_mut(iw) {
+                row[..ox].fill(fill);
+                row[ox + nw..].fill(fill);
             }
-        }
-        for y in (0..oy).chain(oy + nh..oy + nh + bottom) {
-            let from = oy + border.source(y as i64 - oy as i64, nh);
-            pl.copy_within(from * iw..(from + 1) * iw, y * iw);
         }
     }
     if planes == 1 {
@@ -539,10 +539,20 @@ mod tests {
         let mut resized = Mat::default();
         let size = Size::new(l.scaled_width as i32, l.scaled_height as i32);
         imgproc::resize(image, &mut resized, size, 0.0, 0.0, imgproc::INTER_LINEAR).expect("resize");
-        let mode = match Border::for_layout(l) {
-            Border::Reflect101 => opencv::core::BORDER_REFLECT_101,
-            Border::Replicate => opencv::core::BORDER_REPLICATE,
-        };
+        // The fill: per channel, the lower median of every 4th pixel of every 4th row, sorted.
+        let n = resized.channels() as usize;
+        let (nw, nh) = (l.scaled_width as usize, l.scaled_height as usize);
+        let bytes = resized.data_bytes().expect("bytes");
+        let mut fill = Scalar::default();
+        for c in 0..n.min(3) {
+            let mut values: Vec<u8> = (0..nh)
+                .step_by(4)
+                .flat_map(|y| (0..nw).step_by(4).map(move |x| (y, x)))
+                .map(|(y, x)| bytes[(y * nw + x) * n + c])
+                .collect();
+            values.sort_unstable();
+            fill[c] = f64::from(values[(values.len() - 1) / 2]);
+        }
         let mut padded = Mat::default();
         let (top, left) = (l.offset_y as i32, l.offset_x as i32);
         let bottom = (l.input_height - l.scaled_height) as i32 - top;
@@ -554,8 +564,8 @@ mod tests {
             bottom,
             left,
             right,
-            mode,
-            Scalar::default(),
+            opencv::core::BORDER_CONSTANT,
+            fill,
         )
         .expect("border");
         let n = padded.channels() as usize;
@@ -575,7 +585,7 @@ mod tests {
     /// The fused pass equals OpenCV's resize + border + planar conversion bit for bit: downscales
     /// (the reference sensor into the fast and the shipped model's inputs), upscales (a GelSight
     /// Mini brought to the trained pitch), scale exactly 2 and 1, odd sizes, every channel count,
-    /// mirrored and replicated borders.
+    /// margins filled with the median colour (wider than the image too).
     #[test]
     fn fused_resize_is_bit_identical_to_opencv() {
         let cases = [
@@ -605,7 +615,7 @@ mod tests {
                         height: h as usize,
                         channels,
                     };
-                    resize_into_planar(&image, &l, Border::for_layout(&l), &mut scratch, &mut got);
+                    resize_into_planar(&image, &l, &mut scratch, &mut got);
                     let bad = got
                         .iter()
                         .zip(&want)

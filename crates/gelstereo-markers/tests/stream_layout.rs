@@ -21,7 +21,7 @@ fn sample_frame(view: &str, frame: u32) -> Mat {
     m
 }
 
-/// The fast model fits the bundled 640 x 480 sample isotropically; without a pitch its layout has no
+/// The shipped model fits the bundled 640 x 480 sample isotropically; without a pitch its layout has no
 /// margin and a slightly larger scale than the layout of the measured pitch.
 #[test]
 fn the_first_frame_of_a_stream_is_localized_under_the_layout_of_the_next() {
@@ -29,7 +29,7 @@ fn the_first_frame_of_a_stream_is_localized_under_the_layout_of_the_next() {
         intra_threads: 1,
         use_cuda: false,
     };
-    let mut net = Marknet::load(&root().join("data/models/fast/marknet.onnx"), &options).unwrap();
+    let mut net = Marknet::load(&root().join("data/models/marknet.onnx"), &options).unwrap();
     let (left, right) = (sample_frame("left", 0), sample_frame("right", 0));
     let size = ImageSize {
         width: left.cols() as u32,

@@ -1,0 +1,340 @@
+//! Which detections sit on a marker lattice: the check that keeps a network pass from reporting
+//! texture, noise, housing or glints as markers (`docs/localization.md`, "Lattice check"; the Python
+//! twin is `lattice_members` in `train/gelstereo_train/postprocess.py`).
+//!
+//! A marker of a tactile sensor has neighbours at about the pitch on both sides along at least two
+//! lattice directions (square, hexagonal, sheared or compressed in contact alike). So a point is a
+//! *member* when
+//! 1. it is on an equally spaced line of three points (it and two neighbours: `q - p` and `p - r`
+//!    within [`LatticeCheck::tolerance_frac`] of their length, as the middle or at either end) in at
+//!    least two directions [`LatticeCheck::min_angle_deg`] apart, and
+//! 2. such points, joined by those lines, form a patch of at least [`LatticeCheck::min_patch`].
+//!
+//! A point that is no member but has at least [`LatticeCheck::adjacent_members`] members within
+//! `reach_frac` x the lattice's pitch is *on the lattice* too: a marker pushed off its lines in a
+//! pile-up (two dots squeezed until they touch), or next to one, breaks the lines through it and its
+//! neighbours but is still surrounded by the lattice. [`keep_the_lattice`] keeps such a detection
+//! only when the network is sure of it ([`LatticeCheck::adjacent_min_confidence`]): a doubtful find
+//! beside the lattice is as often a membrane's rim as a marker.
+//!
+//! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
+//! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
+//! at the network input: below it the network cannot resolve markers, and what lines up there is its
+//! own output grid (stride 8) on noise or banding. Without a lattice a view reports no markers.
+//!
+//! Uniform random points almost never pass (rule 1 needs two lucky coincidences per point, rule 2 six
+//! of those in a row); a marker lattice passes up to its corners (each the end of two lines), its
+//! markers cut by the image border and its pile-ups (a marker squeezed against its neighbour still
+//! lines up across the other direction).
+
+use gelstereo_core::spatial::Buckets;
+use gelstereo_core::{Detection, Point2, TieredDetections};
+
+/// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LatticeCheck {
+    /// Largest distance of the third point of a line from where equal spacing puts it, as a fraction
+    /// of the spacing (0.2: contact strain changes the spacing by far less from one marker to the next).
+    pub tolerance_frac: f64,
+    /// Neighbours are searched within this many times the larger of the point's own nearest-neighbour
+    /// distance and the median of them (1.6: the diagonal of a square lattice, 1.41, is inside).
+    pub reach_frac: f64,
+    /// Smallest angle between two lines through a member, degrees.
+    pub min_angle_deg: f64,
+    /// Smallest patch of members joined by lines.
+    pub min_patch: usize,
+    /// Nearest neighbours paired per point, at most (bounds the work on dense clutter).
+    pub max_neighbours: usize,
+    /// Members needed for a lattice (and for its pitch to steer the input layout).
+    pub min_support: usize,
+    /// Smallest spacing of a lattice at the network input, px.
+    pub min_input_pitch_px: f64,
+    /// Members within reach that put a non-member on the lattice.
+    pub adjacent_members: usize,
+    /// Confidence a detection on the lattice but no member needs to be kept.
+    pub adjacent_min_confidence: f32,
+}
+
+impl Default for LatticeCheck {
+    fn default() -> Self {
+        Self {
+            tolerance_frac: 0.2,
+            reach_frac: 1.6,
+            min_angle_deg: 30.0,
+            min_patch: 6,
+            max_neighbours: 12,
+            min_support: 8,
+            min_input_pitch_px: 8.0,
+            adjacent_members: 3,
+            adjacent_min_confidence: 0.9,
+        }
+    }
+}
+
+/// The members of a point set and what they imply.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LatticeFit {
+    /// Per point: a member.
+    pub member: Vec<bool>,
+    /// Per point: a member or adjacent to [`LatticeCheck::adjacent_members`] of them.
+    pub on_lattice: Vec<bool>,
+    /// Number of members.
+    pub members: usize,
+    /// Median nearest-neighbour distance of the members, original px (`None` with fewer than two).
+    pub pitch_px: Option<f64>,
+    /// Whether the members form a lattice (enough of them, spacing at the input large enough).
+    pub is_lattice: bool,
+}
+
+fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    let n = values.len();
+    Some(if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    })
+}
+
+/// A union-find forest whose roots are the smallest index of their set.
+struct Patches(Vec<usize>);
+
+impl Patches {
+    fn root(&mut self, mut x: usize) -> usize {
+        while self.0[x] != x {
+            self.0[x] = self.0[self.0[x]];
+            x = self.0[x];
+        }
+        x
+    }
+
+    fn join(&mut self, a: usize, b: usize) {
+        let (ra, rb) = (self.root(a), self.root(b));
+        if ra != rb {
+            self.0[ra.max(rb)] = ra.min(rb);
+        }
+    }
+}
+
+/// Whether directions (radians in [0, pi), sorted) span at least `min_angle`: the largest circular gap
+/// between them is below `pi - min_angle`.
+fn spans_two_lines(sorted: &[f64], min_angle: f64) -> bool {
+    let (Some(first), Some(last)) = (sorted.first(), sorted.last()) else {
+        return false;
+    };
+    let wrap = first + std::f64::consts::PI - last;
+    let widest = sorted.windows(2).map(|w| w[1] - w[0]).fold(wrap, f64::max);
+    sorted.len() >= 2 && widest < std::f64::consts::PI - min_angle
+}
+
+/// The lattice members among `points` (see the module documentation); `input_per_px` is the network
+/// input's scale (input px per original px) for the spacing rule.
+pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -> LatticeFit {
+    let n = points.len();
+    let mut fit = LatticeFit {
+        member: vec![false; n],
+        on_lattice: vec![false; n],
+        members: 0,
+        pitch_px: None,
+        is_lattice: false,
+    };
+    if n < 3 {
+        return fit;
+    }
+    let nearest_grid = Buckets::with_one_point_per_cell(points);
+    let nn: Vec<f64> = (0..n)
+        .map(|i| nearest_grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
+        .collect();
+    let Some(median_nn) = median(&mut nn.iter().copied().filter(|d| d.is_finite()).collect::<Vec<_>>())
+    else {
+        return fit;
+    };
+    let grid = Buckets::new(points, check.reach_frac * median_nn);
+    // (point, direction of a line through it), and the pairs each line joins.
+    let mut directions: Vec<(usize, f64)> = Vec::new();
+    let mut bonds: Vec<(usize, usize)> = Vec::new();
+    let mut near: Vec<(f64, usize)> = Vec::new();
+    for (i, &p) in points.iter().enumerate() {
+        let reach = check.reach_frac * nn[i].max(median_nn);
+        near.clear();
+        grid.for_each_within(p, reach, |j, d2| {
+            if j != i {
+                near.push((d2, j));
+            }
+        });
+        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        near.truncate(check.max_neighbours);
+        for (a, &(_, j)) in near.iter().enumerate() {
+            let (vx, vy) = (points[j].x - p.x, points[j].y - p.y);
+            // Where the third point of an equally spaced line with i in the middle lies.
+            let opposite = Point2::new(p.x - vx, p.y - vy);
+            let limit = check.tolerance_frac * vx.hypot(vy);
+            for &(_, k) in &near[a + 1..] {
+                if points[k].distance(opposite) <= limit {
+                    let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
+                    directions.extend([(i, angle), (j, angle), (k, angle)]);
+                    bonds.extend([(i, j), (i, k)]);
+                }
+            }
+        }
+    }
+    directions.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let min_angle = check.min_angle_deg.to_radians();
+    let mut two_lines = vec![false; n];
+    for run in directions.chunk_by(|a, b| a.0 == b.0) {
+        let angles: Vec<f64> = run.iter().map(|&(_, a)| a).collect();
+        two_lines[run[0].0] = spans_two_lines(&angles, min_angle);
+    }
+    let mut patches = Patches((0..n).collect());
+    for &(i, j) in &bonds {
+        if two_lines[i] && two_lines[j] {
+            patches.join(i, j);
+        }
+    }
+    let mut size = vec![0usize; n];
+    for i in (0..n).filter(|&i| two_lines[i]) {
+        let r = patches.root(i);
+        size[r] += 1;
+    }
+    for i in 0..n {
+        fit.member[i] = two_lines[i] && size[patches.root(i)] >= check.min_patch;
+    }
+    let mut member_nn: Vec<f64> = (0..n).filter(|&i| fit.member[i]).map(|i| nn[i]).collect();
+    fit.members = member_nn.len();
+    fit.pitch_px = if fit.members >= 2 {
+        median(&mut member_nn)
+    } else {
+        None
+    };
+    fit.on_lattice.clone_from(&fit.member);
+    if let Some(pitch) = fit.pitch_px {
+        for (i, &p) in points.iter().enumerate().filter(|&(i, _)| !fit.member[i]) {
+            let mut adjacent = 0;
+            grid.for_each_within(p, check.reach_frac * pitch, |j, _| {
+                adjacent += usize::from(fit.member[j])
+            });
+            fit.on_lattice[i] = adjacent >= check.adjacent_members;
+        }
+    }
+    fit.is_lattice = fit.members >= check.min_support
+        && fit
+            .pitch_px
+            .is_some_and(|p| p * input_per_px >= check.min_input_pitch_px);
+    fit
+}
+
+/// `found` with its accepted markers moved to the second tier unless they are members, or on the
+/// lattice with a confidence of at least [`LatticeCheck::adjacent_min_confidence`] (all of them when
+/// the accepted markers form no lattice), both tiers sorted by y then x.
+pub fn keep_the_lattice(
+    found: TieredDetections,
+    check: &LatticeCheck,
+    input_per_px: f64,
+) -> TieredDetections {
+    let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
+    let fit = fit_lattice(&points, check, input_per_px);
+    let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
+    for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {
+        if fit.is_lattice && (member || (on && d.confidence >= check.adjacent_min_confidence)) {
+            accepted.push(d);
+        } else {
+            second_tier.push(d);
+        }
+    }
+    crate::sort_detections(&mut accepted);
+    crate::sort_detections(&mut second_tier);
+    TieredDetections {
+        accepted,
+        second_tier,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn square(cols: usize, rows: usize, pitch: f64) -> Vec<Point2> {
+        (0..rows)
+            .flat_map(|r| {
+                (0..cols).map(move |c| Point2::new(c as f64 * pitch + 10.0, r as f64 * pitch + 10.0))
+            })
+            .collect()
+    }
+
+    /// Uniform random points from a fixed linear congruential sequence (no dependency for a test).
+    fn scattered(n: usize, side: f64, mut state: u64) -> Vec<Point2> {
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * side
+        };
+        (0..n).map(|_| Point2::new(next(), next())).collect()
+    }
+
+    #[test]
+    fn every_point_of_a_square_lattice_is_a_member_corners_included() {
+        let fit = fit_lattice(&square(10, 8, 20.0), &LatticeCheck::default(), 1.0);
+        assert_eq!(fit.members, 80);
+        assert!(fit.is_lattice);
+        assert_eq!(fit.pitch_px, Some(20.0));
+    }
+
+    #[test]
+    fn a_hexagonal_lattice_is_a_lattice() {
+        let pts: Vec<Point2> = (0..12)
+            .flat_map(|r| {
+                (0..14).map(move |c| {
+                    let shift = if r % 2 == 1 { 10.0 } else { 0.0 };
+                    Point2::new(c as f64 * 20.0 + shift, r as f64 * 20.0 * 3f64.sqrt() / 2.0)
+                })
+            })
+            .collect();
+        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        assert_eq!(fit.members, pts.len());
+    }
+
+    #[test]
+    fn random_points_are_not_a_lattice() {
+        for (n, seed) in [(200, 1), (2000, 2), (5000, 3)] {
+            let fit = fit_lattice(&scattered(n, 640.0, seed), &LatticeCheck::default(), 1.0);
+            assert!(fit.members <= n / 100, "{n} points: {} members", fit.members);
+        }
+    }
+
+    /// Outliers beside a lattice (a rim, glints) are dropped, the lattice is kept; so is a pair of
+    /// touching markers squeezed together in a row.
+    #[test]
+    fn outliers_go_and_squeezed_pairs_stay() {
+        let mut pts = square(10, 8, 20.0);
+        // two markers of row 3 squeezed towards each other by 5 px each (touching dots)
+        let (a, b) = (3 * 10 + 4, 3 * 10 + 5);
+        pts[a].x += 5.0;
+        pts[b].x -= 5.0;
+        let lattice = pts.len();
+        pts.extend([
+            Point2::new(260.0, 40.0),
+            Point2::new(-40.0, 97.0),
+            Point2::new(120.0, 200.0),
+        ]);
+        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        assert!(
+            fit.on_lattice[..lattice].iter().all(|m| *m),
+            "{:?}",
+            fit.on_lattice
+        );
+        assert!(fit.on_lattice[lattice..].iter().all(|m| !*m));
+    }
+
+    #[test]
+    fn a_lattice_finer_than_the_network_resolves_is_none() {
+        let fit = fit_lattice(&square(10, 8, 20.0), &LatticeCheck::default(), 0.3);
+        assert_eq!(fit.members, 80);
+        assert!(!fit.is_lattice, "6 px at the input");
+        let few = fit_lattice(&square(3, 2, 20.0), &LatticeCheck::default(), 1.0);
+        assert!(!few.is_lattice, "{} members", few.members);
+    }
+}
