@@ -41,7 +41,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1, value_name = "N")]
     frame_step: usize,
     /// Evaluate at most this many frames per experiment (evenly spaced; 0 = all).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_name = "N")]
     frames_per_experiment: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,

@@ -53,7 +53,8 @@ pub struct Args {
     /// Marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
     #[arg(long, value_name = "ROWSxCOLS")]
     grid: Option<String>,
-    /// Read frames from camera N (live) instead of a recording.
+    /// Read frames live from camera N (OpenCV's device index: 0 is the first camera) instead of a
+    /// recording.
     #[arg(long, value_name = "N")]
     camera: Option<i32>,
     /// Treat the video or camera frames as side-by-side stereo (left half, right half).
@@ -80,17 +81,18 @@ pub struct Args {
     /// meta.json `sensor`. Without one such a recording is indexed from its visible top-left marker.
     #[arg(long, value_name = "FILE")]
     sensor: Option<PathBuf>,
-    /// Re-zero the reference at these frames (comma separated): drift correction.
+    /// Frame numbers (from 0, comma separated) at which the current frame becomes the new reference:
+    /// drift correction.
     #[arg(long, value_delimiter = ',', value_name = "FRAME")]
     rezero_at: Vec<u32>,
     /// Stop after this many frames.
-    #[arg(long)]
+    #[arg(long, value_name = "N")]
     max_frames: Option<usize>,
     /// Write an overlay PNG (both views, displacement arrows) and a heat map every N frames (0: none).
     #[arg(long, default_value_t = 1, value_name = "N")]
     overlay_every: usize,
     /// Length factor of the displacement arrows in the overlays (1: true length in pixels).
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = 3.0, value_name = "K")]
     arrow_scale: f64,
     /// Do not write PLY files.
     #[arg(long)]
@@ -112,7 +114,7 @@ pub struct Args {
     #[arg(long)]
     bench: bool,
     /// Frame-runs timed per mode with --bench (after 20 warm-up runs).
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 200, value_name = "N")]
     bench_frames: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,
