@@ -19,14 +19,17 @@ WORK="$(mktemp -d)"
 trap 'rm -rf "$WORK"' EXIT
 REPORT="$WORK/benchmarks.md"
 
-# One section: a heading, the command, and its output in a code block.
+# Paths of this checkout and of the scratch folder left out of the report.
+tidy() { sed "s|$ROOT/||g; s|$WORK|OUT|g"; }
+
+# One section: a heading, the command as a reader would type it, and the output of running the rest.
 section() {
-  local title="$1"; shift
-  echo "running: $*" >&2
+  local title="$1" shown="$2"; shift 2
+  echo "running: $shown" >&2
   {
     printf '\n## %s\n\n' "$title"
-    printf 'Command: `%s`\n\n```\n' "$(echo "$*" | sed "s|$ROOT/||g")"
-    "$@" 2>&1 | sed "s|$ROOT/||g; s|$WORK|OUT|g"
+    printf 'Command: `%s`\n\n```\n' "$shown"
+    "$@" 2>&1 | tidy
     printf '```\n'
   } >>"$REPORT"
 }
@@ -43,7 +46,7 @@ cpu="$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | sed 's/^ *//')"
   echo "| date (UTC) | $(date -u '+%Y-%m-%d %H:%M') |"
   echo "| machine | $(nproc) cores, ${cpu:-unknown CPU}, $(awk '/MemTotal/ {printf "%.0f GiB", $2 / 1048576}' /proc/meminfo) |"
   echo "| load average at start | $(cut -d' ' -f1-3 /proc/loadavg) |"
-  echo "| gelstereo | $("$BIN" --version 2>&1 | tr '\n' ' ' | sed 's/ *$//') |"
+  echo "| gelstereo | $("$BIN" --version 2>&1 | tidy | tr '\n' ' ' | sed 's/ *$//') |"
   echo
   echo "Speed: medians of wall time, with CPU time beside them where the command measures it; ratios are"
   echo "measured side by side in one run. Accuracy: the bundled simulated recording \`$REC\` (24 stereo"
@@ -53,10 +56,13 @@ cpu="$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | sed 's/^ *//')"
 } >"$REPORT"
 
 section "Localization: latency per view and per stereo pair" \
+  "gelstereo bench --runs $RUNS --warmup 10 --pairs 8 $REC" \
   "$BIN" bench --runs "$RUNS" --warmup 10 --pairs 8 "$REC"
 section "Pipeline, shipped model: latency and throughput mode" \
+  "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
   "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
 section "Pipeline, fast model" \
+  "gelstereo bench --pipeline --runs $RUNS --warmup 10 --models data/models/fast $REC" \
   "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 --models data/models/fast "$REC"
 
 track_end_to_end() {
@@ -66,23 +72,14 @@ track_end_to_end() {
   end=$(date +%s.%N)
   awk -v s="$start" -v e="$end" 'BEGIN { printf "wall %.2f s for 24 frames from disk: %.1f stereo frames/s, default outputs (overlays, heat maps, PLY, plots)\n", e - s, 24 / (e - s) }'
 }
-section "End to end: \`gelstereo track\` with its default outputs" track_end_to_end
+section "End to end: gelstereo track with its default outputs, from disk" \
+  "time gelstereo track --quiet --out OUT/track $REC" track_end_to_end
 
 reconstruct_accuracy() {
-  "$BIN" reconstruct --calib "$REC/calib.yaml" --out "$WORK/rec" --evaluate "$REC" >/dev/null
-  python3 - "$WORK/rec/evaluation.json" <<'PY'
-import json, sys
-e = json.load(open(sys.argv[1]))
-def walk(prefix, v):
-    if isinstance(v, dict):
-        for k, x in v.items():
-            walk(f"{prefix}.{k}" if prefix else k, x)
-    elif isinstance(v, (int, float)):
-        print(f"{prefix}: {v:.6g}")
-walk("", e)
-PY
+  "$BIN" reconstruct --calib "$REC/calib.yaml" --out "$WORK/rec" --evaluate "$REC"
 }
-section "Reconstruction accuracy against the sample's ground truth" reconstruct_accuracy
+section "Reconstruction accuracy against the sample's ground truth" \
+  "gelstereo reconstruct --calib $REC/calib.yaml --out OUT/rec --evaluate $REC" reconstruct_accuracy
 
 tracking_accuracy() {
   python3 - "$WORK/track/frames.csv" "$REC/frames.csv" <<'PY'
@@ -98,7 +95,8 @@ print(f"largest depth within 0.05 mm in {within} of {len(deep)} frames deeper th
 print("largest depth error, mm: " + ", ".join(f"{a - b:+.3f}" for a, b in deep))
 PY
 }
-section "Tracking, contact and slip against the sample's ground truth" tracking_accuracy
+section "Tracking, contact and slip against the sample's ground truth" \
+  "OUT/track/frames.csv (from the end-to-end run) against $REC/frames.csv" tracking_accuracy
 
 cp "$REPORT" docs/benchmarks.md
 echo "wrote docs/benchmarks.md" >&2
