@@ -18,8 +18,8 @@ pub struct Args {
     /// The board's INNER corners, COLSxROWS (OpenCV's pattern size): a board of 10 x 7 squares is 9x6.
     #[arg(long, value_name = "COLSxROWS")]
     board: String,
-    /// Side of one square, mm.
-    #[arg(long, value_name = "S")]
+    /// Side of one square, mm (measure the printed board).
+    #[arg(long, value_name = "MM")]
     square_mm: f64,
     /// Where to write the calibration: FILE.yaml / FILE.yml / FILE.xml (OpenCV FileStorage),
     /// LEFT.cameramodel,RIGHT.cameramodel, or a folder (mrcal pair left.cameramodel, right.cameramodel).
@@ -30,7 +30,7 @@ pub struct Args {
     #[arg(long, default_value_t = 5)]
     distortion: usize,
     /// Half-size of the cornerSubPix window, px (keep it below half a square in the image).
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 5, value_name = "PX")]
     subpix_window: i32,
     /// Corner detector: classic (findChessboardCorners + cornerSubPix) or sb (findChessboardCornersSB,
     /// more robust to blur and noise).

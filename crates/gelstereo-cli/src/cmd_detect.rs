@@ -1,5 +1,5 @@
 //! `gelstereo detect`: markers in images, videos and stereo recordings, as `image,x,y,confidence` CSV
-//! (DESIGN.md "Interfaces"), with optional overlay PNGs. Also the localizer options shared with
+//! (docs/design.md "Interfaces"), with optional overlay PNGs. Also the localizer options shared with
 //! `gelstereo eval` and `gelstereo bench`.
 
 use std::collections::HashSet;
@@ -21,20 +21,21 @@ use crate::project;
 /// How to build the localizers: model files, blob parameters, ONNX Runtime options.
 #[derive(clap::Args, Debug, Clone)]
 pub struct LocalizerArgs {
-    /// Folder with marknet.onnx and mre.onnx (default: data/models of the project).
+    /// Folder with marknet.onnx (the localization network) and mre.onnx (the MRE, Marker Rationality
+    /// Evaluator, which keeps low-confidence markers that fit the lattice); default: data/models.
     #[arg(long, value_name = "DIR")]
     pub models: Option<PathBuf>,
     /// Marknet model file (overrides --models).
     #[arg(long, value_name = "FILE")]
     pub marknet: Option<PathBuf>,
-    /// MRE model file (overrides --models).
+    /// MRE (Marker Rationality Evaluator) model file (overrides --models).
     #[arg(long, value_name = "FILE")]
     pub mre: Option<PathBuf>,
     /// SimpleBlobDetector parameters: `tuned` (data/blob_params.json), `default` (OpenCV's), or a JSON file.
     #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
     pub blob_params: String,
     /// ONNX Runtime intra-op threads (0: one per core; at most 256).
-    #[arg(long, default_value_t = 0, value_parser = gelstereo_core::limits::parse_thread_count)]
+    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
     pub threads: usize,
     /// Never use the CUDA execution provider, even where ONNX Runtime has it.
     #[arg(long)]
@@ -99,7 +100,8 @@ impl LocalizerArgs {
 /// Arguments of `gelstereo detect`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Localization method: blob, yolo, marknet or marknet-mre.
+    /// Localization method: blob (OpenCV's SimpleBlobDetector), yolo, marknet, or marknet-mre (Marknet
+    /// with the MRE, Marker Rationality Evaluator).
     #[arg(long, default_value = "marknet-mre")]
     method: Method,
     /// CSV output (`image,x,y,confidence`); standard output when absent.

@@ -1,5 +1,5 @@
 //! `gelstereo eval`: the paper's Table I on a dataset written by `gelstereo simulate` — precision,
-//! recall and loss of each localization method on the easy / hard / contact splits (DESIGN.md
+//! recall and loss of each localization method on the easy / hard / contact splits (docs/design.md
 //! "Metrics"; the definitions live in `gelstereo_markers::metrics`).
 
 use std::fmt::Write as _;
@@ -43,7 +43,7 @@ pub struct Args {
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     frame_step: usize,
     /// Evaluate at most this many frames per experiment (evenly spaced; 0 = all).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_name = "N")]
     frames_per_experiment: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,

@@ -18,10 +18,10 @@ pub struct Args {
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// Number of experiments (recordings), split 6:2:2 into train / val / test.
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, value_name = "N")]
     experiments: u32,
     /// Stereo frames per experiment (frame 0 is the no-contact reference).
-    #[arg(long, default_value_t = 80)]
+    #[arg(long, default_value_t = 80, value_name = "N")]
     frames_per_experiment: u32,
     /// Master seed: the same seed gives the same bytes.
     #[arg(long, default_value_t = 0)]
@@ -39,10 +39,10 @@ pub struct Args {
     #[arg(long, value_name = "COLSxROWS")]
     checkerboard: Option<String>,
     /// Checkerboard square side, mm.
-    #[arg(long, default_value_t = 1.5, requires = "checkerboard")]
+    #[arg(long, default_value_t = 1.5, requires = "checkerboard", value_name = "MM")]
     square_mm: f64,
     /// Number of checkerboard poses (stereo pairs).
-    #[arg(long, default_value_t = 20, requires = "checkerboard")]
+    #[arg(long, default_value_t = 20, requires = "checkerboard", value_name = "N")]
     poses: usize,
     /// Replace a non-empty output folder.
     #[arg(long)]

@@ -1,6 +1,6 @@
 //! `gelstereo track`: the whole pipeline over a recording: localization in each view, grid indexing
 //! of the reference frame, tracking, triangulation, displacement, contact geometry and slip. Writes
-//! `OUT/markers.csv` and `OUT/frames.csv` (DESIGN.md contracts), per-frame PLY clouds and meshes
+//! `OUT/markers.csv` and `OUT/frames.csv` (docs/design.md contracts), per-frame PLY clouds and meshes
 //! (`OUT/ply/`), overlay PNGs with displacement arrows (`OUT/overlays/`) and plots (`OUT/plots/`).
 //! The work is `gelstereo_tracking::{StereoSession, MonoSession}`; this is input handling and output.
 //!
@@ -18,8 +18,8 @@ use gelstereo_core::{
     StereoPair, TieredDetections,
 };
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
+use gelstereo_io::figures::{self, ColourScale, Curve, OverlayMarker, OverlayView, TimeSeries, Timeline};
 use gelstereo_io::images::{self, StereoRecording};
-use gelstereo_io::plot::{self, LinePlot};
 use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
 use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{Localizer, Method};
@@ -29,12 +29,10 @@ use gelstereo_matching::{
 };
 use gelstereo_sim::SensorSpec;
 use gelstereo_tracking::{
-    ContactFrame, DenseField, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows,
-    interpolate,
+    ContactFrame, MonoSession, SessionConfig, StereoSession, TrackFrame, flagged_rows, interpolate,
 };
 use indicatif::{ProgressBar, ProgressStyle};
-use opencv::core::{Mat, MatTraitConst, Point, Scalar};
-use opencv::imgproc;
+use opencv::core::{Mat, MatTraitConst, Scalar};
 
 use crate::cmd_detect::LocalizerArgs;
 
@@ -45,7 +43,7 @@ pub struct Args {
     /// the recording's calib.yaml. Needed for stereo input, ignored for mono.
     #[arg(long, value_name = "FILE")]
     calib: Option<String>,
-    /// Output folder (created): markers.csv, frames.csv, ply/, overlays/, plots/.
+    /// Output folder (created): markers.csv, frames.csv, ply/, overlays/ (PNG), plots/ (PNG and SVG).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
     /// Localization method: blob, marknet or marknet-mre (default: marknet-mre when its models are
@@ -55,7 +53,8 @@ pub struct Args {
     /// Marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
     #[arg(long, value_name = "ROWSxCOLS")]
     grid: Option<String>,
-    /// Read frames from camera N (live) instead of a recording.
+    /// Read frames live from camera N (OpenCV's device index: 0 is the first camera) instead of a
+    /// recording.
     #[arg(long, value_name = "N")]
     camera: Option<i32>,
     /// Treat the video or camera frames as side-by-side stereo (left half, right half).
@@ -82,17 +81,18 @@ pub struct Args {
     /// meta.json `sensor`. Without one such a recording is indexed from its visible top-left marker.
     #[arg(long, value_name = "FILE")]
     sensor: Option<PathBuf>,
-    /// Re-zero the reference at these frames (comma separated): drift correction.
+    /// Frame numbers (from 0, comma separated) at which the current frame becomes the new reference:
+    /// drift correction.
     #[arg(long, value_delimiter = ',', value_name = "FRAME")]
     rezero_at: Vec<u32>,
     /// Stop after this many frames.
-    #[arg(long)]
+    #[arg(long, value_name = "N")]
     max_frames: Option<usize>,
-    /// Write an overlay PNG every N frames (0: none).
+    /// Write an overlay PNG (both views, displacement arrows) and a heat map every N frames (0: none).
     #[arg(long, default_value_t = 1, value_name = "N")]
     overlay_every: usize,
-    /// Length factor of the displacement arrows in the overlays.
-    #[arg(long, default_value_t = 3.0)]
+    /// Length factor of the displacement arrows in the overlays (1: true length in pixels).
+    #[arg(long, default_value_t = 3.0, value_name = "K")]
     arrow_scale: f64,
     /// Do not write PLY files.
     #[arg(long)]
@@ -114,7 +114,7 @@ pub struct Args {
     #[arg(long)]
     bench: bool,
     /// Frame-runs timed per mode with --bench (after 20 warm-up runs).
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 200, value_name = "N")]
     bench_frames: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,
@@ -423,6 +423,11 @@ struct Outputs {
     frames: std::io::BufWriter<std::fs::File>,
     history: Vec<FrameSummary>,
     line: String,
+    /// Per overlay frame, the heat-map values over the lattice (NaN unknown), drawn when the
+    /// recording ends so that every heat map shares one colour scale.
+    heat: Vec<(u32, Vec<f32>)>,
+    /// The frame of the largest indentation depth so far (stereo) and its marker surface.
+    deepest: Option<(u32, f64, figures::Surface)>,
 }
 
 impl Outputs {
@@ -440,6 +445,8 @@ impl Outputs {
             frames: open("frames.csv")?,
             history: Vec::new(),
             line: String::new(),
+            heat: Vec::new(),
+            deepest: None,
         };
         writeln!(out.markers, "{}", MARKER_COLUMNS.join(","))?;
         writeln!(out.frames, "{}", FRAME_COLUMNS.join(","))?;
@@ -465,54 +472,125 @@ impl Outputs {
         Ok(())
     }
 
-    fn finish(mut self, stereo: bool) -> anyhow::Result<Vec<FrameSummary>> {
+    fn finish(mut self, stereo: bool, shape: GridShape) -> anyhow::Result<Vec<FrameSummary>> {
         self.markers.flush().context("cannot write markers.csv")?;
         self.frames.flush().context("cannot write frames.csv")?;
         let h = &self.history;
-        let x = |f: &FrameSummary| f64::from(f.frame);
-        let area: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f.contact_area_mm2)).collect();
-        plot::write(
-            &self.dir.join("plots/contact_area.png"),
-            &LinePlot::new("contact area", "frame", "mm^2").with_series("contact area", [200, 80, 0], area),
-        )?;
-        if stereo {
-            let depth: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f.max_depth_mm)).collect();
-            plot::write(
-                &self.dir.join("plots/max_depth.png"),
-                &LinePlot::new("largest indentation depth", "frame", "mm").with_series(
-                    "max depth",
-                    [0, 120, 220],
-                    depth,
-                ),
-            )?;
-        }
-        let slip: Vec<(f64, f64)> = h.iter().map(|f| (x(f), f64::from(slip_level(f.slip)))).collect();
-        let cats = [
-            SlipState::NoContact,
-            SlipState::Stick,
-            SlipState::PartialSlip,
-            SlipState::GrossSlip,
-        ]
-        .map(|s| s.as_str().to_owned())
-        .to_vec();
-        plot::write(
-            &self.dir.join("plots/slip.png"),
-            &LinePlot {
-                categories: cats,
-                ..LinePlot::new("slip state", "frame", "")
+        let frames: Vec<u32> = h.iter().map(|f| f.frame).collect();
+        let timeline = Timeline::new(&frames, None);
+        let plots = self.dir.join("plots");
+        let area = TimeSeries {
+            title: "contact area".into(),
+            y_label: "contact area (mm²)".into(),
+            timeline: timeline.clone(),
+            curves: vec![Curve {
+                name: "contact area".into(),
+                values: h.iter().map(|f| f.contact_area_mm2).collect(),
+            }],
+            y_resolution: 0.1,
+            unknown_note: "the marker pitch is not given (--pitch-mm)".into(),
+        };
+        let depth = TimeSeries {
+            title: "largest indentation depth".into(),
+            y_label: "depth (mm)".into(),
+            curves: vec![Curve {
+                name: "largest depth".into(),
+                values: h.iter().map(|f| f.max_depth_mm).collect(),
+            }],
+            y_resolution: 0.01,
+            unknown_note: "one camera measures no depth".into(),
+            ..area.clone()
+        };
+        let slip: Vec<SlipState> = h.iter().map(|f| f.slip).collect();
+        for ext in ["png", "svg"] {
+            figures::time_series(&plots.join(format!("contact_area.{ext}")), &area)?;
+            if stereo {
+                figures::time_series(&plots.join(format!("max_depth.{ext}")), &depth)?;
             }
-            .with_series("slip", [40, 40, 200], slip),
-        )?;
+            figures::slip_timeline(&plots.join(format!("slip.{ext}")), "slip state", &timeline, &slip)?;
+        }
+        self.write_heat_maps(stereo, shape)?;
         Ok(self.history)
     }
-}
 
-fn slip_level(s: SlipState) -> u8 {
-    match s {
-        SlipState::NoContact => 0,
-        SlipState::Stick => 1,
-        SlipState::PartialSlip => 2,
-        SlipState::GrossSlip => 3,
+    /// Keeps `contact`'s marker surface when its frame is the deepest so far.
+    fn keep_if_deepest(
+        &mut self,
+        frame: u32,
+        depth_mm: Option<f64>,
+        shape: GridShape,
+        contact: &ContactFrame,
+    ) {
+        let Some(depth) = depth_mm.filter(|d| d.is_finite()) else {
+            return;
+        };
+        if self.deepest.as_ref().is_some_and(|(_, d, _)| *d >= depth) {
+            return;
+        }
+        let surface = figures::Surface {
+            rows: usize::from(shape.rows),
+            cols: usize::from(shape.cols),
+            positions_mm: contact
+                .positions_mm
+                .iter()
+                .map(|p| p.map(|p| [p.x, p.y, p.z]))
+                .collect(),
+            depth_mm: contact.depth_mm.clone(),
+        };
+        self.deepest = Some((frame, depth, surface));
+    }
+
+    /// The heat maps of the overlay frames on one colour scale (0 .. the recording's largest value):
+    /// indentation depth for stereo, displacement magnitude in the image for mono.
+    fn write_heat_maps(&self, stereo: bool, shape: GridShape) -> anyhow::Result<()> {
+        let (label, name, resolution) = if stereo {
+            ("indentation depth (mm)", "depth", 0.01)
+        } else {
+            ("displacement (px)", "displacement", 0.5)
+        };
+        let deepest = self
+            .deepest
+            .iter()
+            .flat_map(|(_, _, s)| s.depth_mm.iter().flatten().copied());
+        let scale = ColourScale::covering(
+            label,
+            self.heat
+                .iter()
+                .flat_map(|(_, v)| v.iter().map(|x| f64::from(*x)))
+                .chain(deepest),
+            resolution,
+        );
+        if let Some((frame, _, surface)) = &self.deepest {
+            for ext in ["png", "svg"] {
+                let path = self.dir.join("plots").join(format!("contact_surface.{ext}"));
+                figures::surface(
+                    &path,
+                    &format!("contact surface, frame {frame} (deepest)"),
+                    surface,
+                    &scale,
+                )?;
+            }
+        }
+        for (frame, values) in &self.heat {
+            let lattice: Vec<Option<f64>> = values
+                .iter()
+                .map(|v| v.is_finite().then_some(f64::from(*v)))
+                .collect();
+            let Some(dense) = interpolate(shape, &lattice, 8) else {
+                continue;
+            };
+            let field = figures::Field {
+                width: dense.width,
+                height: dense.height,
+                values: dense.values,
+                x_extent: (0.0, f64::from(shape.cols.saturating_sub(1))),
+                y_extent: (0.0, f64::from(shape.rows.saturating_sub(1))),
+                axis_labels: ("marker column".into(), "marker row".into()),
+            };
+            let path = self.dir.join("overlays").join(format!("{name}_{frame:06}.png"));
+            figures::heatmap(&path, &format!("frame {frame}: {name}"), &field, &scale)?;
+        }
+        Ok(())
     }
 }
 
@@ -591,67 +669,25 @@ fn write_ply(
     Ok(())
 }
 
-/// Draws displacement arrows (reference -> current, scaled) and the contact markers onto `image`.
-fn overlay(
-    image: &Mat,
+/// The markers of one view for an overlay: reference position, current position, status, contact.
+fn overlay_markers(
     reference: &[Point2],
     track: &TrackFrame,
     in_contact: &dyn Fn(usize) -> bool,
-    scale: f64,
-    caption: &str,
-) -> anyhow::Result<Mat> {
-    let mut out = Mat::default();
-    if image.channels() == 1 {
-        imgproc::cvt_color(image, &mut out, imgproc::COLOR_GRAY2BGR, 0)?;
-    } else {
-        out = image.try_clone()?;
-    }
-    let pt = |p: Point2| Point::new(p.x.round() as i32, p.y.round() as i32);
-    for (k, m) in track.markers.iter().enumerate() {
-        let Some(p) = m.position_px else { continue };
-        let r = reference[k];
-        let tip = Point2::new(r.x + scale * (p.x - r.x), r.y + scale * (p.y - r.y));
-        let color = match m.status {
-            MarkerStatus::Tracked => Scalar::new(0.0, 200.0, 0.0, 0.0),
-            MarkerStatus::Predicted => Scalar::new(0.0, 160.0, 255.0, 0.0),
-            MarkerStatus::Lost => Scalar::new(0.0, 0.0, 255.0, 0.0),
-        };
-        if in_contact(k) {
-            imgproc::circle(
-                &mut out,
-                pt(p),
-                5,
-                Scalar::new(0.0, 0.0, 255.0, 0.0),
-                1,
-                imgproc::LINE_AA,
-                0,
-            )?;
-        }
-        imgproc::arrowed_line(&mut out, pt(r), pt(tip), color, 1, imgproc::LINE_AA, 0, 0.25)?;
-    }
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 16),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.45,
-        Scalar::new(0.0, 0.0, 0.0, 0.0),
-        3,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 16),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.45,
-        Scalar::new(255.0, 255.0, 255.0, 0.0),
-        1,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    Ok(out)
+) -> Vec<OverlayMarker> {
+    track
+        .markers
+        .iter()
+        .enumerate()
+        .filter_map(|(k, m)| {
+            Some(OverlayMarker {
+                reference_px: *reference.get(k)?,
+                current_px: m.position_px?,
+                status: m.status,
+                in_contact: in_contact(k),
+            })
+        })
+        .collect()
 }
 
 enum Session {
@@ -1087,6 +1123,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         match (s, &frame) {
             (Session::Stereo(st), Frame::Stereo(pair)) => {
                 let reference: Vec<Point2> = st.left().reference_px().to_vec();
+                let reference_right: Vec<Point2> = st.right().reference_px().to_vec();
                 let out = st.track_tiered(frame_no, &dets.left, &dets.right)?;
                 outputs.rows(&out.markers, &out.summary)?;
                 tracked_total += out.left.count(MarkerStatus::Tracked);
@@ -1095,34 +1132,42 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     write_ply(&ply_dir, frame_no, st, &out.contact, &out.reprojection_px)?;
                 }
                 if write_overlay {
-                    let lin: Vec<usize> = st
-                        .left()
-                        .ids()
-                        .iter()
-                        .map(|i| shape.linear(*i).unwrap_or(0))
-                        .collect();
-                    let caption = caption(&out.summary);
-                    let img = overlay(
-                        &pair.left,
-                        &reference,
-                        &out.left,
-                        &|k| out.contact.in_contact[lin[k]],
+                    let in_contact = |ids: &[GridIndex], k: usize| {
+                        ids.get(k)
+                            .and_then(|i| shape.linear(*i))
+                            .and_then(|l| out.contact.in_contact.get(l).copied())
+                            .unwrap_or(false)
+                    };
+                    let views = [
+                        OverlayView {
+                            name: "left",
+                            image: &pair.left,
+                            markers: overlay_markers(&reference, &out.left, &|k| {
+                                in_contact(st.left().ids(), k)
+                            }),
+                        },
+                        OverlayView {
+                            name: "right",
+                            image: &pair.right,
+                            markers: overlay_markers(&reference_right, &out.right, &|k| {
+                                in_contact(st.right().ids(), k)
+                            }),
+                        },
+                    ];
+                    figures::overlay(
+                        &overlay_dir.join(format!("{frame_no:06}.png")),
+                        &views,
                         args.arrow_scale,
-                        &caption,
+                        &caption(&out.summary),
                     )?;
-                    images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &img)?;
-                    let field = interpolate(shape, &out.contact.depth_mm, 16);
-                    if let Some(f) = field {
-                        let map = heatmap(
-                            &f,
-                            &format!(
-                                "frame {frame_no} indentation depth 0 .. {:.3} mm",
-                                f.range().1.max(0.0)
-                            ),
-                        )?;
-                        images::write_image(&overlay_dir.join(format!("depth_{frame_no:06}.png")), &map)?;
-                    }
+                    let depth = out
+                        .contact
+                        .depth_mm
+                        .iter()
+                        .map(|d| d.map_or(f32::NAN, |d| d as f32));
+                    outputs.heat.push((frame_no, depth.collect()));
                 }
+                outputs.keep_if_deepest(frame_no, out.summary.max_depth_mm, shape, &out.contact);
                 latest_contact = Some(out.contact);
             }
             (Session::Mono(m), Frame::Mono(img)) => {
@@ -1132,34 +1177,28 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 tracked_total += out.track.count(MarkerStatus::Tracked);
                 visible_total += out.track.markers.len();
                 if write_overlay {
-                    let in_contact = out.planar.in_contact.clone();
-                    let caption = caption(&out.summary);
-                    let drawn = overlay(
-                        img,
-                        &reference,
-                        &out.track,
-                        &|k| in_contact.get(k).copied().unwrap_or(false),
+                    let in_contact = |k: usize| out.planar.in_contact.get(k).copied().unwrap_or(false);
+                    let view = OverlayView {
+                        name: "camera",
+                        image: img,
+                        markers: overlay_markers(&reference, &out.track, &in_contact),
+                    };
+                    figures::overlay(
+                        &overlay_dir.join(format!("{frame_no:06}.png")),
+                        &[view],
                         args.arrow_scale,
-                        &caption,
+                        &caption(&out.summary),
                     )?;
-                    images::write_image(&overlay_dir.join(format!("{frame_no:06}.png")), &drawn)?;
-                    // Dense displacement magnitude on the lattice, px.
-                    let mut mags: Vec<Option<f64>> = vec![None; shape.count()];
+                    // Displacement magnitude on the lattice, px.
+                    let mut mags = vec![f32::NAN; shape.count()];
                     for (k, mk) in out.track.markers.iter().enumerate() {
-                        if let (Some(p), Some(l)) = (mk.position_px, shape.linear(mk.index)) {
-                            mags[l] = Some(p.distance(reference[k]));
+                        if let (Some(p), Some(r), Some(l)) =
+                            (mk.position_px, reference.get(k), shape.linear(mk.index))
+                        {
+                            mags[l] = p.distance(*r) as f32;
                         }
                     }
-                    if let Some(f) = interpolate(shape, &mags, 16) {
-                        let map = heatmap(
-                            &f,
-                            &format!("frame {frame_no} displacement 0 .. {:.1} px", f.range().1),
-                        )?;
-                        images::write_image(
-                            &overlay_dir.join(format!("displacement_{frame_no:06}.png")),
-                            &map,
-                        )?;
-                    }
+                    outputs.heat.push((frame_no, mags));
                 }
             }
             _ => bail!("frame {frame_no}: a mono frame in a stereo session or the reverse"),
@@ -1179,7 +1218,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             warnings.last().map_or("no frames", String::as_str)
         );
     }
-    let history = outputs.finish(stereo)?;
+    let history = outputs.finish(stereo, shape)?;
     let secs = started.elapsed().as_secs_f64();
     let contact = history.iter().filter(|f| f.contact).count();
     let slip = history
@@ -1235,51 +1274,18 @@ fn ground_truth(dir: &Path, noise_px: f64) -> anyhow::Result<Vec<StereoPair<Vec<
     Ok(out)
 }
 
-/// A colour map (jet, 0 .. the field's maximum) of a dense field, with a caption.
-fn heatmap(field: &DenseField, caption: &str) -> anyhow::Result<Mat> {
-    let (_, hi) = field.range();
-    let scale = if hi > 0.0 { 255.0 / hi } else { 0.0 };
-    let bytes: Vec<u8> = field
-        .values
-        .iter()
-        .map(|v| (v.max(0.0) * scale).round().clamp(0.0, 255.0) as u8)
-        .collect();
-    let grey = Mat::new_rows_cols_with_data(field.height as i32, field.width as i32, &bytes)?.try_clone()?;
-    let mut colour = Mat::default();
-    imgproc::apply_color_map(&grey, &mut colour, imgproc::COLORMAP_JET)?;
-    let mut out = Mat::default();
-    let (w, h) = (colour.cols().max(1), colour.rows().max(1));
-    let k = (480.0 / f64::from(h)).max(1.0);
-    imgproc::resize(
-        &colour,
-        &mut out,
-        opencv::core::Size::new((f64::from(w) * k) as i32, (f64::from(h) * k) as i32),
-        0.0,
-        0.0,
-        imgproc::INTER_LINEAR,
-    )?;
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 18),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.5,
-        Scalar::all(255.0),
-        1,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    Ok(out)
-}
-
-fn caption(s: &FrameSummary) -> String {
-    format!(
-        "frame {} {} area {:.2} mm2 depth {:.3} mm",
-        s.frame,
-        s.slip.as_str(),
-        s.contact_area_mm2,
-        s.max_depth_mm
-    )
+/// The overlay caption's items: frame, slip state, contact area and depth ("unknown" where the
+/// sensor cannot tell).
+fn caption(s: &FrameSummary) -> Vec<String> {
+    let known = |v: Option<f64>, decimals: usize, unit: &str| {
+        v.map_or_else(|| "unknown".to_owned(), |v| format!("{v:.decimals$} {unit}"))
+    };
+    vec![
+        format!("frame {}", s.frame),
+        s.slip.as_str().replace('_', " "),
+        format!("area {}", known(s.contact_area_mm2, 1, "mm²")),
+        format!("depth {}", known(s.max_depth_mm, 2, "mm")),
+    ]
 }
 
 fn check_size(reference: &mut Option<ImageSize>, size: ImageSize) -> anyhow::Result<()> {

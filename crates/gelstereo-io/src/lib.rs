@@ -4,8 +4,8 @@
 //! centre of the top-left pixel, as everywhere in gelstereo.
 
 pub mod atomic;
+pub mod figures;
 pub mod images;
-pub mod plot;
 pub mod ply;
 pub mod video;
 
@@ -60,6 +60,14 @@ pub enum Error {
         /// The folder.
         path: PathBuf,
         /// What was expected and what was found.
+        what: String,
+    },
+    /// A figure could not be drawn or written.
+    #[error("{path}: cannot draw the figure: {what}")]
+    Figure {
+        /// The figure file.
+        path: PathBuf,
+        /// What went wrong.
         what: String,
     },
     /// OpenCV reported an error while working on `path`.
