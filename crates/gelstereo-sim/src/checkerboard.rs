@@ -281,7 +281,7 @@ pub fn write_checkerboard_set(
         });
         let text = serde_json::to_string_pretty(&meta).unwrap_or_default();
         std::fs::write(tmp.join("poses.json"), text + "\n").map_err(io_err(tmp.join("poses.json")))?;
-        crate::calibration::write_calibration(&sensor.rig, &tmp)
+        crate::calibration::write_calibration(&sensor.rig, tmp)
     })();
     result?;
     pending.finish()
