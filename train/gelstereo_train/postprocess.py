@@ -388,12 +388,10 @@ def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) ->
     min_angle = math.radians(check.min_angle_deg)
     two_lines = np.zeros(n, dtype=bool)
     for i in range(n):
-        a = sorted(angles[i])
-        if len(a) < 2:
-            continue
-        # all directions within an arc shorter than min_angle <=> the largest circular gap exceeds pi - min_angle
-        gaps = [a[t + 1] - a[t] for t in range(len(a) - 1)] + [a[0] + math.pi - a[-1]]
-        two_lines[i] = max(gaps) < math.pi - min_angle
+        a = np.array(angles[i])
+        d = np.abs(a[:, None] - a[None, :])
+        # two lines: some pair of directions differs by at least min_angle (modulo pi)
+        two_lines[i] = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= min_angle).any())
     parent = list(range(n))
 
     def root(x: int) -> int:

@@ -41,8 +41,8 @@ pub struct LocalizerArgs {
     #[arg(long)]
     pub cpu: bool,
     /// How Marknet fits an image to its input: `auto` (the model's: isotropic, scaled so the marker
-    /// pitch measured on a first pass lands in the range the network was trained on, mirrored margin;
-    /// the pitch is remembered per image size), `stretch` (the whole image resized to the nominal
+    /// pitch measured on a first pass lands in the range the network was trained on, a margin of the
+    /// median colour; the pitch is remembered per image size), `stretch` (the whole image resized to the nominal
     /// input) or `pad` (isotropic, never enlarged, centred in the nominal input).
     #[arg(long, default_value = "auto", value_name = "auto|stretch|pad")]
     pub fit: InputFit,

@@ -119,15 +119,41 @@ impl Patches {
     }
 }
 
-/// Whether directions (radians in [0, pi), sorted) span at least `min_angle`: the largest circular gap
-/// between them is below `pi - min_angle`.
-fn spans_two_lines(sorted: &[f64], min_angle: f64) -> bool {
-    let (Some(first), Some(last)) = (sorted.first(), sorted.last()) else {
-        return false;
+/// Directions stored per point before it is known to lie on two lines (more, all within
+/// `min_angle_deg` of each other, do not occur on a lattice; past it new ones are still compared).
+const MAX_DIRECTIONS: usize = 16;
+
+/// The directions of the lines through one point, until two of them are far enough apart.
+#[derive(Clone, Copy)]
+struct Lines {
+    angles: [f64; MAX_DIRECTIONS],
+    count: usize,
+    two: bool,
+}
+
+impl Lines {
+    const NONE: Self = Self {
+        angles: [0.0; MAX_DIRECTIONS],
+        count: 0,
+        two: false,
     };
-    let wrap = first + std::f64::consts::PI - last;
-    let widest = sorted.windows(2).map(|w| w[1] - w[0]).fold(wrap, f64::max);
-    sorted.len() >= 2 && widest < std::f64::consts::PI - min_angle
+
+    /// Adds a line of direction `angle` (radians in [0, pi)): two lines once any pair of directions
+    /// differs by at least `min_angle` (modulo pi).
+    fn add(&mut self, angle: f64, min_angle: f64) {
+        if self.two {
+            return;
+        }
+        let pi = std::f64::consts::PI;
+        self.two = self.angles[..self.count].iter().any(|a| {
+            let d = (angle - a).abs();
+            d.min(pi - d) >= min_angle
+        });
+        if self.count < MAX_DIRECTIONS {
+            self.angles[self.count] = angle;
+            self.count += 1;
+        }
+    }
 }
 
 /// The lattice members among `points` (see the module documentation); `input_per_px` is the network
@@ -153,8 +179,9 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
         return fit;
     };
     let grid = Buckets::new(points, check.reach_frac * median_nn);
-    // (point, direction of a line through it), and the pairs each line joins.
-    let mut directions: Vec<(usize, f64)> = Vec::new();
+    let min_angle = check.min_angle_deg.to_radians();
+    // The lines through each point, and the pairs each line joins.
+    let mut lines = vec![Lines::NONE; n];
     let mut bonds: Vec<(usize, usize)> = Vec::new();
     let mut near: Vec<(f64, usize)> = Vec::new();
     for (i, &p) in points.iter().enumerate() {
@@ -175,19 +202,15 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
             for &(_, k) in &near[a + 1..] {
                 if points[k].distance(opposite) <= limit {
                     let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
-                    directions.extend([(i, angle), (j, angle), (k, angle)]);
+                    for q in [i, j, k] {
+                        lines[q].add(angle, min_angle);
+                    }
                     bonds.extend([(i, j), (i, k)]);
                 }
             }
         }
     }
-    directions.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
-    let min_angle = check.min_angle_deg.to_radians();
-    let mut two_lines = vec![false; n];
-    for run in directions.chunk_by(|a, b| a.0 == b.0) {
-        let angles: Vec<f64> = run.iter().map(|&(_, a)| a).collect();
-        two_lines[run[0].0] = spans_two_lines(&angles, min_angle);
-    }
+    let two_lines: Vec<bool> = lines.iter().map(|l| l.two).collect();
     let mut patches = Patches((0..n).collect());
     for &(i, j) in &bonds {
         if two_lines[i] && two_lines[j] {

@@ -36,16 +36,16 @@ pub const MAX_ASPECT_DISTORTION: f64 = 2.0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum InputFit {
     /// The model's own fit: for a dynamic-input model (`gelstereo-marknet/2`) the "auto" layout of
-    /// [`fit_layout`] (isotropic, marker pitch brought into the trained range, mirrored margin), with the
-    /// pitch measured on a first pass and remembered per image size; for a fixed-input model the
-    /// contract's [`Stretch`](Self::Stretch).
+    /// [`fit_layout`] (isotropic, marker pitch brought into the trained range, a margin of the median
+    /// colour), with the pitch measured on a first pass and remembered per image size; for a
+    /// fixed-input model the contract's [`Stretch`](Self::Stretch).
     #[default]
     Auto,
     /// The whole image resized to the nominal input size (anisotropically if the aspect ratios
     /// differ): the first contract's preprocessing.
     Stretch,
     /// Isotropic: scaled by `min(input_width / W, input_height / H, 1)` (never enlarged), centred in
-    /// the nominal input, the rest filled by mirroring the image (OpenCV `BORDER_REFLECT_101`).
+    /// the nominal input, the rest filled with the image's median colour.
     Pad,
 }
 
@@ -97,7 +97,7 @@ pub const PROBE_MIN_GAIN: f64 = 2.0;
 pub const PROBE_MIN_COVER: f64 = 0.5;
 
 /// Where an image lies in the network input: resized to `scaled_width x scaled_height` and placed at
-/// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest mirrored.
+/// (`offset_x`, `offset_y`) in an input of `input_width x input_height`, the rest filled with its median colour.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct InputLayout {
     /// Network input width, px.

@@ -12,6 +12,7 @@
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, Point2, StereoPair};
+use gelstereo_markers::lattice::LatticeCheck;
 use gelstereo_markers::postprocess::{Selection, decode};
 use gelstereo_markers::{Error, Localizer, Marknet, Mre, PostProcess, SessionOptions};
 use opencv::core::{CV_8UC3, Mat, MatTraitConst, Scalar};
@@ -125,7 +126,15 @@ fn contract_is_read_from_the_fixture_metadata() {
         ),
         (64, 64, 8, 8, 8, 2)
     );
-    assert_eq!(c.postprocess, post_of(&expected()));
+    // The thresholds come from the metadata; the lattice check is the loader's default, not metadata.
+    assert_eq!(
+        PostProcess {
+            lattice: None,
+            ..c.postprocess
+        },
+        post_of(&expected())
+    );
+    assert_eq!(c.postprocess.lattice, Some(LatticeCheck::default()));
     let with = m.with_mre(mre()).unwrap();
     assert_eq!(with.name(), "marknet-mre");
 }
