@@ -431,7 +431,11 @@ impl Appearance {
     /// colour of another hue whose luminance is 0.85 to 1.6 times the gel's.
     fn recolour_by_hue(&mut self, rng: &mut impl Rng) {
         let gel_hue: f32 = rng.random_range(0.0..std::f32::consts::TAU);
-        let gel = hsv(gel_hue, rng.random_range(0.4..0.85), rng.random_range(70.0..170.0));
+        let gel = hsv(
+            gel_hue,
+            rng.random_range(0.4..0.85),
+            rng.random_range(70.0..170.0),
+        );
         let turn = rng.random_range(1.0..2.6) * if rng.random_bool(0.5) { 1.0 } else { -1.0 };
         let dot = hsv(gel_hue + turn, rng.random_range(0.5..0.95), 200.0);
         let target = luminance(gel) * rng.random_range(0.85..1.6);

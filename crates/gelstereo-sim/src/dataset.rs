@@ -22,13 +22,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::GENERATOR_VERSION;
 use crate::appearance::Appearance;
+use crate::appearance::random_housing;
 use crate::error::{Error, Result, io_err};
 use crate::indenter::{Indenter, SHAPES};
 use crate::motion::Script;
 use crate::physics::{Layer, SurfaceGrid, deform};
 use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
 use crate::sensor::{Sensor, SensorSpec};
-use crate::appearance::random_housing;
 use crate::variant::{random_gelsight_mini_like, random_variant, random_wide_variant};
 
 /// How much a dataset varies from the reference sensor's look and geometry.
@@ -347,7 +347,10 @@ pub fn families(experiment: &Experiment, pitch_px: f64) -> Vec<String> {
         format!("marker:{marker}"),
         format!("lattice:{lattice}"),
         format!("membrane:{membrane}"),
-        format!("res:{}x{}", sensor.cameras.image_width, sensor.cameras.image_height),
+        format!(
+            "res:{}x{}",
+            sensor.cameras.image_width, sensor.cameras.image_height
+        ),
         format!("pitch:{pitch}"),
     ];
     for t in &app.textures {

@@ -420,7 +420,13 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
             if let Some(mem) = &job.membrane {
                 let d = mem.signed_distance_mm(f64::from(r[0]), f64::from(r[1])) as f32;
                 if d > 0.0 {
-                    px.copy_from_slice(&housing_pixel(housing, d, r[0], r[1], 1.0 - app.vignette * o.radius2[k]));
+                    px.copy_from_slice(&housing_pixel(
+                        housing,
+                        d,
+                        r[0],
+                        r[1],
+                        1.0 - app.vignette * o.radius2[k],
+                    ));
                     continue;
                 }
             }
@@ -534,7 +540,11 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         }
     }
 
-    if app.textures.iter().any(|t| !matches!(t, Texture::Fingerprint { .. })) {
+    if app
+        .textures
+        .iter()
+        .any(|t| !matches!(t, Texture::Fingerprint { .. }))
+    {
         let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
         apply_stripes(buf, w, &app.textures);
     }

@@ -276,10 +276,7 @@ impl SensorSpec {
                 let h = crate::render::splitmix(key);
                 // Two uniform numbers in [-1, 1) from the hash's halves.
                 let u = |bits: u64| (bits & 0xFFFF_FFFF) as f64 / 2_147_483_648.0 - 1.0;
-                [
-                    (x + jitter_frac * u(h)) * p,
-                    (y + jitter_frac * u(h >> 32)) * p,
-                ]
+                [(x + jitter_frac * u(h)) * p, (y + jitter_frac * u(h >> 32)) * p]
             }
         }
     }

@@ -174,8 +174,17 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
     if max_cols < 4 || max_rows < 4 {
         return None;
     }
-    // Membranes are shaped from the lattice's extent: keep it near the largest that fits.
-    let least = |max: u16| if membrane_kind >= 3 { max * 4 / 5 } else { max / 2 }.max(4);
+    // An overfilling lattice takes the largest size (it must reach past the borders); membranes are
+    // shaped from the lattice's extent, so keep it near the largest that fits.
+    let least = |max: u16| {
+        if overfill {
+            max
+        } else if membrane_kind >= 3 {
+            (max * 4 / 5).max(4)
+        } else {
+            (max / 2).max(4)
+        }
+    };
     let cols = rng.random_range(least(max_cols)..=max_cols);
     let rows = rng.random_range(least(max_rows)..=max_rows);
     let pitch_mm = rng.random_range(0.6..2.5);
@@ -263,8 +272,8 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
         return None;
     }
     let seen = sensor.visible_fraction_at_rest(0.0) * spec.grid_shape().count() as f64 / printed as f64;
-    let seen_inside = sensor.visible_fraction_at_rest(0.6 * pitch_px) * spec.grid_shape().count() as f64
-        / printed as f64;
+    let seen_inside =
+        sensor.visible_fraction_at_rest(0.6 * pitch_px) * spec.grid_shape().count() as f64 / printed as f64;
     let ok = if overfill {
         (0.45..0.95).contains(&seen)
     } else {
