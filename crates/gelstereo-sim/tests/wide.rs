@@ -169,3 +169,45 @@ fn wide_ground_truth_is_consistent_and_reproducible() {
         "{with_membrane} {cut_by_border}"
     );
 }
+
+/// `--split test` writes only the test experiments, byte for byte as the whole dataset holds them.
+#[test]
+fn one_split_is_the_same_files_as_in_the_whole_dataset() {
+    use gelstereo_sim::dataset::{Split, write_dataset};
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = DatasetConfig::new(5, 2, 8);
+    write_dataset(&tmp.path().join("all"), &cfg, false, &|| {}).unwrap();
+    let mut only = cfg.clone();
+    only.only_split = Some(Split::Test);
+    write_dataset(&tmp.path().join("test"), &only, false, &|| {}).unwrap();
+    let names = |d: &std::path::Path| {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let test_exps = names(&tmp.path().join("all/test"));
+    assert!(!test_exps.is_empty());
+    assert_eq!(
+        names(&tmp.path().join("test")),
+        ["dataset.json", "test"].map(std::ffi::OsString::from)
+    );
+    assert_eq!(names(&tmp.path().join("test/test")), test_exps);
+    for e in &test_exps {
+        for f in ["markers.csv", "meta.json", "left/000001.png", "right/000001.png"] {
+            let a = std::fs::read(tmp.path().join("all/test").join(e).join(f)).unwrap();
+            let b = std::fs::read(tmp.path().join("test/test").join(e).join(f)).unwrap();
+            assert!(a == b, "{}/{f} differs", e.to_string_lossy());
+        }
+    }
+    assert_eq!("test".parse::<Split>().unwrap(), Split::Test);
+    assert!(
+        "tset"
+            .parse::<Split>()
+            .unwrap_err()
+            .to_string()
+            .contains("train, val or test")
+    );
+}
