@@ -63,8 +63,8 @@ section "Pipeline, shipped model: latency and throughput mode" \
   "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
   "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
 section "Pipeline, fast model" \
-  "gelstereo bench --pipeline --runs $RUNS --warmup 10 --models data/models/fast $REC" \
-  "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 --models data/models/fast "$REC"
+  "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
+  "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
 
 track_end_to_end() {
   local start end

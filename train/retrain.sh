@@ -4,16 +4,17 @@
 #   train/retrain.sh [DATA_DIR] [RUN_DIR]
 #
 # DATA_DIR (default train/runs/sim-v1, git-ignored) is simulated first when it has no dataset.json.
+# Relative paths are taken from the current folder (the script changes folder later).
 # RUN_DIR (default train/runs/<date>) receives checkpoints, logs and reports; the ONNX files go to
 # MODELS_DIR (default data/models). Knobs (environment): MINUTES (Marknet wall-clock budget, 48: the shipped run),
 # THREADS (2), STEM (s4: the shipped architecture, one stride-4 stem convolution; s2: a stride-2 stage),
-# CANONICAL (auto: canonical crops in the isotropic auto layout, as the shipped model; stretch), INIT (a Marknet checkpoint to warm-start from, same architecture), LR (peak
+# CANONICAL (auto: canonical crops in the isotropic auto layout, as the shipped model; stretch), INIT (a Marknet checkpoint or exported .onnx to warm-start from, same architecture), LR (peak
 # learning rate, the trainer's 3e-3), P_CONTACT (share of crops centred near a contact, 0), SEED (0), SIM_ARGS (arguments of `gelstereo simulate` besides --out), REAL_VIDEO (zero-shot check).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-DATA="${1:-$ROOT/train/runs/sim-v1}"
-RUN="${2:-$ROOT/train/runs/$(date -u +%Y%m%dT%H%M%SZ)}"
-MODELS="${MODELS_DIR:-$ROOT/data/models}"
+DATA="$(realpath -m "${1:-$ROOT/train/runs/sim-v1}")"
+RUN="$(realpath -m "${2:-$ROOT/train/runs/$(date -u +%Y%m%dT%H%M%SZ)}")"
+MODELS="$(realpath -m "${MODELS_DIR:-$ROOT/data/models}")"
 MINUTES="${MINUTES:-48}"
 THREADS="${THREADS:-2}"
 SIM_ARGS="${SIM_ARGS:---experiments 60 --frames-per-experiment 50 --seed 1 --randomization full --quiet}"

@@ -159,6 +159,22 @@ def read_dataset_info(root: Path) -> dict:
         raise DatasetError(f"{p}: not valid JSON: {e}") from e
 
 
+def experiment_families(root: Path | str, split: str, experiment: str) -> list[str]:
+    """The families an experiment belongs to (``meta.json`` ``families``, written by
+    ``gelstereo simulate --randomization wide``; empty for other datasets)."""
+    path = Path(root) / split / experiment / "meta.json"
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        return []
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: not valid JSON ({e})") from e
+    fams = meta.get("families", [])
+    if not isinstance(fams, list) or not all(isinstance(f, str) for f in fams):
+        raise DatasetError(f"{path}: field 'families': expected a list of strings, found {fams!r}")
+    return fams
+
+
 def dataset_tag(root: Path, n_images: int | None = None) -> str:
     """A short description of a dataset for model metadata: generator version, seed, images."""
     info = read_dataset_info(root)

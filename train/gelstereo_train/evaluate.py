@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from .blob import BlobDetector
-from .data import list_samples, median_nn_distance
+from .data import experiment_families, list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
@@ -248,6 +248,9 @@ def main(argv=None) -> int:
                    help="auto: the model's layout (two passes, docs/model-contract.md); stretch: whole image "
                    "resized to the nominal input (the first contract)")
     p.add_argument("--dedup-radius-frac", type=float, default=None)
+    p.add_argument("--family", action="append", default=[], metavar="FAMILY",
+                   help="only the experiments of this family (meta.json `families`, datasets of "
+                   "`gelstereo simulate --randomization wide`); repeated: of all of them")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     runner = MarknetRunner(args.marknet, args.threads, fit=args.fit)
@@ -255,11 +258,17 @@ def main(argv=None) -> int:
     if args.dedup_radius_frac is not None:
         post.dedup_radius_frac = args.dedup_radius_frac
     samples = list_samples(args.data, args.split, frame_step=args.frame_step, max_experiments=args.max_experiments)
+    if args.family:
+        samples = [s for s in samples
+                   if set(args.family) <= set(experiment_families(args.data, s.split, s.experiment))]
+        if not samples:
+            raise SystemExit(f"{args.data}/{args.split}: no experiment of the families {args.family}")
     if args.max_images is not None and len(samples) > args.max_images:
         keep = np.sort(np.random.default_rng(0).choice(len(samples), args.max_images, replace=False))
         samples = [samples[i] for i in keep]
     res = evaluate(samples, runner, load_mre(args.mre, args.threads), post)
     res["split"] = args.split
+    res["families"] = args.family
     res["max_images"] = args.max_images
     res["marknet_file"] = str(args.marknet)
     res["mre_file"] = str(args.mre) if args.mre else None

@@ -22,9 +22,10 @@ import numpy as np
 import torch
 
 from .augment import AugConfig, make_batch
-from .data import dataset_tag, list_samples, median_nn_distance
+from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
 from .loss import build_targets, marknet_loss
 from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
+from .onnx_init import load_onnx_weights
 
 
 def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print, max_gb: float | None = None):
@@ -104,6 +105,14 @@ def train(args, log=print) -> Path:
     samples = list_samples(args.data, "train", frame_step=args.frame_step)
     if not samples:
         raise SystemExit(f"{args.data}/train: no images found")
+    exclude = list(getattr(args, "exclude_family", None) or [])
+    if exclude:
+        before = len(samples)
+        samples = [s for s in samples
+                   if not set(exclude) & set(experiment_families(args.data, s.split, s.experiment))]
+        log(f"held out families {exclude}: {before - len(samples)} of {before} images left out")
+        if not samples:
+            raise SystemExit(f"{args.data}/train: every image belongs to a held-out family {exclude}")
     samples, images, points, pitches = load_images(samples, args.max_images, rng, log, args.max_gb)
     n_markers = sum(len(p) for p in points)
     log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
@@ -111,16 +120,21 @@ def train(args, log=print) -> Path:
     stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
     model = Marknet(stride=stride, candidates=args.candidates, width=args.width, stem=args.stem)
     init, init_record = getattr(args, "init", None), None
-    if init is not None:
+    cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
+                    canonical=args.canonical, p_contact=args.p_contact)
+    contact = [s.points_px[s.in_contact] for s in samples]
+    if init is not None and Path(init).suffix == ".onnx":
+        calib = [make_batch(images, points, pitches, args.batch, cfg, rng, contact)[0] for _ in range(8)]
+        init_record = load_onnx_weights(model, Path(init), calib)
+        log(f"initialised from exported {init}; BatchNorm re-inflated on {len(calib)} batches, "
+            f"max |torch - onnxruntime| {init_record['max_abs_diff_vs_onnx']:.2e}")
+    elif init is not None:
         init_record = load_init(model, Path(init))
         log(f"initialised from {init} (warm start: fine-tunes those weights under this run's schedule)")
     log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
     model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
-                    canonical=args.canonical, p_contact=args.p_contact)
-    contact = [s.points_px[s.in_contact] for s in samples]
     if cfg.p_contact > 0:
         log(f"{sum(len(c) > 0 for c in contact)} of {len(samples)} images show contact markers; "
             f"{cfg.p_contact:.0%} of crops are centred near one of them there")
@@ -130,6 +144,7 @@ def train(args, log=print) -> Path:
     step = 0
     hist = []
     last_log = t0
+    last_save = t0
     model.train()
     while True:
         elapsed = time.time() - t0
@@ -162,9 +177,23 @@ def train(args, log=print) -> Path:
                 f"conf {h[:, 1].mean():.4f} dist {h[:, 2].mean():.4f} mean_d {h[:, 3].mean():.3f}px "
                 f"dropped {int(h[:, 4].sum())} ({step * args.batch / (now - t0):.0f} img/s)")
             last_log = now
+        if args.save_every_min and now - last_save > 60.0 * args.save_every_min:
+            save_checkpoint(Path(args.out), model.to(memory_format=torch.contiguous_format),
+                            run_meta(args, cfg, images, hist, step, now - t0, init_record, partial=True))
+            model = model.to(memory_format=torch.channels_last)
+            model.train()
+            log(f"checkpoint {args.out} at step {step}")
+            last_save = now
     train_s = time.time() - t0
     model = model.to(memory_format=torch.contiguous_format)
-    meta = {
+    save_checkpoint(Path(args.out), model, run_meta(args, cfg, images, hist, step, train_s, init_record))
+    log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
+    return Path(args.out)
+
+
+def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, partial: bool = False) -> dict:
+    """The checkpoint's metadata: dataset, input size, training record (`partial` while running)."""
+    return {
         "dataset": dataset_tag(args.data, len(images)),
         "data_root": str(args.data),
         "input_height": args.input_size,
@@ -176,10 +205,8 @@ def train(args, log=print) -> Path:
         "aug": dataclasses.asdict(cfg),
         "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
         "init": init_record,
+        "partial": partial,
     }
-    save_checkpoint(Path(args.out), model, meta)
-    log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
-    return Path(args.out)
 
 
 def add_training_args(p: argparse.ArgumentParser, minutes: float, threads: int) -> None:
@@ -231,7 +258,13 @@ def parser() -> argparse.ArgumentParser:
                    help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
                    "shipped model was trained) or auto (the auto layout)")
     p.add_argument("--init", type=Path, default=None,
-                   help="start from this Marknet checkpoint's weights (same architecture) instead of random ones")
+                   help="start from this Marknet checkpoint's weights (same architecture) instead of random ones; "
+                   "an exported .onnx works too (e.g. data/models/marknet.onnx)")
+    p.add_argument("--exclude-family", action="append", default=[], metavar="FAMILY",
+                   help="leave out the training experiments of this family (meta.json `families`, e.g. "
+                   "marker:hue, lattice:hexagonal, res:1920x1080, texture:banding); repeatable")
+    p.add_argument("--save-every-min", type=float, default=5.0,
+                   help="write the checkpoint every this many minutes while training (0: only at the end)")
     p.add_argument("--p-contact", type=float, default=0.0,
                    help="share of crops centred near a marker in contact (images with contact only; the shipped "
                    "models: 0, i.e. anywhere)")

@@ -121,3 +121,56 @@ def test_warm_start_continues_from_a_checkpoint_of_the_same_architecture(trained
     with pytest.raises(SystemExit, match="width"):
         train_marknet.train(train_marknet.parser().parse_args(base + ["--out", str(tmp_path / "x.pt"), "--width",
                                                                        "8", "--init", str(ck)]), log=lambda *_: None)
+
+
+def test_warm_start_from_an_exported_onnx_reproduces_it(trained, tiny_root, tmp_path):
+    _, _, onnx_dir = trained
+    base = ["--data", str(tiny_root), "--steps", "1", "--lr", "0", "--batch", "2", "--crop", "64",
+            "--input-size", "128", "--candidates", "3", "--width", "4", "--save-every-min", "0"]
+    out = tmp_path / "from_onnx.pt"
+    train_marknet.train(train_marknet.parser().parse_args(
+        base + ["--out", str(out), "--init", str(onnx_dir / "marknet.onnx")]), log=lambda *_: None)
+    model, meta = train_marknet.load_checkpoint(out)
+    # BatchNorm folded into the exported convolutions is re-inflated: the checkpoint computes the
+    # exported function (one step at learning rate 0 moves only the BatchNorm statistics a little).
+    assert meta["init"]["onnx"] and meta["init"]["max_abs_diff_vs_onnx"] < 1e-3
+    x = torch.rand(1, 3, 96, 128)
+    sess = ort.InferenceSession(str(onnx_dir / "marknet.onnx"), providers=["CPUExecutionProvider"])
+    ref = sess.run(None, {"image": x.numpy()})[0]
+    with torch.no_grad():
+        got = model(x).numpy()
+    assert np.abs(got - ref).max() < 0.05 * (np.abs(ref).max() + 1)
+    # Another architecture is refused by name.
+    with pytest.raises(SystemExit, match="convolution|stem|width"):
+        train_marknet.train(train_marknet.parser().parse_args(
+            base[:-6] + ["--width", "8", "--save-every-min", "0", "--out", str(tmp_path / "x.pt"),
+                         "--init", str(onnx_dir / "marknet.onnx")]), log=lambda *_: None)
+
+
+def test_held_out_families_leave_training_and_select_evaluation(tiny_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "fam"
+    shutil.copytree(tiny_root, root)
+    exps = sorted(p for p in (root / "train").iterdir() if p.is_dir())
+    meta = json.loads((exps[0] / "meta.json").read_text()) if (exps[0] / "meta.json").exists() else {}
+    meta["families"] = ["marker:hue", "lattice:square"]
+    (exps[0] / "meta.json").write_text(json.dumps(meta))
+    logs = []
+    args = train_marknet.parser().parse_args(
+        ["--data", str(root), "--out", str(tmp_path / "m.pt"), "--steps", "1", "--batch", "2", "--crop", "64",
+         "--input-size", "128", "--width", "4", "--candidates", "3", "--exclude-family", "marker:hue"])
+    train_marknet.train(args, log=logs.append)
+    left_out = [m for m in logs if "held out families" in m]
+    n_first = len([s for s in list_samples(root, "train") if s.experiment == exps[0].name])
+    assert left_out and f": {n_first} of " in left_out[0]
+    # Holding out every training experiment is an error, not an empty run.
+    for e in exps:
+        m = json.loads((e / "meta.json").read_text()) if (e / "meta.json").exists() else {}
+        (e / "meta.json").write_text(json.dumps(m | {"families": ["marker:hue"]}))
+    with pytest.raises(SystemExit, match="held-out family"):
+        train_marknet.train(args, log=lambda *_: None)
+    (exps[0] / "meta.json").write_text('{"families": "marker:hue"}')
+    from gelstereo_train.data import DatasetError, experiment_families
+    with pytest.raises(DatasetError, match="families"):
+        experiment_families(root, "train", exps[0].name)

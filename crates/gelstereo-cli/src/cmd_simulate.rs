@@ -31,9 +31,15 @@ pub struct Args {
     sensor: Option<PathBuf>,
     /// Domain randomisation: off (reference look), appearance (random looks), full (random looks and
     /// 30 % of the experiments on random sensor variants: other grids, resolutions, pitches; 10 % on
-    /// GelSight-Mini-like sensors).
+    /// GelSight-Mini-like sensors), wide (the sensors users have: pitch 8-100 px, images up to
+    /// 1920x1080, hexagonal and irregular lattices, round and trapezoidal membranes in a housing,
+    /// hue-only markers, scan lines, banding, moire, Newton rings, fingerprints, glints).
     #[arg(long, default_value = "full")]
     randomization: String,
+    /// Write only this split's experiments (train, val or test): the same files as in the whole
+    /// dataset of these arguments, for a test set without simulating the training data.
+    #[arg(long, value_name = "SPLIT")]
+    split: Option<String>,
     /// Instead of gel recordings, write a checkerboard calibration set seen through the sensor's
     /// cameras: the board's INNER corners, COLSxROWS (as `gelstereo calibrate --board`).
     #[arg(long, value_name = "COLSxROWS")]
@@ -81,9 +87,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         seed: args.seed,
         sensor,
         randomization,
+        only_split: args.split.as_deref().map(str::parse).transpose()?,
     };
     config.validate()?;
-    let total = u64::from(args.experiments) * u64::from(args.frames_per_experiment);
+    let planned = gelstereo_sim::dataset::plan(&config)?;
+    let written = planned
+        .iter()
+        .filter(|e| config.only_split.is_none_or(|s| e.split == s))
+        .count();
+    let total = written as u64 * u64::from(args.frames_per_experiment);
     let bar = if args.quiet {
         ProgressBar::hidden()
     } else {

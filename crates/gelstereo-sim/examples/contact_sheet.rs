@@ -62,6 +62,7 @@ fn sim_tile(
         sensor,
         appearance,
         script,
+        families: Vec::new(),
     };
     let sim = Simulator::new(exp)?;
     let frame = sim.frame((show * f64::from(frames - 1)).round() as u32)?;

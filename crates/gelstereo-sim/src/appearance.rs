@@ -21,6 +21,93 @@ pub struct Dust {
     pub alpha: f32,
 }
 
+/// A pattern over the image or the gel that is not a marker (wider domain randomisation).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum Texture {
+    /// Stripes from the camera's readout or the LED driver: scan lines (period of a few px) or
+    /// wider banding. Multiplies every pixel, markers included, by `1 + gain * profile`, the profile
+    /// a sine across the stripes sharpened towards a square wave by `sharpness` (>= 1).
+    Bands {
+        /// Stripe period, px (full resolution).
+        period_px: f32,
+        /// Direction across the stripes, radians (0: vertical stripes; pi/2: horizontal lines).
+        angle: f32,
+        /// Phase, radians.
+        phase: f32,
+        /// Relative gain per channel.
+        gain: [f32; 3],
+        /// 1 = sine, larger = squarer.
+        sharpness: f32,
+    },
+    /// Moire: the beat of two fine gratings of close period and direction (a screen, a fabric or
+    /// the sensor's pixel grid against a printed pattern). Multiplicative, like [`Texture::Bands`].
+    Moire {
+        /// Period of the first grating, px.
+        period_px: f32,
+        /// Direction of the first grating, radians.
+        angle: f32,
+        /// Relative period difference of the second grating.
+        detune: f32,
+        /// Direction difference of the second grating, radians.
+        twist: f32,
+        /// Relative gain of the beat fringes.
+        gain: f32,
+    },
+    /// A fingerprint left on the gel or the lens: wavy concentric ridges around `at`, fading out
+    /// at `radius_px`. Added to the background, in grey levels.
+    Fingerprint {
+        /// Centre, as a fraction of the image width and height.
+        at: [f32; 2],
+        /// Ridge period, px.
+        period_px: f32,
+        /// Radius of the print, px.
+        radius_px: f32,
+        /// Ridge contrast, grey levels.
+        amplitude: f32,
+    },
+}
+
+/// Newton rings: interference in the thin air film between the gel and a smooth object, seen as
+/// rings following the indentation's depth contours where the gel is pressed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NewtonRings {
+    /// Indentation depth between two bright rings, mm.
+    pub period_mm: f32,
+    /// Ring contrast per channel, grey levels.
+    pub amplitude: [f32; 3],
+}
+
+/// A specular glint on the markers: a small bright spot off each dot's centre (glossy ink or
+/// raised pins lit by the LEDs).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Glint {
+    /// Offset of the spot from the dot centre, in dot radii (x, y).
+    pub offset: [f32; 2],
+    /// Spot radius, in dot radii.
+    pub size: f32,
+    /// Spot opacity.
+    pub alpha: f32,
+    /// Share of the markers that carry a glint (chosen per marker, fixed for the recording).
+    pub share: f32,
+}
+
+/// What the cameras see outside a membrane (sensors whose gel does not fill the view).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Housing {
+    /// Housing colour.
+    pub color: [f32; 3],
+    /// Colour of the rim around the membrane.
+    pub rim_color: [f32; 3],
+    /// Rim width, mm.
+    pub rim_mm: f32,
+    /// Round things on the housing (screws, holes, LEDs seen sideways): x, y, radius (mm) and
+    /// grey level. Dot-like on purpose: they are not markers.
+    pub clutter: Vec<[f32; 4]>,
+    /// LED glints just outside the rim: x, y, radius (mm) and peak brightness added.
+    pub glints: Vec<[f32; 4]>,
+}
+
 /// Everything about the look of one recording. Colours are RGB in 0..255.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Appearance {
@@ -64,6 +151,18 @@ pub struct Appearance {
     pub motion_blur: f64,
     /// Contrast of skin ridges (fingertip contacts), grey levels.
     pub ridge_gain: f32,
+    /// Patterns over the image or the gel (none in the narrower randomisations).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub textures: Vec<Texture>,
+    /// Newton rings in the pressed gel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub newton_rings: Option<NewtonRings>,
+    /// Glints on the markers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub glint: Option<Glint>,
+    /// The housing around a membrane (used when the sensor has one; a plain dark housing without).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub housing: Option<Housing>,
 }
 
 fn rgb(r: f32, g: f32, b: f32) -> [f32; 3] {
@@ -94,6 +193,10 @@ impl Appearance {
             jpeg_quality: None,
             motion_blur: 0.3,
             ridge_gain: 8.0,
+            textures: Vec::new(),
+            newton_rings: None,
+            glint: None,
+            housing: None,
             dust: vec![
                 Dust {
                     at: [0.18, 0.72],
@@ -203,6 +306,10 @@ impl Appearance {
                 0.0
             },
             ridge_gain: u(0.0, 18.0),
+            textures: Vec::new(),
+            newton_rings: None,
+            glint: None,
+            housing: None,
         }
     }
 
@@ -261,6 +368,173 @@ impl Appearance {
                 0.0
             },
             ridge_gain: u(3.0, 18.0),
+            textures: Vec::new(),
+            newton_rings: None,
+            glint: None,
+            housing: None,
         }
+    }
+}
+
+/// Relative luminance (Rec. 601 weights), 0..255.
+pub fn luminance(c: [f32; 3]) -> f32 {
+    0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2]
+}
+
+/// RGB (0..255) of hue `h` (radians), saturation `s` and value `v` (0..255).
+fn hsv(h: f32, s: f32, v: f32) -> [f32; 3] {
+    let hue = [0.0f32, 2.0, 4.0].map(|k| {
+        let x = (h / std::f32::consts::FRAC_PI_3 + k).rem_euclid(6.0);
+        let ramp = (x - 3.0).abs() - 1.0;
+        ramp.clamp(0.0, 1.0)
+    });
+    hue.map(|c| v * (1.0 - s + s * c))
+}
+
+impl Appearance {
+    /// A random look of the widened domain (`--randomization wide`): [`Appearance::random`] or
+    /// [`Appearance::random_gelsight_like`], then one marker family in four differs from the gel
+    /// mostly in hue (e.g. yellow-green dots on a darker blue-green gel), and image textures
+    /// (scan lines, banding, moire, fingerprints), Newton rings and marker glints are added at
+    /// random.
+    pub fn random_wide(rng: &mut impl Rng) -> Self {
+        let mut app = if rng.random_bool(0.25) {
+            Self::random_gelsight_like(rng)
+        } else {
+            Self::random(rng)
+        };
+        if rng.random_bool(0.25) {
+            app.recolour_by_hue(rng);
+        }
+        let n_textures = [0usize, 0, 1, 1, 1, 2][rng.random_range(0..6)];
+        app.textures = (0..n_textures).map(|_| random_texture(rng)).collect();
+        if rng.random_bool(0.3) {
+            app.newton_rings = Some(NewtonRings {
+                period_mm: rng.random_range(0.02..0.12),
+                amplitude: [0; 3].map(|_| rng.random_range(8.0..40.0)),
+            });
+        }
+        if rng.random_bool(0.3) {
+            let a: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+            let d: f32 = rng.random_range(0.2..0.55);
+            app.glint = Some(Glint {
+                offset: [d * a.cos(), d * a.sin()],
+                size: rng.random_range(0.15..0.4),
+                alpha: rng.random_range(0.4..0.95),
+                share: rng.random_range(0.2..1.0),
+            });
+        }
+        app
+    }
+
+    /// Makes the markers differ from the gel mostly in colour: a saturated gel colour and marker
+    /// colour of another hue whose luminance is 0.85 to 1.6 times the gel's.
+    fn recolour_by_hue(&mut self, rng: &mut impl Rng) {
+        let gel_hue: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+        let gel = hsv(
+            gel_hue,
+            rng.random_range(0.4..0.85),
+            rng.random_range(70.0..170.0),
+        );
+        let turn = rng.random_range(1.0..2.6) * if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        let dot = hsv(gel_hue + turn, rng.random_range(0.5..0.95), 200.0);
+        let target = luminance(gel) * rng.random_range(0.85..1.6);
+        let k = target / luminance(dot).max(1.0);
+        self.background = gel;
+        self.marker_color = dot.map(|c| (c * k).clamp(0.0, 255.0));
+        self.marker_alpha = rng.random_range(0.75..1.0);
+    }
+}
+
+fn random_texture(rng: &mut impl Rng) -> Texture {
+    match rng.random_range(0..4) {
+        // Scan lines: fine, horizontal.
+        0 => Texture::Bands {
+            period_px: rng.random_range(2.5..8.0),
+            angle: std::f32::consts::FRAC_PI_2 + rng.random_range(-0.02..0.02),
+            phase: rng.random_range(0.0..std::f32::consts::TAU),
+            gain: [rng.random_range(0.04..0.22); 3],
+            sharpness: rng.random_range(1.0..4.0),
+        },
+        // Banding: wider stripes, tinted, any direction but mostly horizontal.
+        1 => Texture::Bands {
+            period_px: rng.random_range(8.0..60.0),
+            angle: if rng.random_bool(0.7) {
+                std::f32::consts::FRAC_PI_2
+            } else {
+                rng.random_range(0.0..std::f32::consts::PI)
+            },
+            phase: rng.random_range(0.0..std::f32::consts::TAU),
+            gain: [0; 3].map(|_| rng.random_range(0.03..0.25)),
+            sharpness: rng.random_range(1.0..6.0),
+        },
+        2 => Texture::Moire {
+            period_px: rng.random_range(2.2..5.0),
+            angle: rng.random_range(0.0..std::f32::consts::PI),
+            detune: rng.random_range(0.03..0.2),
+            twist: rng.random_range(-0.08..0.08),
+            gain: rng.random_range(0.04..0.2),
+        },
+        _ => Texture::Fingerprint {
+            at: [rng.random_range(0.1..0.9), rng.random_range(0.1..0.9)],
+            period_px: rng.random_range(3.0..9.0),
+            radius_px: rng.random_range(40.0..200.0),
+            amplitude: rng.random_range(6.0..30.0),
+        },
+    }
+}
+
+/// A random housing around `membrane`: colour, rim, round clutter and LED glints just outside
+/// the rim (all on the housing, none inside the membrane).
+pub fn random_housing(rng: &mut impl Rng, membrane: &crate::sensor::Membrane, pitch_mm: f64) -> Housing {
+    let bright = rng.random_bool(0.5);
+    let v = if bright {
+        rng.random_range(150.0..245.0)
+    } else {
+        rng.random_range(10.0..80.0)
+    };
+    let color = [0; 3].map(|_| v * rng.random_range(0.85..1.15f32));
+    let rim_v = rng.random_range(20.0..240.0f32);
+    let rim_color = [0; 3].map(|_| rim_v * rng.random_range(0.8..1.2f32));
+    let rim_mm = (pitch_mm * rng.random_range(0.2..1.2)) as f32;
+    // Points outside the outline: walk out along a random direction until clear of the rim.
+    let outside = |rng: &mut dyn rand::RngCore, clearance: f64| -> Option<[f32; 2]> {
+        let a = rng.next_u32() as f64 / f64::from(u32::MAX) * std::f64::consts::TAU;
+        let (dx, dy) = (a.cos(), a.sin());
+        let mut r = 0.0;
+        while r < 200.0 {
+            if membrane.signed_distance_mm(r * dx, r * dy) > clearance {
+                return Some([(r * dx) as f32, (r * dy) as f32]);
+            }
+            r += 0.25 * pitch_mm;
+        }
+        None
+    };
+    let mut clutter = Vec::new();
+    for _ in 0..rng.random_range(0..8) {
+        let radius = pitch_mm * rng.random_range(0.15..0.6);
+        let extra = pitch_mm * rng.random_range(0.5..4.0);
+        if let Some(p) = outside(rng, f64::from(rim_mm) + radius + extra) {
+            let g = if rng.random_bool(0.5) {
+                rng.random_range(0.0..60.0)
+            } else {
+                rng.random_range(180.0..255.0)
+            };
+            clutter.push([p[0], p[1], radius as f32, g]);
+        }
+    }
+    let mut glints = Vec::new();
+    for _ in 0..rng.random_range(0..6) {
+        let radius = pitch_mm * rng.random_range(0.2..1.0);
+        if let Some(p) = outside(rng, f64::from(rim_mm) + 0.5 * radius) {
+            glints.push([p[0], p[1], radius as f32, rng.random_range(60.0..220.0)]);
+        }
+    }
+    Housing {
+        color,
+        rim_color,
+        rim_mm,
+        clutter,
+        glints,
     }
 }

@@ -22,13 +22,14 @@ use serde::{Deserialize, Serialize};
 
 use crate::GENERATOR_VERSION;
 use crate::appearance::Appearance;
+use crate::appearance::random_housing;
 use crate::error::{Error, Result, io_err};
 use crate::indenter::{Indenter, SHAPES};
 use crate::motion::Script;
 use crate::physics::{Layer, SurfaceGrid, deform};
 use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
 use crate::sensor::{Sensor, SensorSpec};
-use crate::variant::{random_gelsight_mini_like, random_variant};
+use crate::variant::{random_gelsight_mini_like, random_variant, random_wide_variant};
 
 /// How much a dataset varies from the reference sensor's look and geometry.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -43,6 +44,30 @@ pub enum Randomization {
     /// 320x240 to 1280x720, other pitches and dot sizes) and 10 % on GelSight-Mini-like sensors
     /// with GelSight-like looks.
     Full,
+    /// Wider than `full` (the sensors users have): 55 % of the experiments on
+    /// [`crate::variant::random_wide_variant`] (pitch 8-100 px, images up to 1920x1080, square,
+    /// hexagonal and irregular lattices, round and trapezoidal membranes in a housing, touching
+    /// dots), 10 % GelSight-Mini-like, 35 % the sensor file's; looks from
+    /// [`Appearance::random_wide`] (hue-only markers, scan lines, banding, moire, fingerprints,
+    /// Newton rings, glints on the dots). `full` is kept as it was so that its datasets stay
+    /// reproducible byte for byte.
+    Wide,
+}
+
+impl std::str::FromStr for Split {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "train" => Ok(Self::Train),
+            "val" => Ok(Self::Val),
+            "test" => Ok(Self::Test),
+            _ => Err(Error::Parameter {
+                name: "split",
+                value: s.to_owned(),
+                expected: "train, val or test".into(),
+            }),
+        }
+    }
 }
 
 impl std::str::FromStr for Randomization {
@@ -52,10 +77,11 @@ impl std::str::FromStr for Randomization {
             "off" => Ok(Self::Off),
             "appearance" => Ok(Self::Appearance),
             "full" => Ok(Self::Full),
+            "wide" => Ok(Self::Wide),
             _ => Err(Error::Parameter {
                 name: "randomization",
                 value: s.to_owned(),
-                expected: "off, appearance or full".into(),
+                expected: "off, appearance, full or wide".into(),
             }),
         }
     }
@@ -74,6 +100,9 @@ pub struct DatasetConfig {
     pub sensor: SensorSpec,
     /// Domain randomisation level.
     pub randomization: Randomization,
+    /// Write only this split's experiments (the same bytes as in the whole dataset); all when
+    /// `None`.
+    pub only_split: Option<Split>,
 }
 
 impl DatasetConfig {
@@ -85,6 +114,7 @@ impl DatasetConfig {
             seed,
             sensor: SensorSpec::reference(),
             randomization: Randomization::Full,
+            only_split: None,
         }
     }
 
@@ -146,6 +176,9 @@ pub struct Experiment {
     pub appearance: Appearance,
     /// The motion.
     pub script: Script,
+    /// Its families ([`families`]; tagged by the `wide` randomisation only).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub families: Vec<String>,
 }
 
 impl Experiment {
@@ -208,6 +241,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                     ),
                     _ => (config.sensor.clone(), Appearance::random(&mut rng)),
                 },
+                Randomization::Wide => wide_look(&config.sensor, &mut rng),
             };
             let ref_width = 22.0 * 0.8;
             let width = f64::from(sensor.grid.rows.min(sensor.grid.cols) - 1) * sensor.grid.pitch_mm;
@@ -227,16 +261,120 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 scale,
                 &mut rng,
             );
-            Ok(Experiment {
+            let mut experiment = Experiment {
                 index,
                 split: split[index as usize],
                 seed,
                 sensor,
                 appearance,
                 script,
-            })
+                families: Vec::new(),
+            };
+            if config.randomization == Randomization::Wide {
+                let pitch_px = experiment.sensor.build()?.pitch_px();
+                experiment.families = families(&experiment, pitch_px);
+            }
+            Ok(experiment)
         })
         .collect()
+}
+
+/// Sensor and look of one experiment of the `wide` randomisation.
+fn wide_look(base: &SensorSpec, rng: &mut ChaCha8Rng) -> (SensorSpec, Appearance) {
+    match rng.random_range(0..20) {
+        0 | 1 => {
+            let sensor = random_gelsight_mini_like(rng);
+            let mut app = Appearance::random_wide(rng);
+            if rng.random_bool(0.5) {
+                let gs = Appearance::random_gelsight_like(rng);
+                app = Appearance {
+                    textures: app.textures,
+                    newton_rings: app.newton_rings,
+                    glint: app.glint,
+                    ..gs
+                };
+            }
+            (sensor, app)
+        }
+        2..=12 => {
+            let sensor = random_wide_variant(base, rng);
+            let mut app = Appearance::random_wide(rng);
+            if let Some(m) = &sensor.membrane {
+                app.housing = Some(random_housing(rng, m, sensor.grid.pitch_mm));
+            }
+            (sensor, app)
+        }
+        _ => (base.clone(), Appearance::random_wide(rng)),
+    }
+}
+
+/// The families an experiment belongs to, for holding whole families out of training and
+/// reporting per family: `marker:dark|light|hue`, `lattice:square|hexagonal|irregular`,
+/// `membrane:none|circle|trapezoid`, `res:WxH`, `pitch:<16|16-40|>40` (px, left view at rest),
+/// and one `texture:...` per texture (`none`, `scanlines`, `banding`, `moire`, `fingerprint`,
+/// `newton_rings`, `glint`).
+pub fn families(experiment: &Experiment, pitch_px: f64) -> Vec<String> {
+    use crate::appearance::{Texture, luminance};
+    use crate::sensor::{Lattice, Membrane};
+    let app = &experiment.appearance;
+    let sensor = &experiment.sensor;
+    let ratio = luminance(app.marker_color) / luminance(app.background).max(1.0);
+    let marker = if ratio < 0.6 {
+        "dark"
+    } else if ratio > 1.7 {
+        "light"
+    } else {
+        "hue"
+    };
+    let lattice = match sensor.grid.lattice {
+        Lattice::Square => "square",
+        Lattice::Hexagonal => "hexagonal",
+        Lattice::Irregular { .. } => "irregular",
+    };
+    let membrane = match sensor.membrane {
+        None => "none",
+        Some(Membrane::Circle { .. }) => "circle",
+        Some(Membrane::Trapezoid { .. }) => "trapezoid",
+    };
+    let pitch = if pitch_px < 16.0 {
+        "<16"
+    } else if pitch_px <= 40.0 {
+        "16-40"
+    } else {
+        ">40"
+    };
+    let mut out = vec![
+        format!("marker:{marker}"),
+        format!("lattice:{lattice}"),
+        format!("membrane:{membrane}"),
+        format!(
+            "res:{}x{}",
+            sensor.cameras.image_width, sensor.cameras.image_height
+        ),
+        format!("pitch:{pitch}"),
+    ];
+    for t in &app.textures {
+        out.push(
+            match t {
+                Texture::Bands { period_px, .. } if *period_px < 8.0 => "texture:scanlines",
+                Texture::Bands { .. } => "texture:banding",
+                Texture::Moire { .. } => "texture:moire",
+                Texture::Fingerprint { .. } => "texture:fingerprint",
+            }
+            .to_owned(),
+        );
+    }
+    if app.newton_rings.is_some() {
+        out.push("texture:newton_rings".into());
+    }
+    if app.glint.is_some() {
+        out.push("texture:glint".into());
+    }
+    if !out.iter().any(|f| f.starts_with("texture:")) {
+        out.push("texture:none".into());
+    }
+    out.dedup();
+    out
 }
 
 /// One frame's ground truth and images.
@@ -334,6 +472,7 @@ impl Simulator {
                 seed: mix(seed, view as u64),
                 previous: previous.as_deref(),
                 ridges,
+                membrane: self.sensor.spec.membrane,
             })
         };
         let images = [render(0)?, render(1)?];
@@ -372,7 +511,7 @@ impl Simulator {
                 status: None,
             };
             rec.write_csv(out);
-            let vis = |v: usize| u8::from(m.px[v].is_some_and(|q: Point2| cams[v].contains(q)));
+            let vis = |v: usize| u8::from(m.printed && m.px[v].is_some_and(|q: Point2| cams[v].contains(q)));
             let _ = writeln!(out, ",{},{},{}", vis(0), vis(1), u8::from(m.in_contact));
         }
     }
@@ -446,6 +585,11 @@ fn write_recording_with(
         "appearance": experiment.appearance,
         "sensor": experiment.sensor,
     });
+    let mut meta = meta;
+    if !experiment.families.is_empty() {
+        // Only the `wide` randomisation tags families: older datasets' meta.json stay unchanged.
+        meta["families"] = serde_json::json!(experiment.families);
+    }
     write("meta.json", &pretty(&meta))?;
     Ok(())
 }
@@ -628,7 +772,10 @@ pub fn write_dataset(
     force: bool,
     progress: &(dyn Fn() + Sync),
 ) -> Result<DatasetSummary> {
-    let experiments = plan(config)?;
+    let mut experiments = plan(config)?;
+    if let Some(split) = config.only_split {
+        experiments.retain(|e| e.split == split);
+    }
     let pending = begin_output(out, force)?;
     let summary = write_into(&pending.tmp, config, &experiments, progress)?;
     pending.finish()?;

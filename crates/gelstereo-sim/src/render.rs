@@ -11,10 +11,10 @@ use nalgebra::{Isometry3, Matrix2, Point3, Vector2};
 use opencv::core::{CV_8UC3, Mat, MatTraitConst, MatTraitConstManual, MatTraitManual, Scalar, Size, Vector};
 use opencv::{imgcodecs, imgproc};
 
-use crate::appearance::Appearance;
+use crate::appearance::{Appearance, Housing, Texture};
 use crate::error::{Result, cv_err};
 use crate::physics::Deformation;
-use crate::sensor::Sensor;
+use crate::sensor::{Membrane, Sensor};
 
 /// Per-camera lookup: where each half-resolution pixel's ray meets the rest surface.
 #[derive(Debug, Clone)]
@@ -122,6 +122,9 @@ pub struct MarkerTruth {
     pub px: [Option<Point2>; 2],
     /// Jacobian of the projection (px per mm of rest-surface offset) in each view.
     pub jacobian: [Option<Matrix2<f64>>; 2],
+    /// Whether the marker is printed (inside the membrane); an unprinted one is never drawn and
+    /// never visible.
+    pub printed: bool,
     /// Whether the marker touches the object.
     pub in_contact: bool,
     /// Contact load under the marker, mm (0 outside contact): drives the fading.
@@ -166,6 +169,7 @@ pub fn marker_truth(sensor: &Sensor, optics: &StereoOptics, def: &Deformation) -
                 position_sensor: c,
                 px,
                 jacobian,
+                printed: sensor.spec.marker_printed(index.row, index.col),
                 in_contact: def.in_contact(x, y),
                 load_mm: def.grid.sample(&def.load, x, y).max(0.0),
             }
@@ -263,7 +267,7 @@ fn sample_n<const N: usize>(g: &crate::physics::SurfaceGrid, f: &[[f32; N]], x: 
     out
 }
 
-fn splitmix(mut z: u64) -> u64 {
+pub(crate) fn splitmix(mut z: u64) -> u64 {
     z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
@@ -344,6 +348,8 @@ pub struct ViewJob<'a> {
     pub previous: Option<&'a [MarkerTruth]>,
     /// Skin ridges to draw in the contact (fingertips).
     pub ridges: Option<Ridges>,
+    /// The membrane's outline when the gel does not fill the view (housing outside it).
+    pub membrane: Option<Membrane>,
 }
 
 /// Fingerprint-like ridges: concentric, slightly wavy ellipses around the indenter's centre,
@@ -400,8 +406,30 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
             sh.active[3] + m,
         ];
         let contact = def.contact_area_mm2 > 0.0 && a[0] <= a[2];
+        let plain_housing = Housing {
+            color: [30.0; 3],
+            rim_color: [60.0; 3],
+            rim_mm: 0.5,
+            clutter: Vec::new(),
+            glints: Vec::new(),
+        };
+        let housing = app.housing.as_ref().unwrap_or(&plain_housing);
+        let lo_w = o.lo_w;
         for (k, px) in buf.chunks_exact_mut(3).enumerate() {
             let r = o.rays[k];
+            if let Some(mem) = &job.membrane {
+                let d = mem.signed_distance_mm(f64::from(r[0]), f64::from(r[1])) as f32;
+                if d > 0.0 {
+                    px.copy_from_slice(&housing_pixel(
+                        housing,
+                        d,
+                        r[0],
+                        r[1],
+                        1.0 - app.vignette * o.radius2[k],
+                    ));
+                    continue;
+                }
+            }
             let (mut hx, mut hy) = (r[0], r[1]);
             let mut t = [0.0f32; 5];
             let mut ridge = 0.0;
@@ -417,6 +445,18 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
                 {
                     ridge = rd.value(mx, my) * t[4] * app.ridge_gain;
                 }
+                if let Some(nr) = &app.newton_rings {
+                    let depth = f[0].abs();
+                    let envelope = (depth / 0.01).min(1.0) * (1.0 - 0.6 * t[4]);
+                    let wave = (std::f32::consts::TAU * depth / nr.period_mm).cos() * envelope;
+                    for (c, amp) in nr.amplitude.iter().enumerate() {
+                        t[c] += amp * wave;
+                    }
+                }
+            }
+            if !app.textures.is_empty() {
+                let (x, y) = (2.0 * (k % lo_w) as f32 + 0.5, 2.0 * (k / lo_w) as f32 + 0.5);
+                ridge += gel_texture(&app.textures, x, y, w as f32, h as f32);
             }
             let gx = (hx * inv_half).clamp(-1.5, 1.5) * 0.5;
             let gy = (hy * inv_half).clamp(-1.5, 1.5) * 0.5;
@@ -452,7 +492,7 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         let r = job.dot_radius_mm;
         let (cxp, cyp) = (0.5 * w as f64, 0.5 * h as f64);
         for (k, m) in job.markers.iter().enumerate() {
-            let (Some(c), Some(j)) = (m.px[job.view], m.jacobian[job.view]) else {
+            let (Some(c), Some(j), true) = (m.px[job.view], m.jacobian[job.view], m.printed) else {
                 continue;
             };
             let fade = 1.0 - app.contact_fade * (m.load_mm / 0.05).min(1.0) as f32;
@@ -474,6 +514,15 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
                 }
                 _ => splat(buf, w, h, c, &(j * r), col, alpha, app.edge_softness_px),
             }
+            if let Some(g) = &app.glint {
+                let pick = (splitmix(k as u64 ^ u64::from(g.size.to_bits())) >> 40) as f32 / 16_777_216.0;
+                if pick < g.share {
+                    let off = j * r * Vector2::new(f64::from(g.offset[0]), f64::from(g.offset[1]));
+                    let spot = Point2::new(c.x + off.x, c.y + off.y);
+                    let jac = j * (r * f64::from(g.size));
+                    splat(buf, w, h, spot, &jac, [250.0; 3], g.alpha * fade, 0.8);
+                }
+            }
         }
         let scale = w as f64 / 640.0;
         for (k, d) in app.dust.iter().enumerate() {
@@ -489,6 +538,15 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
             let jac = Matrix2::new(c * a, -s * b, s * a, c * b);
             splat(buf, w, h, at, &jac, d.color, d.alpha, 1.0);
         }
+    }
+
+    if app
+        .textures
+        .iter()
+        .any(|t| !matches!(t, Texture::Fingerprint { .. }))
+    {
+        let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
+        apply_stripes(buf, w, &app.textures);
     }
 
     // Optics and sensor.
@@ -520,6 +578,98 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         out = imgcodecs::imdecode(&enc, imgcodecs::IMREAD_COLOR).map_err(cv_err("JPEG decoding"))?;
     }
     Ok(out)
+}
+
+/// One housing pixel at signed distance `d_mm` outside the membrane, rest-plane point (`x`, `y`).
+fn housing_pixel(hs: &Housing, d_mm: f32, x: f32, y: f32, vignette: f32) -> [u8; 3] {
+    let rim = ((hs.rim_mm - d_mm) / (0.2 * hs.rim_mm + 1e-3)).clamp(0.0, 1.0);
+    let mut c = [0; 3].map(|i| hs.color[i] + (hs.rim_color[i] - hs.color[i]) * rim);
+    for q in &hs.clutter {
+        let dist = (x - q[0]).hypot(y - q[1]);
+        let cov = ((q[2] - dist) / (0.15 * q[2]) + 0.5).clamp(0.0, 1.0);
+        for v in &mut c {
+            *v += (q[3] - *v) * cov;
+        }
+    }
+    for g in &hs.glints {
+        let d2 = ((x - g[0]).powi(2) + (y - g[1]).powi(2)) / (g[2] * g[2]);
+        let add = g[3] * (-d2).exp();
+        for v in &mut c {
+            *v += add;
+        }
+    }
+    // Float to u8 casts saturate.
+    c.map(|v| (v * vignette + 0.5) as u8)
+}
+
+/// Additive textures of the gel (fingerprints) at full-resolution pixel (`x`, `y`), grey levels.
+fn gel_texture(textures: &[Texture], x: f32, y: f32, w: f32, h: f32) -> f32 {
+    let mut v = 0.0;
+    for t in textures {
+        if let Texture::Fingerprint {
+            at,
+            period_px,
+            radius_px,
+            amplitude,
+        } = *t
+        {
+            let (dx, dy) = (x - at[0] * w, y - at[1] * h);
+            let r = dx.hypot(dy);
+            if r < radius_px {
+                let wobble = 0.8 * period_px * ((dx * 0.05).sin() + (dy * 0.07).cos());
+                let fade = 1.0 - (r / radius_px).powi(2);
+                v += amplitude * fade * (std::f32::consts::TAU * (r + wobble) / period_px).sin();
+            }
+        }
+    }
+    v
+}
+
+/// Multiplies an RGB buffer by the stripe textures (scan lines, banding, moire).
+fn apply_stripes(buf: &mut [u8], w: usize, textures: &[Texture]) {
+    use std::f32::consts::TAU;
+    for (k, px) in buf.chunks_exact_mut(3).enumerate() {
+        let (x, y) = ((k % w) as f32, (k / w) as f32);
+        let mut gain = [1.0f32; 3];
+        for t in textures {
+            match *t {
+                Texture::Bands {
+                    period_px,
+                    angle,
+                    phase,
+                    gain: g,
+                    sharpness,
+                } => {
+                    let s = x * angle.cos() + y * angle.sin();
+                    let p = ((TAU * s / period_px + phase).sin() * sharpness).clamp(-1.0, 1.0);
+                    for c in 0..3 {
+                        gain[c] *= 1.0 + g[c] * p;
+                    }
+                }
+                Texture::Moire {
+                    period_px,
+                    angle,
+                    detune,
+                    twist,
+                    gain: g,
+                } => {
+                    let s1 = x * angle.cos() + y * angle.sin();
+                    let a2 = angle + twist;
+                    let s2 = x * a2.cos() + y * a2.sin();
+                    let p1 = s1 / period_px;
+                    let p2 = s2 / (period_px * (1.0 + detune));
+                    let p = (TAU * (p1 - p2)).cos() + 0.3 * (TAU * p1).cos();
+                    for v in &mut gain {
+                        *v *= 1.0 + g * p;
+                    }
+                }
+                Texture::Fingerprint { .. } => {}
+            }
+        }
+        for (v, g) in px.iter_mut().zip(gain) {
+            *v = (f32::from(*v) * g + 0.5) as u8;
+        }
+    }
 }
 
 /// Encodes an RGB image (as [`render_view`] returns it) as PNG, fast compression (Up filter +

@@ -31,6 +31,84 @@ pub struct SensorSpec {
     pub gel: GelSpec,
     /// The two cameras.
     pub cameras: CamerasSpec,
+    /// The outline of the gel the markers are printed on, when it is not the whole view (a round or
+    /// trapezoidal membrane in a housing); absent: the gel fills the view.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub membrane: Option<Membrane>,
+}
+
+/// How the markers are arranged on the gel.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum Lattice {
+    /// Rows and columns `pitch_mm` apart.
+    #[default]
+    Square,
+    /// Rows `pitch_mm * sqrt(3) / 2` apart, odd rows shifted by half a pitch (TacTip-like pins):
+    /// every marker has six neighbours `pitch_mm` away.
+    Hexagonal,
+    /// The square lattice with every marker moved by up to `jitter_frac * pitch_mm` along each
+    /// axis (hand-placed or irregularly printed dots), reproducibly from `seed`.
+    Irregular {
+        /// Largest displacement per axis, as a fraction of the pitch (0 to 0.3).
+        jitter_frac: f64,
+        /// Seed of the displacements.
+        seed: u64,
+    },
+}
+
+impl Lattice {
+    fn is_square(&self) -> bool {
+        *self == Self::Square
+    }
+}
+
+/// The outline of a membrane in the sensor plane (rest coordinates, mm, centred on the origin).
+/// Markers are printed only inside it; outside, the cameras see the housing.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind", deny_unknown_fields)]
+pub enum Membrane {
+    /// A disc (TacTip, DIGIT-like round pads).
+    Circle {
+        /// Radius, mm.
+        radius_mm: f64,
+    },
+    /// A trapezoid, wider at the bottom (+y) or the top, symmetric about x = 0.
+    Trapezoid {
+        /// Half-width at y = -half_height_mm, mm.
+        top_half_width_mm: f64,
+        /// Half-width at y = +half_height_mm, mm.
+        bottom_half_width_mm: f64,
+        /// Half of the height, mm.
+        half_height_mm: f64,
+    },
+}
+
+impl Membrane {
+    /// Signed distance from the outline at (`x`, `y`), mm: negative inside, positive outside
+    /// (exact for the circle; for the trapezoid the largest distance to its four edge lines, which
+    /// is exact inside and near the edges).
+    pub fn signed_distance_mm(&self, x: f64, y: f64) -> f64 {
+        match *self {
+            Self::Circle { radius_mm } => x.hypot(y) - radius_mm,
+            Self::Trapezoid {
+                top_half_width_mm: a,
+                bottom_half_width_mm: b,
+                half_height_mm: h,
+            } => {
+                // Right edge from (a, -h) to (b, h): outward normal (2h, -(b - a)) normalised.
+                let (nx, ny) = (2.0 * h, -(b - a));
+                let n = nx.hypot(ny);
+                let side = (nx * (x.abs() - a) + ny * (y + h)) / n;
+                side.max(y.abs() - h)
+            }
+        }
+    }
+
+    /// Whether a dot of radius `margin_mm` centred at (`x`, `y`) lies wholly inside the outline.
+    pub fn holds(&self, x: f64, y: f64, margin_mm: f64) -> bool {
+        self.signed_distance_mm(x, y) <= -margin_mm
+    }
 }
 
 /// The marker lattice on the gel surface, centred on the sensor frame's origin.
@@ -45,6 +123,9 @@ pub struct GridSpec {
     pub pitch_mm: f64,
     /// Printed dot diameter, mm.
     pub dot_diameter_mm: f64,
+    /// Arrangement of the markers (absent: square).
+    #[serde(default, skip_serializing_if = "Lattice::is_square")]
+    pub lattice: Lattice,
 }
 
 /// Gel layer mechanics (an elastic layer on a rigid acrylic plate).
@@ -179,13 +260,35 @@ impl SensorSpec {
         }
     }
 
-    /// Rest position of marker (`row`, `col`) in the sensor frame, mm (z = 0).
+    /// Rest position of marker (`row`, `col`) in the sensor frame, mm (z = 0), per the lattice.
     pub fn marker_rest_mm(&self, row: u16, col: u16) -> [f64; 2] {
         let p = self.grid.pitch_mm;
-        [
-            (f64::from(col) - 0.5 * f64::from(self.grid.cols - 1)) * p,
-            (f64::from(row) - 0.5 * f64::from(self.grid.rows - 1)) * p,
-        ]
+        let x = f64::from(col) - 0.5 * f64::from(self.grid.cols - 1);
+        let y = f64::from(row) - 0.5 * f64::from(self.grid.rows - 1);
+        match self.grid.lattice {
+            Lattice::Square => [x * p, y * p],
+            Lattice::Hexagonal => {
+                let shift = if row % 2 == 1 { 0.25 } else { -0.25 };
+                [(x + shift) * p, y * p * 0.75f64.sqrt()]
+            }
+            Lattice::Irregular { jitter_frac, seed } => {
+                let key = seed ^ (u64::from(row) << 32) ^ u64::from(col);
+                let h = crate::render::splitmix(key);
+                // Two uniform numbers in [-1, 1) from the hash's halves.
+                let u = |bits: u64| (bits & 0xFFFF_FFFF) as f64 / 2_147_483_648.0 - 1.0;
+                [(x + jitter_frac * u(h)) * p, (y + jitter_frac * u(h >> 32)) * p]
+            }
+        }
+    }
+
+    /// Whether marker (`row`, `col`) is printed: inside the membrane with its whole dot (always
+    /// without a membrane). Unprinted markers are never drawn and never visible.
+    pub fn marker_printed(&self, row: u16, col: u16) -> bool {
+        let Some(membrane) = &self.membrane else {
+            return true;
+        };
+        let [x, y] = self.marker_rest_mm(row, col);
+        membrane.holds(x, y, 0.5 * self.grid.dot_diameter_mm)
     }
 
     /// Checks every field's range; `src` names the file in errors.
@@ -206,6 +309,22 @@ impl SensorSpec {
                 &format!("less than grid.pitch_mm ({})", g.pitch_mm),
                 g.dot_diameter_mm,
             ));
+        }
+        if let Lattice::Irregular { jitter_frac, .. } = g.lattice {
+            in_range(src, "grid.lattice.jitter_frac", jitter_frac, 0.0, 0.3)?;
+        }
+        match self.membrane {
+            None => {}
+            Some(Membrane::Circle { radius_mm }) => positive(src, "membrane.radius_mm", radius_mm)?,
+            Some(Membrane::Trapezoid {
+                top_half_width_mm,
+                bottom_half_width_mm,
+                half_height_mm,
+            }) => {
+                positive(src, "membrane.top_half_width_mm", top_half_width_mm)?;
+                positive(src, "membrane.bottom_half_width_mm", bottom_half_width_mm)?;
+                positive(src, "membrane.half_height_mm", half_height_mm)?;
+            }
         }
         let gel = &self.gel;
         positive(src, "gel.thickness_mm", gel.thickness_mm)?;
@@ -381,6 +500,9 @@ impl Sensor {
         let seen = grid
             .indices()
             .filter(|i| {
+                if !self.spec.marker_printed(i.row, i.col) {
+                    return false;
+                }
                 let [x, y] = self.spec.marker_rest_mm(i.row, i.col);
                 let (l, r) = self.to_cameras(&Point3::new(x, y, 0.0));
                 matches!((self.rig.left.project(&l), self.rig.right.project(&r)),

@@ -4,7 +4,7 @@
 
 use rand::Rng;
 
-use crate::sensor::{CameraSpec, CamerasSpec, GelSpec, GridSpec, SensorSpec};
+use crate::sensor::{CameraSpec, CamerasSpec, GelSpec, GridSpec, Lattice, Membrane, SensorSpec};
 
 const RESOLUTIONS: [(u32, u32); 7] = [
     (320, 240),
@@ -83,6 +83,7 @@ fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
             cols,
             pitch_mm,
             dot_diameter_mm: dot,
+            lattice: Lattice::Square,
         },
         gel: GelSpec {
             thickness_mm: pitch_mm * rng.random_range(2.5..4.0),
@@ -98,12 +99,185 @@ fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
             left,
             right,
         },
+        membrane: None,
     };
     let sensor = spec.build().ok()?;
     let ok = if overfill {
         (0.45..0.95).contains(&sensor.visible_fraction_at_rest(0.0))
     } else {
         sensor.all_markers_visible_at_rest(0.6 * pitch_px)
+    };
+    ok.then_some(spec)
+}
+
+/// Image sizes of [`random_wide_variant`], from a GelSight Mini's 320x240 to full HD; the common
+/// VGA-class sizes are listed twice (the large ones cost the most to render and to train on).
+const WIDE_RESOLUTIONS: [(u32, u32); 14] = [
+    (320, 240),
+    (320, 240),
+    (400, 300),
+    (427, 320),
+    (427, 320),
+    (480, 360),
+    (640, 360),
+    (640, 480),
+    (640, 480),
+    (800, 600),
+    (960, 540),
+    (1280, 720),
+    (1280, 720),
+    (1920, 1080),
+];
+
+/// A random sensor of the widened domain: image 320x240 to 1920x1080, marker pitch in the image
+/// 8 to 100 px (log-uniform), 4 to 60 markers per side, square (half), hexagonal or irregular
+/// lattices, dots 0.25-0.75 of the pitch on a gel that spreads up to 4x more than `full`'s (so dots
+/// touch and overlap at indenter rims), and one in five on a round and one in five on a
+/// trapezoidal membrane with the housing around it in view. Without a membrane, half overfill the
+/// images (markers cut by every border).
+pub fn random_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> SensorSpec {
+    for _ in 0..50 {
+        if let Some(s) = try_wide_variant(base, rng) {
+            return s;
+        }
+    }
+    random_variant(base, rng)
+}
+
+fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
+    let (w, h) = WIDE_RESOLUTIONS[rng.random_range(0..WIDE_RESOLUTIONS.len())];
+    let pitch_px = (rng.random_range(8f64.ln()..100f64.ln())).exp();
+    let lattice = match rng.random_range(0..4) {
+        0 | 1 => Lattice::Square,
+        2 => Lattice::Hexagonal,
+        _ => Lattice::Irregular {
+            jitter_frac: rng.random_range(0.05..0.25),
+            seed: rng.random(),
+        },
+    };
+    let membrane_kind = rng.random_range(0..5);
+    let overfill = membrane_kind < 3 && rng.random_bool(0.5);
+    let fill = if overfill {
+        rng.random_range(1.0..1.4)
+    } else if membrane_kind >= 3 {
+        rng.random_range(0.8..1.0)
+    } else {
+        rng.random_range(0.5..0.95)
+    };
+    let row_step = if lattice == Lattice::Hexagonal {
+        0.75f64.sqrt()
+    } else {
+        1.0
+    };
+    let max_cols = ((f64::from(w) * fill / pitch_px) as u16 + 1).min(60);
+    let max_rows = ((f64::from(h) * fill / (pitch_px * row_step)) as u16 + 1).min(60);
+    if max_cols < 4 || max_rows < 4 {
+        return None;
+    }
+    // An overfilling lattice takes the largest size (it must reach past the borders); membranes are
+    // shaped from the lattice's extent, so keep it near the largest that fits.
+    let least = |max: u16| {
+        if overfill {
+            max
+        } else if membrane_kind >= 3 {
+            (max * 4 / 5).max(4)
+        } else {
+            (max / 2).max(4)
+        }
+    };
+    let cols = rng.random_range(least(max_cols)..=max_cols);
+    let rows = rng.random_range(least(max_rows)..=max_rows);
+    let pitch_mm = rng.random_range(0.6..2.5);
+    let dist = rng.random_range(12.0..35.0);
+    let baseline = dist * rng.random_range(0.2..0.5);
+    let f = pitch_px * dist / pitch_mm;
+    let dot = pitch_mm * rng.random_range(0.25..0.75);
+    let span = 0.5 * f64::from(rows.max(cols)) * pitch_mm;
+    let view_half = dist * (f64::from(w.max(h)) / (2.0 * f)) * 1.8 + baseline;
+    let half_extent = view_half.max(span + 2.0 * pitch_mm);
+    let half_x = 0.5 * f64::from(cols - 1) * pitch_mm;
+    let half_y = 0.5 * f64::from(rows - 1) * pitch_mm * row_step;
+    let membrane = match membrane_kind {
+        3 => Some(Membrane::Circle {
+            radius_mm: half_x.min(half_y) * rng.random_range(0.8..1.0) + 0.5 * dot,
+        }),
+        4 => {
+            let wide = half_x * rng.random_range(0.85..1.0) + 0.5 * dot;
+            let narrow = wide * rng.random_range(0.55..0.9);
+            let (top, bottom) = if rng.random_bool(0.5) {
+                (narrow, wide)
+            } else {
+                (wide, narrow)
+            };
+            Some(Membrane::Trapezoid {
+                top_half_width_mm: top,
+                bottom_half_width_mm: bottom,
+                half_height_mm: half_y * rng.random_range(0.85..1.0) + 0.5 * dot,
+            })
+        }
+        _ => None,
+    };
+    let cam = |sign: f64, rng: &mut dyn rand::RngCore| {
+        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * (rng.next_u32() as f64 / f64::from(u32::MAX));
+        CameraSpec {
+            fx: f * u(0.99, 1.01),
+            fy: f * u(0.99, 1.01),
+            cx: 0.5 * f64::from(w - 1) + u(-0.02, 0.02) * f64::from(w),
+            cy: 0.5 * f64::from(h - 1) + u(-0.02, 0.02) * f64::from(h),
+            distortion: vec![
+                u(-0.2, 0.05),
+                u(-0.02, 0.05),
+                u(-1e-3, 1e-3),
+                u(-1e-3, 1e-3),
+                u(-0.01, 0.01),
+            ],
+            position_mm: [sign * 0.5 * baseline, u(-0.1, 0.1), -dist],
+            look_at_mm: [u(-0.3, 0.3), u(-0.3, 0.3), 0.0],
+        }
+    };
+    let left = cam(-1.0, rng);
+    let right = cam(1.0, rng);
+    let spec = SensorSpec {
+        name: format!("wide-{rows}x{cols}-{w}x{h}"),
+        grid: GridSpec {
+            rows,
+            cols,
+            pitch_mm,
+            dot_diameter_mm: dot,
+            lattice,
+        },
+        gel: GelSpec {
+            thickness_mm: pitch_mm * rng.random_range(2.0..4.0),
+            half_extent_mm: half_extent,
+            grid_spacing_mm: 2.0 * half_extent / 90.0,
+            friction: rng.random_range(0.4..1.0),
+            shear_compliance: base.gel.shear_compliance,
+            spreading: rng.random_range(0.05..0.6),
+        },
+        cameras: CamerasSpec {
+            image_width: w,
+            image_height: h,
+            left,
+            right,
+        },
+        membrane,
+    };
+    let sensor = spec.build().ok()?;
+    let printed = spec
+        .grid_shape()
+        .indices()
+        .filter(|i| spec.marker_printed(i.row, i.col))
+        .count();
+    if printed < 12 {
+        return None;
+    }
+    let seen = sensor.visible_fraction_at_rest(0.0) * spec.grid_shape().count() as f64 / printed as f64;
+    let seen_inside =
+        sensor.visible_fraction_at_rest(0.6 * pitch_px) * spec.grid_shape().count() as f64 / printed as f64;
+    let ok = if overfill {
+        (0.45..0.95).contains(&seen)
+    } else {
+        seen_inside >= 0.999
     };
     ok.then_some(spec)
 }
@@ -131,6 +305,7 @@ pub fn gelsight_mini_like() -> SensorSpec {
             cols: 12,
             pitch_mm,
             dot_diameter_mm: 0.39,
+            lattice: Lattice::Square,
         },
         gel: GelSpec {
             thickness_mm: 3.0,
@@ -146,6 +321,7 @@ pub fn gelsight_mini_like() -> SensorSpec {
             left: cam(-3.0),
             right: cam(3.0),
         },
+        membrane: None,
     }
 }
 
