@@ -193,7 +193,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         return bench(args);
     }
     if args.out.is_none() && args.jsonl.is_none() {
-        bail!("--out DIR is required (where markers.csv, frames.csv, ply/, overlays/ and plots/ go), or --jsonl - to stream")
+        bail!(
+            "--out DIR is required (where markers.csv, frames.csv, ply/, overlays/ and plots/ go), or --jsonl - to stream"
+        )
     }
     let source = open_source(args)?;
     let stereo = source.is_stereo();
@@ -249,7 +251,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             if let Some(note) = &out.note {
                 warnings += 1;
                 if warnings <= MAX_WARNINGS {
-                    progress.suspend(|| eprintln!("warning: frame {}: {note}; frame written as lost / no contact", out.frame));
+                    progress.suspend(|| {
+                        eprintln!(
+                            "warning: frame {}: {note}; frame written as lost / no contact",
+                            out.frame
+                        )
+                    });
                 }
             }
         },
@@ -271,15 +278,25 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         summary.contact_frames,
         summary.slipping_frames,
         summary.flagged.len(),
-        folder.as_ref().map_or_else(|| "standard output".to_owned(), |f| f.dir().display().to_string())
+        folder
+            .as_ref()
+            .map_or_else(|| "standard output".to_owned(), |f| f.dir().display().to_string())
     );
+    if summary.interrupted {
+        bail!(
+            "interrupted by a signal: the outputs hold the {} frames processed",
+            summary.frames
+        );
+    }
     Ok(())
 }
 
 /// Warnings printed one by one; the rest are counted.
 const MAX_WARNINGS: usize = 10;
 
-fn ground_truth(args: &Args) -> anyhow::Result<Option<Vec<gelstereo::core::StereoPair<Vec<gelstereo::core::Detection>>>>> {
+fn ground_truth(
+    args: &Args,
+) -> anyhow::Result<Option<Vec<gelstereo::core::StereoPair<Vec<gelstereo::core::Detection>>>>> {
     if !args.from_ground_truth {
         return Ok(None);
     }

@@ -404,6 +404,28 @@ impl Pipeline {
         Ok(out)
     }
 
+    /// Processes every frame of `frames` (a [`crate::source::FrameSource`] or its
+    /// [`crate::source::Prefetch`]), calling `on_frame` with each result in order (frames that
+    /// cannot be read come flagged); returns the number of frames.
+    pub fn for_each(
+        &mut self,
+        frames: impl IntoIterator<Item = crate::source::SourceFrame>,
+        mut on_frame: impl FnMut(&FrameOutput),
+    ) -> Result<usize> {
+        let mut n = 0;
+        for f in frames {
+            let time_s = Some(f.time_s);
+            let out = match f.images {
+                Ok(images) => self.process(&Frame { images, time_s })?,
+                Err(e) => self.flag(time_s, e.full_message()),
+            };
+            out.earlier.iter().for_each(&mut on_frame);
+            on_frame(&out);
+            n += 1;
+        }
+        Ok(n)
+    }
+
     /// Records a frame that could not be read (`reason` names the file and the problem): it comes
     /// back flagged, with a `lost` row per id, and counts as a frame.
     pub fn flag(&mut self, time_s: Option<f64>, reason: String) -> FrameOutput {

@@ -211,6 +211,22 @@ impl FrameSource {
         )))
     }
 
+    /// Opens `spec` as a path ([`Self::open_path`], mono or stereo as the folder says) when it
+    /// exists, else as cameras: `N` or `L,R` ([`Self::open_cameras`]).
+    pub fn open(spec: &str) -> Result<Self> {
+        let path = Path::new(spec);
+        if path.exists() {
+            return Self::open_path(path, false);
+        }
+        let cameras: Vec<String> = spec.split(',').map(str::to_owned).collect();
+        if cameras.iter().all(|c| c.trim().parse::<i32>().is_ok()) {
+            return Self::open_cameras(&cameras, false);
+        }
+        Err(Error::Invalid(format!(
+            "{spec}: no such file or folder, and not a camera number (N or L,R)"
+        )))
+    }
+
     /// Like [`Self::open_path`], but a stereo recording gives its left view only (a mono sensor).
     pub fn open_left_view(input: &Path) -> Result<Self> {
         let mut source = Self::open_path(input, false)?;

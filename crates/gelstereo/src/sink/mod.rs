@@ -49,14 +49,17 @@ pub fn frames_csv_header() -> String {
     format!("{},t_s,note", FRAME_COLUMNS.join(","))
 }
 
-/// The `frames.csv` row of a frame (no newline).
+/// The `frames.csv` row of a frame (no newline). The note is kept to one cell that every CSV reader
+/// splits alike: commas become semicolons, line breaks and quotes spaces.
 pub fn frames_csv_row(summary: &FrameSummary, t_s: f64, note: Option<&str>, out: &mut String) {
     summary.write_csv(out);
     out.push_str(&format!(",{t_s:.6},"));
     if let Some(n) = note {
-        out.push('"');
-        out.push_str(&n.replace('"', "\"\"").replace(['\n', '\r'], " "));
-        out.push('"');
+        out.extend(n.chars().map(|c| match c {
+            ',' => ';',
+            '\n' | '\r' | '"' => ' ',
+            c => c,
+        }));
     }
 }
 
@@ -355,5 +358,62 @@ impl Sink for PlotSink {
                 .write_atomic(name, |path| draw::write_plot(path, &plot))?;
         }
         Ok(())
+    }
+}
+
+/// Saves frames as a stereo recording on disk (`left/NNNNNN.png`, `right/NNNNNN.png`, or the
+/// left view alone for mono frames) with their capture times in `times.csv` (`frame,t_s`):
+/// `gelstereo capture`, for checkerboard images and for recordings to track later.
+pub struct RecordingWriter {
+    folder: Arc<OutputFolder>,
+    times: File,
+    times_path: std::path::PathBuf,
+    written: usize,
+    first_time_s: Option<f64>,
+}
+
+impl RecordingWriter {
+    /// Writes into `folder`.
+    pub fn create(folder: Arc<OutputFolder>) -> Result<Self> {
+        let times_path = folder.claim("times.csv")?;
+        let mut times = File::create(&times_path).map_err(file_err(&times_path))?;
+        times.write_all(b"frame,t_s\n").map_err(file_err(&times_path))?;
+        Ok(Self {
+            folder,
+            times,
+            times_path,
+            written: 0,
+            first_time_s: None,
+        })
+    }
+
+    /// Saves one frame captured at `time_s` (any origin); returns its frame number.
+    pub fn write(&mut self, images: &Images, time_s: f64) -> Result<usize> {
+        let k = self.written;
+        let views: Vec<(&str, &opencv::core::Mat)> = match images {
+            Images::Stereo(p) => vec![("left", &p.left), ("right", &p.right)],
+            Images::Mono(m) => vec![("left", m)],
+        };
+        for (side, image) in views {
+            self.folder.write_atomic(&format!("{side}/{k:06}.png"), |path| {
+                Ok(images::write_image(path, image)?)
+            })?;
+        }
+        let first = *self.first_time_s.get_or_insert(time_s);
+        self.times
+            .write_all(format!("{k},{:.6}\n", time_s - first).as_bytes())
+            .map_err(file_err(&self.times_path))?;
+        self.written += 1;
+        Ok(k)
+    }
+
+    /// Frames saved so far.
+    pub fn len(&self) -> usize {
+        self.written
+    }
+
+    /// Whether no frame was saved yet.
+    pub fn is_empty(&self) -> bool {
+        self.written == 0
     }
 }
