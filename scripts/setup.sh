@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One idempotent setup for a fresh machine, used by both README commands and by CI.
-#  1. Debian packages for the `opencv` crate (OpenCV 4.6 from libopencv-dev, clang for its bindings).
+#  1. Debian packages for the `opencv` crate (OpenCV 4.6 from libopencv-dev, clang for its bindings)
+#     and for the figures (`plotters` renders text through fontconfig / freetype with DejaVu fonts).
 #  2. ONNX Runtime: the shared library shipped inside the PyPI `onnxruntime` wheel (ort's own binary
 #     download cannot reach its CDN here), pinned by version and sha256, unpacked into .deps/onnxruntime/lib.
 #  3. The Python environment for train/ (.venv, pinned train/requirements.txt), kept in a per-user cache
@@ -21,7 +22,7 @@ mkdir -p "$CACHE"
 
 # --- 1. Debian packages ------------------------------------------------------------------------
 need_apt=()
-for pkg in libopencv-dev clang libclang-dev; do
+for pkg in libopencv-dev clang libclang-dev libfontconfig1-dev libfreetype-dev fonts-dejavu-core; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need_apt+=("$pkg")
 done
 if ((${#need_apt[@]})); then

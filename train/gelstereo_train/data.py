@@ -10,7 +10,7 @@ Layout (see the simulator's docs)::
 
 Every image (left and right view) is one sample. Its ground truth is the rows of its frame with
 ``visible_<view> = 1``; positions are in pixels of the original image, (0, 0) = centre of the top-left
-pixel (DESIGN.md). An empty cell is a missing value.
+pixel (docs/design.md). An empty cell is a missing value.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The paper's metrics, as defined once in DESIGN.md ("Metrics").
+"""The paper's metrics, as defined once in docs/design.md ("Metrics").
 
 A prediction is correct when it is matched one-to-one, nearest pairs first, to a visible ground-truth
 marker within r = 0.25 x the marker pitch in pixels (pitch = median nearest-neighbour distance of the

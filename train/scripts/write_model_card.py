@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     L.append(f"- Marknet: {meta['steps']} steps of batch {a['batch']} in {meta['train_seconds'] / 60:.1f} min "
              f"wall clock, {a['threads']} threads, AdamW lr {a['lr']} (warm-up, cosine), loss alpha "
              f"{a['alpha']} x BCE + beta {a['beta']} x Euclidean distance; MRE {mre_meta.get('seconds')} s "
-             f"(data + training). Trained {meta['trained']}.")
+             f"(data + training).")
     def from_train(path: str) -> str:  # checkpoints under train/ named as the commands here run (from train/)
         return path.split("/train/", 1)[1] if "/train/" in path else path
 

@@ -1,5 +1,5 @@
 //! `gelstereo detect`: markers in images, videos and stereo recordings, as `image,x,y,confidence` CSV
-//! (DESIGN.md "Interfaces"), with optional overlay PNGs. Also the localizer options shared with
+//! (docs/design.md "Interfaces"), with optional overlay PNGs. Also the localizer options shared with
 //! `gelstereo eval` and `gelstereo bench`.
 
 use std::collections::HashSet;

@@ -1,5 +1,5 @@
 //! `gelstereo eval`: the paper's Table I on a dataset written by `gelstereo simulate` — precision,
-//! recall and loss of each localization method on the easy / hard / contact splits (DESIGN.md
+//! recall and loss of each localization method on the easy / hard / contact splits (docs/design.md
 //! "Metrics"; the definitions live in `gelstereo_markers::metrics`).
 
 use std::fmt::Write as _;

@@ -1,5 +1,5 @@
 //! `gelstereo reconstruct`: localization + grid indexing + left/right pairing + triangulation of a
-//! stereo recording (or one stereo pair), written as `OUT/markers.csv` (DESIGN.md per-frame marker
+//! stereo recording (or one stereo pair), written as `OUT/markers.csv` (docs/design.md per-frame marker
 //! table, displacement and status empty) and one binary PLY point cloud per frame
 //! (`OUT/ply/NNNNNN.ply`). The work is `gelstereo_matching::StereoReconstructor`; this is input
 //! handling, output files and, for simulated recordings, the comparison with the ground truth.

@@ -66,7 +66,7 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     ]);
     assert!(log.contains("23x23 lattice"), "{log}");
 
-    // markers.csv: the DESIGN.md header and one row per marker and frame, displacement empty.
+    // markers.csv: the docs/design.md header and one row per marker and frame, displacement empty.
     let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
     let mut lines = csv.lines();
     assert_eq!(

@@ -1,4 +1,4 @@
-//! The per-frame tables other tools read (DESIGN.md "Interfaces"): `markers.csv`, one row per marker
+//! The per-frame tables other tools read (docs/design.md "Interfaces"): `markers.csv`, one row per marker
 //! and frame, and `frames.csv`, one row per frame. Empty cells stand for what a mono sensor or a
 //! lost marker lacks. Readers look columns up by name, so files may carry extra columns (the
 //! simulator adds its ground-truth ones).
@@ -51,10 +51,12 @@ pub struct FrameSummary {
     pub frame: u32,
     /// Whether anything touches the gel.
     pub contact: bool,
-    /// Contact area, mm^2 (0 without contact).
-    pub contact_area_mm2: f64,
-    /// Largest indentation depth, mm (0 without contact).
-    pub max_depth_mm: f64,
+    /// Contact area, mm^2 (0 without contact); `None` when the sensor's scale is unknown (a mono
+    /// sensor without its marker pitch), written as an empty cell.
+    pub contact_area_mm2: Option<f64>,
+    /// Largest indentation depth, mm (0 without contact); `None` when the sensor cannot measure it
+    /// (mono sensors), written as an empty cell.
+    pub max_depth_mm: Option<f64>,
     /// Contact centroid in the left camera frame, mm; empty without contact.
     pub centroid_mm: Option<[f64; 2]>,
     /// Slip state.
@@ -131,8 +133,8 @@ impl FrameSummary {
     /// Appends this row's 7 cells (no newline) in [`FRAME_COLUMNS`] order.
     pub fn write_csv(&self, out: &mut String) {
         let _ = write!(out, "{},{}", self.frame, u8::from(self.contact));
-        push_opt(out, Some(self.contact_area_mm2));
-        push_opt(out, Some(self.max_depth_mm));
+        push_opt(out, self.contact_area_mm2);
+        push_opt(out, self.max_depth_mm);
         push_opt(out, self.centroid_mm.map(|c| c[0]));
         push_opt(out, self.centroid_mm.map(|c| c[1]));
         let _ = write!(out, ",{}", self.slip);
@@ -144,8 +146,8 @@ impl FrameSummary {
         Ok(Self {
             frame: table.value(row, "frame", "a frame number")?,
             contact: contact == 1,
-            contact_area_mm2: table.value(row, "contact_area_mm2", "an area in mm^2")?,
-            max_depth_mm: table.value(row, "max_depth_mm", "a depth in mm")?,
+            contact_area_mm2: table.opt_f64(row, "contact_area_mm2")?,
+            max_depth_mm: table.opt_f64(row, "max_depth_mm")?,
             centroid_mm: match (
                 table.opt_f64(row, "centroid_X_mm")?,
                 table.opt_f64(row, "centroid_Y_mm")?,
@@ -339,8 +341,8 @@ mod tests {
         let s = FrameSummary {
             frame: 3,
             contact: true,
-            contact_area_mm2: 12.5,
-            max_depth_mm: 0.75,
+            contact_area_mm2: Some(12.5),
+            max_depth_mm: Some(0.75),
             centroid_mm: Some([0.5, -1.25]),
             slip: SlipState::PartialSlip,
         };
@@ -349,5 +351,16 @@ mod tests {
         s.write_csv(&mut text);
         let table = CsvTable::from_text("mem", &text).unwrap();
         assert_eq!(FrameSummary::from_table(&table, 0).unwrap(), s);
+        // Unknown area and depth (a mono sensor without its scale) are empty cells, not 0.
+        let unknown = FrameSummary {
+            contact_area_mm2: None,
+            max_depth_mm: None,
+            ..s
+        };
+        let mut row = String::new();
+        unknown.write_csv(&mut row);
+        assert_eq!(row, "3,1,,,0.500000,-1.250000,partial_slip");
+        let table = CsvTable::from_text("mem", &format!("{}\n{row}", FRAME_COLUMNS.join(","))).unwrap();
+        assert_eq!(FrameSummary::from_table(&table, 0).unwrap(), unknown);
     }
 }

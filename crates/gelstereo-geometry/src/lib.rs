@@ -1,6 +1,6 @@
 //! Camera models, calibration files and triangulation for a stereo GelStereo sensor.
 //!
-//! Conventions (see DESIGN.md): pixel (0, 0) is the centre of the top-left pixel; camera frame x right,
+//! Conventions (see docs/design.md): pixel (0, 0) is the centre of the top-left pixel; camera frame x right,
 //! y down, z forward; 3-D in mm in the LEFT camera's frame; `p_in_right = right_from_left * p_in_left`.
 //!
 //! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),

@@ -1,6 +1,6 @@
 //! Still images: reading and writing single files, listing image folders, and stereo recordings
 //! (a folder with `left/` and `right/` sub-folders of images with matching file names, taken in sorted
-//! order, as DESIGN.md defines them).
+//! order, as docs/design.md defines them).
 
 use std::path::{Path, PathBuf};
 

@@ -3,8 +3,8 @@
 //! Images are read as 8-bit BGR [`opencv::core::Mat`]s (OpenCV's channel order); pixel (0, 0) is the
 //! centre of the top-left pixel, as everywhere in gelstereo.
 
+pub mod figures;
 pub mod images;
-pub mod plot;
 pub mod ply;
 pub mod video;
 
@@ -43,6 +43,14 @@ pub enum Error {
         /// The folder.
         path: PathBuf,
         /// What was expected and what was found.
+        what: String,
+    },
+    /// A figure could not be drawn or written.
+    #[error("{path}: cannot draw the figure: {what}")]
+    Figure {
+        /// The figure file.
+        path: PathBuf,
+        /// What went wrong.
         what: String,
     },
     /// OpenCV reported an error while working on `path`.

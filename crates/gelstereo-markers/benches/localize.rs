@@ -5,7 +5,7 @@
 //! `cargo bench -p gelstereo-markers --bench localize`. Models: `$GELSTEREO_BENCH_MODELS/{marknet,mre}.onnx`,
 //! else `data/models/`; without them the Marknet benches are skipped (with a note). The image is drawn
 //! here: a lattice of ~1,000 dark dots (pitch 16 px, radius 3.5 px) on a shaded background, which is
-//! the load the tuned blob detector was measured on (/work/shared/TOOLCHAIN.md).
+//! the kind of image the blob detector's parameters were tuned on.
 //! `gelstereo bench` measures the same code side by side on real dataset images.
 
 use std::hint::black_box;

@@ -8,7 +8,7 @@
 //!   (decoding, thresholds, de-duplication, MRE features and acceptance).
 //! - [`blob`]: the SimpleBlobDetector baseline with documented, file-based parameters.
 //! - [`metrics`]: one-to-one matching, precision / recall / loss and the easy / hard / contact splits
-//!   (DESIGN.md "Metrics").
+//!   (docs/design.md "Metrics").
 //! - [`overlay`]: drawing detections onto images.
 //!
 //! # Conventions

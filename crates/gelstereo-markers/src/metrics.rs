@@ -1,4 +1,4 @@
-//! The paper's detection metrics, as DESIGN.md "Metrics" defines them for gelstereo (one definition,
+//! The paper's detection metrics, as docs/design.md "Metrics" defines them for gelstereo (one definition,
 //! shared with the Python trainer):
 //!
 //! - A prediction is correct when it is matched one-to-one, nearest pairs first, to a visible

@@ -1,4 +1,4 @@
-//! Reconstruction metrics against a simulated recording's ground truth (DESIGN.md "Metrics"):
+//! Reconstruction metrics against a simulated recording's ground truth (docs/design.md "Metrics"):
 //! 3-D RMSE over the reconstructed markers, coverage = reconstructed / visible in both views, wrong
 //! pairs = pairs whose right-view point is farther than r from the marker's own, and grid-index
 //! consistency. r = 0.25 x the marker pitch in pixels of each view.
@@ -252,7 +252,7 @@ impl Evaluation {
             let (Some(pos), Some(right)) = (m.position_mm, m.right_px) else {
                 continue;
             };
-            // DESIGN.md: a pair is wrong when its right-view point is farther than r from the
+            // docs/design.md: a pair is wrong when its right-view point is farther than r from the
             // marker's own (a misplaced left point shows in the index consistency instead).
             let pair_ok = t_right.is_some_and(|q| right.distance(q) <= r_px.right);
             let err = t.and_then(|t| t.position_mm).map(|g| {

@@ -15,7 +15,7 @@ pub struct IndexingConfig {
     /// margin for prediction error while staying clear of the neighbours.
     pub gate_frac: f64,
     /// Seeds need a detection within `seed_gate_frac x pitch` of the prior (or reference) position.
-    /// Default 0.25 (the DESIGN.md correctness radius r), with no second detection within twice
+    /// Default 0.25 (the docs/design.md correctness radius r), with no second detection within twice
     /// that distance.
     pub seed_gate_frac: f64,
     /// Seeds must agree in displacement with at least [`seed_min_agreeing`](Self::seed_min_agreeing)

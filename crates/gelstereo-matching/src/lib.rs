@@ -17,7 +17,7 @@
 //! 2. Index every later frame: [`ReferenceLattice::index`] (one view, optionally with the previous
 //!    frame's positions as prior) or [`StereoLattice::match_frame`] (both views, the right one gated
 //!    by the epipolar constraint, then paired by index and checked).
-//! 3. Or do all of it and triangulate with [`StereoReconstructor`], which yields the DESIGN.md
+//! 3. Or do all of it and triangulate with [`StereoReconstructor`], which yields the docs/design.md
 //!    per-frame marker rows.
 //!
 //! See `docs/matching.md` for the method and its measured accuracy.

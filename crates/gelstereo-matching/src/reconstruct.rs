@@ -51,7 +51,7 @@ pub struct ReconstructedMarker {
 }
 
 impl ReconstructedMarker {
-    /// The DESIGN.md `markers.csv` row of this marker in `frame` (displacement and status empty).
+    /// The docs/design.md `markers.csv` row of this marker in `frame` (displacement and status empty).
     pub fn record(&self, frame: u32) -> MarkerRecord {
         MarkerRecord {
             frame,

@@ -1,4 +1,4 @@
-//! Recordings and datasets on disk (the layout of DESIGN.md):
+//! Recordings and datasets on disk (the layout of docs/design.md):
 //!
 //! ```text
 //! OUT/dataset.json
@@ -344,8 +344,8 @@ impl Simulator {
         let summary = FrameSummary {
             frame,
             contact: def.contact_area_mm2 > 0.0,
-            contact_area_mm2: def.contact_area_mm2,
-            max_depth_mm: def.max_depth_mm,
+            contact_area_mm2: Some(def.contact_area_mm2),
+            max_depth_mm: Some(def.max_depth_mm),
             centroid_mm: centroid,
             slip: def.slip,
         };
@@ -378,7 +378,7 @@ impl Simulator {
     }
 }
 
-/// Header of `markers.csv`: the 14 DESIGN.md columns and the simulator's ground-truth flags.
+/// Header of `markers.csv`: the 14 docs/design.md columns and the simulator's ground-truth flags.
 pub fn markers_header() -> String {
     format!(
         "{},visible_left,visible_right,in_contact\n",

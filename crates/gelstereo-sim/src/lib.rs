@@ -2,7 +2,7 @@
 //! calibrated cameras, and exact ground truth, written as recordings and datasets.
 //!
 //! # Conventions
-//! As in DESIGN.md: pixel (0, 0) is the centre of the top-left pixel; camera frames x right, y down,
+//! As in docs/design.md: pixel (0, 0) is the centre of the top-left pixel; camera frames x right, y down,
 //! z forward; ground truth in mm in the LEFT camera's frame; `p_in_right = right_from_left *
 //! p_in_left`. Marker (row, col): row grows with y, col with x in the left view. The simulator's own
 //! *sensor frame* is described in [`sensor`].

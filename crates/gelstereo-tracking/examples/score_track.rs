@@ -1,5 +1,5 @@
 //! Scores `gelstereo track` outputs against simulated ground truth (the figures of
-//! `docs/results.md`): id swaps (DESIGN.md: ids that ever map to more than one ground-truth marker),
+//! `docs/results.md`): id swaps (docs/design.md: ids that ever map to more than one ground-truth marker),
 //! the share of visible markers tracked per frame, wrong associations (a marker written `tracked`
 //! more than 0.25 pitch from its own true position in either view), contact area / largest depth / centroid errors,
 //! gross-slip F1 per frame, onset delay, and slip reported before contact.
@@ -223,9 +223,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             if eg && est_onset.is_none() {
                 est_onset = Some(e.frame);
             }
-            if g.max_depth_mm >= 0.1 {
-                area_err.push((e.contact_area_mm2 - g.contact_area_mm2).abs() / g.contact_area_mm2);
-                depth_err.push((e.max_depth_mm - g.max_depth_mm).abs());
+            // Unknown values (mono estimates) score as NaN.
+            let known = |v: Option<f64>| v.unwrap_or(f64::NAN);
+            if known(g.max_depth_mm) >= 0.1 {
+                let (ga, ea) = (known(g.contact_area_mm2), known(e.contact_area_mm2));
+                area_err.push((ea - ga).abs() / ga);
+                depth_err.push((known(e.max_depth_mm) - known(g.max_depth_mm)).abs());
                 cent_err.push(match (g.centroid_mm, e.centroid_mm) {
                     (Some(a), Some(b)) => (a[0] - b[0]).hypot(a[1] - b[1]),
                     _ => f64::INFINITY,

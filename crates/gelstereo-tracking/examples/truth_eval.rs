@@ -155,10 +155,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 (Some(a), Some(b)) => (a[0] - b.x).hypot(a[1] - b.y),
                 _ => f64::INFINITY,
             };
-            let ae = (c.contact_area_mm2 - gt.contact_area_mm2) / gt.contact_area_mm2.max(1e-9);
-            let de = c.max_depth_mm - gt.max_depth_mm;
+            let (gt_area, gt_depth) = (
+                gt.contact_area_mm2.unwrap_or(f64::NAN),
+                gt.max_depth_mm.unwrap_or(f64::NAN),
+            );
+            let ae = (c.contact_area_mm2 - gt_area) / gt_area.max(1e-9);
+            let de = c.max_depth_mm - gt_depth;
             // Geometry is scored where the contact is established (ground-truth depth >= 0.1 mm).
-            if gt.max_depth_mm >= 0.1 {
+            if gt_depth >= 0.1 {
                 cmp += 1;
                 area_ok += usize::from(ae.abs() <= 0.1);
                 ratios.push(1.0 + ae);
@@ -172,10 +176,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4} noise {:.4}",
                     rec.display(),
                     c.contact_area_mm2,
-                    gt.contact_area_mm2,
+                    gt_area,
                     ae,
                     c.max_depth_mm,
-                    gt.max_depth_mm,
+                    gt_depth,
                     ce,
                     sl.state.as_str(),
                     gt.slip.as_str(),

@@ -877,8 +877,8 @@ mod tests {
         // contact: the deconvolved load is flat on top, so its largest value and the boundary at
         // a fraction of it follow the noise; the depth-weighted centroid much less. Truth: the
         // mean of the loaded markers (the simulator's definition, on the lattice). The centroid
-        // of the clipped contact area (before 2026-11-22 10:00) had a median error of 0.17 mm
-        // and 16 of the 40 draws beyond 0.2 mm.
+        // of the clipped contact area instead has a median error of 0.17 mm and 16 of the 40
+        // draws beyond 0.2 mm.
         let shape = GridShape::REFERENCE;
         let (rest, pressed, load) = blurred_disc(0.3, 2.4, 0.5, -0.3);
         let loaded: Vec<[f64; 3]> = rest

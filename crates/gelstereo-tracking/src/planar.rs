@@ -79,8 +79,9 @@ impl PlanarConfig {
 pub struct PlanarFrame {
     /// Whether the field shows a contact.
     pub contact: bool,
-    /// Contact markers x pitch^2 when `pitch_mm` is known, else 0.
-    pub contact_area_mm2: f64,
+    /// Contact markers x pitch^2, mm^2 (0 without contact); `None` when `pitch_mm` is not known
+    /// (the image gives no scale).
+    pub contact_area_mm2: Option<f64>,
     /// Contact centroid in mm of the image plane scaled by the pitch (`pitch_mm` known), else `None`.
     pub centroid_mm: Option<[f64; 2]>,
     /// Number of markers in the contact region.
@@ -160,7 +161,8 @@ impl PlanarDetector {
         let min_disp = c.min_displacement_pitch * self.pitch_px;
         let mut frame = PlanarFrame {
             contact: false,
-            contact_area_mm2: 0.0,
+            // Without the pitch no area is measurable, not even a zero one.
+            contact_area_mm2: c.pitch_mm.map(|_| 0.0),
             centroid_mm: None,
             contact_markers: 0,
             in_contact: vec![false; disp.len()],
@@ -201,7 +203,7 @@ impl PlanarDetector {
         let scale = c.pitch_mm.map(|p| p / self.pitch_px);
         frame.contact = true;
         frame.contact_markers = n;
-        frame.contact_area_mm2 = c.pitch_mm.map_or(0.0, |p| n as f64 * p * p);
+        frame.contact_area_mm2 = c.pitch_mm.map(|p| n as f64 * p * p);
         frame.centroid_mm = scale.map(|s| [s * cx / n as f64, s * cy / n as f64]);
         frame.shear_px = [sx / n as f64, sy / n as f64];
         frame.state = if frame.strain > c.slip_strain {
@@ -256,7 +258,7 @@ mod tests {
         };
         let stick = run(&bump);
         assert_eq!(stick.state, SlipState::Stick, "strain {}", stick.strain);
-        assert!(stick.contact_markers > 4 && stick.contact_area_mm2 == 0.0 && stick.centroid_mm.is_none());
+        assert!(stick.contact_markers > 4 && stick.contact_area_mm2.is_none() && stick.centroid_mm.is_none());
         // Columns 5.. carried 9 px further than the rest: a slip front between columns 4 and 5.
         let torn = run(&|i| {
             let b = bump(i);

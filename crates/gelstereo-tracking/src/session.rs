@@ -406,12 +406,12 @@ impl StereoSession {
         let summary = FrameSummary {
             frame,
             contact: contact.contact,
-            contact_area_mm2: contact.contact_area_mm2,
-            max_depth_mm: if contact.contact {
+            contact_area_mm2: Some(contact.contact_area_mm2),
+            max_depth_mm: Some(if contact.contact {
                 contact.max_depth_mm
             } else {
                 0.0
-            },
+            }),
             centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
             slip: slip.state,
         };
@@ -578,8 +578,8 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
     let summary = FrameSummary {
         frame,
         contact: false,
-        contact_area_mm2: 0.0,
-        max_depth_mm: 0.0,
+        contact_area_mm2: Some(0.0),
+        max_depth_mm: Some(0.0),
         centroid_mm: None,
         slip: SlipState::NoContact,
     };
@@ -770,7 +770,8 @@ impl MonoSession {
             frame,
             contact: planar.contact,
             contact_area_mm2: planar.contact_area_mm2,
-            max_depth_mm: 0.0,
+            // One view measures no depth.
+            max_depth_mm: None,
             centroid_mm: planar.centroid_mm,
             slip: planar.state,
         };
@@ -879,13 +880,10 @@ mod tests {
         }
         // The contact lies inside the cap (area 2 pi R d = 6 pi).
         let cap = std::f64::consts::PI * 6.0;
-        let area = out.summary.contact_area_mm2;
+        let area = out.summary.contact_area_mm2.unwrap();
         assert!(area > 0.1 * cap && area < cap, "{area}");
-        assert!(
-            (out.summary.max_depth_mm - 0.5).abs() < 0.02,
-            "{}",
-            out.summary.max_depth_mm
-        );
+        let depth = out.summary.max_depth_mm.unwrap();
+        assert!((depth - 0.5).abs() < 0.02, "{depth}");
         let c = out.summary.centroid_mm.unwrap();
         assert!((c[0] - 0.4).abs() < 0.08 && (c[1] - 0.2).abs() < 0.08, "{c:?}");
         assert_eq!(out.summary.slip, SlipState::Stick);

@@ -54,10 +54,10 @@ pub struct SlipConfig {
     /// about 0.5-0.8 x its depth in the simulator, so a flat cylinder 0.05 mm deep slides at
     /// 0.025-0.03 mm, which the fixed 0.03 mm kept in `stick`. 0.5, chosen on the train / val splits
     /// and the seed-303 / 404 sets (0.3-0.5 alike on exact 3-D; a floor of 0.02 mm instead gave
-    /// false gross slip from images: noisy drifts of contacts that used to stick).
+    /// false gross slip from images: noisy drifts of contacts that stick).
     pub stick_shear_per_depth: f64,
     /// The depth-relative threshold is at least this many times the frame's depth noise: a contact
-    /// touching down is shallow and its mean shear mostly noise. 4 (3 until 2026-11-22 10:10): with
+    /// touching down is shallow and its mean shear mostly noise. 4 rather than 3: with
     /// the contact markers taken within the indentation's core (`core_depth_fraction`), a false
     /// contact of image noise (0.02-0.04 mm deep) keeps fewer markers and a noisier mean shear;
     /// 4 keeps it in `stick` (seed-404 `test/exp_0004` frame 2, replayed from images); no other
@@ -600,7 +600,7 @@ mod tests {
         let states = run(SlipConfig::default());
         assert_eq!(states[..2], [SlipState::Stick; 2], "{states:?}");
         assert_eq!(states[3..], [SlipState::GrossSlip; 2], "{states:?}");
-        // Every contact marker (the core fraction at its floor, as before 2026-11-22 10:10).
+        // Every contact marker (the core fraction at its floor).
         let all = run(SlipConfig {
             core_depth_fraction: 1e-6,
             ..SlipConfig::default()

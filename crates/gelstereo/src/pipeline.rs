@@ -94,6 +94,8 @@ pub struct FrameOutput {
     /// The reference positions of the left view's markers (px, in id order) this frame was tracked
     /// against; empty for flagged frames.
     pub reference_left_px: Vec<Point2>,
+    /// The same for the right view (empty for mono sensors and flagged frames).
+    pub reference_right_px: Vec<Point2>,
     /// The stages' own results; `None` for flagged frames.
     pub stages: Option<Stages>,
 }
@@ -116,6 +118,7 @@ impl FrameOutput {
             log: Vec::new(),
             earlier: Vec::new(),
             reference_left_px: Vec::new(),
+            reference_right_px: Vec::new(),
             stages: None,
         }
     }
@@ -353,6 +356,7 @@ impl Pipeline {
         let mut out = match (session, &frame.images) {
             (Session::Stereo(st), Images::Stereo(_)) => {
                 let reference_left_px = st.left().reference_px().to_vec();
+                let reference_right_px = st.right().reference_px().to_vec();
                 let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
                 let contact_region = region(st.ids(), &self.shape, &tracked.contact.in_contact);
                 self.latest_contact = Some(tracked.contact.clone());
@@ -366,6 +370,7 @@ impl Pipeline {
                     log: Vec::new(),
                     earlier: Vec::new(),
                     reference_left_px,
+                    reference_right_px,
                     stages: Some(Stages::Stereo(Box::new(tracked))),
                 }
             }
@@ -390,6 +395,7 @@ impl Pipeline {
                     log: Vec::new(),
                     earlier: Vec::new(),
                     reference_left_px,
+                    reference_right_px: Vec::new(),
                     stages: Some(Stages::Mono(Box::new(tracked))),
                 }
             }

@@ -207,7 +207,11 @@ pub fn sinks(
         )));
     }
     if options.plots {
-        sinks.push(Box::new(PlotSink::new(folder.clone(), stereo)));
+        sinks.push(Box::new(PlotSink::new(
+            folder.clone(),
+            stereo,
+            options.overlay_every,
+        )));
     }
     Ok(sinks)
 }

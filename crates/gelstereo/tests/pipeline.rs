@@ -37,9 +37,14 @@ fn sample_recording_tracks_with_3d_markers_slip_and_timestamps() {
     assert!(outs.iter().any(|o| o.slip() == SlipState::GrossSlip));
     let pressed = outs
         .iter()
-        .max_by(|a, b| a.summary.max_depth_mm.total_cmp(&b.summary.max_depth_mm))
+        .max_by(|a, b| {
+            a.summary
+                .max_depth_mm
+                .unwrap_or(0.0)
+                .total_cmp(&b.summary.max_depth_mm.unwrap_or(0.0))
+        })
         .unwrap();
-    assert!(!pressed.contact_region.is_empty() && pressed.summary.max_depth_mm > 0.1);
+    assert!(!pressed.contact_region.is_empty() && pressed.summary.max_depth_mm.unwrap_or(0.0) > 0.1);
 }
 
 #[test]

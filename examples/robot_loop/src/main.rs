@@ -13,7 +13,8 @@ fn main() -> gelstereo::Result<()> {
     let mut pipeline = Pipeline::new(&config)?;
     pipeline.for_each(FrameSource::open(&input)?.prefetch(4), |out| {
         let in_3d = out.markers.iter().filter(|m| m.position_mm.is_some()).count();
-        let (t, depth, slip) = (out.t_s, out.summary.max_depth_mm, out.slip().as_str());
+        let depth = out.summary.max_depth_mm.unwrap_or(0.0);
+        let (t, slip) = (out.t_s, out.slip());
         println!("{t:.3} s: {in_3d} markers in 3-D, depth {depth:.3} mm, {slip}");
     })?;
     Ok(())

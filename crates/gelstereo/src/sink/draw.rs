@@ -1,14 +1,12 @@
-//! Drawing and geometry exports of one frame: PLY marker clouds and meshes, overlays with
-//! displacement arrows, colour maps of dense fields, plots of the run.
+//! Geometry exports of one frame (PLY marker clouds and meshes) and what the figures of
+//! [`gelstereo_io::figures`] are drawn from (overlay markers, captions, the contact surface).
 
 use std::path::Path;
 
-use gelstereo_core::{FrameSummary, GridShape, MarkerStatus, Point2, SlipState};
-use gelstereo_io::plot::{self, LinePlot};
+use gelstereo_core::{FrameSummary, GridShape, Point2};
+use gelstereo_io::figures::{self, OverlayMarker};
 use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
-use gelstereo_tracking::{ContactFrame, DenseField, TrackFrame};
-use opencv::core::{Mat, MatTraitConst, Point, Scalar};
-use opencv::imgproc;
+use gelstereo_tracking::{ContactFrame, TrackFrame};
 
 use crate::Result;
 
@@ -83,169 +81,51 @@ pub(crate) fn write_ply(
     Ok(())
 }
 
-/// Draws displacement arrows (reference -> current, scaled) and the contact markers onto `image`.
-pub(crate) fn overlay(
-    image: &Mat,
+/// The markers of one view for an overlay: reference position, current position, status, contact.
+pub(crate) fn overlay_markers(
     reference: &[Point2],
     track: &TrackFrame,
     in_contact: &dyn Fn(usize) -> bool,
-    scale: f64,
-    caption: &str,
-) -> Result<Mat> {
-    let mut out = Mat::default();
-    if image.channels() == 1 {
-        imgproc::cvt_color(image, &mut out, imgproc::COLOR_GRAY2BGR, 0)?;
-    } else {
-        out = image.try_clone()?;
-    }
-    let pt = |p: Point2| Point::new(p.x.round() as i32, p.y.round() as i32);
-    for (k, m) in track.markers.iter().enumerate() {
-        let Some(p) = m.position_px else { continue };
-        let r = reference[k];
-        let tip = Point2::new(r.x + scale * (p.x - r.x), r.y + scale * (p.y - r.y));
-        let color = match m.status {
-            MarkerStatus::Tracked => Scalar::new(0.0, 200.0, 0.0, 0.0),
-            MarkerStatus::Predicted => Scalar::new(0.0, 160.0, 255.0, 0.0),
-            MarkerStatus::Lost => Scalar::new(0.0, 0.0, 255.0, 0.0),
-        };
-        if in_contact(k) {
-            imgproc::circle(
-                &mut out,
-                pt(p),
-                5,
-                Scalar::new(0.0, 0.0, 255.0, 0.0),
-                1,
-                imgproc::LINE_AA,
-                0,
-            )?;
-        }
-        imgproc::arrowed_line(&mut out, pt(r), pt(tip), color, 1, imgproc::LINE_AA, 0, 0.25)?;
-    }
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 16),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.45,
-        Scalar::new(0.0, 0.0, 0.0, 0.0),
-        3,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 16),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.45,
-        Scalar::new(255.0, 255.0, 255.0, 0.0),
-        1,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    Ok(out)
-}
-
-/// A colour map (jet, 0 .. the field's maximum) of a dense field, with a caption.
-pub(crate) fn heatmap(field: &DenseField, caption: &str) -> Result<Mat> {
-    let (_, hi) = field.range();
-    let scale = if hi > 0.0 { 255.0 / hi } else { 0.0 };
-    let bytes: Vec<u8> = field
-        .values
+) -> Vec<OverlayMarker> {
+    track
+        .markers
         .iter()
-        .map(|v| (v.max(0.0) * scale).round().clamp(0.0, 255.0) as u8)
-        .collect();
-    let grey = Mat::new_rows_cols_with_data(field.height as i32, field.width as i32, &bytes)?.try_clone()?;
-    let mut colour = Mat::default();
-    imgproc::apply_color_map(&grey, &mut colour, imgproc::COLORMAP_JET)?;
-    let mut out = Mat::default();
-    let (w, h) = (colour.cols().max(1), colour.rows().max(1));
-    let k = (480.0 / f64::from(h)).max(1.0);
-    imgproc::resize(
-        &colour,
-        &mut out,
-        opencv::core::Size::new((f64::from(w) * k) as i32, (f64::from(h) * k) as i32),
-        0.0,
-        0.0,
-        imgproc::INTER_LINEAR,
-    )?;
-    imgproc::put_text(
-        &mut out,
-        caption,
-        Point::new(6, 18),
-        imgproc::FONT_HERSHEY_SIMPLEX,
-        0.5,
-        Scalar::all(255.0),
-        1,
-        imgproc::LINE_AA,
-        false,
-    )?;
-    Ok(out)
+        .enumerate()
+        .filter_map(|(k, m)| {
+            Some(OverlayMarker {
+                reference_px: *reference.get(k)?,
+                current_px: m.position_px?,
+                status: m.status,
+                in_contact: in_contact(k),
+            })
+        })
+        .collect()
 }
 
-pub(crate) fn caption(s: &FrameSummary) -> String {
-    format!(
-        "frame {} {} area {:.2} mm2 depth {:.3} mm",
-        s.frame,
-        s.slip.as_str(),
-        s.contact_area_mm2,
-        s.max_depth_mm
-    )
-}
-
-/// Plots of a run's contact area, largest depth (stereo) and slip state over the frames, as
-/// `(relative name, plot)`.
-pub(crate) fn run_plots(history: &[FrameSummary], stereo: bool) -> Vec<(&'static str, LinePlot)> {
-    let x = |f: &FrameSummary| f64::from(f.frame);
-    let area: Vec<(f64, f64)> = history.iter().map(|f| (x(f), f.contact_area_mm2)).collect();
-    let mut plots = vec![(
-        "plots/contact_area.png",
-        LinePlot::new("contact area", "frame", "mm^2").with_series("contact area", [200, 80, 0], area),
-    )];
-    if stereo {
-        let depth: Vec<(f64, f64)> = history.iter().map(|f| (x(f), f.max_depth_mm)).collect();
-        plots.push((
-            "plots/max_depth.png",
-            LinePlot::new("largest indentation depth", "frame", "mm").with_series(
-                "max depth",
-                [0, 120, 220],
-                depth,
-            ),
-        ));
-    }
-    let slip: Vec<(f64, f64)> = history
-        .iter()
-        .map(|f| (x(f), f64::from(slip_level(f.slip))))
-        .collect();
-    let cats = [
-        SlipState::NoContact,
-        SlipState::Stick,
-        SlipState::PartialSlip,
-        SlipState::GrossSlip,
+/// The overlay caption's items: frame, slip state, contact area and depth ("unknown" where the
+/// sensor cannot tell).
+pub(crate) fn caption(s: &FrameSummary) -> Vec<String> {
+    let known = |v: Option<f64>, decimals: usize, unit: &str| {
+        v.map_or_else(|| "unknown".to_owned(), |v| format!("{v:.decimals$} {unit}"))
+    };
+    vec![
+        format!("frame {}", s.frame),
+        s.slip.as_str().replace('_', " "),
+        format!("area {}", known(s.contact_area_mm2, 1, "mm²")),
+        format!("depth {}", known(s.max_depth_mm, 2, "mm")),
     ]
-    .map(|s| s.as_str().to_owned())
-    .to_vec();
-    plots.push((
-        "plots/slip.png",
-        LinePlot {
-            categories: cats,
-            ..LinePlot::new("slip state", "frame", "")
-        }
-        .with_series("slip", [40, 40, 200], slip),
-    ));
-    plots
 }
 
-/// Writes `plot` as a PNG at `path`.
-pub(crate) fn write_plot(path: &Path, plot: &LinePlot) -> Result<()> {
-    Ok(plot::write(path, plot)?)
-}
-
-fn slip_level(s: SlipState) -> u8 {
-    match s {
-        SlipState::NoContact => 0,
-        SlipState::Stick => 1,
-        SlipState::PartialSlip => 2,
-        SlipState::GrossSlip => 3,
+/// The marker surface of a stereo frame, for the contact-surface figure.
+pub(crate) fn surface(shape: GridShape, contact: &ContactFrame) -> figures::Surface {
+    figures::Surface {
+        rows: usize::from(shape.rows),
+        cols: usize::from(shape.cols),
+        positions_mm: contact
+            .positions_mm
+            .iter()
+            .map(|p| p.map(|p| [p.x, p.y, p.z]))
+            .collect(),
+        depth_mm: contact.depth_mm.clone(),
     }
 }

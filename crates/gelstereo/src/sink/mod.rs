@@ -14,9 +14,10 @@ use std::io::Write;
 use std::sync::Arc;
 
 use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
-use gelstereo_core::{FrameSummary, MarkerRecord};
+use gelstereo_core::{FrameSummary, GridShape, MarkerRecord};
+use gelstereo_io::figures::{self, ColourScale, Curve, OverlayView, TimeSeries, Timeline};
 use gelstereo_io::images;
-use gelstereo_tracking::interpolate;
+use gelstereo_tracking::{TrackFrame, interpolate};
 
 pub use folder::{MANIFEST, OutputFolder};
 
@@ -228,9 +229,8 @@ impl Sink for PlySink {
     }
 }
 
-/// Overlays of every Nth frame: the left view with displacement arrows and the contact markers
-/// (`overlays/NNNNNN.png`), and a colour map of the indentation depth (stereo,
-/// `overlays/depth_NNNNNN.png`) or of the displacement (mono, `overlays/displacement_NNNNNN.png`).
+/// Overlays of every Nth frame: both views (or the one of a mono sensor) with displacement arrows,
+/// marker status and contact, a legend and a caption (`overlays/NNNNNN.png`).
 pub struct OverlaySink {
     folder: Arc<OutputFolder>,
     every: usize,
@@ -246,11 +246,16 @@ impl OverlaySink {
             arrow_scale,
         }
     }
+}
 
-    fn png(&self, name: &str, image: &opencv::core::Mat) -> Result<()> {
-        self.folder
-            .write_atomic(name, |path| Ok(images::write_image(path, image)?))
-    }
+/// Whether the marker `track.markers[k]` lies in the contact region `in_contact` (over the lattice).
+fn marker_in_contact(shape: GridShape, track: &TrackFrame, in_contact: &[bool], k: usize) -> bool {
+    track
+        .markers
+        .get(k)
+        .and_then(|m| shape.linear(m.index))
+        .and_then(|l| in_contact.get(l).copied())
+        .unwrap_or(false)
 }
 
 impl Sink for OverlaySink {
@@ -262,102 +267,233 @@ impl Sink for OverlaySink {
         if !every(out.frame, self.every) {
             return Ok(());
         }
-        let n = out.frame;
         let shape = frame.pipeline.shape();
+        let views = match (stages, images) {
+            (Stages::Stereo(st), Images::Stereo(pair)) => {
+                let c = &st.contact.in_contact;
+                vec![
+                    OverlayView {
+                        name: "left",
+                        image: &pair.left,
+                        markers: draw::overlay_markers(&out.reference_left_px, &st.left, &|k| {
+                            marker_in_contact(shape, &st.left, c, k)
+                        }),
+                    },
+                    OverlayView {
+                        name: "right",
+                        image: &pair.right,
+                        markers: draw::overlay_markers(&out.reference_right_px, &st.right, &|k| {
+                            marker_in_contact(shape, &st.right, c, k)
+                        }),
+                    },
+                ]
+            }
+            (Stages::Mono(m), Images::Mono(image)) => {
+                let c = &m.planar.in_contact;
+                vec![OverlayView {
+                    name: "camera",
+                    image,
+                    markers: draw::overlay_markers(&out.reference_left_px, &m.track, &|k| {
+                        c.get(k).copied().unwrap_or(false)
+                    }),
+                }]
+            }
+            _ => return Ok(()),
+        };
         let caption = draw::caption(&out.summary);
-        let reference = &out.reference_left_px;
-        match stages {
-            Stages::Stereo(st) => {
-                let lin: Vec<usize> = frame
-                    .pipeline
-                    .ids()
-                    .iter()
-                    .map(|i| shape.linear(*i).unwrap_or(0))
-                    .collect();
-                let in_contact = |k: usize| {
-                    lin.get(k)
-                        .and_then(|l| st.contact.in_contact.get(*l))
-                        .copied()
-                        .unwrap_or(false)
-                };
-                let img = draw::overlay(
-                    images.left(),
-                    reference,
-                    &st.left,
-                    &in_contact,
-                    self.arrow_scale,
-                    &caption,
-                )?;
-                self.png(&format!("overlays/{n:06}.png"), &img)?;
-                if let Some(f) = interpolate(shape, &st.contact.depth_mm, 16) {
-                    let title = format!("frame {n} indentation depth 0 .. {:.3} mm", f.range().1.max(0.0));
-                    self.png(&format!("overlays/depth_{n:06}.png"), &draw::heatmap(&f, &title)?)?;
-                }
-            }
-            Stages::Mono(m) => {
-                let in_contact = |k: usize| m.planar.in_contact.get(k).copied().unwrap_or(false);
-                let img = draw::overlay(
-                    images.left(),
-                    reference,
-                    &m.track,
-                    &in_contact,
-                    self.arrow_scale,
-                    &caption,
-                )?;
-                self.png(&format!("overlays/{n:06}.png"), &img)?;
-                // Dense displacement magnitude on the lattice, px.
-                let mut mags: Vec<Option<f64>> = vec![None; shape.count()];
-                for (k, mk) in m.track.markers.iter().enumerate() {
-                    if let (Some(p), Some(l), Some(r)) =
-                        (mk.position_px, shape.linear(mk.index), reference.get(k))
-                    {
-                        mags[l] = Some(p.distance(*r));
-                    }
-                }
-                if let Some(f) = interpolate(shape, &mags, 16) {
-                    let title = format!("frame {n} displacement 0 .. {:.1} px", f.range().1);
-                    self.png(
-                        &format!("overlays/displacement_{n:06}.png"),
-                        &draw::heatmap(&f, &title)?,
-                    )?;
-                }
-            }
-        }
-        Ok(())
+        self.folder
+            .write_atomic(&format!("overlays/{:06}.png", out.frame), |path| {
+                Ok(figures::overlay(path, &views, self.arrow_scale, &caption)?)
+            })
     }
 }
 
-/// Plots of the run (`plots/contact_area.png`, `plots/max_depth.png` for stereo, `plots/slip.png`),
-/// written by [`Sink::finish`] from every frame seen.
+/// The figures of a run, written by [`Sink::finish`] from every frame seen: contact area, largest
+/// depth (stereo) and slip state over time (`plots/*.png` and `.svg`, time axes in seconds); heat
+/// maps of every Nth frame on one colour scale for the whole run (indentation depth for stereo,
+/// displacement in the image for mono: `overlays/depth_NNNNNN.png` or
+/// `overlays/displacement_NNNNNN.png`); the deepest frame's contact surface
+/// (`plots/contact_surface.png` and `.svg`).
 pub struct PlotSink {
     folder: Arc<OutputFolder>,
     stereo: bool,
+    heat_every: usize,
     history: Vec<FrameSummary>,
+    times_s: Vec<f64>,
+    shape: Option<GridShape>,
+    /// Per heat-map frame, the values over the lattice (NaN unknown).
+    heat: Vec<(u32, Vec<f32>)>,
+    /// The frame of the largest indentation depth so far and its marker surface.
+    deepest: Option<(u32, f64, figures::Surface)>,
 }
 
 impl PlotSink {
-    /// Plots into `folder`; `stereo` adds the depth plot.
-    pub fn new(folder: Arc<OutputFolder>, stereo: bool) -> Self {
+    /// Plots into `folder`; `stereo` adds the depth plot; a heat map every `heat_every` frames
+    /// (0: none).
+    pub fn new(folder: Arc<OutputFolder>, stereo: bool, heat_every: usize) -> Self {
         Self {
             folder,
             stereo,
+            heat_every,
             history: Vec::new(),
+            times_s: Vec::new(),
+            shape: None,
+            heat: Vec::new(),
+            deepest: None,
         }
+    }
+
+    fn keep(&mut self, out: &FrameOutput, shape: GridShape) {
+        match &out.stages {
+            Some(Stages::Stereo(st)) => {
+                if every(out.frame, self.heat_every) {
+                    let depth = st
+                        .contact
+                        .depth_mm
+                        .iter()
+                        .map(|d| d.map_or(f32::NAN, |d| d as f32));
+                    self.heat.push((out.frame, depth.collect()));
+                }
+                let Some(depth) = out.summary.max_depth_mm.filter(|d| d.is_finite()) else {
+                    return;
+                };
+                if self.deepest.as_ref().is_none_or(|(_, d, _)| *d < depth) {
+                    self.deepest = Some((out.frame, depth, draw::surface(shape, &st.contact)));
+                }
+            }
+            Some(Stages::Mono(m)) if every(out.frame, self.heat_every) => {
+                // Displacement magnitude on the lattice, px.
+                let mut mags = vec![f32::NAN; shape.count()];
+                for (k, mk) in m.track.markers.iter().enumerate() {
+                    if let (Some(p), Some(r), Some(l)) = (
+                        mk.position_px,
+                        out.reference_left_px.get(k),
+                        shape.linear(mk.index),
+                    ) {
+                        mags[l] = p.distance(*r) as f32;
+                    }
+                }
+                self.heat.push((out.frame, mags));
+            }
+            _ => {}
+        }
+    }
+
+    fn time_series(&self) -> Result<()> {
+        let h = &self.history;
+        let frames: Vec<u32> = h.iter().map(|f| f.frame).collect();
+        let timeline = Timeline::new(&frames, Some(&self.times_s));
+        let area = TimeSeries {
+            title: "contact area".into(),
+            y_label: "contact area (mm²)".into(),
+            timeline: timeline.clone(),
+            curves: vec![Curve {
+                name: "contact area".into(),
+                values: h.iter().map(|f| f.contact_area_mm2).collect(),
+            }],
+            y_resolution: 0.1,
+            unknown_note: "the marker pitch is not given (--pitch-mm)".into(),
+        };
+        let depth = TimeSeries {
+            title: "largest indentation depth".into(),
+            y_label: "depth (mm)".into(),
+            curves: vec![Curve {
+                name: "largest depth".into(),
+                values: h.iter().map(|f| f.max_depth_mm).collect(),
+            }],
+            y_resolution: 0.01,
+            unknown_note: "one camera measures no depth".into(),
+            ..area.clone()
+        };
+        let slip: Vec<_> = h.iter().map(|f| f.slip).collect();
+        let f = &self.folder;
+        for ext in ["png", "svg"] {
+            f.write_atomic(&format!("plots/contact_area.{ext}"), |p| {
+                Ok(figures::time_series(p, &area)?)
+            })?;
+            if self.stereo {
+                f.write_atomic(&format!("plots/max_depth.{ext}"), |p| {
+                    Ok(figures::time_series(p, &depth)?)
+                })?;
+            }
+            f.write_atomic(&format!("plots/slip.{ext}"), |p| {
+                Ok(figures::slip_timeline(p, "slip state", &timeline, &slip)?)
+            })?;
+        }
+        Ok(())
+    }
+
+    /// The heat maps and the contact surface on one colour scale (0 .. the run's largest value).
+    fn heat_maps(&self, shape: GridShape) -> Result<()> {
+        let (label, name, resolution) = if self.stereo {
+            ("indentation depth (mm)", "depth", 0.01)
+        } else {
+            ("displacement (px)", "displacement", 0.5)
+        };
+        let deepest = self
+            .deepest
+            .iter()
+            .flat_map(|(_, _, s)| s.depth_mm.iter().flatten().copied());
+        let heat = self
+            .heat
+            .iter()
+            .flat_map(|(_, v)| v.iter().map(|x| f64::from(*x)));
+        let scale = ColourScale::covering(label, heat.chain(deepest), resolution);
+        if let Some((frame, _, surface)) = &self.deepest {
+            let title = format!("contact surface, frame {frame} (deepest)");
+            for ext in ["png", "svg"] {
+                self.folder
+                    .write_atomic(&format!("plots/contact_surface.{ext}"), |p| {
+                        Ok(figures::surface(p, &title, surface, &scale)?)
+                    })?;
+            }
+        }
+        for (frame, values) in &self.heat {
+            let lattice: Vec<Option<f64>> = values
+                .iter()
+                .map(|v| v.is_finite().then_some(f64::from(*v)))
+                .collect();
+            let Some(dense) = interpolate(shape, &lattice, 8) else {
+                continue;
+            };
+            let field = figures::Field {
+                width: dense.width,
+                height: dense.height,
+                values: dense.values,
+                x_extent: (0.0, f64::from(shape.cols.saturating_sub(1))),
+                y_extent: (0.0, f64::from(shape.rows.saturating_sub(1))),
+                axis_labels: ("marker column".into(), "marker row".into()),
+            };
+            self.folder
+                .write_atomic(&format!("overlays/{name}_{frame:06}.png"), |p| {
+                    Ok(figures::heatmap(
+                        p,
+                        &format!("frame {frame}: {name}"),
+                        &field,
+                        &scale,
+                    )?)
+                })?;
+        }
+        Ok(())
     }
 }
 
 impl Sink for PlotSink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
+        let shape = frame.pipeline.shape();
+        self.shape = Some(shape);
+        self.keep(frame.output, shape);
         self.history.push(frame.output.summary.clone());
+        self.times_s.push(frame.output.t_s);
         Ok(())
     }
 
     fn finish(&mut self) -> Result<()> {
-        for (name, plot) in draw::run_plots(&self.history, self.stereo) {
-            self.folder
-                .write_atomic(name, |path| draw::write_plot(path, &plot))?;
+        self.time_series()?;
+        match self.shape {
+            Some(shape) => self.heat_maps(shape),
+            None => Ok(()),
         }
-        Ok(())
     }
 }
 
