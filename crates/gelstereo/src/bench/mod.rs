@@ -6,6 +6,8 @@
 //! - [`end_to_end`]: `gelstereo track` from disk with its default outputs, repeated, the median
 //!   run's frames/s and CPU time per frame.
 
+pub mod localization;
+
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
