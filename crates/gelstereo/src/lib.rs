@@ -29,6 +29,7 @@
 //! view's reference frame; times in s.
 
 pub mod bench;
+pub mod calibrate;
 mod config;
 mod error;
 mod pipeline;
