@@ -43,8 +43,11 @@ fn file_name(p: &Path) -> String {
         .unwrap_or_default()
 }
 
+/// A file name and the left and right images of that name.
+type NamedPair = (String, PathBuf, PathBuf);
+
 /// Pairs `left_dir` and `right_dir` by file name.
-fn pair_images(left_dir: &Path, right_dir: &Path) -> Result<(Vec<(String, PathBuf, PathBuf)>, Vec<String>)> {
+fn pair_images(left_dir: &Path, right_dir: &Path) -> Result<(Vec<NamedPair>, Vec<String>)> {
     let left = gelstereo_io::images::list_images(left_dir)?;
     let right = gelstereo_io::images::list_images(right_dir)?;
     let mut unpaired = Vec::new();
