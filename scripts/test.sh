@@ -13,5 +13,7 @@ step "cargo clippy (warnings are errors)"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 step "cargo test"
 cargo test --workspace --locked
+step "examples: the Rust robot loop on the sample recording"
+cargo run -q --locked -p robot-loop -- data/sample/press-slide | tail -n 3
 step "pytest train/"
 (cd train && "$ROOT/.venv/bin/python" -m pytest -q)

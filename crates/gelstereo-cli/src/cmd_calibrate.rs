@@ -1,16 +1,13 @@
 //! `gelstereo calibrate`: stereo checkerboard calibration. Pairs the images of LEFT_DIR and
 //! RIGHT_DIR by file name, finds the board in both views, calibrates with OpenCV
-//! (`gelstereo_geometry::checkerboard`), prints the RMS reprojection and epipolar errors and writes
+//! ([`gelstereo::calibrate`]), prints the RMS reprojection and epipolar errors and writes
 //! the calibration (OpenCV YAML/XML or a mrcal pair, by the path given to `--out`).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, bail};
-use gelstereo_core::{ImageSize, Point2};
-use gelstereo_geometry::checkerboard::{calibrate_stereo, find_corners};
-use gelstereo_geometry::{Board, CalibrationOptions, CalibrationPath, StereoCorners};
-use opencv::core::MatTraitConst;
-use rayon::prelude::*;
+use anyhow::Context;
+use gelstereo::calibrate::{FolderCalibration, calibrate_folders};
+use gelstereo_geometry::{Board, CalibrationOptions, CalibrationPath};
 
 /// Arguments of `gelstereo calibrate`.
 #[derive(clap::Args, Debug)]
@@ -18,8 +15,8 @@ pub struct Args {
     /// The board's INNER corners, COLSxROWS (OpenCV's pattern size): a board of 10 x 7 squares is 9x6.
     #[arg(long, value_name = "COLSxROWS")]
     board: String,
-    /// Side of one square, mm (measure the printed board).
-    #[arg(long, value_name = "MM")]
+    /// Side of one square, mm.
+    #[arg(long, value_name = "S")]
     square_mm: f64,
     /// Where to write the calibration: FILE.yaml / FILE.yml / FILE.xml (OpenCV FileStorage),
     /// LEFT.cameramodel,RIGHT.cameramodel, or a folder (mrcal pair left.cameramodel, right.cameramodel).
@@ -30,7 +27,7 @@ pub struct Args {
     #[arg(long, default_value_t = 5)]
     distortion: usize,
     /// Half-size of the cornerSubPix window, px (keep it below half a square in the image).
-    #[arg(long, default_value_t = 5, value_name = "PX")]
+    #[arg(long, default_value_t = 5)]
     subpix_window: i32,
     /// Corner detector: classic (findChessboardCorners + cornerSubPix) or sb (findChessboardCornersSB,
     /// more robust to blur and noise).
@@ -45,22 +42,6 @@ pub struct Args {
     right_dir: PathBuf,
 }
 
-/// One detected pair: file name, image size, left and right corners (`None`: board not found).
-type Detected = (String, ImageSize, Option<Vec<Point2>>, Option<Vec<Point2>>);
-
-fn size_of(m: &opencv::core::Mat) -> ImageSize {
-    ImageSize {
-        width: u32::try_from(m.cols()).unwrap_or(0),
-        height: u32::try_from(m.rows()).unwrap_or(0),
-    }
-}
-
-fn file_name(p: &Path) -> String {
-    p.file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default()
-}
-
 /// Runs `gelstereo calibrate`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let board = Board::parse(&args.board, args.square_mm)?;
@@ -72,81 +53,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         detector: args.detector.parse()?,
         ..Default::default()
     };
-    options.validate()?;
-    let left = gelstereo_io::images::list_images(&args.left_dir)?;
-    let right = gelstereo_io::images::list_images(&args.right_dir)?;
-    let mut unpaired = Vec::new();
-    let mut pairs = Vec::new();
-    for l in &left {
-        let name = file_name(l);
-        match right.iter().find(|r| file_name(r) == name) {
-            Some(r) => pairs.push((name, l.clone(), r.clone())),
-            None => unpaired.push(format!("{} (no right image)", l.display())),
-        }
-    }
-    for r in &right {
-        if !left.iter().any(|l| file_name(l) == file_name(r)) {
-            unpaired.push(format!("{} (no left image)", r.display()));
-        }
-    }
-    if pairs.is_empty() {
-        bail!(
-            "no image pairs: {} and {} share no image file names ({} and {} images)",
-            args.left_dir.display(),
-            args.right_dir.display(),
-            left.len(),
-            right.len()
-        );
-    }
-    // Detect in parallel; keep the file order.
-    let detected: Vec<anyhow::Result<Detected>> = pairs
-        .par_iter()
-        .map(|(name, l, r)| {
-            let li = gelstereo_io::images::read_image(l)?;
-            let ri = gelstereo_io::images::read_image(r)?;
-            let (ls, rs) = (size_of(&li), size_of(&ri));
-            if ls != rs {
-                bail!(
-                    "{}: {}x{} but {}: {}x{}; both cameras must have the same image size",
-                    l.display(),
-                    ls.width,
-                    ls.height,
-                    r.display(),
-                    rs.width,
-                    rs.height
-                );
-            }
-            let lc = find_corners(&li, &board, &options).with_context(|| format!("{}", l.display()))?;
-            let rc = find_corners(&ri, &board, &options).with_context(|| format!("{}", r.display()))?;
-            Ok((name.clone(), ls, lc, rc))
-        })
-        .collect();
-    let mut size: Option<(ImageSize, String)> = None;
-    let mut views = Vec::new();
-    let mut not_found = Vec::new();
-    for d in detected {
-        let (name, s, lc, rc) = d?;
-        match &size {
-            None => size = Some((s, name.clone())),
-            Some((first, first_name)) if *first != s => bail!(
-                "{name} is {}x{} but {first_name} is {}x{}: all images must have one size",
-                s.width,
-                s.height,
-                first.width,
-                first.height
-            ),
-            _ => {}
-        }
-        match (lc, rc) {
-            (Some(left), Some(right)) => views.push(StereoCorners { name, left, right }),
-            (None, Some(_)) => not_found.push(format!("{name} (left)")),
-            (Some(_), None) => not_found.push(format!("{name} (right)")),
-            (None, None) => not_found.push(format!("{name} (both)")),
-        }
-    }
-    let Some((image_size, _)) = size else {
-        bail!("no images read")
-    };
+    let FolderCalibration {
+        report,
+        image_size,
+        pairs,
+        not_found,
+        unpaired,
+    } = calibrate_folders(&args.left_dir, &args.right_dir, &board, &options)?;
     for u in &unpaired {
         eprintln!("warning: skipped {u}");
     }
@@ -156,7 +69,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             board.inner_cols,
             board.inner_rows,
             not_found.len(),
-            pairs.len(),
+            pairs,
             not_found.join(", ")
         );
     }
@@ -166,13 +79,6 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
              unless the boards cover the whole image; compare with --distortion 5 or 8"
         );
     }
-    let report = calibrate_stereo(&board, image_size, &views, &options).with_context(|| {
-        format!(
-            "calibrating from {} and {}",
-            args.left_dir.display(),
-            args.right_dir.display()
-        )
-    })?;
     report
         .rig
         .save(&args.out)
@@ -180,10 +86,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let rig = &report.rig;
     println!(
         "calibrated from {} of {} image pairs ({}x{} px)",
-        report.pairs_used,
-        pairs.len(),
-        image_size.width,
-        image_size.height
+        report.pairs_used, pairs, image_size.width, image_size.height
     );
     println!(
         "RMS reprojection error: left {:.4} px, right {:.4} px, stereo {:.4} px",
@@ -219,7 +122,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     println!("wrote {}", args.out);
     if let Some(path) = &args.report {
         let json = serde_json::json!({
-            "pairs": pairs.len(),
+            "pairs": pairs,
             "pairs_used": report.pairs_used,
             "board_not_found": not_found,
             "unpaired": unpaired,
@@ -249,6 +152,7 @@ mod tests {
     use gelstereo_geometry::nalgebra::Point3;
     use gelstereo_sim::SensorSpec;
     use gelstereo_sim::checkerboard::write_checkerboard_set;
+    use std::path::Path;
 
     /// The simulator's checkerboard set for the reference sensor (rendered through its cameras with
     /// blur, noise and vignetting, true calibration alongside), plus one pair without a board and one

@@ -8,6 +8,7 @@ use gelstereo_core::interrupt;
 
 mod cmd_bench;
 mod cmd_calibrate;
+mod cmd_capture;
 mod cmd_detect;
 mod cmd_doctor;
 mod cmd_eval;
@@ -37,6 +38,8 @@ enum Command {
     Bench(cmd_bench::Args),
     /// Stereo checkerboard calibration: OpenCV YAML/XML or a mrcal pair, with RMS and epipolar errors.
     Calibrate(cmd_calibrate::Args),
+    /// Save camera frames (one side-by-side camera, or two cameras L,R) as a stereo recording.
+    Capture(cmd_capture::Args),
     /// Simulate a GelStereo sensor: stereo recordings with exact ground truth, split train/val/test.
     Simulate(cmd_simulate::Args),
     /// Track markers over a recording, video or camera: displacement, contact geometry, slip; CSV,
@@ -69,6 +72,7 @@ fn main() -> ExitCode {
         Command::Eval(args) => cmd_eval::run(&args),
         Command::Bench(args) => cmd_bench::run(&args),
         Command::Calibrate(args) => cmd_calibrate::run(&args),
+        Command::Capture(args) => cmd_capture::run(&args),
         Command::Simulate(args) => cmd_simulate::run(&args),
         Command::Track(args) => cmd_track::run(&args),
         Command::Reconstruct(args) => cmd_reconstruct::run(&args),

@@ -2,20 +2,9 @@
 
 use std::path::PathBuf;
 
-/// The folder holding `data/` and `calib/`: `GELSTEREO_HOME` when set, else the checkout this binary
-/// was built from, else the folder of the executable.
+/// The folder holding `data/` and `calib/` ([`gelstereo::project_home`]).
 pub fn home() -> PathBuf {
-    if let Some(p) = std::env::var_os("GELSTEREO_HOME").filter(|p| !p.is_empty()) {
-        return PathBuf::from(p);
-    }
-    let checkout = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."));
-    if checkout.join("data").is_dir() {
-        return checkout.canonicalize().unwrap_or(checkout);
-    }
-    std::env::current_exe()
-        .ok()
-        .and_then(|exe| exe.parent().map(PathBuf::from))
-        .unwrap_or_else(|| PathBuf::from("."))
+    gelstereo::project_home()
 }
 
 /// `gelstereo --version`: the binary's version and the OpenCV and ONNX Runtime it runs with.

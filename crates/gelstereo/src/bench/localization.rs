@@ -1,0 +1,270 @@
+//! The localization benchmark: latency of each method per view and per stereo pair, measured side
+//! by side in one process (the runs of the methods are interleaved, so machine load hits all alike),
+//! with the ratio to the blob baseline. Criterion benches of the same code are in
+//! `crates/gelstereo-markers/benches`.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use gelstereo_core::StereoPair;
+use gelstereo_io::images::{self, StereoRecording};
+use gelstereo_markers::{Localizer, LocalizerConfig, Method, create_localizer};
+use opencv::core::{Mat, MatTraitConst};
+use serde_json::json;
+
+use super::{Report, stats};
+use crate::{Error, Result};
+
+/// What the localization benchmark runs.
+pub struct LocalizationBench {
+    /// The stereo pairs cycled through.
+    pub pairs: Vec<StereoPair<Mat>>,
+    /// The methods, the blob baseline first.
+    pub methods: Vec<Method>,
+    /// Models, blob parameters, ONNX Runtime options.
+    pub config: LocalizerConfig,
+    /// Timed runs per method and measurement.
+    pub runs: usize,
+    /// Untimed warm-up runs per method.
+    pub warmup: usize,
+    /// The blob parameters' name, for the report.
+    pub blob_params: String,
+}
+
+/// Up to `count` stereo pairs: frames spread over the recordings of `dataset`'s `split` and the
+/// recordings among `inputs`, then consecutive loose images of `inputs` as pairs.
+pub fn load_pairs(
+    dataset: Option<&Path>,
+    split: &str,
+    inputs: &[PathBuf],
+    count: usize,
+) -> Result<Vec<StereoPair<Mat>>> {
+    let mut pairs = Vec::new();
+    let mut recordings: Vec<PathBuf> = Vec::new();
+    let mut loose: Vec<PathBuf> = Vec::new();
+    if let Some(ds) = dataset {
+        let split_dir = ds.join(split);
+        let mut exps: Vec<PathBuf> = std::fs::read_dir(&split_dir)
+            .map_err(|e| {
+                Error::Invalid(format!(
+                    "{}: not a dataset split folder ({e})",
+                    split_dir.display()
+                ))
+            })?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| images::is_stereo_recording(p))
+            .collect();
+        exps.sort();
+        recordings.extend(exps);
+    }
+    for p in inputs {
+        if p.is_dir() && images::is_stereo_recording(p) {
+            recordings.push(p.clone());
+        } else if p.is_dir() {
+            loose.extend(images::list_images(p)?);
+        } else {
+            loose.push(p.clone());
+        }
+    }
+    // Spread the pairs over the recordings: frame k of each in turn.
+    let recs: Vec<StereoRecording> = recordings
+        .iter()
+        .map(|r| StereoRecording::open(r))
+        .collect::<Result<_, _>>()?;
+    let mut k = 0;
+    while pairs.len() < count && recs.iter().any(|r| k < r.len()) {
+        for r in &recs {
+            if pairs.len() < count && k < r.len() {
+                let step = (r.len() / count.max(1)).max(1);
+                if let Some(p) = r.read((k * step).min(r.len() - 1)) {
+                    pairs.push(p?);
+                }
+            }
+        }
+        k += 1;
+    }
+    let mut loose_images = loose
+        .iter()
+        .map(|p| images::read_image(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    while pairs.len() < count && !loose_images.is_empty() {
+        let left = loose_images.remove(0);
+        let right = if loose_images.is_empty() {
+            left.try_clone()?
+        } else {
+            loose_images.remove(0)
+        };
+        pairs.push(StereoPair::new(left, right));
+    }
+    if pairs.is_empty() {
+        return Err(Error::Invalid(
+            "no images to benchmark: give --dataset DIR, stereo recordings or image files".into(),
+        ));
+    }
+    Ok(pairs)
+}
+
+/// CPU time used so far by all threads of this process (ONNX Runtime's and OpenCV's pools included),
+/// ns, from the scheduler's per-thread accounting (`/proc/self/task/*/schedstat`); `None` where that is
+/// unavailable. Unlike wall time it hardly changes with the machine's load.
+fn process_cpu_ns() -> Option<u64> {
+    let mut total = 0u64;
+    for entry in std::fs::read_dir("/proc/self/task").ok()? {
+        let path = entry.ok()?.path().join("schedstat");
+        let text = std::fs::read_to_string(path).unwrap_or_default();
+        total += text
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(0);
+    }
+    (total > 0).then_some(total)
+}
+
+/// Runs `f`, returning its result, wall time and CPU time (ms; CPU `None` without schedstat), the CPU
+/// time corrected by `overhead_ns` (the cost of the CPU-time reading itself).
+fn timed<T>(overhead_ns: u64, f: impl FnOnce() -> T) -> (T, f64, Option<f64>) {
+    let c0 = process_cpu_ns();
+    let t = Instant::now();
+    let out = f();
+    let wall_ms = t.elapsed().as_secs_f64() * 1e3;
+    let c1 = process_cpu_ns();
+    let cpu_ms = c0
+        .zip(c1)
+        .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6);
+    (out, wall_ms, cpu_ms)
+}
+
+/// Runs the benchmark (the first method is the reference of the ratios).
+pub fn run(b: &LocalizationBench) -> Result<Report> {
+    if b.runs < 1 {
+        return Err(Error::Invalid("--runs must be at least 1".into()));
+    }
+    let (pairs, methods) = (&b.pairs, &b.methods);
+    let views: Vec<&Mat> = pairs.iter().flat_map(|p| [&p.left, &p.right]).collect();
+    let mut locs: Vec<Box<dyn Localizer + Send>> = methods
+        .iter()
+        .map(|m| {
+            create_localizer(*m, &b.config)
+                .map_err(|e| Error::from(e).context(format!("cannot set up method '{m}'")))
+        })
+        .collect::<Result<_>>()?;
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let sizes: std::collections::BTreeSet<String> = views
+        .iter()
+        .map(|v| format!("{}x{}", v.cols(), v.rows()))
+        .collect();
+    eprintln!(
+        "benchmarking {} on {} stereo pairs ({}), {} warm-up + {} timed runs each; {cores} cores, load average {}",
+        methods.iter().map(|m| m.as_str()).collect::<Vec<_>>().join(", "),
+        pairs.len(),
+        sizes.iter().cloned().collect::<Vec<_>>().join(", "),
+        b.warmup,
+        b.runs,
+        load.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
+    );
+    // The CPU-time reading costs CPU itself: its median over a few empty measurements is subtracted.
+    let mut empty: Vec<u64> = (0..31)
+        .filter_map(|_| {
+            process_cpu_ns()
+                .zip(process_cpu_ns())
+                .map(|(a, b)| b.saturating_sub(a))
+        })
+        .collect();
+    empty.sort_unstable();
+    let overhead_ns = empty.get(empty.len() / 2).copied().unwrap_or(0);
+    let n = locs.len();
+    let (mut per_view, mut per_pair) = (vec![Vec::new(); n], vec![Vec::new(); n]);
+    let (mut cpu_view, mut cpu_pair) = (vec![Vec::new(); n], vec![Vec::new(); n]);
+    let mut markers = vec![0usize; n];
+    for run in 0..b.warmup + b.runs {
+        let counted = run >= b.warmup;
+        let view = views[run % views.len()];
+        let pair = &pairs[run % pairs.len()];
+        for (i, loc) in locs.iter_mut().enumerate() {
+            let (found, view_ms, view_cpu) = timed(overhead_ns, || loc.detect(view));
+            let found = found.map_err(|e| Error::from(e).context(format!("{} failed", loc.name())))?;
+            let (both, pair_ms, pair_cpu) = timed(overhead_ns, || loc.detect_stereo(pair));
+            let both = both.map_err(|e| Error::from(e).context(format!("{} failed", loc.name())))?;
+            if counted {
+                per_view[i].push(view_ms);
+                per_pair[i].push(pair_ms);
+                cpu_view[i].extend(view_cpu);
+                cpu_pair[i].extend(pair_cpu);
+                markers[i] += found.len() + both.left.len() + both.right.len();
+            }
+        }
+    }
+    let view_stats: Vec<_> = per_view.iter_mut().map(|s| stats(s)).collect();
+    let pair_stats: Vec<_> = per_pair.iter_mut().map(|s| stats(s)).collect();
+    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+    let cpu_view_med: Vec<Option<f64>> = cpu_view.iter_mut().map(median_of).collect();
+    let cpu_pair_med: Vec<Option<f64>> = cpu_pair.iter_mut().map(median_of).collect();
+    let (blob_view, blob_pair) = (view_stats[0].0, pair_stats[0].0);
+    let mut text = String::new();
+    let _ = writeln!(
+        text,
+        "{:<12} {:>10} {:>9} {:>9} {:>10} {:>9} {:>9} {:>9} {:>9} {:>10} {:>8}",
+        "method",
+        "view med",
+        "view p90",
+        "x blob",
+        "pair med",
+        "pair p90",
+        "x blob",
+        "view CPU",
+        "pair CPU",
+        "CPU x blob",
+        "markers"
+    );
+    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.2} ms"));
+    let mut rows = Vec::new();
+    for (i, m) in methods.iter().enumerate() {
+        let (vm, v90, vmean) = view_stats[i];
+        let (pm, p90, pmean) = pair_stats[i];
+        let per_image = markers[i] as f64 / (3 * b.runs) as f64;
+        let cpu_ratio = cpu_view_med[0].zip(cpu_view_med[i]).map(|(b, m)| b / m);
+        let _ = writeln!(
+            text,
+            "{:<12} {:>7.2} ms {:>6.2} ms {:>8.2}x {:>7.2} ms {:>6.2} ms {:>8.2}x {:>9} {:>9} {:>10} {:>8.1}",
+            m.as_str(),
+            vm,
+            v90,
+            blob_view / vm,
+            pm,
+            p90,
+            blob_pair / pm,
+            ms(cpu_view_med[i]),
+            ms(cpu_pair_med[i]),
+            cpu_ratio.map_or_else(|| "/".to_owned(), |r| format!("{r:.2}x")),
+            per_image
+        );
+        rows.push(json!({
+            "method": m.as_str(),
+            "view_ms": {"median": vm, "p90": v90, "mean": vmean},
+            "pair_ms": {"median": pm, "p90": p90, "mean": pmean},
+            "speedup_vs_blob": {"view": blob_view / vm, "pair": blob_pair / pm},
+            "cpu_ms": {"view_median": cpu_view_med[i], "pair_median": cpu_pair_med[i]},
+            "markers_per_image": per_image,
+        }));
+    }
+    let _ = writeln!(
+        text,
+        "x vs blob = blob median / method median (> 1: faster than the blob baseline); CPU = process CPU time \
+         of all threads per call (median), which other processes' load hardly changes"
+    );
+    let json = json!({
+        "pairs": pairs.len(),
+        "image_sizes": sizes,
+        "runs": b.runs,
+        "warmup": b.warmup,
+        "cores": cores,
+        "load_average_at_start": load.trim(),
+        "ort_intra_threads": b.config.session.intra_threads,
+        "blob_params": b.blob_params,
+        "results": rows,
+    });
+    Ok(Report { text, json })
+}

@@ -1,0 +1,131 @@
+//! Geometry exports of one frame (PLY marker clouds and meshes) and what the figures of
+//! [`gelstereo_io::figures`] are drawn from (overlay markers, captions, the contact surface).
+
+use std::path::Path;
+
+use gelstereo_core::{FrameSummary, GridShape, Point2};
+use gelstereo_io::figures::{self, OverlayMarker};
+use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
+use gelstereo_tracking::{ContactFrame, TrackFrame};
+
+use crate::Result;
+
+/// Writes the marker cloud and the deformed mesh of a stereo frame.
+pub(crate) fn write_ply(
+    paths: (&Path, &Path),
+    frame: u32,
+    shape: GridShape,
+    triangles: &[[u32; 3]],
+    contact: &ContactFrame,
+    reprojection: &[Option<f64>],
+) -> Result<()> {
+    let cloud: Vec<MarkerPoint> = shape
+        .indices()
+        .enumerate()
+        .filter_map(|(k, index)| {
+            let p = contact.positions_mm[k]?;
+            Some(MarkerPoint {
+                index,
+                position_mm: [p.x, p.y, p.z],
+                reprojection_error_px: reprojection[k].unwrap_or(0.0),
+            })
+        })
+        .collect();
+    let comment = format!("frame {frame}; reprojection_error 0 for markers predicted from their neighbours");
+    write_marker_cloud(paths.0, &cloud, &comment)?;
+    let mut vertex_of = vec![u32::MAX; shape.count()];
+    let mut mesh = TriangleMesh::default();
+    let names = [
+        "depth_mm",
+        "displacement_mm",
+        "dX_mm",
+        "dY_mm",
+        "dZ_mm",
+        "load_mm",
+        "in_contact",
+    ];
+    let mut props: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
+    for (k, p) in contact.positions_mm.iter().enumerate() {
+        let Some(p) = p else { continue };
+        vertex_of[k] = mesh.vertices_mm.len() as u32;
+        mesh.vertices_mm.push([p.x, p.y, p.z]);
+        let d = contact.displacement_mm[k].unwrap_or_default();
+        let vals = [
+            contact.depth_mm[k].unwrap_or(0.0),
+            d.norm(),
+            d.x,
+            d.y,
+            d.z,
+            contact.load_mm.get(k).copied().unwrap_or(0.0),
+            f64::from(u8::from(contact.in_contact[k])),
+        ];
+        for (v, list) in vals.iter().zip(props.iter_mut()) {
+            list.push(*v as f32);
+        }
+    }
+    for t in triangles {
+        let f = t.map(|i| vertex_of[i as usize]);
+        if f.iter().all(|v| *v != u32::MAX) {
+            mesh.faces.push(f);
+        }
+    }
+    mesh.properties = names
+        .iter()
+        .zip(props)
+        .map(|(n, values)| VertexProperty {
+            name: (*n).to_owned(),
+            values,
+        })
+        .collect();
+    write_mesh(paths.1, &mesh, &format!("frame {frame}; deformed marker surface"))?;
+    Ok(())
+}
+
+/// The markers of one view for an overlay: reference position, current position, status, contact.
+pub(crate) fn overlay_markers(
+    reference: &[Point2],
+    track: &TrackFrame,
+    in_contact: &dyn Fn(usize) -> bool,
+) -> Vec<OverlayMarker> {
+    track
+        .markers
+        .iter()
+        .enumerate()
+        .filter_map(|(k, m)| {
+            Some(OverlayMarker {
+                reference_px: *reference.get(k)?,
+                current_px: m.position_px?,
+                status: m.status,
+                in_contact: in_contact(k),
+            })
+        })
+        .collect()
+}
+
+/// The overlay caption's items: frame, slip state, contact area and depth ("unknown" where the
+/// sensor cannot tell).
+pub(crate) fn caption(s: &FrameSummary) -> Vec<String> {
+    let known = |v: Option<f64>, decimals: usize, unit: &str| {
+        v.map_or_else(|| "unknown".to_owned(), |v| format!("{v:.decimals$} {unit}"))
+    };
+    vec![
+        format!("frame {}", s.frame),
+        s.slip.as_str().replace('_', " "),
+        format!("area {}", known(s.contact_area_mm2, 1, "mm²")),
+        format!("depth {}", known(s.max_depth_mm, 2, "mm")),
+    ]
+}
+
+/// The marker surface of a stereo frame, for the contact-surface figure.
+pub(crate) fn surface(shape: GridShape, contact: &ContactFrame) -> figures::Surface {
+    figures::Surface {
+        rows: usize::from(shape.rows),
+        cols: usize::from(shape.cols),
+        positions_mm: contact
+            .positions_mm
+            .iter()
+            .map(|p| p.map(|p| [p.x, p.y, p.z]))
+            .collect(),
+        depth_mm: contact.depth_mm.clone(),
+    }
+}

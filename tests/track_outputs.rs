@@ -1,0 +1,370 @@
+//! `gelstereo track`'s outputs as a user relies on them: tables byte-identical to the ones the
+//! pipeline has always written on the sample, JSON lines on standard output, two cameras (video
+//! files standing in) and `gelstereo capture` through the same code, outputs that survive SIGINT,
+//! SIGTERM and SIGKILL, and output folders that never show an older run's files as current.
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+mod common;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use common::{gelstereo, gelstereo_command, repo, text};
+use sha2::Digest;
+
+fn sample() -> PathBuf {
+    repo().join("data/sample/press-slide")
+}
+
+fn sha256(path: &Path) -> String {
+    let bytes = std::fs::read(path).unwrap();
+    format!("{:x}", sha2::Sha256::digest(&bytes))
+}
+
+/// The expected hash of markers.csv for `method` (tests/data/press-slide-markers.sha256).
+fn expected_hash(method: &str) -> String {
+    let text = std::fs::read_to_string(repo().join("tests/data/press-slide-markers.sha256")).unwrap();
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find_map(|l| {
+            l.split_once("  ")
+                .filter(|(_, m)| *m == method)
+                .map(|(h, _)| h.to_owned())
+        })
+        .unwrap()
+}
+
+fn track_ok(args: &[&str]) -> String {
+    let out = gelstereo_command()
+        .arg("track")
+        .arg("--quiet")
+        .args(args)
+        .output()
+        .unwrap();
+    let t = text(&out);
+    assert!(out.status.success(), "{args:?}:\n{t}");
+    t
+}
+
+#[test]
+fn tables_on_the_sample_are_byte_identical_and_frames_csv_ends_with_time_and_note() {
+    let dir = tempfile::tempdir().unwrap();
+    for (method, frames_file) in [
+        ("marknet-mre", "press-slide-frames.csv"),
+        ("blob", "press-slide-frames-blob.csv"),
+    ] {
+        let out = dir.path().join(method);
+        track_ok(&[
+            "--method",
+            method,
+            "--out",
+            out.to_str().unwrap(),
+            sample().to_str().unwrap(),
+        ]);
+        assert_eq!(
+            sha256(&out.join("markers.csv")),
+            expected_hash(method),
+            "{method}"
+        );
+        let expected = std::fs::read_to_string(repo().join("tests/data").join(frames_file)).unwrap();
+        let written = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+        let lines: Vec<&str> = written.lines().collect();
+        assert_eq!(lines[0], format!("{},t_s,note", expected.lines().next().unwrap()));
+        for (k, (w, e)) in lines[1..].iter().zip(expected.lines().skip(1)).enumerate() {
+            // The old columns unchanged, then t_s = frame / 30 Hz and an empty note.
+            assert_eq!(*w, format!("{e},{:.6},", k as f64 / 30.0), "{method} frame {k}");
+        }
+        assert_eq!(lines.len(), expected.lines().count());
+    }
+}
+
+#[test]
+fn jsonl_to_standard_output_parses_line_by_line_and_out_dash_is_refused() {
+    let cwd = tempfile::tempdir().unwrap();
+    let out = gelstereo_command()
+        .current_dir(cwd.path())
+        .args(["track", "--quiet", "--method", "blob", "--jsonl", "-"])
+        .arg(sample())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let expected = std::fs::read_to_string(repo().join("tests/data/press-slide-frames-blob.csv")).unwrap();
+    let slips: Vec<String> = expected
+        .lines()
+        .skip(1)
+        .map(|l| l.rsplit(',').next().unwrap().to_owned())
+        .collect();
+    let lines: Vec<&str> = stdout.lines().collect();
+    assert_eq!(lines.len(), 24);
+    for (k, line) in lines.iter().enumerate() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(v["frame"], k);
+        assert!((v["t_s"].as_f64().unwrap() - k as f64 / 30.0).abs() < 1e-9);
+        assert_eq!(v["slip"], slips[k].as_str());
+        let markers = v["markers"].as_array().unwrap();
+        assert_eq!(markers.len(), 529);
+        assert!(markers[0]["X_mm"].is_f64() && markers[0]["status"].is_string());
+    }
+    // Nothing written beside the stream; `--out -` is refused without creating a folder `-`.
+    assert_eq!(std::fs::read_dir(cwd.path()).unwrap().count(), 0);
+    let refused = gelstereo_command()
+        .current_dir(cwd.path())
+        .args(["track", "--quiet", "--method", "blob", "--out", "-"])
+        .arg(sample())
+        .output()
+        .unwrap();
+    assert!(
+        !refused.status.success() && text(&refused).contains("--jsonl -"),
+        "{}",
+        text(&refused)
+    );
+    assert!(!cwd.path().join("-").exists());
+}
+
+/// Writes the sample's `side` view as an MJPG video (a camera's stand-in).
+fn video_of(side: &str, path: &Path) {
+    use opencv::prelude::{VideoWriterTrait, VideoWriterTraitConst};
+    let fourcc = opencv::videoio::VideoWriter::fourcc('M', 'J', 'P', 'G').unwrap();
+    let size = opencv::core::Size::new(640, 480);
+    let mut w = opencv::videoio::VideoWriter::new(path.to_str().unwrap(), fourcc, 30.0, size, true).unwrap();
+    assert!(w.is_opened().unwrap());
+    for k in 0..24 {
+        let p = sample().join(side).join(format!("{k:06}.jpg"));
+        let img = opencv::imgcodecs::imread(p.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+        w.write(&img).unwrap();
+    }
+}
+
+#[test]
+fn two_cameras_and_capture_share_one_path_and_their_frames_track_alike() {
+    let dir = tempfile::tempdir().unwrap();
+    let (left, right) = (dir.path().join("left.avi"), dir.path().join("right.avi"));
+    video_of("left", &left);
+    video_of("right", &right);
+    let cameras = format!("{},{}", left.display(), right.display());
+    let calib = sample().join("calib.yaml");
+    let live = dir.path().join("live");
+    track_ok(&[
+        "--method",
+        "blob",
+        "--camera",
+        &cameras,
+        "--calib",
+        calib.to_str().unwrap(),
+        "--out",
+        live.to_str().unwrap(),
+    ]);
+    let frames = std::fs::read_to_string(live.join("frames.csv")).unwrap();
+    let rows: Vec<Vec<&str>> = frames.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 24);
+    // Capture time = the videos' frame times (30 Hz), from the first frame.
+    assert!(
+        (rows[3][7].parse::<f64>().unwrap() - 0.1).abs() < 1e-3,
+        "{frames}"
+    );
+    assert!(rows.iter().any(|r| r[6] == "gross_slip"), "{frames}");
+
+    let captured = dir.path().join("captured");
+    let out = gelstereo(&[
+        "capture",
+        "--camera",
+        &cameras,
+        "--out",
+        captured.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    for side in ["left", "right"] {
+        assert_eq!(std::fs::read_dir(captured.join(side)).unwrap().count(), 24);
+    }
+    let from_disk = dir.path().join("from-disk");
+    track_ok(&[
+        "--method",
+        "blob",
+        "--calib",
+        calib.to_str().unwrap(),
+        "--out",
+        from_disk.to_str().unwrap(),
+        captured.to_str().unwrap(),
+    ]);
+    // The saved pairs are the frames the cameras gave: the same markers to the last digit.
+    assert_eq!(
+        sha256(&from_disk.join("markers.csv")),
+        sha256(&live.join("markers.csv"))
+    );
+}
+
+/// A recording of `n` frames walking the sample forth and back (long enough to interrupt).
+fn long_recording(dir: &Path, n: usize) -> PathBuf {
+    let rec = dir.join("long");
+    for side in ["left", "right"] {
+        std::fs::create_dir_all(rec.join(side)).unwrap();
+        for k in 0..n {
+            let j = if (k / 23) % 2 == 0 { k % 23 } else { 23 - k % 23 };
+            std::fs::copy(
+                sample().join(side).join(format!("{j:06}.jpg")),
+                rec.join(side).join(format!("{k:06}.jpg")),
+            )
+            .unwrap();
+        }
+    }
+    std::fs::copy(sample().join("calib.yaml"), rec.join("calib.yaml")).unwrap();
+    rec
+}
+
+/// Frames in markers.csv (with their row counts) and in frames.csv; panics on a cut line.
+fn table_frames(out: &Path) -> (BTreeMap<u32, usize>, BTreeSet<u32>) {
+    let markers = std::fs::read_to_string(out.join("markers.csv")).unwrap();
+    let frames = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    for (name, text, cells) in [("markers.csv", &markers, 14), ("frames.csv", &frames, 9)] {
+        assert!(text.ends_with('\n'), "{name} ends mid-line");
+        for line in text.lines() {
+            assert_eq!(line.split(',').count(), cells, "{name}: cut line '{line}'");
+        }
+    }
+    let mut per_frame = BTreeMap::new();
+    for line in markers.lines().skip(1) {
+        *per_frame
+            .entry(line.split(',').next().unwrap().parse().unwrap())
+            .or_insert(0) += 1;
+    }
+    let in_frames = frames
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    (per_frame, in_frames)
+}
+
+/// Starts `track` on `rec`, waits until a few frames are written, sends `signal`, waits for the end.
+fn interrupted_run(rec: &Path, out: &Path, signal: &str) -> String {
+    let child = gelstereo_command()
+        .args([
+            "track",
+            "--quiet",
+            "--method",
+            "blob",
+            "--overlay-every",
+            "2",
+            "--ply-every",
+            "3",
+            "--out",
+        ])
+        .arg(out)
+        .arg(rec)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    while std::fs::read_to_string(out.join("frames.csv")).map_or(0, |t| t.lines().count()) < 6 {
+        assert!(started.elapsed() < Duration::from_secs(60), "no frames written");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let kill = std::process::Command::new("kill")
+        .args([signal, &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(kill.success());
+    let output = child.wait_with_output().unwrap();
+    String::from_utf8_lossy(&output.stderr).into_owned()
+}
+
+#[test]
+fn interrupted_runs_leave_whole_tables_and_a_new_run_replaces_every_file_of_the_old() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = long_recording(dir.path(), 400);
+    for signal in ["-INT", "-TERM"] {
+        let out = dir.path().join(format!("out{signal}"));
+        let err = interrupted_run(&rec, &out, signal);
+        assert!(err.contains("interrupted"), "{signal}: {err}");
+        let (markers, frames) = table_frames(&out);
+        assert!(frames.len() < 400, "{signal}: the run was not interrupted");
+        assert_eq!(
+            markers.keys().copied().collect::<BTreeSet<_>>(),
+            frames,
+            "{signal}"
+        );
+        assert!(markers.values().all(|n| *n == 529), "{signal}");
+        for plot in ["contact_area", "max_depth", "slip"] {
+            assert!(
+                out.join(format!("plots/{plot}.png")).is_file(),
+                "{signal}: {plot} missing"
+            );
+        }
+    }
+    let out = dir.path().join("out-KILL");
+    interrupted_run(&rec, &out, "-KILL");
+    let (markers, frames) = table_frames(&out);
+    let marker_frames: BTreeSet<u32> = markers.keys().copied().collect();
+    assert!(frames.is_subset(&marker_frames) && marker_frames.len() <= frames.len() + 1);
+    // Every overlay under its final name decodes (written whole, then renamed).
+    for entry in std::fs::read_dir(out.join("overlays")).unwrap() {
+        let path = entry.unwrap().path();
+        if !path.file_name().unwrap().to_str().unwrap().starts_with('.') {
+            let img =
+                opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+            assert!(
+                opencv::core::MatTraitConst::rows(&img) > 0,
+                "{} cut",
+                path.display()
+            );
+        }
+    }
+    // A shorter run into the same folder leaves none of the killed run's files.
+    track_ok(&[
+        "--method",
+        "blob",
+        "--max-frames",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    let (markers, frames) = table_frames(&out);
+    assert_eq!(frames, (0..3).collect());
+    assert_eq!(markers.len(), 3);
+    let overlays: Vec<String> = std::fs::read_dir(out.join("overlays"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert!(overlays.iter().all(|n| n.ends_with("000000.png")), "{overlays:?}");
+    assert!(!out.join("ply/cloud_000003.ply").exists());
+}
+
+#[test]
+fn a_folder_gelstereo_did_not_write_is_refused_and_force_keeps_the_users_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("mine");
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::write(out.join("notes.txt"), "keep me").unwrap();
+    let args = [
+        "--method",
+        "blob",
+        "--max-frames",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let refused = gelstereo_command()
+        .args(["track", "--quiet"])
+        .args(args)
+        .arg(sample())
+        .output()
+        .unwrap();
+    assert!(
+        !refused.status.success() && text(&refused).contains("--force"),
+        "{}",
+        text(&refused)
+    );
+    assert!(!out.join("markers.csv").exists());
+    let sample = sample();
+    let mut forced: Vec<&str> = args.to_vec();
+    forced.push("--force");
+    forced.push(sample.to_str().unwrap());
+    track_ok(&forced);
+    assert!(out.join("markers.csv").is_file());
+    assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "keep me");
+}
