@@ -210,7 +210,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     let pairs = load_pairs(args)?;
     let views: Vec<&Mat> = pairs.iter().flat_map(|p| [&p.left, &p.right]).collect();
-    let mut locs: Vec<Box<dyn Localizer>> = methods
+    let mut locs: Vec<Box<dyn Localizer + Send>> = methods
         .iter()
         .map(|m| args.localizer.localizer(*m))
         .collect::<anyhow::Result<_>>()?;

@@ -82,12 +82,15 @@ impl LocalizerArgs {
     }
 
     /// Builds the localizer of `method`, with the failing method named in the error.
-    pub fn localizer(&self, method: Method) -> anyhow::Result<Box<dyn Localizer>> {
+    pub fn localizer(&self, method: Method) -> anyhow::Result<Box<dyn Localizer + Send>> {
         Self::localizer_from(method, &self.config()?)
     }
 
     /// Builds the localizer of `method` from a configuration, with the failing method named.
-    pub fn localizer_from(method: Method, config: &LocalizerConfig) -> anyhow::Result<Box<dyn Localizer>> {
+    pub fn localizer_from(
+        method: Method,
+        config: &LocalizerConfig,
+    ) -> anyhow::Result<Box<dyn Localizer + Send>> {
         create_localizer(method, config).with_context(|| match method {
             Method::Blob => format!("cannot set up method '{method}'"),
             _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),

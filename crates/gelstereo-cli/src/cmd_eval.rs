@@ -164,7 +164,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     // Every image on its own (no pitch remembered across images): datasets mix sensors of one size.
     let mut config = args.localizer.config()?;
     config.remember_pitch = false;
-    let mut localizers: Vec<Box<dyn Localizer>> = methods
+    let mut localizers: Vec<Box<dyn Localizer + Send>> = methods
         .iter()
         .map(|m| LocalizerArgs::localizer_from(*m, &config))
         .collect::<anyhow::Result<_>>()?;

@@ -83,6 +83,14 @@ impl VideoFrames {
             .unwrap_or(0)
     }
 
+    /// The frame rate the container declares, Hz (`None` when it declares none).
+    pub fn frame_rate_hz(&self) -> Option<f64> {
+        self.capture
+            .get(videoio::CAP_PROP_FPS)
+            .ok()
+            .filter(|f| f.is_finite() && *f > 0.0)
+    }
+
     /// Reads the next frame: `Ok(None)` at the end of the video, `Ok(Some((index, image)))` otherwise.
     pub fn next_frame(&mut self) -> Result<Option<(usize, Mat)>> {
         let mut frame = Mat::default();

@@ -65,6 +65,35 @@ fn snake_case(key: &str) -> String {
 }
 
 impl BlobParams {
+    /// The tuned parameters of the paper's baseline, as `data/blob_params.json` holds them (a test
+    /// checks the two agree): thresholds 80..160 step 20, area 15..200 px^2, circularity >= 0.6,
+    /// inertia >= 0.3, convexity off; the file explains each choice.
+    pub fn tuned() -> Self {
+        Self {
+            params: SimpleBlobDetector_Params {
+                threshold_step: 20.0,
+                min_threshold: 80.0,
+                max_threshold: 160.0,
+                min_repeatability: 2,
+                min_dist_between_blobs: 10.0,
+                filter_by_color: true,
+                blob_color: 0,
+                filter_by_area: true,
+                min_area: 15.0,
+                max_area: 200.0,
+                filter_by_circularity: true,
+                min_circularity: 0.6,
+                max_circularity: f32::MAX,
+                filter_by_inertia: true,
+                min_inertia_ratio: 0.3,
+                max_inertia_ratio: f32::MAX,
+                filter_by_convexity: false,
+                min_convexity: 0.95,
+                max_convexity: f32::MAX,
+            },
+        }
+    }
+
     /// OpenCV's defaults (`SimpleBlobDetector::Params()`), as this OpenCV build defines them.
     pub fn opencv_defaults() -> Result<Self> {
         Ok(Self {
@@ -292,6 +321,12 @@ impl Localizer for BlobLocalizer {
 mod tests {
     use super::*;
     use opencv::core::{CV_8UC3, Point, Scalar};
+
+    #[test]
+    fn tuned_parameters_are_those_of_the_shipped_file() {
+        let path = crate::project_home().join(DEFAULT_PARAMS_FILE);
+        assert_eq!(BlobParams::tuned(), BlobParams::from_json_file(&path).unwrap());
+    }
 
     #[test]
     fn parameter_files_override_defaults_and_reject_mistakes() {

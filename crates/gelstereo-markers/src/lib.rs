@@ -326,9 +326,42 @@ pub struct LocalizerConfig {
     pub remember_pitch: bool,
 }
 
+impl Default for LocalizerConfig {
+    /// The shipped models (`data/models` of [`project_home`]), the tuned blob parameters of
+    /// `data/blob_params.json` ([`BlobParams::tuned`]), ONNX Runtime's defaults, the model's own
+    /// input layout, and the pitch remembered per image size (one sensor per stream).
+    fn default() -> Self {
+        let models = project_home().join("data/models");
+        Self {
+            marknet_path: models.join("marknet.onnx"),
+            mre_path: models.join("mre.onnx"),
+            blob: BlobParams::tuned(),
+            session: SessionOptions::default(),
+            fit: InputFit::Auto,
+            remember_pitch: true,
+        }
+    }
+}
+
+/// The folder holding the shipped `data/` and `calib/`: `GELSTEREO_HOME` when set, else the checkout
+/// this library was built from, else the folder of the running executable.
+pub fn project_home() -> PathBuf {
+    if let Some(p) = std::env::var_os("GELSTEREO_HOME").filter(|p| !p.is_empty()) {
+        return PathBuf::from(p);
+    }
+    let checkout = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."));
+    if checkout.join("data").is_dir() {
+        return checkout.canonicalize().unwrap_or(checkout);
+    }
+    std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.parent().map(PathBuf::from))
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
 /// Builds the localizer for `method`. Models are loaded (and their contract checked) only for the
 /// learned methods, so `blob` works without ONNX Runtime.
-pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Localizer>> {
+pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Localizer + Send>> {
     Ok(match method {
         Method::Blob => Box::new(BlobLocalizer::new(config.blob)?),
         Method::Yolo => Box::new(yolo::YoloLocalizer::load(

@@ -1,0 +1,671 @@
+//! Benchmarks of the pipeline as it runs, timing [`crate::Pipeline`] and [`crate::track::run`]
+//! themselves (no copy of their logic):
+//! - [`pipeline`]: per-stage medians and p90 in latency mode (one frame at a time, frames decoded
+//!   into memory first), the whole pipeline per stereo frame with its CPU time, and the throughput
+//!   mode (frames localized in parallel on worker threads, feeding the pipeline's tracker in order);
+//! - [`end_to_end`]: `gelstereo track` from disk with its default outputs, repeated, the median
+//!   run's frames/s and CPU time per frame.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Barrier, mpsc};
+use std::time::Instant;
+
+use gelstereo_core::{StereoPair, TieredDetections};
+use gelstereo_io::images::{self, StereoRecording};
+use gelstereo_markers::{Method, create_localizer};
+use opencv::core::{Mat, MatTraitConst};
+use serde_json::json;
+
+use crate::source::FrameSource;
+use crate::track::{SinkOptions, TrackOptions};
+use crate::{Error, Frame, Images, Pipeline, PipelineConfig, Result};
+
+/// A benchmark's result: the table as text, and the figures as JSON.
+#[derive(Debug, Clone)]
+pub struct Report {
+    /// What `gelstereo bench` prints.
+    pub text: String,
+    /// The same figures, for `--json`.
+    pub json: serde_json::Value,
+}
+
+/// What the pipeline benchmark runs on and how.
+#[derive(Debug, Clone)]
+pub struct PipelineBench {
+    /// The stereo recording (folder with left/ and right/).
+    pub recording: PathBuf,
+    /// The pipeline (calibration, method, models, grid, gel thickness).
+    pub config: PipelineConfig,
+    /// Distinct frames loaded from frame 0 on (0: all).
+    pub frames: usize,
+    /// Timed frame-runs per mode.
+    pub runs: usize,
+    /// Untimed warm-up frame-runs (latency mode).
+    pub warmup: usize,
+    /// Worker threads of the throughput mode (0: one per core).
+    pub workers: usize,
+}
+
+/// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
+/// for the learned methods only).
+const STAGES: [&str; 11] = [
+    "decode (both views, from bytes in memory)",
+    "localization (both views, one batch)",
+    "  preprocess (resize, f32 tensor)",
+    "  network (ONNX Runtime run)",
+    "  post-process (decode, select, MRE)",
+    "tracking association (2 views)",
+    "triangulation",
+    "outlier test + fill",
+    "contact geometry",
+    "slip",
+    "track() whole (stages above + rows)",
+];
+
+/// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
+/// at the moment of the call (the kernel adds the running threads' pending time), where
+/// `/proc/self/task/*/schedstat` lags for a thread that is running; `None` if the clock fails.
+#[allow(unsafe_code)]
+pub fn process_cpu_clock_ns() -> Option<u64> {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes one timespec into `ts`, a valid and exclusively borrowed value.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    if rc != 0 {
+        return None;
+    }
+    Some(u64::try_from(ts.tv_sec).ok()? * 1_000_000_000 + u64::try_from(ts.tv_nsec).ok()?)
+}
+
+/// The cost of one CPU-clock reading, ns: the median over a few empty intervals (subtracted from
+/// every CPU interval measured).
+pub fn clock_overhead_ns() -> u64 {
+    let mut empty: Vec<u64> = (0..31)
+        .filter_map(|_| {
+            process_cpu_clock_ns()
+                .zip(process_cpu_clock_ns())
+                .map(|(a, b)| b.saturating_sub(a))
+        })
+        .collect();
+    empty.sort_unstable();
+    empty.get(empty.len() / 2).copied().unwrap_or(0)
+}
+
+/// A point in time and the process CPU time then.
+#[derive(Clone, Copy)]
+struct Mark {
+    wall: Instant,
+    cpu_ns: Option<u64>,
+}
+
+impl Mark {
+    fn now() -> Self {
+        let cpu_ns = process_cpu_clock_ns();
+        Self {
+            wall: Instant::now(),
+            cpu_ns,
+        }
+    }
+
+    /// Wall time from `self` to `later`, ms.
+    fn wall_ms(&self, later: &Mark) -> f64 {
+        (later.wall - self.wall).as_secs_f64() * 1e3
+    }
+
+    /// CPU time of the process from `self` to `later`, ms, less `overhead_ns` (one clock reading).
+    fn cpu_ms(&self, later: &Mark, overhead_ns: u64) -> Option<f64> {
+        self.cpu_ns
+            .zip(later.cpu_ns)
+            .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6)
+    }
+}
+
+/// Median, 90th percentile and mean of `samples_ms` (zeros when empty).
+pub fn stats(samples_ms: &mut [f64]) -> (f64, f64, f64) {
+    if samples_ms.is_empty() {
+        return (0.0, 0.0, 0.0);
+    }
+    samples_ms.sort_by(f64::total_cmp);
+    let n = samples_ms.len();
+    let q = |f: f64| samples_ms[((f * (n - 1) as f64).round() as usize).min(n - 1)];
+    (q(0.5), q(0.9), samples_ms.iter().sum::<f64>() / n as f64)
+}
+
+/// The load average (1, 5, 15 min) as `/proc/loadavg` gives it.
+pub fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .unwrap_or_default()
+        .split_whitespace()
+        .take(3)
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// Frame `j` of a ping-pong walk over `n` frames (0, 1, .., n-1, n-2, .., 1, 0, 1, ..): the motion
+/// stays continuous however many runs are asked for, so the tracker sees realistic frame-to-frame
+/// steps.
+fn ping_pong(j: usize, n: usize) -> usize {
+    if n <= 1 {
+        return 0;
+    }
+    let period = 2 * (n - 1);
+    let k = j % period;
+    if k < n { k } else { period - k }
+}
+
+fn decode(bytes: &[u8], path: &Path) -> Result<Mat> {
+    let buf = opencv::core::Vector::<u8>::from_slice(bytes);
+    let m = opencv::imgcodecs::imdecode(&buf, opencv::imgcodecs::IMREAD_COLOR)?;
+    if m.empty() {
+        return Err(Error::Invalid(format!(
+            "{}: cannot decode the image (not an image OpenCV reads)",
+            path.display()
+        )));
+    }
+    Ok(m)
+}
+
+/// The first `n` frames of a recording, as encoded bytes and decoded.
+struct Loaded {
+    paths: Vec<StereoPair<PathBuf>>,
+    encoded: Vec<StereoPair<Vec<u8>>>,
+    frames: Vec<Frame>,
+}
+
+fn load(rec: &StereoRecording, n: usize) -> Result<Loaded> {
+    let mut loaded = Loaded {
+        paths: Vec::with_capacity(n),
+        encoded: Vec::with_capacity(n),
+        frames: Vec::with_capacity(n),
+    };
+    for k in 0..n {
+        let Some(p) = rec.paths(k) else { break };
+        let read = |f: &Path| std::fs::read(f).map_err(crate::error::file_err(f));
+        let bytes = StereoPair::new(read(&p.left)?, read(&p.right)?);
+        loaded.frames.push(Frame::stereo(
+            decode(&bytes.left, &p.left)?,
+            decode(&bytes.right, &p.right)?,
+        ));
+        loaded.encoded.push(bytes);
+        loaded.paths.push(p);
+    }
+    Ok(loaded)
+}
+
+fn open_recording(input: &Path) -> Result<StereoRecording> {
+    if !images::is_stereo_recording(input) {
+        return Err(Error::Invalid(format!(
+            "{}: the pipeline benchmark needs a stereo recording (a folder with left/ and right/)",
+            input.display()
+        )));
+    }
+    let rec = StereoRecording::open(input)?;
+    if rec.is_empty() {
+        return Err(Error::Invalid(format!(
+            "{}: the recording holds no frames",
+            input.display()
+        )));
+    }
+    Ok(rec)
+}
+
+/// Per-stage samples of the latency mode.
+struct Latency {
+    times: Vec<Vec<f64>>,
+    cpu: Vec<Vec<f64>>,
+    whole: Vec<f64>,
+    cpu_whole: Vec<f64>,
+    markers: usize,
+    index_ms: Vec<f64>,
+}
+
+/// Latency mode: one frame at a time through [`Pipeline::process`], stages from the localizer's
+/// and the tracker's own clock readings.
+fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead_ns: u64) -> Result<Latency> {
+    let n = loaded.frames.len();
+    let mut l = Latency {
+        times: vec![Vec::with_capacity(b.runs); STAGES.len()],
+        cpu: vec![Vec::with_capacity(b.runs); STAGES.len()],
+        whole: Vec::new(),
+        cpu_whole: Vec::new(),
+        markers: 0,
+        index_ms: Vec::new(),
+    };
+    for j in 0..b.warmup + b.runs {
+        let k = ping_pong(j, n);
+        let m_decode = Mark::now();
+        let decoded = decode(&loaded.encoded[k].left, &loaded.paths[k].left)
+            .and_then(|l| Ok((l, decode(&loaded.encoded[k].right, &loaded.paths[k].right)?)))?;
+        let m_decoded = Mark::now();
+        drop(decoded);
+        let m0 = Mark::now();
+        let out = pipeline.process(&loaded.frames[k])?;
+        let m2 = Mark::now();
+        if let Some(note) = &out.note {
+            return Err(Error::Invalid(format!(
+                "{}: {note}",
+                loaded.paths[k].left.display()
+            )));
+        }
+        let st: Vec<Mark> = pipeline
+            .stage_marks()
+            .iter()
+            .map(|m| Mark {
+                wall: m.wall,
+                cpu_ns: m.cpu_ns,
+            })
+            .collect();
+        if j < b.warmup {
+            continue;
+        }
+        let Some(m1) = st.first().copied() else { continue };
+        let mut push = |i: usize, a: &Mark, z: &Mark| {
+            l.times[i].push(a.wall_ms(z));
+            l.cpu[i].extend(a.cpu_ms(z, overhead_ns));
+        };
+        push(0, &m_decode, &m_decoded);
+        push(1, &m0, &m1);
+        for (i, w) in st.windows(2).enumerate() {
+            push(5 + i, &w[0], &w[1]);
+        }
+        push(10, &m1, &m2);
+        if let Some(parts) = pipeline.localizer().last_times() {
+            l.times[2].push(parts.preprocess_ms);
+            l.times[3].push(parts.network_ms);
+            l.times[4].push(parts.postprocess_ms);
+            if let Some(cpu) = parts.cpu_ms {
+                for (i, c) in cpu.iter().enumerate() {
+                    l.cpu[2 + i].push((c - overhead_ns as f64 * 1e-6).max(0.0));
+                }
+            }
+        }
+        l.whole.push(m0.wall_ms(&m2));
+        l.cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
+        l.markers += out.markers.iter().filter(|m| m.left_px.is_some()).count()
+            + out.markers.iter().filter(|m| m.right_px.is_some()).count();
+    }
+    Ok(l)
+}
+
+/// Throughput mode: `workers` threads localize frames in parallel (each its own localizer, ONNX
+/// Runtime at one intra-op thread), the calling thread feeds them in frame order to `pipeline`.
+/// Returns the elapsed time, s, and the CPU time, ns.
+fn throughput(
+    pipeline: &mut Pipeline,
+    frames: &[Frame],
+    b: &PipelineBench,
+    workers: usize,
+) -> Result<(f64, Option<u64>)> {
+    let mut loc_config = b.config.localizer.clone();
+    loc_config.session.intra_threads = 1;
+    let method = b.config.chosen_method();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(workers)
+        .build()
+        .map_err(|e| Error::Invalid(format!("cannot start the worker threads: {e}")))?;
+    let next = AtomicUsize::new(0);
+    let stop = AtomicBool::new(false);
+    let barrier = Barrier::new(workers + 1);
+    let runs = b.runs;
+    let (tx, rx) = mpsc::channel::<(usize, Result<StereoPair<TieredDetections>>)>();
+    pool.in_place_scope(|s| -> Result<(f64, Option<u64>)> {
+        for _ in 0..workers {
+            let tx = tx.clone();
+            let (loc_config, next, stop, barrier) = (&loc_config, &next, &stop, &barrier);
+            s.spawn(move |_| {
+                let mut loc = match create_localizer(method, loc_config) {
+                    Ok(l) => Some(l),
+                    Err(e) => {
+                        stop.store(true, Ordering::SeqCst);
+                        let _ = tx.send((
+                            usize::MAX,
+                            Err(Error::from(e)
+                                .context(format!("cannot set up method '{method}' for the throughput mode"))),
+                        ));
+                        None
+                    }
+                };
+                // Warm-up: a few untimed frames per worker.
+                if let Some(loc) = loc.as_mut() {
+                    for f in frames.iter().cycle().take(3) {
+                        if let Images::Stereo(pair) = &f.images {
+                            let _ = loc.detect_stereo(pair);
+                        }
+                    }
+                }
+                barrier.wait();
+                let Some(mut loc) = loc else { return };
+                while !stop.load(Ordering::SeqCst) {
+                    let j = next.fetch_add(1, Ordering::SeqCst);
+                    if j >= runs {
+                        break;
+                    }
+                    let Images::Stereo(pair) = &frames[ping_pong(j, frames.len())].images else {
+                        break;
+                    };
+                    let found = loc.detect_stereo_tiered(pair).map_err(Error::from);
+                    if tx.send((j, found)).is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+        drop(tx);
+        barrier.wait();
+        let c0 = process_cpu_clock_ns();
+        let t0 = Instant::now();
+        let mut pending = BTreeMap::new();
+        let mut expect = 0usize;
+        let result = (|| -> Result<()> {
+            for (j, found) in &rx {
+                pending.insert(j, found?);
+                while let Some(d) = pending.remove(&expect) {
+                    pipeline.process_detected(&frames[ping_pong(expect, frames.len())], d)?;
+                    expect += 1;
+                }
+            }
+            Ok(())
+        })();
+        let elapsed = t0.elapsed().as_secs_f64();
+        let c1 = process_cpu_clock_ns();
+        if result.is_err() {
+            stop.store(true, Ordering::SeqCst);
+        }
+        drop(rx);
+        result?;
+        if expect != runs {
+            return Err(Error::Invalid(format!(
+                "throughput mode: {expect} of {runs} frames tracked"
+            )));
+        }
+        Ok((elapsed, c0.zip(c1).map(|(a, b)| b.saturating_sub(a))))
+    })
+}
+
+/// The pipeline benchmark (see the module docs).
+pub fn pipeline(b: &PipelineBench) -> Result<Report> {
+    if b.runs < 1 {
+        return Err(Error::Invalid("--runs must be at least 1".into()));
+    }
+    let input = b.recording.as_path();
+    let rec = open_recording(input)?;
+    let spec = b.config.calibration.clone().unwrap_or_default();
+    let n = if b.frames == 0 {
+        rec.len()
+    } else {
+        b.frames.min(rec.len())
+    };
+    let loaded = load(&rec, n)?;
+    let size = (
+        loaded.frames[0].images.left().cols(),
+        loaded.frames[0].images.left().rows(),
+    );
+    let models = b
+        .config
+        .localizer
+        .marknet_path
+        .parent()
+        .map(|p| p.display().to_string())
+        .unwrap_or_default();
+    let method = b.config.chosen_method();
+    let mut pipeline = Pipeline::new(&b.config)?;
+    pipeline.localizer_mut().set_cpu_clock(process_cpu_clock_ns);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let workers = if b.workers == 0 { cores } else { b.workers };
+    let load_start = load_average();
+    eprintln!(
+        "pipeline benchmark: {} ({n} frames of {}x{}, {method}), {} warm-up + {} timed frame-runs per mode; {cores} cores, load average {load_start}",
+        input.display(),
+        size.0,
+        size.1,
+        b.warmup,
+        b.runs
+    );
+    // The reference frame, then reference indexing timed on its own (a fresh pipeline each time).
+    let reference = pipeline.process(&loaded.frames[0])?;
+    if let Some(note) = reference.note {
+        return Err(Error::Invalid(format!(
+            "{}: frame 0 cannot be indexed as the reference lattice: {note}",
+            loaded.paths[0].left.display()
+        )));
+    }
+    let dets0 = {
+        let Images::Stereo(pair) = &loaded.frames[0].images else {
+            return Err(Error::Invalid(
+                "the pipeline benchmark needs stereo frames".into(),
+            ));
+        };
+        pipeline.localizer_mut().detect_stereo_tiered(pair)?
+    };
+    let mut index_ms = Vec::new();
+    for i in 0..(b.runs.min(50) + 2) {
+        let mut fresh =
+            Pipeline::with_localizer(&b.config, create_localizer(Method::Blob, &b.config.localizer)?)?;
+        let t = Instant::now();
+        fresh.process_detected(&loaded.frames[0], dets0.clone())?;
+        if i >= 2 {
+            index_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let overhead_ns = clock_overhead_ns();
+    pipeline.record_stage_marks(process_cpu_clock_ns);
+    let mut lat = latency(&mut pipeline, &loaded, b, overhead_ns)?;
+    lat.index_ms = index_ms;
+    let mut tp_pipeline =
+        Pipeline::with_localizer(&b.config, create_localizer(Method::Blob, &b.config.localizer)?)?;
+    tp_pipeline.process_detected(&loaded.frames[0], dets0)?;
+    let (elapsed_s, cpu_ns) = throughput(&mut tp_pipeline, &loaded.frames, b, workers)?;
+    let fps = b.runs as f64 / elapsed_s.max(1e-9);
+    let cpu_per_frame_tp = cpu_ns.map(|c| c as f64 * 1e-6 / b.runs as f64);
+    let ort = matches!(method, Method::Marknet | Method::MarknetMre | Method::Yolo);
+    let load_end = load_average();
+
+    // Report.
+    let mut text = String::new();
+    let _ = writeln!(
+        text,
+        "stereo pipeline, {}: {n} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {method} (models {models}); calibration {spec}",
+        input.display(),
+        size.0,
+        size.1,
+        n.saturating_sub(1),
+    );
+    let intra = b.config.localizer.session.intra_threads;
+    let threads = if intra == 0 {
+        format!("{cores} (default: one per core)")
+    } else {
+        intra.to_string()
+    };
+    let _ = writeln!(
+        text,
+        "latency mode: one frame at a time through Pipeline::process, the two views' stages in parallel, {} timed frame-runs after {} warm-up{}; CPU = process CPU time, all threads",
+        b.runs,
+        b.warmup,
+        if ort {
+            format!(", ONNX Runtime intra-op threads {threads}")
+        } else {
+            String::new()
+        }
+    );
+    let _ = writeln!(
+        text,
+        "{:<44} {:>10} {:>10} {:>10} {:>10}",
+        "stage", "median", "p90", "mean", "CPU med"
+    );
+    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"));
+    let mut stage_rows = Vec::new();
+    for ((name, samples), cpu) in STAGES.iter().zip(lat.times.iter_mut()).zip(lat.cpu.iter_mut()) {
+        if samples.is_empty() {
+            continue;
+        }
+        let (med, p90, mean) = stats(samples);
+        let cpu_med = median_of(cpu);
+        let _ = writeln!(
+            text,
+            "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms {:>10}",
+            ms(cpu_med)
+        );
+        stage_rows.push(
+            json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean, "cpu_median_ms": cpu_med}),
+        );
+    }
+    let (idx_med, idx_p90, idx_mean) = stats(&mut lat.index_ms);
+    let _ = writeln!(
+        text,
+        "{:<44} {idx_med:>7.3} ms {idx_p90:>7.3} ms {idx_mean:>7.3} ms {:>10}",
+        "reference grid indexing (once per session)", "/"
+    );
+    let (w_med, w_p90, w_mean) = stats(&mut lat.whole);
+    let cpu_whole_med = median_of(&mut lat.cpu_whole);
+    let _ = writeln!(
+        text,
+        "whole pipeline (localization + track(), decoded frames): median {w_med:.2} ms, p90 {w_p90:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame",
+        1e3 / w_med.max(1e-9),
+        ms(cpu_whole_med),
+    );
+    let _ = writeln!(
+        text,
+        "throughput mode: {fps:.1} stereo frames/s over {} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame",
+        b.runs,
+        if ort {
+            ", one ONNX Runtime intra-op thread each"
+        } else {
+            ""
+        },
+        ms(cpu_per_frame_tp)
+    );
+    let _ = writeln!(
+        text,
+        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; tracking stages from StereoSession::track's own stage marks; load average {load_start} at start, {load_end} at end",
+        lat.markers as f64 / (2 * b.runs) as f64,
+    );
+    let json = json!({
+        "recording": input.display().to_string(),
+        "calibration": spec,
+        "method": method.as_str(),
+        "models": models,
+        "frames": n,
+        "image_size": [size.0, size.1],
+        "runs": b.runs,
+        "warmup": b.warmup,
+        "cores": cores,
+        "load_average_at_start": load_start,
+        "load_average_at_end": load_end,
+        "latency": {
+            "ort_intra_threads": intra,
+            "stages": stage_rows,
+            "reference_indexing_ms": {"median": idx_med, "p90": idx_p90, "mean": idx_mean},
+            "whole_ms": {"median": w_med, "p90": w_p90, "mean": w_mean},
+            "cpu_ms_per_frame": cpu_whole_med,
+        },
+        "throughput": {
+            "workers": workers,
+            "ort_intra_threads": 1,
+            "frames": b.runs,
+            "frames_per_s": fps,
+            "cpu_ms_per_frame": cpu_per_frame_tp,
+        },
+        "tracking_stages_from": "StereoSession::track stage marks",
+        "not_timed": "exports (CSV rows, PLY, overlays, plots)",
+    });
+    Ok(Report { text, json })
+}
+
+/// What the end-to-end benchmark runs.
+#[derive(Debug, Clone)]
+pub struct EndToEndBench {
+    /// The recording (any source [`FrameSource::open_path`] takes).
+    pub recording: PathBuf,
+    /// The pipeline.
+    pub config: PipelineConfig,
+    /// The outputs, as `gelstereo track` writes them.
+    pub sinks: SinkOptions,
+    /// Timed runs over the whole recording (after one untimed warm-up run).
+    pub runs: usize,
+    /// Where the outputs go (emptied of its own files before each run).
+    pub out: PathBuf,
+}
+
+/// `gelstereo track` end to end, as [`crate::track::run`] runs it: frames read and decoded from disk
+/// on the prefetch thread, the pipeline, the default outputs written; `runs` timed runs after a
+/// warm-up run, each with a fresh pipeline (models loaded before the clock starts).
+pub fn end_to_end(b: &EndToEndBench) -> Result<Report> {
+    if b.runs < 1 {
+        return Err(Error::Invalid("--runs must be at least 1".into()));
+    }
+    let (mut walls, mut cpus, mut fps) = (Vec::new(), Vec::new(), Vec::new());
+    let mut frames = 0;
+    let load_start = load_average();
+    let stop = AtomicBool::new(false);
+    for run in 0..=b.runs {
+        let mut pipeline = Pipeline::new(&b.config)?;
+        let source = FrameSource::open_path(&b.recording, false)?;
+        let stereo = source.is_stereo();
+        let folder = std::sync::Arc::new(crate::sink::OutputFolder::prepare(&b.out, false)?);
+        let mut sinks = crate::track::sinks(&folder, &b.sinks, stereo)?;
+        let c0 = process_cpu_clock_ns();
+        let t0 = Instant::now();
+        let summary = crate::track::run(
+            &mut pipeline,
+            source.prefetch(crate::track::PREFETCH_FRAMES),
+            &mut sinks,
+            &TrackOptions::default(),
+            &stop,
+            &mut |_| {},
+        )?;
+        let wall_s = t0.elapsed().as_secs_f64();
+        let cpu_ms = c0
+            .zip(process_cpu_clock_ns())
+            .map(|(a, z)| z.saturating_sub(a) as f64 * 1e-6);
+        frames = summary.frames;
+        if run == 0 {
+            continue;
+        }
+        walls.push(wall_s * 1e3 / frames.max(1) as f64);
+        fps.push(frames as f64 / wall_s.max(1e-9));
+        cpus.extend(cpu_ms.map(|c| c / frames.max(1) as f64));
+    }
+    let (wall_med, wall_p90, _) = stats(&mut walls);
+    let (fps_med, _, _) = stats(&mut fps);
+    let cpu_med = (!cpus.is_empty()).then(|| stats(&mut cpus).0);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut text = String::new();
+    let _ = writeln!(
+        text,
+        "gelstereo track end to end, {}: {frames} frames read and decoded from disk on the prefetch thread, {} ({}), outputs: {}; {} timed runs after 1 warm-up, {cores} cores, load average {load_start} at start, {} at end",
+        b.recording.display(),
+        b.config.chosen_method(),
+        if b.config.calibration.is_some() {
+            "stereo"
+        } else {
+            "mono"
+        },
+        b.sinks.describe(),
+        b.runs,
+        load_average()
+    );
+    let _ = writeln!(
+        text,
+        "end to end: median {fps_med:.1} stereo frames/s; {wall_med:.2} ms per frame (p90 of runs {wall_p90:.2} ms); CPU {} per frame (all threads)",
+        cpu_med.map_or_else(|| "/".to_owned(), |c| format!("{c:.2} ms"))
+    );
+    let json = json!({
+        "recording": b.recording.display().to_string(),
+        "frames": frames,
+        "runs": b.runs,
+        "method": b.config.chosen_method().as_str(),
+        "outputs": b.sinks.describe(),
+        "frames_per_s_median": fps_med,
+        "ms_per_frame": {"median": wall_med, "p90": wall_p90},
+        "cpu_ms_per_frame_median": cpu_med,
+        "cores": cores,
+        "load_average_at_start": load_start,
+    });
+    Ok(Report { text, json })
+}

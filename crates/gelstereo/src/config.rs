@@ -1,0 +1,175 @@
+//! How a [`crate::Pipeline`] is built: [`PipelineConfig`], with the defaults of `gelstereo track`,
+//! and [`PipelineConfig::for_recording`], which adds what a recording folder says about its sensor.
+
+use std::path::{Path, PathBuf};
+
+use gelstereo_core::GridShape;
+use gelstereo_markers::{LocalizerConfig, Method};
+use gelstereo_sim::SensorSpec;
+use gelstereo_tracking::SessionConfig;
+
+use crate::{Error, Result};
+
+/// Everything a [`crate::Pipeline`] is built from. `Default` is `gelstereo track`'s defaults for a
+/// mono sensor: no calibration, the shipped models, the reference sensor's 23 x 23 grid.
+#[derive(Debug, Clone)]
+pub struct PipelineConfig {
+    /// Stereo calibration: an OpenCV YAML/XML file, a folder holding a mrcal pair, or
+    /// `left.cameramodel,right.cameramodel`. Stereo frames need one; `None` for a mono sensor.
+    pub calibration: Option<String>,
+    /// Track the left view only (a mono sensor, or a stereo recording's left camera). A calibration
+    /// then only projects a sensor description's grid, and one that cannot be loaded is ignored.
+    pub mono: bool,
+    /// Localization method; `None`: Marknet-MRE when its models are installed, else the blob detector.
+    pub method: Option<Method>,
+    /// Model paths, blob parameters and ONNX Runtime options (default: the shipped `data/models`).
+    pub localizer: LocalizerConfig,
+    /// The marker lattice; `None`: the sensor description's grid, else 23 x 23 (the reference sensor).
+    pub grid: Option<GridShape>,
+    /// A sensor description whose grid overfills the cameras' view: its lattice, projected through
+    /// the calibration, places the visible markers on the sensor's own grid indices. An error building
+    /// it is reported.
+    pub sensor: Option<SensorSpec>,
+    /// A recording's own sensor description (its `meta.json`): used like [`Self::sensor`] when it
+    /// builds, ignored when it does not.
+    pub recording_sensor: Option<SensorSpec>,
+    /// Tracking, contact and slip settings (gel thickness, marker pitch of a mono sensor, ...).
+    pub session: SessionConfig,
+    /// Mirror this many pixels around each image border before localizing (mono input), so markers
+    /// cut by the border are found.
+    pub pad_border_px: i32,
+    /// Frame rate for timestamps of frames given without one, Hz (30: a typical USB camera).
+    pub frame_rate_hz: f64,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        Self {
+            calibration: None,
+            mono: false,
+            method: None,
+            localizer: LocalizerConfig::default(),
+            grid: None,
+            sensor: None,
+            recording_sensor: None,
+            session: SessionConfig::default(),
+            pad_border_px: 0,
+            frame_rate_hz: 30.0,
+        }
+    }
+}
+
+impl PipelineConfig {
+    /// The defaults plus what the recording folder `dir` describes: its `calib.yaml`, and from its
+    /// `meta.json` the grid, the gel thickness and the sensor description (each only when present
+    /// and readable: older recordings lack them).
+    pub fn for_recording(dir: &Path) -> Self {
+        let mut config = Self::default();
+        config.apply_recording(dir);
+        config
+    }
+
+    /// Fills what [`Self::for_recording`] reads from `dir` into `self`.
+    pub fn apply_recording(&mut self, dir: &Path) {
+        let calib = dir.join("calib.yaml");
+        if calib.is_file() {
+            self.calibration = Some(calib.display().to_string());
+        }
+        let meta = RecordingMeta::read(dir);
+        self.grid = meta.grid;
+        if let Some(t) = meta.gel_thickness_mm {
+            self.session.contact.gel_thickness_mm = t;
+        }
+        self.recording_sensor = meta.sensor;
+    }
+
+    /// The method [`Self::method`] names, else Marknet-MRE when both its models exist, else blob.
+    pub fn chosen_method(&self) -> Method {
+        self.method.unwrap_or_else(|| {
+            if self.localizer.marknet_path.is_file() && self.localizer.mre_path.is_file() {
+                Method::MarknetMre
+            } else {
+                Method::Blob
+            }
+        })
+    }
+
+    /// The lattice tracked when nothing else says: [`Self::grid`], else the sensor description's.
+    pub fn grid_shape(&self) -> GridShape {
+        self.grid
+            .or_else(|| self.sensor.as_ref().map(SensorSpec::grid_shape))
+            .unwrap_or(GridShape::REFERENCE)
+    }
+
+    /// Points the localizer at the models in `dir` (`marknet.onnx`, `mre.onnx`).
+    pub fn with_models(mut self, dir: &Path) -> Self {
+        self.localizer.marknet_path = dir.join("marknet.onnx");
+        self.localizer.mre_path = dir.join("mre.onnx");
+        self
+    }
+}
+
+/// What a recording's `meta.json` says about its sensor.
+#[derive(Debug, Clone, Default)]
+pub struct RecordingMeta {
+    /// `grid.rows` x `grid.cols`.
+    pub grid: Option<GridShape>,
+    /// `sensor.gel.thickness_mm`.
+    pub gel_thickness_mm: Option<f64>,
+    /// `sensor`, when it parses and validates.
+    pub sensor: Option<SensorSpec>,
+}
+
+impl RecordingMeta {
+    /// Reads `dir/meta.json`; a missing or unreadable file gives nothing (older recordings).
+    pub fn read(dir: &Path) -> Self {
+        let Ok(text) = std::fs::read_to_string(dir.join("meta.json")) else {
+            return Self::default();
+        };
+        let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
+            return Self::default();
+        };
+        let grid = (|| {
+            let rows = u16::try_from(v.get("grid")?.get("rows")?.as_u64()?).ok()?;
+            let cols = u16::try_from(v.get("grid")?.get("cols")?.as_u64()?).ok()?;
+            Some(GridShape { rows, cols })
+        })();
+        let gel_thickness_mm = v
+            .get("sensor")
+            .and_then(|s| s.get("gel"))
+            .and_then(|g| g.get("thickness_mm"))
+            .and_then(|t| t.as_f64());
+        let sensor = v
+            .get("sensor")
+            .and_then(|s| serde_json::from_value::<SensorSpec>(s.clone()).ok())
+            .filter(|s| s.validate("meta.json sensor").is_ok());
+        Self {
+            grid,
+            gel_thickness_mm,
+            sensor,
+        }
+    }
+}
+
+/// Parses a lattice `ROWSxCOLS` (e.g. `23x23`); `what` names the option in errors.
+pub fn parse_grid(text: &str, what: &str) -> Result<GridShape> {
+    let invalid = |why: &str| Error::Invalid(format!("{what} '{text}': {why}"));
+    let (r, c) = text
+        .split_once(['x', 'X'])
+        .ok_or_else(|| invalid("expected ROWSxCOLS, e.g. 23x23"))?;
+    let rows: u16 = r.trim().parse().map_err(|_| invalid("rows must be a number"))?;
+    let cols: u16 = c
+        .trim()
+        .parse()
+        .map_err(|_| invalid("columns must be a number"))?;
+    if rows < 2 || cols < 2 {
+        return Err(invalid("expected at least 2x2 markers"));
+    }
+    Ok(GridShape { rows, cols })
+}
+
+/// The folder holding the shipped `data/` and `calib/`: `GELSTEREO_HOME` when set, else the checkout
+/// this library was built from, else the folder of the executable.
+pub fn project_home() -> PathBuf {
+    gelstereo_markers::project_home()
+}

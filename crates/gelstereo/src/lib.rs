@@ -1,0 +1,54 @@
+//! gelstereo: the stereo visuotactile pipeline as one library, the crate a robot program depends on.
+//!
+//! - [`Pipeline`]: built once from a [`PipelineConfig`] (calibration, models, sensor), then
+//!   [`Pipeline::process`] per [`Frame`] gives a [`FrameOutput`]: per marker its grid id, status,
+//!   position in each view, 3-D position and displacement; contact area, depth, centroid and region;
+//!   the slip state; the timestamp. It carries every fallback of `gelstereo track`: the reference
+//!   frame is the first that can be indexed, a grid that overfills the view is indexed on its visible
+//!   part, unreadable frames come back flagged, [`Pipeline::rezero`] corrects drift.
+//! - [`source`]: frames from recordings, image folders, videos, side-by-side or two cameras, with
+//!   timestamps, optionally decoded ahead on a thread of their own ([`source::Prefetch`]).
+//! - [`sink`]: CSV tables, JSON lines, PLY clouds and meshes, overlays and plots, into an output
+//!   folder that records what it wrote ([`sink::OutputFolder`]).
+//! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`] times it.
+//!
+//! ```no_run
+//! use gelstereo::{Pipeline, PipelineConfig, source::FrameSource};
+//! let dir = std::path::Path::new("data/sample/press-slide");
+//! let mut pipeline = Pipeline::new(&PipelineConfig::for_recording(dir))?;
+//! for frame in FrameSource::open_path(dir, false)? {
+//!     let out = pipeline.process(&frame.into_frame()?)?;
+//!     println!("{:.3} s: {} markers, {}", out.t_s, out.markers.len(), out.slip().as_str());
+//! }
+//! # Ok::<(), gelstereo::Error>(())
+//! ```
+//!
+//! # Conventions
+//! Pixels of the original image, (0, 0) the centre of the top-left pixel, x right, y down; 3-D in mm
+//! in the left camera's frame (x right, y down, z forward); marker id = grid (row, col) on the left
+//! view's reference frame; times in s.
+
+pub mod bench;
+mod config;
+mod error;
+mod pipeline;
+pub mod sink;
+pub mod source;
+mod start;
+pub mod track;
+pub mod truth;
+
+pub use config::{PipelineConfig, RecordingMeta, parse_grid, project_home};
+pub use error::{Error, Result};
+pub use pipeline::{Frame, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
+
+pub use gelstereo_core as core;
+pub use gelstereo_geometry as geometry;
+pub use gelstereo_io as io;
+pub use gelstereo_markers as markers;
+pub use gelstereo_matching as matching;
+pub use gelstereo_sim as sim;
+pub use gelstereo_tracking as tracking;
+
+pub use gelstereo_core::{FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, SlipState};
+pub use gelstereo_markers::{LocalizerConfig, Method};

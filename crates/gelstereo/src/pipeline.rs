@@ -1,0 +1,534 @@
+//! [`Pipeline`]: localization in each view, grid indexing of the reference frame (with every
+//! fallback), tracking, triangulation, displacement, contact geometry and slip, one frame at a time.
+
+use gelstereo_core::{
+    FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, Point2, SlipState, StereoPair,
+    TieredDetections,
+};
+use gelstereo_geometry::StereoRig;
+use gelstereo_markers::{Localizer, Method, create_localizer};
+use gelstereo_tracking::{ContactFrame, MonoFrame, SessionConfig, StereoFrame, flagged_rows};
+use opencv::core::{Mat, MatTraitConst};
+
+use crate::start::{self, ExpectedLattice, Session};
+use crate::{Error, PipelineConfig, Result};
+
+/// The images of one frame.
+#[derive(Debug)]
+pub enum Images {
+    /// Both views of a stereo sensor.
+    Stereo(StereoPair<Mat>),
+    /// A mono sensor's view (or a stereo recording's left view).
+    Mono(Mat),
+}
+
+impl Images {
+    /// The left (or only) view.
+    pub fn left(&self) -> &Mat {
+        match self {
+            Images::Stereo(p) => &p.left,
+            Images::Mono(m) => m,
+        }
+    }
+}
+
+/// One frame to process: its images and, when known, its capture time (s, any origin).
+#[derive(Debug)]
+pub struct Frame {
+    /// The images.
+    pub images: Images,
+    /// Capture time, s (camera clock, video position, ...); `None`: frame number / frame rate.
+    pub time_s: Option<f64>,
+}
+
+impl Frame {
+    /// A stereo frame without a timestamp.
+    pub fn stereo(left: Mat, right: Mat) -> Self {
+        Self {
+            images: Images::Stereo(StereoPair::new(left, right)),
+            time_s: None,
+        }
+    }
+
+    /// A mono frame without a timestamp.
+    pub fn mono(image: Mat) -> Self {
+        Self {
+            images: Images::Mono(image),
+            time_s: None,
+        }
+    }
+}
+
+/// What the stages found in one frame, for sinks that draw or export more than the tables.
+#[derive(Debug, Clone)]
+pub enum Stages {
+    /// A stereo frame (its `markers` and `summary` moved into the [`FrameOutput`]).
+    Stereo(Box<StereoFrame>),
+    /// A mono frame (its `markers` and `summary` moved into the [`FrameOutput`]).
+    Mono(Box<MonoFrame>),
+}
+
+/// The result of one frame: plain data, `Send`.
+#[derive(Debug, Clone)]
+pub struct FrameOutput {
+    /// Frame number, from 0 (every frame given to the pipeline counts, flagged ones included).
+    pub frame: u32,
+    /// Seconds from the first frame.
+    pub t_s: f64,
+    /// One row per tracked id in id order (row-major): grid index, status, position in each view,
+    /// 3-D position and displacement (`None` where a view, the stereo stages or the marker lack it).
+    /// Empty for a frame flagged before the reference lattice was indexed.
+    pub markers: Vec<MarkerRecord>,
+    /// Contact (area, depth, centroid) and slip state.
+    pub summary: FrameSummary,
+    /// The contact region: the ids of the markers in contact.
+    pub contact_region: Vec<GridIndex>,
+    /// Why the frame is flagged (unreadable, cannot be localized, not the reference lattice...);
+    /// `None` for a frame processed normally.
+    pub note: Option<String>,
+    /// Informational lines (how the reference lattice was indexed, re-zeroing).
+    pub log: Vec<String>,
+    /// Frames flagged before the reference lattice was indexed, now with a `lost` row per id; they
+    /// precede this frame (and were returned before without rows).
+    pub earlier: Vec<FrameOutput>,
+    /// The reference positions of the left view's markers (px, in id order) this frame was tracked
+    /// against; empty for flagged frames.
+    pub reference_left_px: Vec<Point2>,
+    /// The stages' own results; `None` for flagged frames.
+    pub stages: Option<Stages>,
+}
+
+impl FrameOutput {
+    /// The slip state.
+    pub fn slip(&self) -> SlipState {
+        self.summary.slip
+    }
+
+    fn flagged(frame: u32, t_s: f64, note: String, ids: Option<&[GridIndex]>) -> Self {
+        let (markers, summary) = flagged_rows(ids.unwrap_or(&[]), frame);
+        Self {
+            frame,
+            t_s,
+            markers,
+            summary,
+            contact_region: Vec::new(),
+            note: Some(note),
+            log: Vec::new(),
+            earlier: Vec::new(),
+            reference_left_px: Vec::new(),
+            stages: None,
+        }
+    }
+}
+
+/// The whole pipeline, built once (models loaded, calibration read), then fed frame by frame.
+/// The first frame that can be indexed is the reference (no contact): marker ids are its grid
+/// indices, displacement is measured against it. Frames before it, and frames that cannot be read or
+/// localized, come back flagged ([`FrameOutput::note`]) rather than as errors.
+pub struct Pipeline {
+    localizer: Box<dyn Localizer + Send>,
+    method: Method,
+    rig: Option<StereoRig>,
+    expected: Option<ExpectedLattice>,
+    shape: GridShape,
+    session_config: SessionConfig,
+    pitch_mm: Option<f64>,
+    pad_border_px: i32,
+    mono: bool,
+    frame_rate_hz: f64,
+    session: Option<Session>,
+    reference_size: Option<ImageSize>,
+    pending: Vec<FrameOutput>,
+    latest_contact: Option<ContactFrame>,
+    rezero_requested: bool,
+    next_frame: u32,
+    first_time_s: Option<f64>,
+}
+
+impl Pipeline {
+    /// Builds the pipeline: loads the calibration (when given), the localizer's models and the sensor
+    /// description's lattice.
+    pub fn new(config: &PipelineConfig) -> Result<Self> {
+        let method = config.chosen_method();
+        let localizer = create_localizer(method, &config.localizer).map_err(|e| {
+            let what = match method {
+                Method::Blob => format!("cannot set up method '{method}'"),
+                _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
+            };
+            Error::from(e).context(what)
+        })?;
+        Self::with_localizer(config, localizer)
+    }
+
+    /// Builds the pipeline around a localizer built elsewhere (`config.method` and
+    /// `config.localizer` are then not used).
+    pub fn with_localizer(config: &PipelineConfig, mut localizer: Box<dyn Localizer + Send>) -> Result<Self> {
+        let method = config.chosen_method();
+        let rig = match &config.calibration {
+            Some(spec) => match StereoRig::load(spec) {
+                Ok(rig) => Some(rig),
+                Err(_) if config.mono => None,
+                Err(e) => return Err(Error::from(e).context(format!("cannot load the calibration {spec}"))),
+            },
+            None => None,
+        };
+        let shape = config.grid_shape();
+        // The sensor description's lattice is projected through the calibration (a mono run of a
+        // stereo recording uses its left camera); only a grid that overfills the view needs it.
+        let expected = match (&config.sensor, &config.recording_sensor, &rig) {
+            (Some(spec), _, Some(rig)) if spec.grid_shape() == shape => {
+                Some(start::expected_lattice(spec, rig)?)
+            }
+            (None, Some(spec), Some(rig)) if spec.grid_shape() == shape => {
+                start::expected_lattice(spec, rig).ok()
+            }
+            _ => None,
+        };
+        // One frame at a time: the two views' stages in parallel where a core is free (same results).
+        join_rayon_pool();
+        localizer.set_parallel(true);
+        let session_config = config.session.clone();
+        let pitch_mm = session_config.planar.pitch_mm;
+        Ok(Self {
+            localizer,
+            method,
+            rig,
+            expected,
+            shape,
+            session_config,
+            pitch_mm,
+            pad_border_px: config.pad_border_px,
+            mono: config.mono,
+            frame_rate_hz: config.frame_rate_hz,
+            session: None,
+            reference_size: None,
+            pending: Vec::new(),
+            latest_contact: None,
+            rezero_requested: false,
+            next_frame: 0,
+            first_time_s: None,
+        })
+    }
+
+    /// The localization method in use.
+    pub fn method(&self) -> Method {
+        self.method
+    }
+
+    /// Whether stereo frames can be processed (a calibration is loaded and the pipeline is not mono).
+    pub fn is_stereo(&self) -> bool {
+        self.rig.is_some() && !self.mono
+    }
+
+    /// Whether the reference lattice has been indexed.
+    pub fn is_started(&self) -> bool {
+        self.session.is_some()
+    }
+
+    /// The tracked lattice (the visible part once a grid that overfills the view was indexed).
+    pub fn shape(&self) -> GridShape {
+        self.shape
+    }
+
+    /// The tracked ids, in id order (empty before the reference frame).
+    pub fn ids(&self) -> &[GridIndex] {
+        self.session.as_ref().map_or(&[], Session::ids)
+    }
+
+    /// The triangles of the reference marker surface (lattice linear indices), for meshes; empty
+    /// for mono sensors and before the reference frame.
+    pub fn surface_triangles(&self) -> &[[u32; 3]] {
+        match &self.session {
+            Some(Session::Stereo(s)) => s.surface().triangles(),
+            _ => &[],
+        }
+    }
+
+    /// The localizer, e.g. for its timing of the last frame.
+    pub fn localizer(&self) -> &dyn Localizer {
+        self.localizer.as_ref()
+    }
+
+    /// Records a process CPU-time clock reading between the tracking stages of each stereo frame
+    /// (for benchmarks); see [`Self::stage_marks`].
+    pub fn record_stage_marks(&mut self, clock: gelstereo_tracking::CpuClock) {
+        if let Some(Session::Stereo(s)) = &mut self.session {
+            s.record_stage_marks(clock);
+        }
+    }
+
+    /// The clock readings between the tracking stages of the last stereo frame (empty unless
+    /// [`Self::record_stage_marks`] was called after the reference frame).
+    pub fn stage_marks(&self) -> &[gelstereo_tracking::StageMark] {
+        match &self.session {
+            Some(Session::Stereo(s)) => s.stage_marks(),
+            _ => &[],
+        }
+    }
+
+    /// The localizer, mutable (e.g. to set a CPU clock for benchmarks).
+    pub fn localizer_mut(&mut self) -> &mut (dyn Localizer + Send) {
+        self.localizer.as_mut()
+    }
+
+    /// Makes the current shape of the gel the new reference from the next frame on (drift
+    /// correction): displacement, contact and slip are measured against it.
+    pub fn rezero(&mut self) {
+        self.rezero_requested = true;
+    }
+
+    /// Processes one frame: localization, then [`Self::process_detected`].
+    pub fn process(&mut self, frame: &Frame) -> Result<FrameOutput> {
+        let located = self
+            .check_size(&frame.images)
+            .and_then(|()| self.localize(&frame.images));
+        match located {
+            Ok(dets) => self.process_detected(frame, dets),
+            Err(e) => Ok(self.flag(frame.time_s, e.full_message())),
+        }
+    }
+
+    /// Processes one frame whose markers were found elsewhere (e.g. ground truth of a simulated
+    /// recording): the images are checked and kept for the stages, not localized.
+    pub fn process_detected(
+        &mut self,
+        frame: &Frame,
+        dets: StereoPair<TieredDetections>,
+    ) -> Result<FrameOutput> {
+        if let Err(e) = self.check_size(&frame.images) {
+            return Ok(self.flag(frame.time_s, e.full_message()));
+        }
+        let frame_no = self.next_frame;
+        let t_s = self.time_of(frame.time_s);
+        self.next_frame += 1;
+        let mut log = Vec::new();
+        let mut earlier = Vec::new();
+        if self.session.is_none() {
+            match self.start(&frame.images, &dets) {
+                Ok((session, notes)) => {
+                    log.extend(
+                        notes
+                            .into_iter()
+                            .map(|n| format!("reference frame {frame_no}: {n}")),
+                    );
+                    self.shape = session.shape();
+                    log.push(format!(
+                        "reference frame {frame_no}: {} markers indexed on the {}x{} lattice ({})",
+                        session.ids().len(),
+                        self.shape.rows,
+                        self.shape.cols,
+                        self.method
+                    ));
+                    for mut f in self.pending.drain(..) {
+                        let (m, s) = flagged_rows(session.ids(), f.frame);
+                        (f.markers, f.summary) = (m, s);
+                        earlier.push(f);
+                    }
+                    self.session = Some(session);
+                }
+                Err(e) => {
+                    let note = format!("cannot index the reference lattice: {}", e.full_message());
+                    let out = FrameOutput::flagged(frame_no, t_s, note, None);
+                    self.pending.push(out.clone());
+                    return Ok(out);
+                }
+            }
+        }
+        let Some(session) = self.session.as_mut() else {
+            return Err(Error::Invalid(
+                "no session after indexing the reference frame".into(),
+            ));
+        };
+        if std::mem::take(&mut self.rezero_requested) {
+            match session {
+                Session::Stereo(st) => {
+                    if let Some(c) = &self.latest_contact {
+                        st.rezero(c)?;
+                    }
+                }
+                Session::Mono(m) => m.rezero(),
+            }
+            log.push(format!("frame {frame_no}: reference re-zeroed"));
+        }
+        let mut out = match (session, &frame.images) {
+            (Session::Stereo(st), Images::Stereo(_)) => {
+                let reference_left_px = st.left().reference_px().to_vec();
+                let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
+                let contact_region = region(st.ids(), &self.shape, &tracked.contact.in_contact);
+                self.latest_contact = Some(tracked.contact.clone());
+                FrameOutput {
+                    frame: frame_no,
+                    t_s,
+                    markers: std::mem::take(&mut tracked.markers),
+                    summary: tracked.summary.clone(),
+                    contact_region,
+                    note: None,
+                    log: Vec::new(),
+                    earlier: Vec::new(),
+                    reference_left_px,
+                    stages: Some(Stages::Stereo(Box::new(tracked))),
+                }
+            }
+            (Session::Mono(m), Images::Mono(_)) => {
+                let reference_left_px = m.tracker().reference_px().to_vec();
+                let mut tracked = m.track_tiered(frame_no, &dets.left)?;
+                let contact_region = m
+                    .tracker()
+                    .ids()
+                    .iter()
+                    .zip(&tracked.planar.in_contact)
+                    .filter(|(_, c)| **c)
+                    .map(|(i, _)| *i)
+                    .collect();
+                FrameOutput {
+                    frame: frame_no,
+                    t_s,
+                    markers: std::mem::take(&mut tracked.markers),
+                    summary: tracked.summary.clone(),
+                    contact_region,
+                    note: None,
+                    log: Vec::new(),
+                    earlier: Vec::new(),
+                    reference_left_px,
+                    stages: Some(Stages::Mono(Box::new(tracked))),
+                }
+            }
+            _ => {
+                return Err(Error::Invalid(format!(
+                    "frame {frame_no}: a mono frame in a stereo session or the reverse"
+                )));
+            }
+        };
+        out.log = log;
+        out.earlier = earlier;
+        Ok(out)
+    }
+
+    /// Records a frame that could not be read (`reason` names the file and the problem): it comes
+    /// back flagged, with a `lost` row per id, and counts as a frame.
+    pub fn flag(&mut self, time_s: Option<f64>, reason: String) -> FrameOutput {
+        let frame_no = self.next_frame;
+        let t_s = self.time_of(time_s);
+        self.next_frame += 1;
+        match &self.session {
+            Some(s) => FrameOutput::flagged(frame_no, t_s, reason, Some(s.ids())),
+            None => {
+                let out = FrameOutput::flagged(frame_no, t_s, reason, None);
+                self.pending.push(out.clone());
+                out
+            }
+        }
+    }
+
+    fn time_of(&mut self, time_s: Option<f64>) -> f64 {
+        let t = time_s.unwrap_or(f64::from(self.next_frame) / self.frame_rate_hz.max(1e-9));
+        let first = *self.first_time_s.get_or_insert(t);
+        t - first
+    }
+
+    /// Checks the frame against the calibration and the first frame's size.
+    fn check_size(&mut self, images: &Images) -> Result<()> {
+        let size = size_of(images.left());
+        if let Images::Stereo(pair) = images {
+            let right = size_of(&pair.right);
+            if right != size {
+                return Err(Error::Invalid(format!(
+                    "left and right images differ in size ({}x{} vs {}x{})",
+                    size.width, size.height, right.width, right.height
+                )));
+            }
+            let Some(rig) = self.rig.as_ref().filter(|_| !self.mono) else {
+                return Err(Error::Invalid(
+                    "stereo frames need a calibration (or a mono pipeline)".into(),
+                ));
+            };
+            rig.check_image_sizes(size, size)
+                .map_err(|e| Error::from(e).context("the frame does not match the calibration"))?;
+        }
+        match self.reference_size {
+            Some(r) if r != size => Err(Error::Invalid(format!(
+                "image size {}x{} differs from the first frame's {}x{}",
+                size.width, size.height, r.width, r.height
+            ))),
+            Some(_) => Ok(()),
+            None => {
+                self.reference_size = Some(size);
+                Ok(())
+            }
+        }
+    }
+
+    fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
+        Ok(match images {
+            Images::Stereo(pair) => self.localizer.detect_stereo_tiered(pair)?,
+            Images::Mono(m) => StereoPair::new(
+                start::detect_padded(self.localizer.as_mut(), m, self.pad_border_px)?,
+                TieredDetections::default(),
+            ),
+        })
+    }
+
+    /// Indexes the reference frame: the whole lattice, else (a grid that overfills the view) the
+    /// visible part, placed by the sensor description when there is one.
+    fn start(&self, images: &Images, dets: &StereoPair<TieredDetections>) -> Result<(Session, Vec<String>)> {
+        let stereo_rig = match images {
+            Images::Stereo(_) => self.rig.as_ref(),
+            Images::Mono(_) => None,
+        };
+        let whole = start::start_whole(dets, stereo_rig, self.shape, &self.session_config);
+        match whole {
+            Ok(s) => Ok((s, Vec::new())),
+            Err(e) if e.lattice_cut() && self.expected.as_ref().is_none_or(|x| x.overfills) => {
+                let size = self.reference_size.unwrap_or(ImageSize { width: 0, height: 0 });
+                match start::start_cut(
+                    dets,
+                    stereo_rig,
+                    self.shape,
+                    self.expected.as_ref(),
+                    self.pitch_mm,
+                    size,
+                    &self.session_config,
+                ) {
+                    Ok(Some(started)) => Ok(started),
+                    // Not a cut grid: the whole-lattice error stands (the next frame is tried).
+                    Ok(None) => Err(e),
+                    Err(cut) => Err(cut.context(format!("{}; indexing the visible part", e.full_message()))),
+                }
+            }
+            Err(e) => Err(e),
+        }
+    }
+}
+
+/// The ids whose lattice position is in contact.
+fn region(ids: &[GridIndex], shape: &GridShape, in_contact: &[bool]) -> Vec<GridIndex> {
+    ids.iter()
+        .copied()
+        .filter(|i| {
+            shape
+                .linear(*i)
+                .and_then(|l| in_contact.get(l))
+                .copied()
+                .unwrap_or(false)
+        })
+        .collect()
+}
+
+/// The size of an image.
+pub(crate) fn size_of(m: &Mat) -> ImageSize {
+    ImageSize {
+        width: m.cols().max(0) as u32,
+        height: m.rows().max(0) as u32,
+    }
+}
+
+/// Makes the calling thread one of the threads of rayon's global pool (a no-op once that pool
+/// exists). The two views' parallel stages of one frame then start on this thread and hand one half
+/// to the pool's other thread; from outside the pool each stage would wait for a pool thread to
+/// wake up first, and gain nothing when none wakes in time.
+pub fn join_rayon_pool() {
+    // An error means the pool exists already (started by an earlier call): nothing to do.
+    let _ = rayon::ThreadPoolBuilder::new()
+        .use_current_thread()
+        .build_global();
+}

@@ -1,0 +1,277 @@
+//! Starting a session on the reference frame: the whole lattice, or the visible part of a grid that
+//! overfills the view (placed by a sensor description, else from the visible top-left marker); and
+//! localization with a mirrored border.
+
+use gelstereo_core::{Detection, GridIndex, GridShape, ImageSize, Point2, StereoPair, TieredDetections};
+use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
+use gelstereo_markers::Localizer;
+use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
+use gelstereo_sim::SensorSpec;
+use gelstereo_tracking::{MonoSession, SessionConfig, StereoSession};
+use opencv::core::{Mat, MatTraitConst, Scalar};
+
+use crate::{Error, Result};
+
+/// Starts a session on the whole lattice: stereo when `rig` is given, else mono on the left view.
+pub(crate) fn start_whole(
+    dets: &StereoPair<TieredDetections>,
+    rig: Option<&StereoRig>,
+    shape: GridShape,
+    config: &SessionConfig,
+) -> Result<Session> {
+    match rig {
+        Some(rig) => {
+            let lat = StereoLattice::from_reference(
+                rig,
+                &dets.left.accepted,
+                &dets.right.accepted,
+                shape,
+                StereoConfig::default(),
+            )?;
+            Session::stereo(rig, &lat, shape, config)
+        }
+        None => {
+            let lat =
+                ReferenceLattice::from_detections(&dets.left.accepted, shape, IndexingConfig::default())?;
+            Session::mono(&lat, shape, config)
+        }
+    }
+}
+
+/// Localizes `image` (with the localizer's second tier), first mirroring `pad` pixels around its
+/// border when `pad > 0`.
+pub(crate) fn detect_padded(
+    loc: &mut (dyn Localizer + Send),
+    image: &Mat,
+    pad: i32,
+) -> Result<TieredDetections> {
+    if pad <= 0 {
+        return Ok(loc.detect_tiered(image)?);
+    }
+    let mut padded = Mat::default();
+    opencv::core::copy_make_border(
+        image,
+        &mut padded,
+        pad,
+        pad,
+        pad,
+        pad,
+        opencv::core::BORDER_REFLECT,
+        Scalar::all(0.0),
+    )
+    .map_err(|e| Error::from(e).context("padding the image border"))?;
+    let (w, h) = (f64::from(image.cols()), f64::from(image.rows()));
+    let p = f64::from(pad);
+    let unpad = |found: Vec<Detection>| -> Vec<Detection> {
+        found
+            .into_iter()
+            .map(|mut d| {
+                d.position = Point2::new(d.position.x - p, d.position.y - p);
+                d
+            })
+            // Keep markers whose centre lies within half a pad of the image.
+            .filter(|d| {
+                d.position.x > -0.5 * p
+                    && d.position.y > -0.5 * p
+                    && d.position.x < w - 1.0 + 0.5 * p
+                    && d.position.y < h - 1.0 + 0.5 * p
+            })
+            .collect()
+    };
+    let found = loc.detect_tiered(&padded)?;
+    Ok(TieredDetections {
+        accepted: unpad(found.accepted),
+        second_tier: unpad(found.second_tier),
+    })
+}
+
+/// A running session, stereo or mono.
+pub(crate) enum Session {
+    Stereo(Box<StereoSession>),
+    Mono(Box<MonoSession>),
+}
+
+impl Session {
+    pub(crate) fn ids(&self) -> &[GridIndex] {
+        match self {
+            Session::Stereo(s) => s.ids(),
+            Session::Mono(s) => s.tracker().ids(),
+        }
+    }
+
+    pub(crate) fn shape(&self) -> GridShape {
+        match self {
+            Session::Stereo(s) => s.shape(),
+            Session::Mono(s) => s.tracker().shape(),
+        }
+    }
+
+    fn stereo(
+        rig: &StereoRig,
+        lat: &StereoLattice,
+        shape: GridShape,
+        config: &SessionConfig,
+    ) -> Result<Self> {
+        let l: Vec<(GridIndex, Point2)> = lat.left().reference_view().markers().collect();
+        let r: Vec<(GridIndex, Point2)> = lat.right().reference_view().markers().collect();
+        let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+        let mut session = StereoSession::new(shape, &l, &r, tri, config.clone())?;
+        // The two views' tracker updates and the triangulation on both cores (one frame at a time).
+        session.set_parallel(true);
+        Ok(Session::Stereo(Box::new(session)))
+    }
+
+    fn mono(lat: &ReferenceLattice, shape: GridShape, config: &SessionConfig) -> Result<Self> {
+        let l: Vec<(GridIndex, Point2)> = lat.reference_view().markers().collect();
+        Ok(Session::Mono(Box::new(MonoSession::new(
+            shape,
+            &l,
+            config.clone(),
+        )?)))
+    }
+}
+
+/// The rest positions of a sensor description's markers in both views (row-major; `None` where a
+/// marker does not project), with the calibrated rig; and whether every one falls inside the image.
+pub(crate) fn expected_lattice(spec: &SensorSpec, rig: &StereoRig) -> Result<ExpectedLattice> {
+    let sensor = spec
+        .build()
+        .map_err(|e| Error::from(e).context("the sensor description"))?;
+    let size = rig.left.image_size;
+    let inside = |q: &Point2| {
+        q.x >= 0.0 && q.y >= 0.0 && q.x <= f64::from(size.width) - 1.0 && q.y <= f64::from(size.height) - 1.0
+    };
+    let (mut left, mut right) = (Vec::new(), Vec::new());
+    for i in spec.grid_shape().indices() {
+        let [x, y] = spec.marker_rest_mm(i.row, i.col);
+        let p = rig.project(&(sensor.left_from_sensor * nalgebra::Point3::new(x, y, 0.0)));
+        left.push(p.map(|p| p.0));
+        right.push(p.map(|p| p.1));
+    }
+    let overfills = left.iter().chain(&right).any(|q| !q.as_ref().is_some_and(inside));
+    Ok(ExpectedLattice {
+        left,
+        right,
+        overfills,
+    })
+}
+
+pub(crate) struct ExpectedLattice {
+    /// Rest positions in the left view (row-major; `None` where a marker does not project).
+    left: Vec<Option<Point2>>,
+    right: Vec<Option<Point2>>,
+    /// Some marker falls outside a view at rest.
+    pub(crate) overfills: bool,
+}
+
+/// Whether the left view's markers come within a pitch of the image border (on a side where the
+/// lattice could be cut off) in a direction where fewer rows / columns than `full`'s are visible.
+fn touches_border(dets: &[Detection], visible: GridShape, full: GridShape, size: ImageSize) -> bool {
+    let pts: Vec<Point2> = dets.iter().map(|d| d.position).collect();
+    let mut nn: Vec<f64> = pts
+        .iter()
+        .enumerate()
+        .filter_map(|(i, p)| {
+            pts.iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| p.distance(*q))
+                .min_by(f64::total_cmp)
+        })
+        .collect();
+    nn.sort_by(f64::total_cmp);
+    let Some(&pitch) = nn.get(nn.len() / 2) else {
+        return false;
+    };
+    let (w, h) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
+    let near = |f: &dyn Fn(&Point2) -> bool| pts.iter().any(f);
+    (visible.cols < full.cols && near(&|p| p.x < pitch || p.x > w - pitch))
+        || (visible.rows < full.rows && near(&|p| p.y < pitch || p.y > h - pitch))
+}
+
+/// Starts a session on a reference frame whose view shows only part of the `full` lattice: on the
+/// sensor's own grid indices when a sensor description places it, else from the visible top-left
+/// marker (with a warning; `pitch_mm`, the marker pitch, can settle the right view's column
+/// offset). Returns the session and the lines to log; `None` when the view does not look cut off
+/// (no description, and no fewer rows or columns than the grid's near the image border).
+pub(crate) fn start_cut(
+    dets: &StereoPair<TieredDetections>,
+    rig: Option<&StereoRig>,
+    full: GridShape,
+    expected: Option<&ExpectedLattice>,
+    pitch_mm: Option<f64>,
+    size: ImageSize,
+    config: &SessionConfig,
+) -> Result<Option<(Session, Vec<String>)>> {
+    let (left, right) = (&dets.left.accepted, &dets.right.accepted);
+    if let Some(x) = expected {
+        let (session, line) = match rig {
+            Some(rig) => {
+                let (lat, p) = StereoLattice::from_reference_placed(
+                    rig,
+                    left,
+                    right,
+                    full,
+                    (&x.left, &x.right),
+                    StereoConfig::default(),
+                )?;
+                let line = format!(
+                    "the {}x{} grid overfills the view: placed by the sensor description; left view {}, right view {}; \
+                     {} of {} markers seen in both views pair within {} px of the epipolar lines",
+                    full.rows,
+                    full.cols,
+                    p.left,
+                    p.right,
+                    p.within_epipolar,
+                    p.paired,
+                    StereoConfig::default().max_epipolar_px
+                );
+                (Session::stereo(rig, &lat, full, config)?, line)
+            }
+            None => {
+                let (lat, p) =
+                    ReferenceLattice::from_detections_placed(left, full, &x.left, IndexingConfig::default())?;
+                let line = format!(
+                    "the {}x{} grid overfills the view: placed by the sensor description on {p}",
+                    full.rows, full.cols
+                );
+                (Session::mono(&lat, full, config)?, line)
+            }
+        };
+        return Ok(Some((session, vec![line])));
+    }
+    let visible = ReferenceLattice::visible_shape(left, full, &IndexingConfig::default())?;
+    if !touches_border(left, visible, full, size) {
+        return Ok(None);
+    }
+    let session = match rig {
+        Some(rig) => {
+            let lat = StereoLattice::from_visible_reference(
+                rig,
+                left,
+                right,
+                visible,
+                full,
+                pitch_mm,
+                StereoConfig::default(),
+            )
+            .map_err(|e| {
+                Error::from(e).context(
+                    "give the sensor description (--sensor FILE) to place the grid, or the marker pitch (--pitch-mm)",
+                )
+            })?;
+            Session::stereo(rig, &lat, visible, config)?
+        }
+        None => Session::mono(
+            &ReferenceLattice::from_detections(left, visible, IndexingConfig::default())?,
+            visible,
+            config,
+        )?,
+    };
+    let line = format!(
+        "warning: the {}x{} grid overfills the view and no sensor description places it: indexing the visible \
+         {}x{} markers with the visible top-left marker as (0, 0); ids are not the sensor's grid indices",
+        full.rows, full.cols, visible.rows, visible.cols
+    );
+    Ok(Some((session, vec![line])))
+}

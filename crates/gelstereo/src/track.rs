@@ -1,0 +1,213 @@
+//! [`run`]: frames from a source through the [`Pipeline`] into sinks, what `gelstereo track` does
+//! (and what its benchmark times). Stops early, cleanly, when the `stop` flag is raised (a signal
+//! handler sets it): the sinks are finished with what was processed.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use gelstereo_core::{Detection, MarkerStatus, SlipState, StereoPair};
+
+use crate::sink::{FrameContext, Sink};
+use crate::source::SourceFrame;
+use crate::{Error, Frame, FrameOutput, Pipeline, Result, Stages};
+
+/// How [`run`] goes over the frames.
+#[derive(Debug, Clone, Default)]
+pub struct TrackOptions {
+    /// Stop after this many frames.
+    pub max_frames: Option<usize>,
+    /// Re-zero the reference at these frame numbers (drift correction).
+    pub rezero_at: Vec<u32>,
+    /// Per frame, the markers to use instead of localizing (ground truth of a simulated recording).
+    pub detections: Option<Vec<StereoPair<Vec<Detection>>>>,
+}
+
+/// What a run did.
+#[derive(Debug, Clone, Default)]
+pub struct TrackSummary {
+    /// Frames processed (flagged ones included).
+    pub frames: usize,
+    /// Frames flagged, with why.
+    pub flagged: Vec<String>,
+    /// Marker-frames tracked in the left view / visible there.
+    pub tracked_fraction: f64,
+    /// Frames with contact.
+    pub contact_frames: usize,
+    /// Frames in partial or gross slip.
+    pub slipping_frames: usize,
+    /// Whether the run stopped on the `stop` flag before the source ended.
+    pub interrupted: bool,
+    /// Whether a reference lattice was indexed.
+    pub started: bool,
+}
+
+/// Runs `frames` through `pipeline` into `sinks`, calling `on_frame` after each frame (progress,
+/// warnings). Stops at the end of the source, after `options.max_frames`, or when `stop` is raised;
+/// the sinks are finished in every case but an error.
+pub fn run(
+    pipeline: &mut Pipeline,
+    frames: impl Iterator<Item = SourceFrame>,
+    sinks: &mut [Box<dyn Sink + '_>],
+    options: &TrackOptions,
+    stop: &AtomicBool,
+    on_frame: &mut dyn FnMut(&FrameOutput),
+) -> Result<TrackSummary> {
+    let mut summary = TrackSummary::default();
+    let (mut tracked, mut visible) = (0usize, 0usize);
+    for source_frame in frames.take(options.max_frames.unwrap_or(usize::MAX)) {
+        if stop.load(Ordering::SeqCst) {
+            summary.interrupted = true;
+            break;
+        }
+        let frame_no = source_frame.index as u32;
+        if options.rezero_at.contains(&frame_no) {
+            pipeline.rezero();
+        }
+        let time_s = Some(source_frame.time_s);
+        let (out, frame) = match source_frame.images {
+            Ok(images) => {
+                let frame = Frame { images, time_s };
+                let out = match &options.detections {
+                    Some(all) => match all.get(frame_no as usize) {
+                        Some(d) => {
+                            let dets = StereoPair::new(d.left.clone().into(), d.right.clone().into());
+                            pipeline.process_detected(&frame, dets)?
+                        }
+                        None => pipeline.flag(time_s, format!("no ground truth for frame {frame_no}")),
+                    },
+                    None => pipeline.process(&frame)?,
+                };
+                (out, Some(frame))
+            }
+            Err(e) => (pipeline.flag(time_s, e.full_message()), None),
+        };
+        for earlier in &out.earlier {
+            let ctx = FrameContext {
+                output: earlier,
+                images: None,
+                pipeline,
+            };
+            sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+        }
+        if !pipeline.is_started() {
+            // Flagged before the reference lattice: its rows follow once the ids are known.
+            summary.frames += 1;
+            summary.flagged.extend(out.note.clone());
+            on_frame(&out);
+            continue;
+        }
+        let ctx = FrameContext {
+            output: &out,
+            images: frame.as_ref().map(|f| &f.images),
+            pipeline,
+        };
+        sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+        summary.frames += 1;
+        summary.flagged.extend(out.note.clone());
+        summary.contact_frames += usize::from(out.summary.contact);
+        summary.slipping_frames += usize::from(matches!(
+            out.summary.slip,
+            SlipState::PartialSlip | SlipState::GrossSlip
+        ));
+        let left = match &out.stages {
+            Some(Stages::Stereo(st)) => Some(&st.left),
+            Some(Stages::Mono(m)) => Some(&m.track),
+            None => None,
+        };
+        if let Some(l) = left {
+            tracked += l.count(MarkerStatus::Tracked);
+            visible += l.markers.len();
+        }
+        on_frame(&out);
+    }
+    summary.started = pipeline.is_started();
+    if !summary.started {
+        return Err(Error::Invalid(format!(
+            "no frame could be indexed as the reference lattice ({} frames read): {}",
+            summary.frames,
+            summary.flagged.last().map_or("no frames", String::as_str)
+        )));
+    }
+    for s in sinks.iter_mut() {
+        s.finish()?;
+    }
+    summary.tracked_fraction = tracked as f64 / visible.max(1) as f64;
+    Ok(summary)
+}
+
+/// Frames read and decoded ahead of the pipeline by [`crate::source::Prefetch`] (bounded: memory
+/// stays flat over any recording length).
+pub const PREFETCH_FRAMES: usize = 4;
+
+/// Which outputs `gelstereo track` writes.
+#[derive(Debug, Clone)]
+pub struct SinkOptions {
+    /// `markers.csv` and `frames.csv`.
+    pub tables: bool,
+    /// The run's plots.
+    pub plots: bool,
+    /// A PLY marker cloud and mesh every N stereo frames (0: none).
+    pub ply_every: usize,
+    /// Overlays every N frames (0: none).
+    pub overlay_every: usize,
+    /// Length factor of the displacement arrows in the overlays.
+    pub arrow_scale: f64,
+}
+
+impl Default for SinkOptions {
+    /// Tables and plots; a PLY pair and an overlay every 10 frames (a long recording's folder stays
+    /// small, a short one still shows a few); arrows three times the displacement.
+    fn default() -> Self {
+        Self {
+            tables: true,
+            plots: true,
+            ply_every: 10,
+            overlay_every: 10,
+            arrow_scale: 3.0,
+        }
+    }
+}
+
+impl SinkOptions {
+    /// The outputs in words.
+    pub fn describe(&self) -> String {
+        let every = |n: usize| match n {
+            0 => "none".to_owned(),
+            1 => "every frame".to_owned(),
+            n => format!("every {n} frames"),
+        };
+        format!(
+            "tables {}, plots {}, PLY {}, overlays {}",
+            if self.tables { "yes" } else { "no" },
+            if self.plots { "yes" } else { "no" },
+            every(self.ply_every),
+            every(self.overlay_every)
+        )
+    }
+}
+
+/// The sinks of `options` writing into `folder` (`stereo`: with the depth plot).
+pub fn sinks(
+    folder: &std::sync::Arc<crate::sink::OutputFolder>,
+    options: &SinkOptions,
+    stereo: bool,
+) -> Result<Vec<Box<dyn Sink>>> {
+    use crate::sink::{OverlaySink, PlotSink, PlySink, TableSink};
+    let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
+    if options.tables {
+        sinks.push(Box::new(TableSink::create(folder)?));
+    }
+    if options.ply_every > 0 && stereo {
+        sinks.push(Box::new(PlySink::new(folder.clone(), options.ply_every)));
+    }
+    if options.overlay_every > 0 {
+        sinks.push(Box::new(OverlaySink::new(
+            folder.clone(),
+            options.overlay_every,
+            options.arrow_scale,
+        )));
+    }
+    if options.plots {
+        sinks.push(Box::new(PlotSink::new(folder.clone(), stereo)));
+    }
+    Ok(sinks)
+}
