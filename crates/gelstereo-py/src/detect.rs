@@ -2,10 +2,9 @@
 
 use std::collections::BTreeMap;
 use std::collections::btree_map::Entry;
-use std::path::PathBuf;
 use std::sync::Mutex;
 
-use gelstereo_markers::{BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions};
+use gelstereo::markers::{Localizer, LocalizerConfig, Method, create_localizer};
 use numpy::PyArray2;
 use numpy::ndarray::Array2;
 use pyo3::exceptions::PyValueError;
@@ -16,7 +15,7 @@ use crate::error::{GelstereoError, to_py};
 /// Localizers built so far, per method: loading a model takes longer than running it, so a loop
 /// calling `detect` loads each once. Each remembers the marker pitch per image size, as
 /// `gelstereo detect` does over the images of one call.
-static LOCALIZERS: Mutex<BTreeMap<Method, Box<dyn Localizer>>> = Mutex::new(BTreeMap::new());
+static LOCALIZERS: Mutex<BTreeMap<Method, Box<dyn Localizer + Send>>> = Mutex::new(BTreeMap::new());
 
 /// Marker centres in one image.
 ///
@@ -41,7 +40,7 @@ pub fn detect<'py>(
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let method: Method = method
         .parse()
-        .map_err(|e: gelstereo_markers::Error| PyValueError::new_err(e.to_string()))?;
+        .map_err(|e: gelstereo::markers::Error| PyValueError::new_err(e.to_string()))?;
     let image = crate::image::to_mat("image", image)?;
     let rows = py.detach(|| {
         let mut cache = LOCALIZERS
@@ -49,10 +48,9 @@ pub fn detect<'py>(
             .map_err(|_| GelstereoError::new_err("a localizer failed in another thread"))?;
         let localizer = match cache.entry(method) {
             Entry::Occupied(built) => built.into_mut(),
-            Entry::Vacant(slot) => slot.insert(
-                gelstereo_markers::create_localizer(method, &shipped_config().map_err(|e| to_py(&e))?)
-                    .map_err(|e| to_py(&e))?,
-            ),
+            Entry::Vacant(slot) => {
+                slot.insert(create_localizer(method, &LocalizerConfig::default()).map_err(|e| to_py(&e))?)
+            }
         };
         let detections = localizer.detect(&image).map_err(|e| to_py(&e))?;
         PyResult::Ok(
@@ -63,26 +61,4 @@ pub fn detect<'py>(
         )
     })?;
     Ok(PyArray2::from_owned_array(py, Array2::from(rows)))
-}
-
-/// `gelstereo detect`'s localizer options with every default: the shipped models and blob parameters.
-fn shipped_config() -> gelstereo_markers::Result<LocalizerConfig> {
-    let home = home();
-    let models = home.join("data/models");
-    Ok(LocalizerConfig {
-        marknet_path: models.join("marknet.onnx"),
-        mre_path: models.join("mre.onnx"),
-        blob: BlobParams::from_json_file(&home.join(gelstereo_markers::blob::DEFAULT_PARAMS_FILE))?,
-        session: SessionOptions::default(),
-        fit: InputFit::Auto,
-        remember_pitch: true,
-    })
-}
-
-/// The folder holding `data/`: `GELSTEREO_HOME` when set, else the checkout this module was built from.
-fn home() -> PathBuf {
-    std::env::var_os("GELSTEREO_HOME")
-        .filter(|p| !p.is_empty())
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../..")))
 }
