@@ -6,7 +6,9 @@ use std::sync::{Mutex, MutexGuard};
 
 use gelstereo::core::StereoPair;
 use gelstereo::sim::SensorSpec;
-use gelstereo::{Frame, FrameOutput, GridShape, Images, MarkerRecord, Pipeline, PipelineConfig, parse_grid};
+use gelstereo::{
+    Frame, FrameOutput, GridShape, Images, MarkerRecord, Method, Pipeline, PipelineConfig, parse_grid,
+};
 use numpy::ndarray::Array2;
 use numpy::{PyArray1, PyArray2};
 use pyo3::exceptions::PyTypeError;
@@ -21,7 +23,8 @@ use crate::image::to_mat;
 /// Args:
 ///     calibration: stereo calibration (OpenCV YAML/XML, a folder holding a mrcal pair, or
 ///         "left.cameramodel,right.cameramodel"); None (default) for a mono sensor.
-///     models: folder with marknet.onnx and mre.onnx (default: the shipped data/models).
+///     models: folder with marknet.onnx and mre.onnx for Marknet-MRE (default: the shipped
+///         data/models, or the blob detector where they are not installed).
 ///     grid: the marker lattice, "ROWSxCOLS" or (rows, cols) (default: the sensor's, else 23x23).
 ///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor
 ///         whose grid overfills the cameras' view: the visible markers get the sensor's own indices.
@@ -54,7 +57,9 @@ impl PyPipeline {
             ..PipelineConfig::default()
         };
         if let Some(dir) = models {
+            // Models named explicitly are used or reported, never replaced by the blob detector.
             config = config.with_models(&dir);
+            config.method = Some(Method::MarknetMre);
         }
         let inner = py.detach(|| {
             if let Some(path) = sensor {
