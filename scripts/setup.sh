@@ -134,7 +134,7 @@ source_hash="$(
     "$local_venv/bin/python" -c 'import sys; print(sys.version)'
     find crates -path '*/target' -prune -o -type f \( -name '*.rs' -o -name Cargo.toml -o -name pyproject.toml \
       -o -name '*.pyi' \) -print | LC_ALL=C sort | xargs sha256sum
-    sha256sum Cargo.toml Cargo.lock
+    sha256sum Cargo.toml Cargo.lock .cargo/config.toml
   } | sha256sum | cut -c1-16
 )"
 stamp="$local_venv/.gelstereo-source-hash"
