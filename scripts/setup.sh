@@ -4,10 +4,24 @@
 #     and for the figures (`plotters` renders text through fontconfig / freetype with DejaVu fonts).
 #  2. ONNX Runtime: the shared library shipped inside the PyPI `onnxruntime` wheel (ort's own binary
 #     download cannot reach its CDN here), pinned by version and sha256, unpacked into .deps/onnxruntime/lib.
-#  3. The Python environment for train/ (.venv, pinned train/requirements.txt), kept in a per-user cache
-#     keyed by the requirements' hash so a fresh clone on the same machine does not reinstall PyTorch.
+#  3. The Python environment: the pinned packages of train/requirements.txt (PyTorch) and the small
+#     extras (maturin, matplotlib for examples/python) in a per-user cache keyed by the requirements'
+#     hash, so a fresh clone on the same machine does not reinstall PyTorch; on top of it the
+#     checkout's own .venv, whose site-packages come first and load the cached ones (a .pth file).
+#     `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for examples/python/stream_rerun.py.
+#  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin and
+#     installed into the checkout's .venv, so each clone imports its own build; skipped when the
+#     installed build's source hash matches.
 # Re-running it does only what is missing.
 set -euo pipefail
+
+WITH_RERUN=0
+for arg in "$@"; do
+  case "$arg" in
+    --with-rerun) WITH_RERUN=1 ;;
+    *) echo "usage: scripts/setup.sh [--with-rerun]" >&2; exit 2 ;;
+  esac
+done
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 CACHE="${GELSTEREO_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/gelstereo}"
@@ -64,10 +78,13 @@ else
   say "ONNX Runtime ${ORT_VERSION} present in $ORT_DIR"
 fi
 
-# --- 3. Python environment for train/ ----------------------------------------------------------
+# --- 3. Python environments ---------------------------------------------------------------------
+# The shared environment is changed only under a lock, so clones set up at once do not race.
 req="$ROOT/train/requirements.txt"
 req_hash="$(sha256sum "$req" | cut -c1-16)"
 venv="$CACHE/venv-$req_hash"
+exec 9>"$CACHE/venv.lock"
+flock 9
 if [ ! -x "$venv/bin/python" ] || [ ! -f "$venv/.complete" ]; then
   say "creating Python environment $venv (PyTorch is a large download, ~1-2 min)"
   rm -rf "$venv"
@@ -78,5 +95,68 @@ if [ ! -x "$venv/bin/python" ] || [ ! -f "$venv/.complete" ]; then
 else
   say "Python environment present ($venv)"
 fi
-ln -sfn "$venv" "$ROOT/.venv"
+
+# Extra requirement files, installed into the shared environment once per content (train/'s pins
+# are constraints: an extra never moves numpy or Pillow under PyTorch).
+install_extra() {
+  local file="$ROOT/$1"
+  local marker
+  marker="$venv/.extra-$(echo "$1" | tr '/' '_')-$(sha256sum "$file" | cut -c1-16)"
+  [ -f "$marker" ] && return
+  say "installing $1 into the shared Python environment"
+  "$venv/bin/python" -m pip install --quiet -r "$file" -c "$req"
+  touch "$marker"
+}
+install_extra crates/gelstereo-py/requirements-build.txt
+install_extra examples/python/requirements.txt
+if ((WITH_RERUN)); then install_extra examples/python/requirements-rerun.txt; fi
+flock -u 9
+
+# The checkout's own .venv (an older layout made it a symlink to the shared environment).
+local_venv="$ROOT/.venv"
+[ -L "$local_venv" ] && rm -f "$local_venv"
+if [ ! -x "$local_venv/bin/python" ] || ! "$local_venv/bin/python" -c '' 2>/dev/null; then
+  rm -rf "$local_venv"
+  "$venv/bin/python" -m venv --without-pip "$local_venv"
+  say "created the checkout's Python environment $local_venv"
+fi
+purelib='import sysconfig; print(sysconfig.get_paths()["purelib"])'
+link="$("$local_venv/bin/python" -c "$purelib")/gelstereo-shared-env.pth"
+link_line="import site; site.addsitedir('$("$venv/bin/python" -c "$purelib")')"
+[ -f "$link" ] && [ "$(cat "$link")" = "$link_line" ] || echo "$link_line" >"$link"
+
+# --- 4. The Python package gelstereo ------------------------------------------------------------
+# The source hash covers every crate (the package links them all), the lock file, this checkout's
+# path (the build finds data/ and ONNX Runtime through it) and the Python version.
+source_hash="$(
+  cd "$ROOT"
+  {
+    echo "$ROOT"
+    "$local_venv/bin/python" -c 'import sys; print(sys.version)'
+    find crates -path '*/target' -prune -o -type f \( -name '*.rs' -o -name Cargo.toml -o -name pyproject.toml \
+      -o -name '*.pyi' \) -print | LC_ALL=C sort | xargs sha256sum
+    sha256sum Cargo.toml Cargo.lock .cargo/config.toml
+  } | sha256sum | cut -c1-16
+)"
+stamp="$local_venv/.gelstereo-source-hash"
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$source_hash" ] \
+  && "$local_venv/bin/python" -c 'import gelstereo' 2>/dev/null; then
+  say "Python package gelstereo present (source hash $source_hash)"
+else
+  say "building the Python package gelstereo (maturin build --release; a first build compiles every crate)"
+  wheels="$ROOT/target/wheels"
+  rm -f "$wheels"/gelstereo-*.whl
+  log="$ROOT/target/maturin.log"
+  mkdir -p "$wheels"
+  if ! "$venv/bin/maturin" build --release --locked --compatibility linux -m "$ROOT/crates/gelstereo-py/Cargo.toml" \
+    -i "$local_venv/bin/python" --out "$wheels" >"$log" 2>&1; then
+    tail -n 40 "$log" >&2
+    echo "maturin build failed; full log: $log" >&2
+    exit 1
+  fi
+  "$local_venv/bin/python" -m pip install --quiet --no-deps --force-reinstall "$wheels"/gelstereo-*.whl
+  "$local_venv/bin/python" -c 'import gelstereo'
+  echo "$source_hash" >"$stamp"
+  say "Python package gelstereo installed into $local_venv"
+fi
 say "done"

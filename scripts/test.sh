@@ -4,7 +4,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
-bash scripts/setup.sh
+bash scripts/setup.sh --with-rerun
 
 step() { printf '\n=== %s\n' "$*"; }
 step "cargo fmt --check"
@@ -17,3 +17,12 @@ step "examples: the Rust robot loop on the sample recording"
 cargo run -q --locked -p robot-loop -- data/sample/press-slide | tail -n 3
 step "pytest train/"
 (cd train && "$ROOT/.venv/bin/python" -m pytest -q)
+step "pytest crates/gelstereo-py (the Python package)"
+"$ROOT/.venv/bin/python" -m pytest -q crates/gelstereo-py/tests
+step "examples/python on the sample recording"
+examples_out="$(mktemp -d)"
+trap 'rm -rf "$examples_out"' EXIT
+"$ROOT/.venv/bin/python" examples/python/track_and_plot.py data/sample/press-slide --out "$examples_out/depth-slip.png"
+test -s "$examples_out/depth-slip.png"
+"$ROOT/.venv/bin/python" examples/python/stream_rerun.py data/sample/press-slide --rrd "$examples_out/sample.rrd"
+test -s "$examples_out/sample.rrd"

@@ -60,8 +60,8 @@ pub struct Args {
     /// Pipeline benchmark: marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
     #[arg(long, value_name = "ROWSxCOLS")]
     grid: Option<String>,
-    /// Pipeline benchmark: worker threads of the throughput mode (0: one per core).
-    #[arg(long, default_value_t = 0)]
+    /// Pipeline benchmark: worker threads of the throughput mode (0: one per core; at most 256).
+    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
     workers: usize,
     #[command(flatten)]
     localizer: LocalizerArgs,

@@ -147,6 +147,10 @@ fn allocation_and_thread_counts_are_bounded() {
     );
     fails_with(&["detect", "--threads", "257", "x.png"], &["--threads", "to 256"]);
     fails_with(
+        &["bench", "--pipeline", "--workers", "100000", s(&sample())],
+        &["--workers", "0 (one per core) to 256"],
+    );
+    fails_with(
         &[
             "simulate",
             "--checkerboard",

@@ -147,7 +147,7 @@ pub struct LocalizationTimes {
 pub type CpuClock = fn() -> Option<u64>;
 
 /// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
-pub trait Localizer {
+pub trait Localizer: Send {
     /// The method's name as used on the command line and in tables (`blob`, `marknet`, `marknet-mre`).
     fn name(&self) -> &str;
 

@@ -1,0 +1,111 @@
+"""Stereo visuotactile pipeline for GelStereo-type tactile sensors (Rust, through pyo3).
+
+Conventions: pixels with (0, 0) at the centre of the top-left pixel, x right, y down; 3-D in mm in
+the left camera's frame (x right, y down, z forward); marker identity = grid (row, col).
+"""
+
+import os
+from typing import List, Literal, Optional, Tuple, TypedDict, Union
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: str
+
+Image = npt.NDArray[np.uint8]
+"""HxW grey or HxWx3 BGR (as OpenCV reads) uint8; HxWx4 BGRA is accepted too."""
+
+class GelstereoError(RuntimeError):
+    """An error of the gelstereo libraries, carrying the Rust message with its causes."""
+
+def detect(
+    image: Image, method: Literal["marknet-mre", "marknet", "blob", "yolo"] = "marknet-mre"
+) -> npt.NDArray[np.float64]:
+    """Marker centres in one image: an (N, 3) array of x, y (px) and confidence, sorted by y, then x.
+
+    Uses the shipped models (data/models) and the tuned blob parameters, as `gelstereo detect`.
+    Raises TypeError / ValueError for an unusable array or method name, GelstereoError when the
+    models cannot be loaded or the image is too small. The GIL is released while detecting.
+    """
+
+SlipState = Literal["no_contact", "stick", "partial_slip", "gross_slip"]
+
+class Markers(TypedDict):
+    """One entry per tracked marker, in id order; NaN where a view or the 3-D stages lack a value."""
+
+    row: npt.NDArray[np.int64]
+    col: npt.NDArray[np.int64]
+    status: npt.NDArray[np.str_]
+    """"tracked", "predicted" or "lost"."""
+    x_left: npt.NDArray[np.float64]
+    y_left: npt.NDArray[np.float64]
+    x_right: npt.NDArray[np.float64]
+    y_right: npt.NDArray[np.float64]
+    X_mm: npt.NDArray[np.float64]
+    Y_mm: npt.NDArray[np.float64]
+    Z_mm: npt.NDArray[np.float64]
+    dX_mm: npt.NDArray[np.float64]
+    dY_mm: npt.NDArray[np.float64]
+    dZ_mm: npt.NDArray[np.float64]
+
+class Contact:
+    """The contact of one frame."""
+
+    in_contact: bool
+    area_mm2: float
+    """Contact area, mm^2 (0 without contact)."""
+    max_depth_mm: float
+    """Largest indentation depth, mm (0 without contact)."""
+    centroid_mm: Optional[Tuple[float, float]]
+    """Contact centroid (X, Y) in the left camera frame, mm; None without contact."""
+    region: npt.NDArray[np.int64]
+    """(K, 2) array of the (row, col) ids of the markers in contact."""
+
+class Frame:
+    """One processed frame."""
+
+    frame: int
+    """Frame number, from 0 (flagged frames count)."""
+    timestamp: float
+    """Seconds from the first frame."""
+    markers: Markers
+    contact: Contact
+    slip: SlipState
+    note: Optional[str]
+    """Why the frame is flagged (unreadable, not localized, reference not yet indexed); None if not."""
+    log: List[str]
+    """Informational lines (how the reference lattice was indexed, re-zeroing)."""
+    earlier: List["Frame"]
+    """Frames flagged before the reference was indexed, returned again with a lost row per marker."""
+
+class Pipeline:
+    """The tracking pipeline: built once (models loaded, calibration read), then fed frame by frame.
+
+    `calibration`: stereo calibration (OpenCV YAML/XML, mrcal folder or "left,right" .cameramodel
+    pair), None for a mono sensor; `models`: folder with marknet.onnx and mre.onnx (default: the
+    shipped ones); `grid`: "ROWSxCOLS" or (rows, cols) (default 23x23); `sensor`: sensor description
+    JSON of a grid that overfills the view. Every other setting is `gelstereo track`'s default.
+    Raises GelstereoError when the calibration, models or sensor description cannot be used.
+    """
+
+    def __init__(
+        self,
+        calibration: Optional[Union[str, os.PathLike[str]]] = None,
+        models: Optional[Union[str, os.PathLike[str]]] = None,
+        grid: Optional[Union[str, Tuple[int, int]]] = None,
+        sensor: Optional[Union[str, os.PathLike[str]]] = None,
+    ) -> None: ...
+    def process(self, left: Image, right: Optional[Image] = None, timestamp: Optional[float] = None) -> Frame:
+        """Processes one frame (stereo when `right` is given); timestamp in s, None: frame number / 30 Hz.
+
+        A frame that cannot be read, localized or indexed comes back flagged (`Frame.note`). The GIL
+        is released while processing; threads sharing a pipeline take turns.
+        """
+    def rezero(self) -> None:
+        """Makes the current shape of the gel the reference from the next frame on."""
+    @property
+    def method(self) -> str: ...
+    @property
+    def is_stereo(self) -> bool: ...
+    @property
+    def grid(self) -> Tuple[int, int]: ...

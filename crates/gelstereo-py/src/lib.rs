@@ -1,0 +1,34 @@
+//! The Python package `gelstereo`: numpy arrays in and out over the gelstereo libraries, with no
+//! logic of its own (DESIGN.md, "crates/gelstereo-py").
+//!
+//! - [`image`]: numpy `HxW` grey / `HxWx3` BGR `uint8` arrays to OpenCV images (one copy).
+//! - [`detect`]: `gelstereo.detect(image, method="marknet-mre")`, markers as an `(N, 3)` array.
+//! - [`pipeline`]: `gelstereo.Pipeline` over the facade's `Pipeline`; `process` gives a
+//!   `gelstereo.Frame` (markers as a dict of numpy arrays, `Contact`, slip state, timestamp).
+//!
+//! Every Rust error becomes a `gelstereo.GelstereoError` carrying the Rust message with its causes;
+//! arrays of the wrong type or shape raise `TypeError` / `ValueError`. Work on images runs with the
+//! GIL released, so other Python threads run meanwhile.
+//!
+//! Built by maturin (`crates/gelstereo-py/pyproject.toml`, installed by `scripts/setup.sh`); tested
+//! from Python (`crates/gelstereo-py/tests`).
+
+mod detect;
+mod error;
+mod image;
+mod pipeline;
+
+use pyo3::prelude::*;
+
+/// The Python module `gelstereo`.
+#[pymodule]
+#[pyo3(name = "gelstereo")]
+fn gelstereo_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("GelstereoError", m.py().get_type::<error::GelstereoError>())?;
+    m.add_function(wrap_pyfunction!(detect::detect, m)?)?;
+    m.add_class::<pipeline::PyPipeline>()?;
+    m.add_class::<pipeline::PyFrame>()?;
+    m.add_class::<pipeline::PyContact>()?;
+    Ok(())
+}

@@ -1,0 +1,327 @@
+//! `gelstereo.Pipeline`, `gelstereo.Frame`, `gelstereo.Contact`: the facade's [`Pipeline`] and its
+//! [`FrameOutput`] as Python objects with numpy arrays.
+
+use std::path::PathBuf;
+use std::sync::{Mutex, MutexGuard};
+
+use gelstereo::core::StereoPair;
+use gelstereo::sim::SensorSpec;
+use gelstereo::{
+    Frame, FrameOutput, GridShape, Images, MarkerRecord, Method, Pipeline, PipelineConfig, parse_grid,
+};
+use numpy::ndarray::Array2;
+use numpy::{PyArray1, PyArray2};
+use pyo3::exceptions::PyTypeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList, PyString};
+
+use crate::error::{GelstereoError, to_py};
+use crate::image::to_mat;
+
+/// The tracking pipeline: built once (models loaded, calibration read), then fed frame by frame.
+///
+/// Args:
+///     calibration: stereo calibration (OpenCV YAML/XML, a folder holding a mrcal pair, or
+///         "left.cameramodel,right.cameramodel"); None (default) for a mono sensor.
+///     models: folder with marknet.onnx and mre.onnx for Marknet-MRE (default: the shipped
+///         data/models, or the blob detector where they are not installed).
+///     grid: the marker lattice, "ROWSxCOLS" or (rows, cols) (default: the sensor's, else 23x23).
+///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor
+///         whose grid overfills the cameras' view: the visible markers get the sensor's own indices.
+///
+/// Every other setting is `gelstereo track`'s default. The first frame that can be indexed is the
+/// reference (no contact): marker ids are its grid indices, displacement is measured against it.
+///
+/// Raises:
+///     GelstereoError: the calibration, models or sensor description cannot be used.
+#[pyclass(module = "gelstereo", name = "Pipeline", frozen)]
+pub struct PyPipeline {
+    /// Locked per call: Python threads sharing a pipeline take turns, frame by frame.
+    inner: Mutex<Pipeline>,
+}
+
+#[pymethods]
+impl PyPipeline {
+    #[new]
+    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None))]
+    fn new(
+        py: Python<'_>,
+        calibration: Option<PathBuf>,
+        models: Option<PathBuf>,
+        grid: Option<&Bound<'_, PyAny>>,
+        sensor: Option<PathBuf>,
+    ) -> PyResult<Self> {
+        let mut config = PipelineConfig {
+            calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
+            grid: grid.map(grid_shape).transpose()?,
+            ..PipelineConfig::default()
+        };
+        if let Some(dir) = models {
+            // Models named explicitly are used or reported, never replaced by the blob detector.
+            config = config.with_models(&dir);
+            config.method = Some(Method::MarknetMre);
+        }
+        let inner = py.detach(|| {
+            if let Some(path) = sensor {
+                config.sensor = Some(SensorSpec::load(&path).map_err(|e| to_py(&e))?);
+            }
+            Pipeline::new(&config).map_err(|e| to_py(&e))
+        })?;
+        Ok(Self {
+            inner: Mutex::new(inner),
+        })
+    }
+
+    /// Processes one frame and returns its `Frame`.
+    ///
+    /// Args:
+    ///     left: the left (or only) view, numpy uint8 HxWx3 BGR (as OpenCV reads) or HxW grey.
+    ///     right: the right view of a stereo sensor (same size and kind); None for mono.
+    ///     timestamp: capture time in seconds (any origin); None: frame number / 30 Hz.
+    ///
+    /// A frame that cannot be read, localized or indexed comes back flagged (`Frame.note`) with
+    /// every marker lost, rather than raising, so a live loop goes on.
+    ///
+    /// Raises:
+    ///     TypeError, ValueError: an image is not such an array.
+    ///     GelstereoError: the pipeline itself failed.
+    #[pyo3(signature = (left, right = None, timestamp = None))]
+    fn process(
+        &self,
+        py: Python<'_>,
+        left: &Bound<'_, PyAny>,
+        right: Option<&Bound<'_, PyAny>>,
+        timestamp: Option<f64>,
+    ) -> PyResult<PyFrame> {
+        let left = to_mat("left", left)?;
+        let images = match right {
+            Some(right) => Images::Stereo(StereoPair::new(left, to_mat("right", right)?)),
+            None => Images::Mono(left),
+        };
+        let frame = Frame {
+            images,
+            time_s: timestamp,
+        };
+        let output = py.detach(|| self.lock()?.process(&frame).map_err(|e| to_py(&e)))?;
+        PyFrame::new(py, output)
+    }
+
+    /// Makes the current shape of the gel the reference from the next frame on (drift correction):
+    /// displacement, contact and slip are then measured against it.
+    fn rezero(&self) -> PyResult<()> {
+        self.lock()?.rezero();
+        Ok(())
+    }
+
+    /// The localization method in use ("marknet-mre", or "blob" without the models).
+    #[getter]
+    fn method(&self) -> PyResult<&'static str> {
+        Ok(self.lock()?.method().as_str())
+    }
+
+    /// Whether stereo frames can be processed (a calibration is loaded).
+    #[getter]
+    fn is_stereo(&self) -> PyResult<bool> {
+        Ok(self.lock()?.is_stereo())
+    }
+
+    /// The tracked lattice (rows, cols): the visible part once a grid that overfills the view was
+    /// indexed.
+    #[getter]
+    fn grid(&self) -> PyResult<(u16, u16)> {
+        let shape = self.lock()?.shape();
+        Ok((shape.rows, shape.cols))
+    }
+
+    fn __repr__(&self) -> PyResult<String> {
+        let inner = self.lock()?;
+        let shape = inner.shape();
+        Ok(format!(
+            "gelstereo.Pipeline({}, {}, grid {}x{})",
+            if inner.is_stereo() { "stereo" } else { "mono" },
+            inner.method(),
+            shape.rows,
+            shape.cols
+        ))
+    }
+}
+
+impl PyPipeline {
+    fn lock(&self) -> PyResult<MutexGuard<'_, Pipeline>> {
+        self.inner
+            .lock()
+            .map_err(|_| GelstereoError::new_err("the pipeline failed in another thread"))
+    }
+}
+
+/// `grid=`: "ROWSxCOLS" or (rows, cols).
+fn grid_shape(grid: &Bound<'_, PyAny>) -> PyResult<GridShape> {
+    let text = if let Ok(text) = grid.cast::<PyString>() {
+        text.to_string()
+    } else if let Ok((rows, cols)) = grid.extract::<(i64, i64)>() {
+        format!("{rows}x{cols}")
+    } else {
+        return Err(PyTypeError::new_err(
+            "grid: expected \"ROWSxCOLS\" (e.g. \"23x23\") or a (rows, cols) tuple",
+        ));
+    };
+    parse_grid(&text, "grid").map_err(|e| to_py(&e))
+}
+
+/// One processed frame.
+///
+/// Attributes:
+///     frame: frame number, from 0 (flagged frames count).
+///     timestamp: seconds from the first frame.
+///     markers: dict of equal-length numpy arrays, one entry per tracked marker in id order:
+///         row, col (int64 grid index), status ("tracked", "predicted", "lost"), x_left, y_left,
+///         x_right, y_right (px), X_mm, Y_mm, Z_mm (3-D, left camera frame), dX_mm, dY_mm, dZ_mm
+///         (displacement against the reference); NaN where a view or the 3-D stages lack a value.
+///     contact: the `Contact` (area, depth, centroid, region).
+///     slip: "no_contact", "stick", "partial_slip" or "gross_slip".
+///     note: why the frame is flagged (unreadable, not localized, reference not yet indexed...);
+///         None for a frame processed normally.
+///     log: informational lines (how the reference lattice was indexed, re-zeroing).
+///     earlier: frames flagged before the reference was indexed, returned again now with a lost
+///         row per marker (they precede this frame).
+#[pyclass(module = "gelstereo", name = "Frame", frozen)]
+pub struct PyFrame {
+    #[pyo3(get)]
+    frame: u32,
+    #[pyo3(get)]
+    timestamp: f64,
+    #[pyo3(get)]
+    markers: Py<PyDict>,
+    #[pyo3(get)]
+    contact: Py<PyContact>,
+    #[pyo3(get)]
+    slip: &'static str,
+    #[pyo3(get)]
+    note: Option<String>,
+    #[pyo3(get)]
+    log: Vec<String>,
+    #[pyo3(get)]
+    earlier: Vec<Py<PyFrame>>,
+}
+
+impl PyFrame {
+    fn new(py: Python<'_>, output: FrameOutput) -> PyResult<Self> {
+        let summary = &output.summary;
+        let region: Vec<[i64; 2]> = output
+            .contact_region
+            .iter()
+            .map(|id| [i64::from(id.row), i64::from(id.col)])
+            .collect();
+        let contact = PyContact {
+            in_contact: summary.contact,
+            area_mm2: summary.contact_area_mm2,
+            max_depth_mm: summary.max_depth_mm,
+            centroid_mm: summary.centroid_mm.map(|[x, y]| (x, y)),
+            region: PyArray2::from_owned_array(py, Array2::from(region)).unbind(),
+        };
+        let earlier = output
+            .earlier
+            .into_iter()
+            .map(|f| Py::new(py, PyFrame::new(py, f)?))
+            .collect::<PyResult<Vec<_>>>()?;
+        Ok(Self {
+            frame: output.frame,
+            timestamp: output.t_s,
+            markers: markers_dict(py, &output.markers)?.unbind(),
+            contact: Py::new(py, contact)?,
+            slip: output.summary.slip.as_str(),
+            note: output.note,
+            log: output.log,
+            earlier,
+        })
+    }
+}
+
+#[pymethods]
+impl PyFrame {
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let count = self
+            .markers
+            .bind(py)
+            .get_item("row")
+            .ok()
+            .flatten()
+            .map_or(0, |a| a.len().unwrap_or(0));
+        format!(
+            "gelstereo.Frame(frame={}, timestamp={:.3}, {count} markers, slip={}{})",
+            self.frame,
+            self.timestamp,
+            self.slip,
+            self.note
+                .as_ref()
+                .map(|n| format!(", note={n:?}"))
+                .unwrap_or_default()
+        )
+    }
+}
+
+/// The contact of one frame.
+///
+/// Attributes:
+///     in_contact: whether anything touches the gel.
+///     area_mm2: contact area, mm^2 (0 without contact).
+///     max_depth_mm: largest indentation depth, mm (0 without contact).
+///     centroid_mm: contact centroid (X, Y) in the left camera frame, mm; None without contact.
+///     region: (K, 2) int64 array of the (row, col) ids of the markers in contact.
+#[pyclass(module = "gelstereo", name = "Contact", frozen)]
+pub struct PyContact {
+    #[pyo3(get)]
+    in_contact: bool,
+    #[pyo3(get)]
+    area_mm2: f64,
+    #[pyo3(get)]
+    max_depth_mm: f64,
+    #[pyo3(get)]
+    centroid_mm: Option<(f64, f64)>,
+    #[pyo3(get)]
+    region: Py<PyArray2<i64>>,
+}
+
+#[pymethods]
+impl PyContact {
+    fn __repr__(&self) -> String {
+        format!(
+            "gelstereo.Contact(area_mm2={:.3}, max_depth_mm={:.3}, centroid_mm={})",
+            self.area_mm2,
+            self.max_depth_mm,
+            self.centroid_mm
+                .map_or("None".into(), |(x, y)| format!("({x:.3}, {y:.3})"))
+        )
+    }
+}
+
+/// The per-marker columns as numpy arrays (the keys of `Frame.markers`, in `markers.csv` order).
+fn markers_dict<'py>(py: Python<'py>, rows: &[MarkerRecord]) -> PyResult<Bound<'py, PyDict>> {
+    let dict = PyDict::new(py);
+    let ints = |f: fn(&MarkerRecord) -> u16| PyArray1::from_iter(py, rows.iter().map(|m| i64::from(f(m))));
+    let floats = |f: &dyn Fn(&MarkerRecord) -> Option<f64>| {
+        PyArray1::from_iter(py, rows.iter().map(|m| f(m).unwrap_or(f64::NAN)))
+    };
+    dict.set_item("row", ints(|m| m.index.row))?;
+    dict.set_item("col", ints(|m| m.index.col))?;
+    let status = PyList::new(py, rows.iter().map(|m| m.status.map_or("", |s| s.as_str())))?;
+    let numpy = py.import("numpy")?;
+    let kwargs = PyDict::new(py);
+    kwargs.set_item("dtype", "U")?;
+    dict.set_item("status", numpy.getattr("array")?.call((status,), Some(&kwargs))?)?;
+    for (name, view) in [("left", 0), ("right", 1)] {
+        let px = move |m: &MarkerRecord| if view == 0 { m.left_px } else { m.right_px };
+        dict.set_item(format!("x_{name}"), floats(&|m| px(m).map(|p| p.x)))?;
+        dict.set_item(format!("y_{name}"), floats(&|m| px(m).map(|p| p.y)))?;
+    }
+    for (k, axis) in ["X", "Y", "Z"].into_iter().enumerate() {
+        dict.set_item(format!("{axis}_mm"), floats(&|m| m.position_mm.map(|v| v[k])))?;
+    }
+    for (k, axis) in ["X", "Y", "Z"].into_iter().enumerate() {
+        dict.set_item(
+            format!("d{axis}_mm"),
+            floats(&|m| m.displacement_mm.map(|v| v[k])),
+        )?;
+    }
+    Ok(dict)
+}

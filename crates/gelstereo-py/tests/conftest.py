@@ -1,0 +1,39 @@
+"""Shared fixtures of the gelstereo Python package tests: the checkout, the sample recording, the
+`gelstereo` binary of this checkout (built by cargo when missing or stale)."""
+
+import os
+import subprocess
+from pathlib import Path
+
+import cv2
+import pytest
+
+ROOT = Path(__file__).resolve().parents[3]
+SAMPLE = ROOT / "data" / "sample" / "press-slide"
+
+
+@pytest.fixture(scope="session")
+def sample() -> Path:
+    return SAMPLE
+
+
+@pytest.fixture(scope="session")
+def left_bgr():
+    """The sample recording's first left view as OpenCV reads it (HxWx3 uint8 BGR)."""
+    image = cv2.imread(str(SAMPLE / "left" / "000000.jpg"), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image
+
+
+@pytest.fixture(scope="session")
+def gelstereo_bin() -> Path:
+    """The `gelstereo` binary built from this checkout (debug profile, as `cargo test` builds it);
+    `GELSTEREO_BIN` names another."""
+    if os.environ.get("GELSTEREO_BIN"):
+        return Path(os.environ["GELSTEREO_BIN"])
+    subprocess.run(
+        ["cargo", "build", "--quiet", "--locked", "-p", "gelstereo-cli", "--bin", "gelstereo"],
+        cwd=ROOT,
+        check=True,
+    )
+    return ROOT / "target" / "debug" / "gelstereo"

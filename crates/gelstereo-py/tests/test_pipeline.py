@@ -1,0 +1,156 @@
+"""gelstereo.Pipeline: agreement with `gelstereo track`, conversion of every output, grey and BGR
+input, re-zeroing, flagged frames, errors, the GIL."""
+
+import csv
+import subprocess
+from collections import Counter, defaultdict
+
+import cv2
+import numpy as np
+import pytest
+
+import gelstereo
+from gil import main_thread_share_while
+
+MARKER_KEYS = ["row", "col", "status", "x_left", "y_left", "x_right", "y_right",
+               "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm", "dZ_mm"]
+SLIP_STATES = {"no_contact", "stick", "partial_slip", "gross_slip"}
+
+
+def pairs(sample):
+    for left in sorted((sample / "left").glob("*.jpg")):
+        yield cv2.imread(str(left)), cv2.imread(str(sample / "right" / left.name))
+
+
+@pytest.fixture(scope="module")
+def tracked(sample):
+    """The sample recording through the Python pipeline, every frame's output."""
+    pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
+    return [pipeline.process(left, right) for left, right in pairs(sample)]
+
+
+@pytest.fixture(scope="module")
+def tables(sample, gelstereo_bin, tmp_path_factory):
+    """`gelstereo track` on the sample recording, with every default: (markers rows, frames rows)."""
+    out = tmp_path_factory.mktemp("track")
+    subprocess.run([str(gelstereo_bin), "track", "--quiet", "--no-ply", "--overlay-every", "0",
+                    "--out", str(out), str(sample)], check=True)
+    with open(out / "markers.csv") as m, open(out / "frames.csv") as f:
+        return list(csv.DictReader(m)), list(csv.DictReader(f))
+
+
+def test_python_tracks_the_sample_as_gelstereo_track_does(tracked, tables):
+    markers, frames = tables
+    assert len(tracked) == len(frames) == 24
+    by_frame = defaultdict(list)
+    for row in markers:
+        by_frame[int(row["frame"])].append(row)
+    for out, summary in zip(tracked, frames):
+        k = out.frame
+        assert k == int(summary["frame"])
+        assert out.slip == summary["slip"], k
+        rows = by_frame[k]
+        assert len(out.markers["row"]) == len(rows), k
+        assert Counter(out.markers["status"]) == Counter(r["status"] for r in rows), k
+        assert out.contact.max_depth_mm == pytest.approx(float(summary["max_depth_mm"]), abs=1e-6)
+        assert out.contact.area_mm2 == pytest.approx(float(summary["contact_area_mm2"]), abs=1e-6)
+        # Same ids in the same order, same 3-D positions (the tables print 6 decimals).
+        np.testing.assert_array_equal(out.markers["row"], [int(r["row"]) for r in rows])
+        np.testing.assert_array_equal(out.markers["col"], [int(r["col"]) for r in rows])
+        table_z = np.array([float(r["Z_mm"]) if r["Z_mm"] else np.nan for r in rows])
+        np.testing.assert_allclose(out.markers["Z_mm"], table_z, atol=1e-6, equal_nan=True)
+    # The sample presses, then slides: the tracker sees contact and slip.
+    assert {f.slip for f in tracked} >= {"no_contact", "stick"}
+
+
+def test_frames_convert_every_output(tracked):
+    reference, pressed = tracked[0], max(tracked, key=lambda f: f.contact.max_depth_mm)
+    for frame in (reference, pressed):
+        assert list(frame.markers) == MARKER_KEYS
+        lengths = {len(a) for a in frame.markers.values()}
+        assert lengths == {529}
+        assert frame.markers["row"].dtype == np.int64
+        assert frame.markers["X_mm"].dtype == np.float64
+        assert set(frame.markers["status"]) <= {"tracked", "predicted", "lost"}
+        assert frame.slip in SLIP_STATES and frame.note is None
+    assert reference.contact.centroid_mm is None and not reference.contact.in_contact
+    assert reference.contact.region.shape == (0, 2)
+    np.testing.assert_array_equal(reference.markers["dZ_mm"][~np.isnan(reference.markers["dZ_mm"])], 0.0)
+    assert "indexed" in reference.log[0]
+    assert pressed.contact.in_contact and pressed.contact.max_depth_mm > 0.5
+    assert len(pressed.contact.centroid_mm) == 2 and pressed.contact.region.shape[1] == 2
+    # Pressed markers move towards the cameras (z forward).
+    assert np.nanmin(pressed.markers["dZ_mm"]) < -0.5
+    # Timestamps: frame number / 30 Hz when none is given.
+    assert [f.timestamp for f in tracked[:3]] == pytest.approx([0.0, 1 / 30, 2 / 30])
+
+
+def test_grey_and_bgr_give_the_same_mono_tracking(sample):
+    bgr = [left for left, _ in pairs(sample)][:6]
+    from_bgr, from_grey = gelstereo.Pipeline(), gelstereo.Pipeline()
+    assert not from_bgr.is_stereo
+    for k, image in enumerate(bgr):
+        a = from_bgr.process(image, timestamp=10.0 + k)
+        b = from_grey.process(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), timestamp=10.0 + k)
+        assert a.slip == b.slip and a.timestamp == pytest.approx(k)
+        # The network sees colour or grey: positions agree to a fraction of a pixel (pitch ~18 px).
+        np.testing.assert_allclose(a.markers["x_left"], b.markers["x_left"], atol=0.5, equal_nan=True)
+        # Mono: no right view, no 3-D.
+        assert np.isnan(a.markers["x_right"]).all() and np.isnan(a.markers["Z_mm"]).all()
+        assert (a.markers["status"] == "tracked").sum() > 400
+
+
+def test_rezero_makes_the_current_shape_the_reference(sample):
+    pipeline = gelstereo.Pipeline(calibration=str(sample / "calib.yaml"))
+    frames = list(pairs(sample))
+    for left, right in frames[:8]:
+        pressed = pipeline.process(left, right)
+    assert pressed.contact.max_depth_mm > 0.5
+    pipeline.rezero()
+    again = pipeline.process(*frames[7])
+    # The same images against themselves: no displacement, no contact.
+    assert np.nanmax(np.abs(again.markers["dZ_mm"])) < 0.01
+    assert again.slip == "no_contact"
+
+
+def test_a_frame_of_another_size_comes_back_flagged(sample):
+    pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
+    left, right = next(pairs(sample))
+    pipeline.process(left, right)
+    small = pipeline.process(left[:240, :320], right[:240, :320])
+    assert small.note and "size" in small.note
+    assert set(small.markers["status"]) == {"lost"} and small.slip == "no_contact"
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, words",
+    [
+        ({"calibration": "missing/calib.yaml"}, gelstereo.GelstereoError, ["missing/calib.yaml"]),
+        ({"grid": "23by23"}, gelstereo.GelstereoError, ["grid", "ROWSxCOLS"]),
+        ({"grid": (1, 5)}, gelstereo.GelstereoError, ["at least 2x2"]),
+        ({"grid": 23.5}, TypeError, ["ROWSxCOLS"]),
+        ({"models": "no-such-models"}, gelstereo.GelstereoError, ["no-such-models"]),
+        ({"sensor": "no-sensor.json"}, gelstereo.GelstereoError, ["no-sensor.json"]),
+    ],
+)
+def test_unusable_settings_raise_with_the_rust_message(kwargs, error, words):
+    with pytest.raises(error) as caught:
+        gelstereo.Pipeline(**kwargs)
+    for word in words:
+        assert word in str(caught.value)
+
+
+def test_unusable_images_raise(sample):
+    pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
+    left, right = next(pairs(sample))
+    with pytest.raises(TypeError, match="right: .*float64"):
+        pipeline.process(left, right.astype(np.float64))
+    with pytest.raises(ValueError, match="left: .*shape"):
+        pipeline.process(left[:, :, :2], right)
+
+
+def test_processing_releases_the_gil(sample):
+    pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
+    left, right = next(pairs(sample))
+    pipeline.process(left, right)  # reference frame
+    assert main_thread_share_while(lambda: pipeline.process(left, right)) > 0.05
