@@ -4,7 +4,6 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
 
 use anyhow::bail;
 use gelstereo::sink::{OutputFolder, RecordingWriter};
@@ -41,12 +40,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let source = FrameSource::open_cameras(&args.camera, args.side_by_side)?;
     let folder = Arc::new(OutputFolder::prepare(&args.out, args.force)?);
     let mut writer = RecordingWriter::create(folder)?;
-    let stop = crate::cmd_track::stop_on_signals()?;
     for frame in source
         .prefetch(gelstereo::track::PREFETCH_FRAMES)
         .step_by(args.every)
     {
-        if stop.load(Ordering::SeqCst) || args.frames.is_some_and(|n| writer.len() >= n) {
+        if gelstereo_core::interrupt::requested() || args.frames.is_some_and(|n| writer.len() >= n) {
             break;
         }
         match frame.images {

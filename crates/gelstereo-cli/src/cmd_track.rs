@@ -9,7 +9,6 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 
 use anyhow::{Context, bail};
 use gelstereo::sink::{JsonlSink, OutputFolder, Sink};
@@ -175,19 +174,6 @@ fn open_source(args: &Args) -> anyhow::Result<FrameSource> {
     })
 }
 
-/// SIGINT and SIGTERM raise the returned flag (the run stops after the frame in flight); a second
-/// one ends the process at once.
-pub fn stop_on_signals() -> anyhow::Result<Arc<AtomicBool>> {
-    use signal_hook::consts::{SIGINT, SIGTERM};
-    let stop = Arc::new(AtomicBool::new(false));
-    for sig in [SIGINT, SIGTERM] {
-        signal_hook::flag::register_conditional_shutdown(sig, 130, stop.clone())
-            .context("cannot install the signal handler")?;
-        signal_hook::flag::register(sig, stop.clone()).context("cannot install the signal handler")?;
-    }
-    Ok(stop)
-}
-
 pub fn run(args: &Args) -> anyhow::Result<()> {
     if args.bench {
         return bench(args);
@@ -225,7 +211,6 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
         None => {}
     }
-    let stop = stop_on_signals()?;
     let progress = if args.quiet {
         ProgressBar::hidden()
     } else {
@@ -242,7 +227,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         source.prefetch(PREFETCH_FRAMES),
         &mut sinks,
         &options,
-        &stop,
+        gelstereo_core::interrupt::flag(),
         &mut |out| {
             progress.inc(1);
             for line in &out.log {

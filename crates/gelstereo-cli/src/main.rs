@@ -63,7 +63,10 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };
-    if matches!(cli.command, Command::Simulate(_) | Command::Reconstruct(_)) {
+    if matches!(
+        cli.command,
+        Command::Simulate(_) | Command::Reconstruct(_) | Command::Track(_) | Command::Capture(_)
+    ) {
         stop_at_frame_boundary_on_signals();
     }
     let result = match cli.command {

@@ -11,6 +11,11 @@ pub fn request() {
     REQUESTED.store(true, Ordering::SeqCst);
 }
 
+/// The flag itself, for loops that take an `&AtomicBool` to watch (e.g. `gelstereo::track::run`).
+pub fn flag() -> &'static AtomicBool {
+    &REQUESTED
+}
+
 /// Whether a stop has been requested.
 pub fn requested() -> bool {
     REQUESTED.load(Ordering::SeqCst)
