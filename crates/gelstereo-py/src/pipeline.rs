@@ -214,8 +214,8 @@ impl PyFrame {
             .collect();
         let contact = PyContact {
             in_contact: summary.contact,
-            area_mm2: summary.contact_area_mm2,
-            max_depth_mm: summary.max_depth_mm,
+            area_mm2: summary.contact_area_mm2.unwrap_or(f64::NAN),
+            max_depth_mm: summary.max_depth_mm.unwrap_or(f64::NAN),
             centroid_mm: summary.centroid_mm.map(|[x, y]| (x, y)),
             region: PyArray2::from_owned_array(py, Array2::from(region)).unbind(),
         };
@@ -264,8 +264,8 @@ impl PyFrame {
 ///
 /// Attributes:
 ///     in_contact: whether anything touches the gel.
-///     area_mm2: contact area, mm^2 (0 without contact).
-///     max_depth_mm: largest indentation depth, mm (0 without contact).
+///     area_mm2: contact area, mm^2 (0 without contact; NaN when the sensor's scale is unknown).
+///     max_depth_mm: largest indentation depth, mm (0 without contact; NaN for a mono sensor).
 ///     centroid_mm: contact centroid (X, Y) in the left camera frame, mm; None without contact.
 ///     region: (K, 2) int64 array of the (row, col) ids of the markers in contact.
 #[pyclass(module = "gelstereo", name = "Contact", frozen)]
