@@ -86,7 +86,8 @@ mod tests {
         assert!(check_image_dimensions(8192, 8192).is_ok());
         let err = check_image_dimensions(20_000, 20_000).unwrap_err();
         assert!(err.contains("20000x20000"), "{err}");
-        assert!(check_image_dimensions(16_384, 16_384).is_ok());
+        assert!(check_image_dimensions(16_384, 4_096).is_ok());
+        assert!(check_image_dimensions(16_384, 4_097).is_err());
         assert!(check_image_dimensions(16_385, 1).is_err());
     }
 }

@@ -58,14 +58,6 @@ const END_MARKER_WINDOW_BYTES: u64 = 4096;
 /// JPEG with its EOI marker (libjpeg decodes a truncated JPEG partly, with a warning that names no
 /// file). Formats this does not recognise are left to the decoder.
 pub fn check_image_file(path: &Path) -> Result<()> {
-    if let Ok(size) = imagesize::size(path) {
-        gelstereo_core::limits::check_image_dimensions(size.width as u64, size.height as u64).map_err(
-            |what| Error::TooLarge {
-                path: path.to_path_buf(),
-                what,
-            },
-        )?;
-    }
     let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
@@ -76,20 +68,32 @@ pub fn check_image_file(path: &Path) -> Result<()> {
     let end_marker: &[u8] = match &head[..head_len] {
         [0x89, b'P', b'N', b'G', ..] => b"IEND",
         [0xFF, 0xD8, 0xFF, ..] => &[0xFF, 0xD9],
-        _ => return Ok(()),
+        _ => return check_dimensions(path),
     };
     let len = file.metadata().map_err(io)?.len();
     let start = len.saturating_sub(END_MARKER_WINDOW_BYTES);
     file.seek(SeekFrom::Start(start)).map_err(io)?;
     let mut tail = Vec::new();
     file.read_to_end(&mut tail).map_err(io)?;
-    if tail.windows(end_marker.len()).any(|w| w == end_marker) {
-        Ok(())
-    } else {
-        Err(Error::Truncated {
+    if !tail.windows(end_marker.len()).any(|w| w == end_marker) {
+        return Err(Error::Truncated {
             path: path.to_path_buf(),
-        })
+        });
     }
+    check_dimensions(path)
+}
+
+/// The header's dimensions against the limits (formats the header reader does not know pass).
+fn check_dimensions(path: &Path) -> Result<()> {
+    if let Ok(size) = imagesize::size(path) {
+        gelstereo_core::limits::check_image_dimensions(size.width as u64, size.height as u64).map_err(
+            |what| Error::TooLarge {
+                path: path.to_path_buf(),
+                what,
+            },
+        )?;
+    }
+    Ok(())
 }
 
 /// Reads as much of `buf` as the file holds.

@@ -33,7 +33,9 @@ pub enum Error {
         path: PathBuf,
     },
     /// A PNG or JPEG that ends before its end marker (cut short by a copy or a crash).
-    #[error("{path}: truncated image (the file ends before its PNG IEND chunk / JPEG end-of-image marker)")]
+    #[error(
+        "{path}: cannot decode: truncated image (the file ends before its PNG IEND chunk / JPEG end-of-image marker)"
+    )]
     Truncated {
         /// The file.
         path: PathBuf,

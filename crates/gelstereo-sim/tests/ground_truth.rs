@@ -192,8 +192,14 @@ fn output_folder_rules() {
     let e = write_dataset(&out, &cfg, false, &|| {}).unwrap_err().to_string();
     assert!(e.contains("not empty") && e.contains("--force"), "{e}");
     assert!(out.join("keep.txt").exists());
+    // --force replaces only what gelstereo-sim wrote: a folder with a file of the user's is kept.
+    let e = write_dataset(&out, &cfg, true, &|| {}).unwrap_err().to_string();
+    assert!(e.contains("refusing to replace it"), "{e}");
+    assert!(out.join("keep.txt").exists());
+    std::fs::remove_file(out.join("keep.txt")).unwrap();
     write_dataset(&out, &cfg, true, &|| {}).unwrap();
-    assert!(!out.join("keep.txt").exists() && out.join("dataset.json").exists());
+    write_dataset(&out, &cfg, true, &|| {}).unwrap();
+    assert!(out.join("dataset.json").exists());
     // Nothing half-written is left beside it.
     let leftovers: Vec<_> = std::fs::read_dir(tmp.path())
         .unwrap()
