@@ -30,6 +30,8 @@
 use gelstereo_core::spatial::Buckets;
 use gelstereo_core::{Detection, Point2, TieredDetections};
 
+use crate::postprocess::median;
+
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LatticeCheck {
@@ -84,19 +86,6 @@ pub struct LatticeFit {
     pub pitch_px: Option<f64>,
     /// Whether the members form a lattice (enough of them, spacing at the input large enough).
     pub is_lattice: bool,
-}
-
-fn median(values: &mut [f64]) -> Option<f64> {
-    if values.is_empty() {
-        return None;
-    }
-    values.sort_by(f64::total_cmp);
-    let n = values.len();
-    Some(if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
-    })
 }
 
 /// A union-find forest whose roots are the smallest index of their set.

@@ -141,7 +141,8 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
     out
 }
 
-fn median(values: &mut [f64]) -> Option<f64> {
+/// The median of `values` (sorted in place); `None` when empty.
+pub(crate) fn median(values: &mut [f64]) -> Option<f64> {
     if values.is_empty() {
         return None;
     }

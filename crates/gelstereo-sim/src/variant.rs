@@ -56,26 +56,15 @@ fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
     // The gel must cover everything a camera sees: ray half-angle times distance, plus baseline.
     let view_half = dist * (f64::from(w.max(h)) / (2.0 * f)) * 1.8 + baseline;
     let half_extent = view_half.max(span + 2.0 * pitch_mm);
-    let cam = |sign: f64, rng: &mut dyn rand::RngCore| {
-        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * (rng.next_u32() as f64 / f64::from(u32::MAX));
-        CameraSpec {
-            fx: f * u(0.99, 1.01),
-            fy: f * u(0.99, 1.01),
-            cx: 0.5 * f64::from(w - 1) + u(-0.02, 0.02) * f64::from(w),
-            cy: 0.5 * f64::from(h - 1) + u(-0.02, 0.02) * f64::from(h),
-            distortion: vec![
-                u(-0.15, 0.05),
-                u(-0.02, 0.05),
-                u(-1e-3, 1e-3),
-                u(-1e-3, 1e-3),
-                u(-0.01, 0.01),
-            ],
-            position_mm: [sign * 0.5 * baseline, u(-0.1, 0.1), -dist],
-            look_at_mm: [u(-0.3, 0.3), u(-0.3, 0.3), 0.0],
-        }
+    let rig = RigDraw {
+        f,
+        size_px: (w, h),
+        baseline,
+        dist,
+        k1_min: -0.15,
     };
-    let left = cam(-1.0, rng);
-    let right = cam(1.0, rng);
+    let left = rig.camera(-1.0, rng);
+    let right = rig.camera(1.0, rng);
     let spec = SensorSpec {
         name: format!("variant-{rows}x{cols}-{w}x{h}"),
         grid: GridSpec {
@@ -217,26 +206,15 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
         }
         _ => None,
     };
-    let cam = |sign: f64, rng: &mut dyn rand::RngCore| {
-        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * (rng.next_u32() as f64 / f64::from(u32::MAX));
-        CameraSpec {
-            fx: f * u(0.99, 1.01),
-            fy: f * u(0.99, 1.01),
-            cx: 0.5 * f64::from(w - 1) + u(-0.02, 0.02) * f64::from(w),
-            cy: 0.5 * f64::from(h - 1) + u(-0.02, 0.02) * f64::from(h),
-            distortion: vec![
-                u(-0.2, 0.05),
-                u(-0.02, 0.05),
-                u(-1e-3, 1e-3),
-                u(-1e-3, 1e-3),
-                u(-0.01, 0.01),
-            ],
-            position_mm: [sign * 0.5 * baseline, u(-0.1, 0.1), -dist],
-            look_at_mm: [u(-0.3, 0.3), u(-0.3, 0.3), 0.0],
-        }
+    let rig = RigDraw {
+        f,
+        size_px: (w, h),
+        baseline,
+        dist,
+        k1_min: -0.2,
     };
-    let left = cam(-1.0, rng);
-    let right = cam(1.0, rng);
+    let left = rig.camera(-1.0, rng);
+    let right = rig.camera(1.0, rng);
     let spec = SensorSpec {
         name: format!("wide-{rows}x{cols}-{w}x{h}"),
         grid: GridSpec {
@@ -344,6 +322,40 @@ pub fn random_gelsight_mini_like(rng: &mut impl Rng) -> SensorSpec {
     }
     s.name = "gelsight-mini-like-jittered".into();
     s
+}
+
+/// What the two cameras of a generated sensor share: focal length `f` px, image size, baseline and
+/// distance behind the gel in mm, and the lowest radial distortion k1 drawn.
+struct RigDraw {
+    f: f64,
+    size_px: (u32, u32),
+    baseline: f64,
+    dist: f64,
+    k1_min: f64,
+}
+
+impl RigDraw {
+    /// One camera (`sign` -1 left, +1 right) with small random offsets and distortion; the draws
+    /// come in a fixed order, so a seed gives the same sensor.
+    fn camera(&self, sign: f64, rng: &mut dyn rand::RngCore) -> CameraSpec {
+        let mut u = |lo: f64, hi: f64| lo + (hi - lo) * (rng.next_u32() as f64 / f64::from(u32::MAX));
+        let (w, h) = self.size_px;
+        CameraSpec {
+            fx: self.f * u(0.99, 1.01),
+            fy: self.f * u(0.99, 1.01),
+            cx: 0.5 * f64::from(w - 1) + u(-0.02, 0.02) * f64::from(w),
+            cy: 0.5 * f64::from(h - 1) + u(-0.02, 0.02) * f64::from(h),
+            distortion: vec![
+                u(self.k1_min, 0.05),
+                u(-0.02, 0.05),
+                u(-1e-3, 1e-3),
+                u(-1e-3, 1e-3),
+                u(-0.01, 0.01),
+            ],
+            position_mm: [sign * 0.5 * self.baseline, u(-0.1, 0.1), -self.dist],
+            look_at_mm: [u(-0.3, 0.3), u(-0.3, 0.3), 0.0],
+        }
+    }
 }
 
 #[cfg(test)]
