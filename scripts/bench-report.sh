@@ -59,10 +59,7 @@ cpu="$(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2- | sed 's/^ *//')"
 section "Localization: latency per view and per stereo pair" \
   "gelstereo bench --runs $RUNS --warmup 10 --pairs 8 $REC" \
   "$BIN" bench --runs "$RUNS" --warmup 10 --pairs 8 "$REC"
-section "Pipeline, shipped model: latency and throughput mode" \
-  "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
-  "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
-section "Pipeline, fast model" \
+section "Pipeline: latency and throughput mode" \
   "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
   "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
 
