@@ -1,6 +1,7 @@
 """Shared fixtures of the gelstereo Python package tests: the checkout, the sample recording, the
 `gelstereo` binary of this checkout (built by cargo when missing or stale)."""
 
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -31,9 +32,18 @@ def gelstereo_bin() -> Path:
     `GELSTEREO_BIN` names another."""
     if os.environ.get("GELSTEREO_BIN"):
         return Path(os.environ["GELSTEREO_BIN"])
-    subprocess.run(
-        ["cargo", "build", "--quiet", "--locked", "-p", "gelstereo-cli", "--bin", "gelstereo"],
+    # Ask cargo where it put the binary: CI builds into a shared CARGO_TARGET_DIR, not ./target.
+    built = subprocess.run(
+        ["cargo", "build", "--quiet", "--locked", "-p", "gelstereo-cli", "--bin", "gelstereo",
+         "--message-format=json"],
         cwd=ROOT,
         check=True,
+        capture_output=True,
+        text=True,
     )
-    return ROOT / "target" / "debug" / "gelstereo"
+    for line in built.stdout.splitlines():
+        message = json.loads(line)
+        if message.get("reason") == "compiler-artifact" and message.get("executable"):
+            if Path(message["executable"]).name == "gelstereo":
+                return Path(message["executable"])
+    raise RuntimeError("cargo built no gelstereo executable:\n" + built.stdout[-2000:])
