@@ -86,7 +86,7 @@ fn non_utf8_paths_give_errors_not_panics() {
     assert!(out.status.success(), "{}", text(&out));
 }
 
-/// Issue 18 case 2: a calibration nested 50,000 deep is refused before OpenCV parses it.
+/// Issue 18 case 2: a calibration nested 50,000 deep is refused before it is parsed.
 #[test]
 fn deeply_nested_calibrations_are_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();

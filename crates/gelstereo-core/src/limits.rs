@@ -13,9 +13,9 @@ pub const MAX_IMAGE_SIDE_PX: u64 = 16_384;
 /// that through a localizer).
 pub const MAX_IMAGE_PIXELS: u64 = 64 * 1024 * 1024;
 
-/// Deepest nesting of sequences, maps or XML elements in a calibration file: OpenCV's FileStorage
-/// parsers recurse once per level and overflow the stack on deep files, so the depth is checked
-/// before OpenCV sees the file. A stereo calibration needs 3 levels.
+/// Deepest nesting of sequences, maps or XML elements in a calibration file: tree parsers recurse
+/// (or build and drop trees) once per level and overflow the stack on deep files, so the depth is
+/// checked before the file is parsed. A stereo calibration needs 3 levels.
 pub const MAX_CALIBRATION_DEPTH: usize = 32;
 
 /// Largest calibration file read, bytes (a stereo calibration is a few kB).

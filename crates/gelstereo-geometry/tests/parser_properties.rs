@@ -1,7 +1,7 @@
 //! Property-based tests of the calibration readers (OpenCV FileStorage YAML / XML, mrcal
 //! `.cameramodel`): whatever a file holds, the reader returns a rig or an error naming the file; it
-//! never panics, aborts or overflows the stack (the nesting depth is bounded before OpenCV parses the
-//! file). Fixtures: the committed `tests/data/` files (made by `tests/data/generate.py`), mutated here.
+//! never panics, aborts, crashes or overflows the stack (the nesting depth is bounded before the file
+//! is parsed). Fixtures: the committed `tests/data/` files (made by `tests/data/generate.py`), mutated here.
 //! Case counts are small for CI; docs/reliability.md gives a longer run (PROPTEST_CASES).
 
 // A test helper may panic: that is how a test reports failure.
@@ -128,7 +128,7 @@ proptest! {
 }
 
 #[test]
-fn deeply_nested_calibrations_are_refused_before_opencv_parses_them() {
+fn deeply_nested_calibrations_are_refused_before_they_are_parsed() {
     let depth = 50_000;
     let yaml = format!("%YAML:1.0\n---\nK1: {}{}\n", "[".repeat(depth), "]".repeat(depth));
     let xml = format!(

@@ -7,6 +7,7 @@
 //!   `intrinsics.yml,extrinsics.yml` of OpenCV's stereo_calib sample (reading only);
 //! - a directory: the mrcal pair `DIR/left.cameramodel` and `DIR/right.cameramodel`.
 
+pub(crate) mod filestorage;
 pub mod mrcal;
 pub mod opencv;
 pub(crate) mod pyliteral;

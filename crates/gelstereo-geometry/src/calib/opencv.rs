@@ -1,4 +1,5 @@
-//! OpenCV FileStorage calibration files (YAML and XML), read and written through OpenCV itself.
+//! OpenCV FileStorage calibration files (YAML and XML): read by [`super::filestorage`] (safe Rust:
+//! OpenCV's own reader crashes on some damaged files), written through OpenCV.
 //!
 //! Keys: `K1 D1 K2 D2 R T image_width image_height` (the names `stereoCalibrate` outputs take in most
 //! tools); `M1`/`M2` are accepted for `K1`/`K2` (OpenCV's `samples/cpp/stereo_calib.cpp`). `R` is
@@ -12,9 +13,9 @@ use std::path::{Path, PathBuf};
 
 use gelstereo_core::ImageSize;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
-use opencv::core::{FileNode, FileNodeTraitConst, FileStorage, FileStorageTrait, FileStorageTraitConst};
-use opencv::core::{Mat, MatTraitConst};
+use opencv::core::{FileStorage, FileStorageTrait, FileStorageTraitConst};
 
+use super::filestorage::{self, Value};
 use crate::camera::{Camera, Distortion, StereoRig};
 use crate::cv::mat_from_rows as mat;
 use crate::error::{Error, Result};
@@ -40,89 +41,105 @@ fn cv(context: impl Into<String>) -> impl FnOnce(opencv::Error) -> Error {
     move |source| Error::OpenCv { context, source }
 }
 
-/// Reads node `key`; `None` when the file has no such key.
-fn node(fs: &FileStorage, path: &Path, key: &str) -> Result<Option<FileNode>> {
-    let n = fs
-        .get(key)
-        .map_err(cv(format!("reading key '{key}' of {}", path.display())))?;
-    let absent = n.empty().map_err(cv("FileNode::empty"))? || n.is_none().map_err(cv("FileNode::isNone"))?;
-    Ok(if absent { None } else { Some(n) })
-}
-
-fn numbers(n: &FileNode, path: &Path, key: &str) -> Result<Numbers> {
+/// A value read as a matrix: a number (1x1), a sequence of numbers (1xN) or an OpenCV matrix map
+/// (`rows`, `cols`, `dt`, `data`).
+fn numbers(value: &Value, path: &Path, key: &str) -> Result<Numbers> {
     let bad = |found: String| Error::BadValue {
         path: path.to_path_buf(),
         key: key.to_owned(),
         expected: "a numeric matrix (!!opencv-matrix) or a sequence of numbers".to_owned(),
         found,
     };
-    if n.is_seq().map_err(cv("FileNode::isSeq"))? {
-        let len = n.size().map_err(cv("FileNode::size"))?;
-        let mut data = Vec::with_capacity(len);
-        for i in 0..len {
-            let item = n
-                .at(i32::try_from(i).unwrap_or(i32::MAX))
-                .map_err(cv("FileNode::at"))?;
-            if !(item.is_int().map_err(cv("FileNode::isInt"))?
-                || item.is_real().map_err(cv("FileNode::isReal"))?)
-            {
-                return Err(bad(format!("a sequence whose item {i} is not a number")));
-            }
-            data.push(item.real().map_err(cv("FileNode::real"))?);
-        }
-        return Ok(Numbers {
-            rows: 1,
-            cols: data.len(),
-            data,
-        });
-    }
-    if n.is_map().map_err(cv("FileNode::isMap"))? {
-        let m = n
-            .mat()
-            .map_err(|e| bad(format!("a map that OpenCV cannot read as a matrix ({e})")))?;
-        if m.empty() {
-            return Ok(Numbers {
-                rows: 0,
-                cols: 0,
-                data: Vec::new(),
-            });
-        }
-        if m.channels() != 1 {
-            return Err(bad(format!("a matrix with {} channels", m.channels())));
-        }
-        let mut m64 = Mat::default();
-        m.convert_to(&mut m64, opencv::core::CV_64F, 1.0, 0.0)
-            .map_err(cv("Mat::convertTo"))?;
-        let (rows, cols) = (m64.rows(), m64.cols());
-        let mut data = Vec::new();
-        for r in 0..rows {
-            for c in 0..cols {
-                data.push(*m64.at_2d::<f64>(r, c).map_err(cv("Mat::at"))?);
-            }
-        }
-        return Ok(Numbers {
-            rows: usize::try_from(rows).unwrap_or(0),
-            cols: usize::try_from(cols).unwrap_or(0),
-            data,
-        });
-    }
-    if n.is_int().map_err(cv("FileNode::isInt"))? || n.is_real().map_err(cv("FileNode::isReal"))? {
-        return Ok(Numbers {
+    match value {
+        Value::Number(v) => Ok(Numbers {
             rows: 1,
             cols: 1,
-            data: vec![n.real().map_err(cv("FileNode::real"))?],
-        });
+            data: vec![*v],
+        }),
+        Value::Seq(items) => {
+            let data = sequence_numbers(items)
+                .map_err(|i| bad(format!("a sequence whose item {i} is not a number")))?;
+            Ok(Numbers {
+                rows: 1,
+                cols: data.len(),
+                data,
+            })
+        }
+        Value::Map(_) => matrix(value).map_err(|why| bad(format!("a map that is not a matrix: {why}"))),
+        other => Err(bad(other.describe())),
     }
-    let kind = match n.typ().map_err(cv("FileNode::type"))? & 7 {
-        3 => format!("the string '{}'", n.to_string().map_err(cv("FileNode::string"))?),
-        t => format!("a node of FileNode type {t}"),
+}
+
+/// The numbers of a sequence, or the index of the first item that is not one.
+fn sequence_numbers(items: &[Value]) -> std::result::Result<Vec<f64>, usize> {
+    items
+        .iter()
+        .enumerate()
+        .map(|(i, item)| match item {
+            Value::Number(v) => Ok(*v),
+            _ => Err(i),
+        })
+        .collect()
+}
+
+/// An OpenCV matrix map, as `cv::FileNode >> cv::Mat` reads one: `data` holds rows x cols x channels
+/// numbers; `dt` is the element type with an optional channel count (`d`, `f`, `3d`, ...).
+fn matrix(map: &Value) -> std::result::Result<Numbers, String> {
+    let count = |key: &str| -> std::result::Result<usize, String> {
+        match map.get(key) {
+            Some(Value::Number(v)) if v.fract() == 0.0 && (0.0..=1e6).contains(v) => {
+                // Checked above: a whole number in [0, 1e6].
+                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                Ok(*v as usize)
+            }
+            Some(other) => Err(format!(
+                "'{key}' is {}, expected a whole number",
+                other.describe()
+            )),
+            None => Err(format!("no '{key}'")),
+        }
     };
-    Err(bad(kind))
+    let (rows, cols) = (count("rows")?, count("cols")?);
+    let channels = match map.get("dt") {
+        Some(Value::Text(dt)) => element_channels(dt)?,
+        Some(other) => return Err(format!("'dt' is {}, expected a type such as d", other.describe())),
+        None => return Err("no 'dt'".to_owned()),
+    };
+    if channels != 1 {
+        return Err(format!("a matrix with {channels} channels"));
+    }
+    let data = match map.get("data") {
+        Some(Value::Seq(items)) => {
+            sequence_numbers(items).map_err(|i| format!("'data' item {i} is not a number"))?
+        }
+        Some(Value::Number(v)) => vec![*v],
+        Some(Value::Empty) | None if rows * cols == 0 => Vec::new(),
+        Some(other) => return Err(format!("'data' is {}", other.describe())),
+        None => return Err("no 'data'".to_owned()),
+    };
+    if data.len() != rows * cols {
+        return Err(format!("{rows}x{cols} with {} numbers in 'data'", data.len()));
+    }
+    Ok(Numbers { rows, cols, data })
+}
+
+/// The channel count of an OpenCV element type (`d` = 1, `3d` = 3); the type letter must be one
+/// OpenCV writes (`u c w s i f d`).
+fn element_channels(dt: &str) -> std::result::Result<usize, String> {
+    let digits: String = dt.chars().take_while(char::is_ascii_digit).collect();
+    let rest = &dt[digits.len()..];
+    if rest.len() != 1 || !"ucwsifd".contains(rest) {
+        return Err(format!("'dt' is '{dt}', expected an element type such as d"));
+    }
+    if digits.is_empty() {
+        return Ok(1);
+    }
+    digits.parse().map_err(|_| format!("'dt' is '{dt}'"))
 }
 
 /// The files a calibration is read from; a key is taken from the first file that has it.
 struct Sources {
-    files: Vec<(PathBuf, FileStorage)>,
+    files: Vec<(PathBuf, Value)>,
 }
 
 impl Sources {
@@ -133,24 +150,9 @@ impl Sources {
                 path: path.to_path_buf(),
                 source,
             })?;
-            super::structure::check_calibration_file(path)?;
-            let name = path.to_string_lossy().into_owned();
-            let fs =
-                FileStorage::new(&name, opencv::core::FileStorage_Mode::READ as i32, "").map_err(|e| {
-                    Error::Syntax {
-                        path: path.to_path_buf(),
-                        line: 0,
-                        message: format!("OpenCV FileStorage cannot parse it: {e}"),
-                    }
-                })?;
-            if !fs.is_opened().map_err(cv("FileStorage::isOpened"))? {
-                return Err(Error::Syntax {
-                    path: path.to_path_buf(),
-                    line: 0,
-                    message: "OpenCV FileStorage could not open it".to_owned(),
-                });
-            }
-            files.push((path.to_path_buf(), fs));
+            let checked = super::structure::read_calibration_file(path)?;
+            let root = filestorage::parse(path, &checked.text, checked.xml)?;
+            files.push((path.to_path_buf(), root));
         }
         Ok(Sources { files })
     }
@@ -161,24 +163,20 @@ impl Sources {
         PathBuf::from(names.join(" + "))
     }
 
-    /// The first file holding the first of `keys` found: (file, key, node).
-    fn find(&self, keys: &[&str]) -> Result<Option<(PathBuf, String, FileNode)>> {
-        for key in keys {
-            for (path, fs) in &self.files {
-                if let Some(n) = node(fs, path, key)? {
-                    return Ok(Some((path.clone(), (*key).to_owned(), n)));
-                }
-            }
-        }
-        Ok(None)
+    /// The first file holding the first of `keys` found with a value: (file, key, value).
+    fn find<'a>(&'a self, keys: &[&'a str]) -> Option<(&'a Path, &'a str, &'a Value)> {
+        keys.iter().find_map(|key| {
+            self.files.iter().find_map(|(path, root)| {
+                root.get(key)
+                    .filter(|v| **v != Value::Empty)
+                    .map(|v| (path.as_path(), *key, v))
+            })
+        })
     }
 
     fn required(&self, keys: &[&str], expected: &str) -> Result<(PathBuf, String, Numbers)> {
-        match self.find(keys)? {
-            Some((path, key, n)) => {
-                let numbers = numbers(&n, &path, &key)?;
-                Ok((path, key, numbers))
-            }
+        match self.find(keys) {
+            Some((path, key, value)) => Ok((path.to_path_buf(), key.to_owned(), numbers(value, path, key)?)),
             None => Err(Error::MissingKey {
                 path: self.all_paths(),
                 key: keys.join(" or "),
@@ -272,7 +270,7 @@ fn image_size(src: &Sources) -> Result<ImageSize> {
             })
         }
     };
-    let single = |path: &Path, key: &str, n: &FileNode| -> Result<u32> {
+    let single = |path: &Path, key: &str, n: &Value| -> Result<u32> {
         let v = numbers(n, path, key)?;
         if v.data.len() != 1 {
             return Err(Error::BadValue {
@@ -285,26 +283,26 @@ fn image_size(src: &Sources) -> Result<ImageSize> {
         as_u32(path, key, v.data[0])
     };
     if let (Some((wp, wk, wn)), Some((hp, hk, hn))) =
-        (src.find(&["image_width"])?, src.find(&["image_height"])?)
+        (src.find(&["image_width"]), src.find(&["image_height"]))
     {
         return Ok(ImageSize {
-            width: single(&wp, &wk, &wn)?,
-            height: single(&hp, &hk, &hn)?,
+            width: single(wp, wk, wn)?,
+            height: single(hp, hk, hn)?,
         });
     }
-    if let Some((path, key, n)) = src.find(&["image_size", "imageSize"])? {
-        let n = numbers(&n, &path, &key)?;
+    if let Some((path, key, n)) = src.find(&["image_size", "imageSize"]) {
+        let n = numbers(n, path, key)?;
         if n.data.len() != 2 {
             return Err(Error::BadValue {
-                path,
-                key,
+                path: path.to_path_buf(),
+                key: key.to_owned(),
                 expected: "[width, height]".to_owned(),
                 found: n.shape(),
             });
         }
         return Ok(ImageSize {
-            width: as_u32(&path, &key, n.data[0])?,
-            height: as_u32(&path, &key, n.data[1])?,
+            width: as_u32(path, key, n.data[0])?,
+            height: as_u32(path, key, n.data[1])?,
         });
     }
     Err(Error::MissingKey {

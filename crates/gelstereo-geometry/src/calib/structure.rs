@@ -1,7 +1,7 @@
-//! What is checked in a calibration file before OpenCV's FileStorage parses it: its size
-//! ([`MAX_CALIBRATION_BYTES`]) and the nesting depth of its sequences, maps and XML elements
-//! ([`MAX_CALIBRATION_DEPTH`]). OpenCV's parsers recurse once per level, so a file nested tens of
-//! thousands deep would overflow the stack inside OpenCV (an abort no error handling can catch).
+//! What is checked in a calibration file before it is parsed: its size ([`MAX_CALIBRATION_BYTES`])
+//! and the nesting depth of its sequences, maps and XML elements ([`MAX_CALIBRATION_DEPTH`]). Tree
+//! parsers recurse (or build and drop trees) once per level, so a file nested tens of thousands deep
+//! would overflow the stack (an abort no error handling can catch).
 //!
 //! The depth is counted conservatively: YAML flow brackets (`[`, `{`) outside quotes and comments,
 //! plus the block levels opened by deeper indentation or `- ` sequence entries; XML elements that are
@@ -14,9 +14,16 @@ use gelstereo_core::limits::{MAX_CALIBRATION_BYTES, MAX_CALIBRATION_DEPTH};
 
 use crate::error::{Error, Result};
 
-/// Reads `path` (at most [`MAX_CALIBRATION_BYTES`]) and checks its nesting depth; XML when the
-/// extension is `.xml` or the text starts with `<`, YAML otherwise.
-pub(crate) fn check_calibration_file(path: &Path) -> Result<()> {
+/// A calibration file's text, read and checked by [`read_calibration_file`].
+pub(crate) struct CheckedText {
+    /// The text (invalid UTF-8 replaced, so a parser reports it where it is).
+    pub text: String,
+    /// XML (extension `.xml` or text starting with `<`), YAML otherwise.
+    pub xml: bool,
+}
+
+/// Reads `path` (at most [`MAX_CALIBRATION_BYTES`]) and checks its nesting depth.
+pub(crate) fn read_calibration_file(path: &Path) -> Result<CheckedText> {
     let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
@@ -33,7 +40,7 @@ pub(crate) fn check_calibration_file(path: &Path) -> Result<()> {
             format!("larger than {MAX_CALIBRATION_BYTES} bytes: not a calibration file"),
         ));
     }
-    let text = String::from_utf8_lossy(&bytes);
+    let text = String::from_utf8_lossy(&bytes).into_owned();
     let is_xml =
         path.extension().is_some_and(|e| e.eq_ignore_ascii_case("xml")) || text.trim_start().starts_with('<');
     let deepest = if is_xml {
@@ -50,7 +57,7 @@ pub(crate) fn check_calibration_file(path: &Path) -> Result<()> {
                  (a stereo calibration needs 3)"
             ),
         )),
-        _ => Ok(()),
+        _ => Ok(CheckedText { text, xml: is_xml }),
     }
 }
 
