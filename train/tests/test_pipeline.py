@@ -174,3 +174,29 @@ def test_held_out_families_leave_training_and_select_evaluation(tiny_root, tmp_p
     from gelstereo_train.data import DatasetError, experiment_families
     with pytest.raises(DatasetError, match="families"):
         experiment_families(root, "train", exps[0].name)
+
+
+def test_quantized_marknet_keeps_the_contract_and_the_float_ends(trained, tiny_root, tmp_path):
+    from gelstereo_train import quantize
+
+    _, _, onnx_dir = trained
+    src = onnx_dir / "marknet.onnx"
+    out = tmp_path / "marknet-int8.onnx"
+    assert quantize.main(["--model", str(src), "--data", str(tiny_root), "--out", str(out), "--images", "4"]) == 0
+    f, q = onnx.load(str(src)), onnx.load(str(out))
+    fprops = {p.key: p.value for p in f.metadata_props}
+    qprops = {p.key: p.value for p in q.metadata_props}
+    assert qprops.pop("quantized").startswith("int8 static per-channel qdq minmax, 4 train-split inputs")
+    assert qprops == fprops
+    ops = [n.op_type for n in q.graph.node]
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    # The stem reads the float input and the head writes float logits: no quantization at either end.
+    consumers = [n.op_type for n in q.graph.node if "image" in n.input]
+    producer = next(n for n in q.graph.node if "raw" in n.output)
+    assert consumers == ["Conv"] and producer.op_type == "Transpose"
+    x = torch.rand(2, 3, 96, 128).numpy()
+    fs = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
+    qs = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    a, b = fs.run(["raw"], {"image": x})[0], qs.run(["raw"], {"image": x})[0]
+    assert a.shape == b.shape and np.isfinite(b).all()
+    assert np.abs(a - b).mean() < 0.1 * np.abs(a).mean() + 1e-3

@@ -183,13 +183,17 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
         });
         near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         near.truncate(check.max_neighbours);
-        for (a, &(_, j)) in near.iter().enumerate() {
+        for (a, &(d2_ij, j)) in near.iter().enumerate() {
             let (vx, vy) = (points[j].x - p.x, points[j].y - p.y);
             // Where the third point of an equally spaced line with i in the middle lies.
-            let opposite = Point2::new(p.x - vx, p.y - vy);
-            let limit = check.tolerance_frac * vx.hypot(vy);
+            let (ox, oy) = (p.x - vx, p.y - vy);
+            // Squared distances against the squared limit: this pair loop is the hot spot of the
+            // post-processing (tens of thousands of pairs per stereo frame), and a `hypot` per pair
+            // cost more than the rest of the check.
+            let limit2 = check.tolerance_frac * check.tolerance_frac * d2_ij;
             for &(_, k) in &near[a + 1..] {
-                if points[k].distance(opposite) <= limit {
+                let (dx, dy) = (points[k].x - ox, points[k].y - oy);
+                if dx * dx + dy * dy <= limit2 {
                     let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
                     for q in [i, j, k] {
                         lines[q].add(angle, min_angle);

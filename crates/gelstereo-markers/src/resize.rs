@@ -91,7 +91,10 @@ fn median_of_plane(plane: &[f32], iw: usize, (ox, oy, nw, nh): (usize, usize, us
             .iter()
             .step_by(FILL_SAMPLE_STEP)
         {
-            histogram[(v * 255.0).round().clamp(0.0, 255.0) as usize] += 1;
+            // v is k / 255 for a grey level k, so v * 255 lies within rounding of k: adding 0.5 and
+            // truncating gives k without a call to `round` (a libm call per sample, which showed in
+            // profiles of the preprocessing).
+            histogram[((v * 255.0 + 0.5) as usize).min(255)] += 1;
             n += 1;
         }
     }
