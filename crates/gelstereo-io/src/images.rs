@@ -314,6 +314,7 @@ impl StereoRecording {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use opencv::prelude::MatTraitConstManual;
 
     #[test]
     fn corrupt_and_missing_files_are_reported_by_name() {
@@ -373,7 +374,7 @@ mod tests {
             std::fs::write(&path, png_bytes(161, 53, channels, compression)).unwrap();
             assert_eq!(decode_png(&path).is_some(), fast, "{}", path.display());
             let ours = read_image(&path).unwrap();
-            let opencv = imgcodecs::imread(&path.to_string_lossy(), imgcodecs::IMREAD_COLOR).unwrap();
+            let opencv = imgcodecs::imread(&path, imgcodecs::IMREAD_COLOR).unwrap();
             assert_eq!(
                 (ours.rows(), ours.cols(), ours.typ()),
                 (53, 161, opencv::core::CV_8UC3)
