@@ -55,8 +55,8 @@ pub fn read_image(path: &Path) -> Result<Mat> {
 }
 
 /// Decodes an 8-bit RGB or grey PNG with the `png` crate into the BGR image `imread` gives (the
-/// same pixels: `tests` compares them), at about half the CPU time of OpenCV's libpng path on the
-/// fast-compressed PNGs of simulated recordings, which makes PNG recordings track faster. `None` for
+/// same pixels: `tests` compares them), in less CPU time than OpenCV's libpng path on the
+/// fast-compressed PNGs of simulated recordings (`fdeflate` inflates them fast). `None` for
 /// every other layout (palette, alpha or transparency, 16-bit, under 8-bit, animated) and for
 /// anything the crate refuses, checksums included: OpenCV then decodes the file, so conversions and
 /// errors stay OpenCV's.
