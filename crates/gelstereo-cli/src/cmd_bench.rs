@@ -85,10 +85,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         if args.dataset.is_some() {
             bail!("--dataset is for the localization benchmark; the pipeline benchmark takes one RECORDING");
         }
-        let mut config = PipelineConfig::for_recording(recording);
-        config.calibration = args.calib.clone().or(config.calibration);
-        config.method = Some(args.method);
-        config.localizer = args.localizer.config()?;
+        let mut config = pipeline_config(args, recording)?;
         if let Some(g) = &args.grid {
             config.grid = Some(gelstereo::parse_grid(g, "--grid")?);
         }
@@ -121,6 +118,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     write_report(&report, args.out.as_deref())
 }
 
+/// The pipeline the options describe on `recording` (its own calibration unless --calib).
+fn pipeline_config(args: &Args, recording: &Path) -> anyhow::Result<PipelineConfig> {
+    let mut config = PipelineConfig::for_recording(recording);
+    config.calibration = args.calib.clone().or(config.calibration);
+    config.method = Some(args.method);
+    config.localizer = args.localizer.config()?;
+    Ok(config)
+}
+
 /// Prints a benchmark's table, and writes its figures as JSON to `out` when given.
 fn write_report(report: &gelstereo::bench::Report, out: Option<&Path>) -> anyhow::Result<()> {
     print!("{}", report.text);
@@ -136,10 +142,7 @@ fn run_end_to_end(args: &Args) -> anyhow::Result<()> {
     let [recording] = args.inputs.as_slice() else {
         bail!("--track takes exactly one RECORDING, got {}", args.inputs.len());
     };
-    let mut config = PipelineConfig::for_recording(recording);
-    config.calibration = args.calib.clone().or(config.calibration);
-    config.method = Some(args.method);
-    config.localizer = args.localizer.config()?;
+    let config = pipeline_config(args, recording)?;
     let scratch = tempfile::tempdir().context("cannot create a folder for the outputs")?;
     let report = gelstereo::bench::end_to_end(&gelstereo::bench::EndToEndBench {
         recording: recording.clone(),

@@ -53,14 +53,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         detector: args.detector.parse()?,
         ..Default::default()
     };
+    let calibration = calibrate_folders(&args.left_dir, &args.right_dir, &board, &options)?;
     let FolderCalibration {
         report,
         image_size,
         pairs,
         not_found,
         unpaired,
-    } = calibrate_folders(&args.left_dir, &args.right_dir, &board, &options)?;
-    for u in &unpaired {
+    } = &calibration;
+    for u in unpaired {
         eprintln!("warning: skipped {u}");
     }
     if !not_found.is_empty() {
@@ -121,146 +122,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     println!("wrote {}", args.out);
     if let Some(path) = &args.report {
-        let json = serde_json::json!({
-            "pairs": pairs,
-            "pairs_used": report.pairs_used,
-            "board_not_found": not_found,
-            "unpaired": unpaired,
-            "rms_left_px": report.rms_left_px,
-            "rms_right_px": report.rms_right_px,
-            "rms_stereo_px": report.rms_stereo_px,
-            "epipolar_rms_px": report.epipolar_rms_px,
-            "epipolar_max_px": report.epipolar_max_px,
-            "baseline_mm": rig.baseline_mm(),
-            "per_pair": report
-                .per_pair
-                .iter()
-                .map(|p| serde_json::json!({"name": p.name, "left_rms_px": p.left_rms_px, "right_rms_px": p.right_rms_px}))
-                .collect::<Vec<_>>(),
-            "calibration": args.out,
-        });
+        let json = calibration.to_json(&args.out);
         std::fs::write(path, serde_json::to_string_pretty(&json)?)
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use gelstereo_geometry::StereoRig;
-    use gelstereo_geometry::nalgebra::Point3;
-    use gelstereo_sim::SensorSpec;
-    use gelstereo_sim::checkerboard::write_checkerboard_set;
-    use std::path::Path;
-
-    /// The simulator's checkerboard set for the reference sensor (rendered through its cameras with
-    /// blur, noise and vignetting, true calibration alongside), plus one pair without a board and one
-    /// left image without a right counterpart.
-    fn simulated_set(dir: &Path, board: &Board, poses: usize) -> StereoRig {
-        let sensor = SensorSpec::reference().build().unwrap();
-        write_checkerboard_set(dir, &sensor, board, poses, 6, false).unwrap();
-        let blank =
-            opencv::core::Mat::new_rows_cols_with_default(480, 640, opencv::core::CV_8UC1, 128.into())
-                .unwrap();
-        for name in ["left/blank.png", "right/blank.png", "left/lonely.png"] {
-            gelstereo_io::images::write_image(&dir.join(name), &blank).unwrap();
-        }
-        StereoRig::load(dir.join("calib.yaml").to_str().unwrap()).unwrap()
-    }
-
-    /// 3-D RMSE (mm) of points on and around the gel (left frame, 23-26 mm deep) projected through
-    /// `truth` and triangulated with `est`.
-    fn gel_rmse_mm(truth: &StereoRig, est: &StereoRig) -> f64 {
-        let t = gelstereo_geometry::Triangulator::new(est.clone(), Default::default()).unwrap();
-        let (mut sum2, mut n) = (0.0, 0u32);
-        for i in -8..=8 {
-            for j in -8..=8 {
-                for z in [23.0, 24.5, 26.0] {
-                    let p = Point3::new(f64::from(i), f64::from(j), z);
-                    if let Some((l, r)) = truth.project(&p) {
-                        sum2 += (t.triangulate(l, r).unwrap().p_in_left_mm - p).norm_squared();
-                        n += 1;
-                    }
-                }
-            }
-        }
-        (sum2 / f64::from(n)).sqrt()
-    }
-
-    #[test]
-    fn calibrates_the_simulators_boards_and_writes_both_formats() {
-        let board = Board::parse("9x6", 1.5).unwrap();
-        let dir = tempfile::tempdir().unwrap();
-        let set = dir.path().join("set");
-        let truth = simulated_set(&set, &board, 12);
-        // Both detectors: classic for the YAML, sector-based for the mrcal pair.
-        for (out, detector, bound_mm) in [("calib.yaml", "classic", 0.03), ("models", "sb", 0.08)] {
-            let args = Args {
-                board: "9x6".into(),
-                square_mm: 1.5,
-                out: dir.path().join(out).to_string_lossy().into_owned(),
-                distortion: 5,
-                subpix_window: 5,
-                detector: detector.into(),
-                report: Some(dir.path().join("report.json")),
-                left_dir: set.join("left"),
-                right_dir: set.join("right"),
-            };
-            run(&args).unwrap();
-            let est = StereoRig::load(&args.out).unwrap();
-            assert!(
-                (est.baseline_mm() - truth.baseline_mm()).abs() < 0.02,
-                "{}",
-                est.baseline_mm()
-            );
-            assert!(
-                (est.left.fx / truth.left.fx - 1.0).abs() < 0.003,
-                "{}",
-                est.left.fx
-            );
-            let report: serde_json::Value =
-                serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap())
-                    .unwrap();
-            assert_eq!(report["pairs"], 13);
-            assert_eq!(report["pairs_used"], 12);
-            assert!(report["rms_stereo_px"].as_f64().unwrap() < 0.15, "{report}");
-            assert!(report["epipolar_rms_px"].as_f64().unwrap() < 0.15, "{report}");
-            assert_eq!(report["board_not_found"][0], "blank.png (both)");
-            assert_eq!(report["unpaired"].as_array().unwrap().len(), 1);
-            assert_eq!(report["per_pair"].as_array().unwrap().len(), 12);
-            assert_eq!(report["per_pair"][0]["name"], "000000.png");
-            let rmse = gel_rmse_mm(&truth, &est);
-            eprintln!("{detector}: gel 3-D RMSE {rmse:.4} mm with the calibrated rig; {report}");
-            assert!(rmse < bound_mm, "{detector}: {rmse}");
-        }
-    }
-
-    #[test]
-    fn errors_are_clear() {
-        let dir = tempfile::tempdir().unwrap();
-        std::fs::create_dir_all(dir.path().join("l")).unwrap();
-        std::fs::create_dir_all(dir.path().join("r")).unwrap();
-        let args = |board: &str, out: &str| Args {
-            board: board.into(),
-            square_mm: 1.5,
-            out: out.into(),
-            distortion: 5,
-            subpix_window: 5,
-            detector: "classic".into(),
-            report: None,
-            left_dir: dir.path().join("l"),
-            right_dir: dir.path().join("r"),
-        };
-        let e = run(&args("9by6", "x.yaml")).unwrap_err().to_string();
-        assert!(e.contains("9by6"), "{e}");
-        let e = run(&args("9x6", "x.json")).unwrap_err().to_string();
-        assert!(e.contains("x.json") && e.contains(".yaml"), "{e}");
-        let e = run(&args("9x6", "x.yaml")).unwrap_err().to_string();
-        assert!(e.contains("no image pairs"), "{e}");
-        let mut a = args("9x6", "x.yaml");
-        a.detector = "fancy".into();
-        let e = run(&a).unwrap_err().to_string();
-        assert!(e.contains("fancy") && e.contains("classic or sb"), "{e}");
-    }
 }

@@ -11,9 +11,7 @@ use gelstereo_core::{Detection, StereoPair};
 use gelstereo_io::AtomicFile;
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_io::video::{self, VideoFrames};
-use gelstereo_markers::{
-    BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, create_localizer, overlay,
-};
+use gelstereo_markers::{BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, overlay};
 use opencv::core::Mat;
 
 use crate::project;
@@ -93,10 +91,7 @@ impl LocalizerArgs {
         method: Method,
         config: &LocalizerConfig,
     ) -> anyhow::Result<Box<dyn Localizer + Send>> {
-        create_localizer(method, config).with_context(|| match method {
-            Method::Blob => format!("cannot set up method '{method}'"),
-            _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
-        })
+        Ok(gelstereo::localizer(method, config)?)
     }
 }
 

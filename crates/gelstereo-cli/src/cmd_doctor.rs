@@ -1,9 +1,10 @@
 //! `gelstereo doctor`: one line per component a user needs, with a one-line fix for each problem.
+//! The checks are [`gelstereo::doctor::checks`].
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::PathBuf;
 
 use anyhow::bail;
+use gelstereo::doctor::Need;
 
 use crate::project;
 
@@ -15,76 +16,12 @@ pub struct Args {
     models: Option<PathBuf>,
 }
 
-/// How much a missing component matters.
-#[derive(Clone, Copy, PartialEq)]
-enum Need {
-    /// The default pipeline (Marknet-MRE) cannot run without it: doctor fails.
-    Required,
-    /// Only some commands need it (training, a given sensor): reported, doctor still passes.
-    Optional,
-}
-
-struct Check {
-    name: &'static str,
-    need: Need,
-    outcome: Result<String, String>,
-    fix: &'static str,
-}
-
+/// Runs `gelstereo doctor`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let home = project::home();
     let models = args.models.clone().unwrap_or_else(|| home.join("data/models"));
-    let checks = [
-        Check {
-            name: "OpenCV",
-            need: Need::Required,
-            outcome: opencv::core::get_version_string()
-                .map(|v| format!("{v} (linked)"))
-                .map_err(|e| e.to_string()),
-            fix: "install Debian's libopencv-dev (scripts/setup.sh does)",
-        },
-        Check {
-            name: "ONNX Runtime",
-            need: Need::Required,
-            outcome: gelstereo_markers::runtime::init()
-                .map(|rt| format!("{} at {}", rt.version, rt.library.display()))
-                .map_err(|e| e.to_string()),
-            fix: "run scripts/setup.sh (unpacks it into .deps/onnxruntime/lib) or set ORT_DYLIB_PATH",
-        },
-        Check {
-            name: "Marknet model",
-            need: Need::Required,
-            outcome: model_summary(&models.join("marknet.onnx")),
-            fix: "train/retrain.sh retrains it, or restore data/models/ from git",
-        },
-        Check {
-            name: "MRE model",
-            need: Need::Required,
-            outcome: model_summary(&models.join("mre.onnx")),
-            fix: "train/retrain.sh retrains it, or restore data/models/ from git",
-        },
-        Check {
-            name: "Marknet-MRE run",
-            need: Need::Required,
-            outcome: self_test(&models),
-            fix: "the model files are broken (NaN or untrained weights): restore data/models/ from git or retrain",
-        },
-        Check {
-            name: "Calibration files",
-            need: Need::Optional,
-            outcome: calibrations(&home.join("calib")),
-            fix: "restore calib/ from git, or write your sensor's with `gelstereo calibrate`",
-        },
-        Check {
-            name: "Python training env",
-            need: Need::Optional,
-            outcome: python_env(&home),
-            fix: "run scripts/setup.sh (creates .venv with train/requirements.txt)",
-        },
-    ];
-
     let mut missing_required = 0;
-    for c in &checks {
+    for c in &gelstereo::doctor::checks(&home, &models) {
         match &c.outcome {
             Ok(what) => println!("ok       {:<20} {what}", c.name),
             Err(why) => {
@@ -106,94 +43,4 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     }
     println!("all required components present");
     Ok(())
-}
-
-/// Opens an ONNX model with ONNX Runtime and lists its contract metadata.
-fn model_summary(path: &Path) -> Result<String, String> {
-    if !path.exists() {
-        return Err(format!("{} not found", path.display()));
-    }
-    let metadata = gelstereo_markers::marknet::model_metadata(path).map_err(|e| e.to_string())?;
-    if metadata.is_empty() {
-        return Err(format!(
-            "{} has no metadata_props (contract missing)",
-            path.display()
-        ));
-    }
-    let props: Vec<String> = metadata.iter().map(|(k, v)| format!("{k}={v}")).collect();
-    Ok(format!("{} [{}]", path.display(), props.join(", ")))
-}
-
-/// Runs Marknet-MRE from `models` once on a synthetic marker image.
-fn self_test(models: &Path) -> Result<String, String> {
-    let config = gelstereo_markers::LocalizerConfig {
-        marknet_path: models.join("marknet.onnx"),
-        mre_path: models.join("mre.onnx"),
-        blob: gelstereo_markers::BlobParams::opencv_defaults().map_err(|e| e.to_string())?,
-        session: gelstereo_markers::SessionOptions::default(),
-        fit: gelstereo_markers::InputFit::Auto,
-        remember_pitch: false,
-    };
-    let mut localizer = gelstereo_markers::create_localizer(gelstereo_markers::Method::MarknetMre, &config)
-        .map_err(|e| format!("{e:#}"))?;
-    let run = gelstereo_markers::self_test::run(localizer.as_mut()).map_err(|e| format!("{e:#}"))?;
-    Ok(format!(
-        "{} of {} markers found on a synthetic marker image",
-        run.found, run.drawn
-    ))
-}
-
-/// Loads every calibration in `dir` (OpenCV YAML/XML files and a `left/right.cameramodel` mrcal pair)
-/// and summarises each; any that fails to load is the error.
-fn calibrations(dir: &Path) -> Result<String, String> {
-    let entries = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let mut specs: Vec<String> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.extension()
-                .is_some_and(|x| x == "yaml" || x == "yml" || x == "xml")
-        })
-        .map(|p| p.display().to_string())
-        .collect();
-    specs.sort();
-    if dir.join("left.cameramodel").exists() && dir.join("right.cameramodel").exists() {
-        specs.push(dir.display().to_string());
-    }
-    let mut loaded = Vec::new();
-    for spec in &specs {
-        let rig = gelstereo_geometry::StereoRig::load(spec).map_err(|e| e.to_string())?;
-        let baseline_mm = rig.right_from_left.translation.vector.norm();
-        let size = rig.left.image_size;
-        loaded.push(format!(
-            "{spec} ({}x{}, baseline {baseline_mm:.2} mm)",
-            size.width, size.height
-        ));
-    }
-    if loaded.is_empty() {
-        return Err(format!(
-            "no calibration (.yaml, .xml, left/right.cameramodel) in {}",
-            dir.display()
-        ));
-    }
-    Ok(loaded.join("; "))
-}
-
-/// Asks the project's Python environment for its PyTorch and ONNX Runtime versions.
-fn python_env(home: &Path) -> Result<String, String> {
-    let python = home.join(".venv/bin/python");
-    if !python.exists() {
-        return Err(format!("{} not found", python.display()));
-    }
-    let out = Command::new(&python)
-        .args(["-c", "import torch, onnx, onnxruntime; print(f'torch {torch.__version__}, onnx {onnx.__version__}, onnxruntime {onnxruntime.__version__}')"])
-        .output()
-        .map_err(|e| format!("{}: {e}", python.display()))?;
-    if !out.status.success() {
-        return Err(format!(
-            "{} cannot import torch/onnx/onnxruntime: {}",
-            python.display(),
-            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
-        ));
-    }
-    Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
 }

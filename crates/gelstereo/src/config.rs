@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::GridShape;
-use gelstereo_markers::{LocalizerConfig, Method};
+use gelstereo_markers::{Localizer, LocalizerConfig, Method};
 use gelstereo_sim::SensorSpec;
 use gelstereo_tracking::SessionConfig;
 
@@ -149,6 +149,18 @@ impl RecordingMeta {
             sensor,
         }
     }
+}
+
+/// Builds the localizer of `method`; an error names the method (and, for the learned ones, where
+/// the models are looked for).
+pub fn localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Localizer + Send>> {
+    gelstereo_markers::create_localizer(method, config).map_err(|e| {
+        let what = match method {
+            Method::Blob => format!("cannot set up method '{method}'"),
+            _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
+        };
+        Error::from(e).context(what)
+    })
 }
 
 /// Parses a lattice `ROWSxCOLS` (e.g. `23x23`); `what` names the option in errors.

@@ -11,6 +11,10 @@
 //! - [`sink`]: CSV tables, JSON lines, PLY clouds and meshes, overlays and plots, into an output
 //!   folder that records what it wrote ([`sink::OutputFolder`]).
 //! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`] times it.
+//! - [`doctor`]: every component a user needs, checked, with a fix for each that is missing.
+//! - [`eval`]: the paper's Table I of each localization method on a simulated dataset.
+//! - [`reconstruct`]: localization, indexing, pairing and triangulation of a stereo recording into
+//!   tables and point clouds, with its ground-truth evaluation (`gelstereo reconstruct`).
 //!
 //! ```no_run
 //! use gelstereo::{Pipeline, PipelineConfig, source::FrameSource};
@@ -31,15 +35,18 @@
 pub mod bench;
 pub mod calibrate;
 mod config;
+pub mod doctor;
 mod error;
+pub mod eval;
 mod pipeline;
+pub mod reconstruct;
 pub mod sink;
 pub mod source;
 mod start;
 pub mod track;
 pub mod truth;
 
-pub use config::{PipelineConfig, RecordingMeta, parse_grid, project_home};
+pub use config::{PipelineConfig, RecordingMeta, localizer, parse_grid, project_home};
 pub use error::{Error, Result};
 pub use pipeline::{Frame, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
 

@@ -6,7 +6,7 @@ use gelstereo_core::{
     TieredDetections,
 };
 use gelstereo_geometry::StereoRig;
-use gelstereo_markers::{Localizer, Method, create_localizer};
+use gelstereo_markers::{Localizer, Method};
 use gelstereo_tracking::{ContactFrame, MonoFrame, SessionConfig, StereoFrame, flagged_rows};
 use opencv::core::{Mat, MatTraitConst};
 
@@ -152,14 +152,7 @@ impl Pipeline {
     /// Builds the pipeline: loads the calibration (when given), the localizer's models and the sensor
     /// description's lattice.
     pub fn new(config: &PipelineConfig) -> Result<Self> {
-        let method = config.chosen_method();
-        let localizer = create_localizer(method, &config.localizer).map_err(|e| {
-            let what = match method {
-                Method::Blob => format!("cannot set up method '{method}'"),
-                _ => format!("cannot set up method '{method}' (models: --models DIR, default data/models)"),
-            };
-            Error::from(e).context(what)
-        })?;
+        let localizer = crate::localizer(config.chosen_method(), &config.localizer)?;
         Self::with_localizer(config, localizer)
     }
 
