@@ -1,6 +1,7 @@
 """Fine-tune Marknet on pseudo-labels of a user's own sensor and export a model folder.
 
-    python -m gelstereo_train.adapt --data PSEUDO --base ../data/models --out-dir MODELS --minutes 5
+    python -m gelstereo_train.adapt --data PSEUDO --out PSEUDO/run/marknet.pt --base ../data/models \
+        --out-dir MODELS --minutes 5
 
 `gelstereo adapt` runs this after writing the pseudo-label dataset PSEUDO (images, labels and ignore
 masks, see ``crates/gelstereo/src/adapt.rs``); it can be run by hand on such a dataset too. Steps:
@@ -111,10 +112,8 @@ def main(argv=None) -> int:
     log(f"base {base_marknet}: stem {arch['stem']}, width {arch['width']}, S {arch['grid']}, "
         f"m {arch['candidates']}, layout {arch['canonical']}")
 
-    # The trainer's own options, for the base architecture; the checkpoint stays beside the data.
-    run = args.data / "run"
+    # The trainer's own options, for the base architecture (--out is the checkpoint).
     targs = argparse.Namespace(**vars(args))
-    targs.out = run / "marknet.pt"
     targs.init = base_marknet
     targs.stem, targs.width = arch["stem"], arch["width"]
     targs.grid, targs.candidates = arch["grid"], arch["candidates"]
@@ -203,8 +202,8 @@ takes `--models`). The shipped default is unchanged.
 
 ```sh
 {args.command or '(run by hand)'}
-python -m gelstereo_train.adapt --data PSEUDO --base {args.base} --out-dir {out.name} --minutes {args.minutes} \\
-  --threads {args.threads} --seed {args.seed}
+python -m gelstereo_train.adapt --data PSEUDO --out PSEUDO/run/marknet.pt --base {args.base} \\
+  --out-dir {out.name} --minutes {args.minutes} --threads {args.threads} --seed {args.seed}
 ```
 """
     (out / "MODEL_CARD.md").write_text(text)

@@ -11,6 +11,7 @@
 //! - [`sink`]: CSV tables, JSON lines, PLY clouds and meshes, overlays and plots, into an output
 //!   folder that records what it wrote ([`sink::OutputFolder`]).
 //! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`] times it.
+//! - [`adapt`]: pseudo-labels from an unlabelled recording, for adapting the localizer to a sensor.
 //!
 //! ```no_run
 //! use gelstereo::{Pipeline, PipelineConfig, source::FrameSource};
@@ -28,6 +29,7 @@
 //! in the left camera's frame (x right, y down, z forward); marker id = grid (row, col) on the left
 //! view's reference frame; times in s.
 
+pub mod adapt;
 pub mod bench;
 pub mod calibrate;
 mod config;
