@@ -50,7 +50,13 @@ fn adapt_writes_a_model_folder_that_loads_with_models_and_finds_the_markers() {
         ["my-sensor", "pseudo"],
         "a temporary folder was left behind:\n{t}"
     );
-    for f in ["marknet.onnx", "mre.onnx", "MODEL_CARD.md", "adapt.json", "export_report.json"] {
+    for f in [
+        "marknet.onnx",
+        "mre.onnx",
+        "MODEL_CARD.md",
+        "adapt.json",
+        "export_report.json",
+    ] {
         assert!(out.join(f).is_file(), "{f} missing from the adapted folder:\n{t}");
     }
     let manifest: serde_json::Value =
@@ -61,10 +67,15 @@ fn adapt_writes_a_model_folder_that_loads_with_models_and_finds_the_markers() {
     assert!(views >= 12 && labels >= 400 * views, "{manifest}");
     assert!(labels <= 529 * views, "more labels than markers: {manifest}");
     let card = std::fs::read_to_string(out.join("MODEL_CARD.md")).unwrap();
-    assert!(card.contains("press-slide") && card.contains(&labels.to_string()), "{card}");
+    assert!(
+        card.contains("press-slide") && card.contains(&labels.to_string()),
+        "{card}"
+    );
     // The pseudo-labels are the trainer's dataset layout, with ignore masks beside the images.
     let exp = data.join("train/exp_0000");
-    assert!(exp.join("markers.csv").is_file() && exp.join("left").is_dir() && exp.join("ignore_left").is_dir());
+    assert!(
+        exp.join("markers.csv").is_file() && exp.join("left").is_dir() && exp.join("ignore_left").is_dir()
+    );
     assert_eq!(entries(&exp.join("left")), entries(&exp.join("ignore_left")));
 
     // The contract is checked on load: a folder that loads and finds the markers passes it.
@@ -77,12 +88,19 @@ fn adapt_writes_a_model_folder_that_loads_with_models_and_finds_the_markers() {
         "1",
         "--out",
         csv.to_str().unwrap(),
-        sample.join("left/000000.png").to_str().unwrap(),
+        sample.join("left/000000.jpg").to_str().unwrap(),
     ]);
-    assert!(detect.status.success(), "detect --models failed:\n{}", text(&detect));
+    assert!(
+        detect.status.success(),
+        "detect --models failed:\n{}",
+        text(&detect)
+    );
     let found = std::fs::read_to_string(&csv).unwrap().lines().count() - 1;
     // The default finds all 529 on this frame; seconds of fine-tuning on its own labels keep them.
-    assert!(found >= 500 && found <= 529, "{found} markers with the adapted models");
+    assert!(
+        found >= 500 && found <= 529,
+        "{found} markers with the adapted models"
+    );
 }
 
 #[test]
@@ -90,11 +108,21 @@ fn adapt_refuses_the_shipped_models_and_a_missing_python_before_any_work() {
     let sample = repo().join("data/sample/press-slide");
     let shipped = repo().join("data/models");
     fails_with(
-        &["adapt", "--out", shipped.to_str().unwrap(), sample.to_str().unwrap()],
+        &[
+            "adapt",
+            "--out",
+            shipped.to_str().unwrap(),
+            sample.to_str().unwrap(),
+        ],
         &["--out", "shipped default models"],
     );
     fails_with(
-        &["adapt", "--out", shipped.join("mine").to_str().unwrap(), sample.to_str().unwrap()],
+        &[
+            "adapt",
+            "--out",
+            shipped.join("mine").to_str().unwrap(),
+            sample.to_str().unwrap(),
+        ],
         &["inside the shipped models folder"],
     );
     let tmp = tempfile::tempdir().unwrap();
@@ -111,9 +139,18 @@ fn adapt_refuses_the_shipped_models_and_a_missing_python_before_any_work() {
         ],
         &["no-python", "not found", "scripts/setup.sh"],
     );
-    assert!(entries(tmp.path()).is_empty(), "files left behind: {:?}", entries(tmp.path()));
+    assert!(
+        entries(tmp.path()).is_empty(),
+        "files left behind: {:?}",
+        entries(tmp.path())
+    );
     fails_with(
-        &["adapt", "--out", out.to_str().unwrap(), tmp.path().join("nothing.avi").to_str().unwrap()],
+        &[
+            "adapt",
+            "--out",
+            out.to_str().unwrap(),
+            tmp.path().join("nothing.avi").to_str().unwrap(),
+        ],
         &["nothing.avi", "no such recording"],
     );
 }

@@ -106,7 +106,10 @@ fn check_output(out: &Path, base: &Path, force: bool) -> anyhow::Result<PathBuf>
     let target = normalise(out)?;
     let shipped = normalise(&project::home().join("data/models"))?;
     let base = normalise(base)?;
-    for (what, protected) in [("the shipped default models", &shipped), ("the base models", &base)] {
+    for (what, protected) in [
+        ("the shipped default models", &shipped),
+        ("the base models", &base),
+    ] {
         if target == *protected || protected.starts_with(&target) {
             bail!(
                 "--out {}: is or holds {what} ({}); adapted models go to a folder of their own, e.g. \
@@ -173,10 +176,7 @@ fn find_python(args: &Args) -> anyhow::Result<PathBuf> {
         bail!(
             "{}: cannot import torch, onnx and onnxruntime ({}); run scripts/setup.sh, or give --python",
             python.display(),
-            String::from_utf8_lossy(&out.stderr)
-                .lines()
-                .last()
-                .unwrap_or("")
+            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
         );
     }
     Ok(python)
@@ -189,10 +189,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         bail!("--minutes {}: expected a budget in (0, 1440]", args.minutes);
     }
     if args.max_frames < 3 {
-        bail!("--max-frames {}: expected at least 3 (labels are checked against neighbouring frames)", args.max_frames);
+        bail!(
+            "--max-frames {}: expected at least 3 (labels are checked against neighbouring frames)",
+            args.max_frames
+        );
     }
     if !args.input.exists() {
-        bail!("{}: no such recording, folder of images or video", args.input.display());
+        bail!(
+            "{}: no such recording, folder of images or video",
+            args.input.display()
+        );
     }
     let base_config: LocalizerConfig = args.localizer.config()?;
     let base = base_config
@@ -214,7 +220,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 
     // Everything is written into a temporary sibling of --out and renamed at the end: an interrupted
     // or failed run leaves nothing that looks like a model folder.
-    let parent = target.parent().map(Path::to_path_buf).unwrap_or_else(|| PathBuf::from("."));
+    let parent = target
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."));
     std::fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
     let name = target
         .file_name()

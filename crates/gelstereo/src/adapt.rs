@@ -453,7 +453,10 @@ pub fn write_pseudo_labels(
             let dest = image_dir.join(&name);
             std::fs::rename(&staged, &dest).map_err(file_err(&dest))?;
             let mask = ignore_mask(l, *w, *h)?;
-            gelstereo_io::images::write_image(&exp.join(format!("ignore_{}", VIEW_NAMES[v])).join(&name), &mask)?;
+            gelstereo_io::images::write_image(
+                &exp.join(format!("ignore_{}", VIEW_NAMES[v])).join(&name),
+                &mask,
+            )?;
             for p in &l.labels {
                 write_label(&mut csv[split], rec.index, v, *p);
             }
@@ -506,7 +509,10 @@ pub fn skipped_text(skipped: &BTreeMap<&'static str, usize>) -> String {
 }
 
 fn marker_header() -> String {
-    format!("{},visible_left,visible_right,in_contact\n", MARKER_COLUMNS.join(","))
+    format!(
+        "{},visible_left,visible_right,in_contact\n",
+        MARKER_COLUMNS.join(",")
+    )
 }
 
 /// One label row: the 14 docs/design.md columns (row = col = -1: pseudo-labels are not indexed) and
@@ -580,7 +586,12 @@ mod tests {
         let cfg = PseudoLabelConfig::default();
         let mut here = lattice(8, 10, 30.0, 0.0);
         // Confident finds that sit on no lattice line: in the middle of a cell, and far outside.
-        let off = [Point2::new(20.0 + 4.5 * 30.0, 20.0 + 3.5 * 30.0), Point2::new(400.0, 330.0)];
+        // 4 px beside a cell's centre (the centre itself is the midpoint of both diagonals, on two
+        // lines), more than half a pitch from every marker; and one far outside.
+        let off = [
+            Point2::new(20.0 + 4.5 * 30.0 + 4.0, 20.0 + 3.5 * 30.0),
+            Point2::new(400.0, 330.0),
+        ];
         for p in off {
             here.push(Detection {
                 position: p,
@@ -597,11 +608,17 @@ mod tests {
             }));
         }
         let c = ViewCandidates::new(&found(here), &cfg);
-        let n = [ViewCandidates::new(&found(before), &cfg), ViewCandidates::new(&found(after), &cfg)];
+        let n = [
+            ViewCandidates::new(&found(before), &cfg),
+            ViewCandidates::new(&found(after), &cfg),
+        ];
         let l = label_view(&c, &[&n[0], &n[1]], &cfg).expect("a lattice");
         assert_eq!(l.labels.len(), 80, "every lattice marker is a label");
         for p in off {
-            assert!(!near_any(p, &l.labels, 1.0), "{p:?} is off the lattice but labelled");
+            assert!(
+                !near_any(p, &l.labels, 1.0),
+                "{p:?} is off the lattice but labelled"
+            );
             assert!(near_any(p, &l.ignore, 1e-9), "{p:?} is not marked ignore");
         }
         assert!((l.pitch_px - 30.0).abs() < 1e-9);
@@ -613,17 +630,19 @@ mod tests {
         let here = lattice(6, 6, 25.0, 0.0);
         let mut before = lattice(6, 6, 25.0, 0.5);
         let flicker = before.remove(14).position; // seen here, not in the frame before
-        let mut after = lattice(6, 6, 25.0, 0.5);
+        let after = lattice(6, 6, 25.0, 0.5);
         let mut here_less = here.clone();
         let missed = here_less.remove(20).position; // seen in both neighbours, not here
-        let _ = after.len();
         let c = ViewCandidates::new(&found(here_less), &cfg);
         let n0 = ViewCandidates::new(&found(before), &cfg);
         let n1 = ViewCandidates::new(&found(after), &cfg);
         let l = label_view(&c, &[&n0, &n1], &cfg).expect("a lattice");
         assert_eq!(l.labels.len(), 34);
         assert!(!near_any(flicker, &l.labels, 1.0) && near_any(flicker, &l.ignore, 1.0));
-        assert!(near_any(missed, &l.ignore, 1.0), "a marker only the neighbours see is not ignored");
+        assert!(
+            near_any(missed, &l.ignore, 1.0),
+            "a marker only the neighbours see is not ignored"
+        );
     }
 
     #[test]
