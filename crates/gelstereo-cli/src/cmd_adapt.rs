@@ -154,7 +154,7 @@ fn check_output(out: &Path, base: &Path, force: bool) -> anyhow::Result<PathBuf>
     Ok(target)
 }
 
-/// The Python to run: `--python`, else the checkout's `.venv`; checked to import PyTorch, ONNX and ONNX
+/// The Python to run: `--python`, else the checkout's `.venv`; checked to have PyTorch, ONNX and ONNX
 /// Runtime before any work is done.
 fn find_python(args: &Args) -> anyhow::Result<PathBuf> {
     let python = match &args.python {
@@ -169,12 +169,17 @@ fn find_python(args: &Args) -> anyhow::Result<PathBuf> {
         );
     }
     let out = Command::new(&python)
-        .args(["-c", "import torch, onnx, onnxruntime"])
+        // Found, not imported: importing PyTorch takes seconds, and the fine-tuning does it anyway.
+        .args([
+            "-c",
+            "import importlib.util as u, sys; m = [n for n in ('torch', 'onnx', 'onnxruntime') if u.find_spec(n) is None]; \
+             sys.exit('No module named ' + ', '.join(m) if m else 0)",
+        ])
         .output()
         .with_context(|| format!("{}: cannot be run", python.display()))?;
     if !out.status.success() {
         bail!(
-            "{}: cannot import torch, onnx and onnxruntime ({}); run scripts/setup.sh, or give --python",
+            "{}: lacks torch, onnx or onnxruntime ({}); run scripts/setup.sh, or give --python",
             python.display(),
             String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
         );
