@@ -83,6 +83,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--base", type=Path, required=True, help="folder with the base marknet.onnx and mre.onnx")
     p.add_argument("--out-dir", type=Path, required=True, help="model folder to write")
     p.add_argument("--command", default=None, help="the command that asked for this run (for the model card)")
+    p.add_argument("--name", default=None,
+                   help="the folder's final name, for the model card (default: --out-dir; `gelstereo adapt` "
+                   "writes into a temporary folder and renames it)")
     p.add_argument("--p-contact", type=float, default=0.0)
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--beta", type=float, default=1.0)
@@ -153,6 +156,7 @@ def write_card(args, info: dict, meta: dict, arch: dict, base_marknet: Path, tra
     pl = info.get("pseudo_labels", {})
     cfg = info.get("config", {})
     out = args.out_dir
+    name = args.name or str(out)
     files = "\n".join(
         f"| `{f}` | {(out / f).stat().st_size} | {sha16(out / f)} |" for f in ("marknet.onnx", "mre.onnx"))
     skipped = ", ".join(f"{k} {v}" for k, v in sorted(pl.get("skipped", {}).items())) or "none"
@@ -160,7 +164,7 @@ def write_card(args, info: dict, meta: dict, arch: dict, base_marknet: Path, tra
     text = f"""# Adapted models: `marknet.onnx`, `mre.onnx`
 
 Marknet fine-tuned on pseudo-labels of one recording of the user's own sensor by `gelstereo adapt`
-(`docs/localization.md`, "Adapting to your sensor"). Use with `--models {out.name}` (any command that
+(`docs/localization.md`, "Adapting to your sensor"). Use with `--models {name}` (any command that
 takes `--models`). The shipped default is unchanged.
 
 ## Files
@@ -184,9 +188,9 @@ takes `--models`). The shipped default is unchanged.
 - Held out (not trained on): {pl.get('heldout_views', '?')} views, {pl.get('heldout_labels', '?')} labels; source frames
   {compact(pl.get('heldout_frames', []))}.
 - Views left out: {skipped}. Median pitch {fmt(pl.get('pitch_px'))} px.
-- Rules: confidence >= {cfg.get('min_confidence', '?')}, a lattice member, a detection within
-  {cfg.get('track_radius_frac', '?')} pitch in each neighbouring frame; ignore discs of {cfg.get('ignore_radius_frac', '?')} pitch;
-  views with fewer than {cfg.get('min_frame_fraction', '?')} x the median labels left out; hold-out blocks of
+- Rules: confidence >= {fmt(cfg.get('min_confidence'))}, a lattice member, a detection within
+  {fmt(cfg.get('track_radius_frac'))} pitch in each neighbouring frame; ignore discs of {fmt(cfg.get('ignore_radius_frac'))} pitch;
+  views with fewer than {fmt(cfg.get('min_frame_fraction'))} x the median labels left out; hold-out blocks of
   {cfg.get('holdout_block', '?')} frames, every {cfg.get('holdout_every', '?')}th.
 
 ## Training
@@ -203,7 +207,7 @@ takes `--models`). The shipped default is unchanged.
 ```sh
 {args.command or '(run by hand)'}
 python -m gelstereo_train.adapt --data PSEUDO --out PSEUDO/run/marknet.pt --base {args.base} \\
-  --out-dir {out.name} --minutes {args.minutes} --threads {args.threads} --seed {args.seed}
+  --out-dir {name} --minutes {args.minutes} --threads {args.threads} --seed {args.seed}
 ```
 """
     (out / "MODEL_CARD.md").write_text(text)

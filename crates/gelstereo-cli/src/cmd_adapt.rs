@@ -302,6 +302,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .args(["--threads", &args.train_threads.to_string()])
         .args(["--seed", &args.seed.to_string()])
         .args(["--command", &command.join(" ")])
+        .arg("--name")
+        .arg(&args.out)
         .stdin(Stdio::null())
         .spawn()
         .with_context(|| format!("starting {} -m gelstereo_train.adapt", python.display()))?;
