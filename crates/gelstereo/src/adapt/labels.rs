@@ -305,6 +305,23 @@ pub struct PseudoLabelSummary {
     pub pitch_px: Option<f64>,
 }
 
+impl PseudoLabelSummary {
+    /// `L labels in V training views (and I ignore discs), L labels in V held-out views; views left
+    /// out: ...`, for a log line.
+    pub fn counts_text(&self) -> String {
+        format!(
+            "{} labels in {} training views (and {} ignore discs), {} labels in {} held-out views; \
+             views left out: {}",
+            self.train_labels,
+            self.train_views,
+            self.train_ignored,
+            self.heldout_labels,
+            self.heldout_views,
+            skipped_text(&self.skipped)
+        )
+    }
+}
+
 /// Whether the frame at position `k` of the frames used is held out.
 pub fn held_out(k: usize, config: &PseudoLabelConfig) -> bool {
     config.holdout_every > 0
