@@ -6,8 +6,8 @@
 //!   project's Python environment; the new folder loaded under the model contract and self-tested,
 //!   `adapt.json` written, and the folder renamed into place. Everything is written into a temporary
 //!   sibling of the output first, so a failed or interrupted run leaves no model folder behind.
-//! - [`write_pseudo_labels`] and the functions beside it: the pseudo-labels alone (see `labels.rs`
-//!   for the rules, and the dataset layout the trainer reads).
+//! - [`labels`]: the pseudo-labels alone ([`write_pseudo_labels`] and its parts), the rules that
+//!   make a detection a label or an ignore region, and the dataset layout the trainer reads.
 //!
 //! ```no_run
 //! use gelstereo::adapt::{AdaptOptions, run};
@@ -21,7 +21,7 @@
 //! # Ok::<(), gelstereo::Error>(())
 //! ```
 
-mod labels;
+pub mod labels;
 mod output;
 mod run;
 mod trainer;
