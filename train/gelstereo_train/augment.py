@@ -102,10 +102,14 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng, focus=None):
     return a, cen
 
 
-def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator, focus=None):
+def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator, focus=None,
+                 ignore=None, ignore_out: list | None = None):
     """Cut one crop per index. Returns a float tensor (B, 3, ch, cw) in [0, 1] and a list of (n, 2)
     float32 label arrays in crop continuous coordinates. ``focus``: per image, the (n, 2) points a
-    ``cfg.p_contact`` share of crops is centred near (None: none)."""
+    ``cfg.p_contact`` share of crops is centred near (None: none). ``ignore``: per image, a bool
+    (H, W) mask of regions neither marker nor background (or None); each crop's mask, warped with the
+    crop's own transform (nearest pixel), is appended to ``ignore_out`` as a bool (ch, cw) tensor.
+    The masks draw no random numbers: the crops are the same with and without them."""
     ch, cw = cfg.crop
     out = torch.empty(len(idx), 3, ch, cw)
     labels = []
@@ -131,6 +135,14 @@ def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Ge
         )
         grid = F.affine_grid(theta[None], [1, 3, ch, cw], align_corners=False)
         out[b] = F.grid_sample(sub[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+        if ignore_out is not None:
+            mask = None if ignore is None else ignore[i]
+            if mask is None:
+                ignore_out.append(torch.zeros(ch, cw, dtype=torch.bool))
+            else:
+                msub = torch.from_numpy(np.ascontiguousarray(mask[y0:y1, x0:x1])).float()[None, None]
+                warped = F.grid_sample(msub, grid, mode="nearest", padding_mode="border", align_corners=False)
+                ignore_out.append(warped[0, 0] > 0.5)
         pts = np.asarray(points[i], dtype=np.float64).reshape(-1, 2) + 0.5  # continuous source coords
         u = (pts - cen) @ np.linalg.inv(a).T + np.array([cw / 2.0, ch / 2.0])
         keep = (u[:, 0] >= 0) & (u[:, 0] < cw) & (u[:, 1] >= 0) & (u[:, 1] < ch)
@@ -219,3 +231,13 @@ def make_batch(images, points, pitches, batch: int, cfg: AugConfig, rng: np.rand
     idx = rng.integers(0, len(images), batch)
     x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus)
     return photometric(x, cfg, rng), labels
+
+
+def make_batch_with_ignore(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator,
+                           focus=None, ignore=None):
+    """``make_batch`` plus each crop's ignore mask, a bool (B, ch, cw) tensor (see ``sample_crops``);
+    the same crops and augmentations as ``make_batch`` with the same random stream."""
+    idx = rng.integers(0, len(images), batch)
+    masks: list = []
+    x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus, ignore, masks)
+    return photometric(x, cfg, rng), labels, torch.stack(masks)

@@ -47,6 +47,21 @@ class Sample:
     # (n, 2) int grid index (row, col).
     rowcol: np.ndarray
     image: np.ndarray | None = field(default=None, repr=False)
+    # 8-bit mask of the image's size, 255 = ignore (neither marker nor background): written by
+    # `gelstereo adapt` next to pseudo-labels (``ignore_<view>/`` beside ``<view>/``); None: none.
+    ignore_path: Path | None = None
+    ignore: np.ndarray | None = field(default=None, repr=False)
+
+    def load_ignore(self) -> np.ndarray | None:
+        """The ignore mask as bool (H, W), or None when the sample has none."""
+        if self.ignore_path is None:
+            return None
+        try:
+            with Image.open(self.ignore_path) as im:
+                mask = np.asarray(im.convert("L")) > 127
+        except (OSError, ValueError) as e:
+            raise DatasetError(f"{self.ignore_path}: cannot read ignore mask: {e}") from e
+        return mask
 
     def load(self) -> np.ndarray:
         """The image as uint8 RGB (H, W, 3); grey images are replicated to 3 channels."""
@@ -239,9 +254,11 @@ def list_samples(
                     raise DatasetError(
                         f"{markers_path}: frame {frame}: visible_{view}=1 but x_{view}/y_{view} empty"
                     )
+                ignore = exp_dir / f"ignore_{view}" / images[frame].name
                 samples.append(
                     Sample(
                         image_path=images[frame],
+                        ignore_path=ignore if ignore.is_file() else None,
                         split=split,
                         experiment=exp,
                         frame=frame,

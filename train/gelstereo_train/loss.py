@@ -46,10 +46,22 @@ def build_targets(labels: list[np.ndarray], gy: int, gx: int, stride: int, m: in
     return torch.from_numpy(tgt), torch.from_numpy(mask), dropped
 
 
-def marknet_loss(raw: torch.Tensor, tgt: torch.Tensor, mask: torch.Tensor, stride: int, alpha=1.0, beta=1.0):
-    """The Marknet loss; returns (total, confidence part, distance part, mean distance in input px)."""
+def ignore_cells(ignore: torch.Tensor, stride: int) -> torch.Tensor:
+    """Cells (B, H/stride, W/stride) that touch an ignored pixel of a bool (B, H, W) crop mask: a
+    marker centre could lie anywhere in such a cell."""
+    return F.max_pool2d(ignore[:, None].float(), stride)[:, 0] > 0.5
+
+
+def marknet_loss(raw: torch.Tensor, tgt: torch.Tensor, mask: torch.Tensor, stride: int, alpha=1.0, beta=1.0,
+                 ignore: torch.Tensor | None = None):
+    """The Marknet loss; returns (total, confidence part, distance part, mean distance in input px).
+    ``ignore``: bool (B, gy, gx) cells whose empty slots are no negatives (pseudo-labels' uncertain
+    regions, ``ignore_cells``); their assigned slots still count."""
     npos = mask.sum().clamp_min(1).float()
-    bce = F.binary_cross_entropy_with_logits(raw[..., 2], mask.float(), reduction="sum")
+    weight = None
+    if ignore is not None:
+        weight = (~(ignore[..., None] & ~mask)).float()
+    bce = F.binary_cross_entropy_with_logits(raw[..., 2], mask.float(), weight=weight, reduction="sum")
     dec = decode(raw, stride)
     d = torch.sqrt(((dec[..., :2] - tgt) ** 2).sum(-1) + 1e-8)[mask]
     dist = d.sum()

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .augment import AugConfig, make_batch
+from .augment import AugConfig, make_batch, make_batch_with_ignore
 from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
-from .loss import build_targets, marknet_loss
+from .loss import build_targets, ignore_cells, marknet_loss
 from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 from .onnx_init import load_onnx_weights
 
@@ -46,6 +46,11 @@ def load_images(samples, max_images: int | None, rng: np.random.Generator, log=p
             break
         total += img.nbytes
         kept.append(s)
+        if s.ignore_path is not None:
+            s.ignore = s.load_ignore()
+            if s.ignore.shape != img.shape[:2]:
+                raise SystemExit(f"{s.ignore_path}: ignore mask is {s.ignore.shape[1]}x{s.ignore.shape[0]} px, "
+                                 f"its image {s.image_path} is {img.shape[1]}x{img.shape[0]}")
         images.append(img)
         points.append(s.points_px.astype(np.float32))
         pitches.append(median_nn_distance(s.points_px))
@@ -115,6 +120,13 @@ def train(args, log=print) -> Path:
             raise SystemExit(f"{args.data}/train: every image belongs to a held-out family {exclude}")
     samples, images, points, pitches = load_images(samples, args.max_images, rng, log, args.max_gb)
     n_markers = sum(len(p) for p in points)
+    # Pseudo-labelled data (`gelstereo adapt`) marks uncertain regions: no negatives there.
+    ignore = [getattr(s, "ignore", None) for s in samples]
+    if all(m is None for m in ignore):
+        ignore = None
+    else:
+        log(f"{sum(m is not None for m in ignore)} images carry ignore masks "
+            f"({np.mean([m.mean() for m in ignore if m is not None]):.1%} of their pixels ignored)")
     log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
 
     stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
@@ -159,11 +171,17 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        x, labels = make_batch(images, points, pitches, args.batch, cfg, rng, contact)
+        if ignore is None:
+            x, labels = make_batch(images, points, pitches, args.batch, cfg, rng, contact)
+            cells = None
+        else:
+            x, labels, crop_ignore = make_batch_with_ignore(images, points, pitches, args.batch, cfg, rng, contact,
+                                                            ignore)
+            cells = ignore_cells(crop_ignore, stride)
         x = x.contiguous(memory_format=torch.channels_last)
         raw = model(x)
         tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
-        loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta)
+        loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta, cells)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)

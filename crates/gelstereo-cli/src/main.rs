@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use gelstereo_core::interrupt;
 
+mod cmd_adapt;
 mod cmd_bench;
 mod cmd_calibrate;
 mod cmd_capture;
@@ -47,6 +48,10 @@ enum Command {
     Track(cmd_track::Args),
     /// Localize, index, pair and triangulate a stereo recording: OUT/markers.csv and one PLY per frame.
     Reconstruct(cmd_reconstruct::Args),
+    /// Adapt the localizer to your own sensor from an unlabelled recording (pseudo-labels from the
+    /// default's sure, lattice-consistent, tracked markers; a few minutes of CPU fine-tuning): a model
+    /// folder for --models.
+    Adapt(cmd_adapt::Args),
 }
 
 fn main() -> ExitCode {
@@ -65,7 +70,11 @@ fn main() -> ExitCode {
     };
     if matches!(
         cli.command,
-        Command::Simulate(_) | Command::Reconstruct(_) | Command::Track(_) | Command::Capture(_)
+        Command::Simulate(_)
+            | Command::Reconstruct(_)
+            | Command::Track(_)
+            | Command::Capture(_)
+            | Command::Adapt(_)
     ) {
         stop_at_frame_boundary_on_signals();
     }
@@ -79,6 +88,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => cmd_simulate::run(&args),
         Command::Track(args) => cmd_track::run(&args),
         Command::Reconstruct(args) => cmd_reconstruct::run(&args),
+        Command::Adapt(args) => cmd_adapt::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -10,7 +10,9 @@
 //!   timestamps, optionally decoded ahead on a thread of their own ([`source::Prefetch`]).
 //! - [`sink`]: CSV tables, JSON lines, PLY clouds and meshes, overlays and plots, into an output
 //!   folder that records what it wrote ([`sink::OutputFolder`]).
-//! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`] times it.
+//! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`](mod@bench) times it.
+//! - [`adapt`]: pseudo-labels from an unlabelled recording and the fine-tuning run that adapts the
+//!   localizer to a sensor (`gelstereo adapt`).
 //! - [`doctor`]: every component a user needs, checked, with a fix for each that is missing.
 //! - [`eval`]: the paper's Table I of each localization method on a simulated dataset.
 //! - [`reconstruct`]: localization, indexing, pairing and triangulation of a stereo recording into
@@ -32,6 +34,7 @@
 //! in the left camera's frame (x right, y down, z forward); marker id = grid (row, col) on the left
 //! view's reference frame; times in s.
 
+pub mod adapt;
 pub mod bench;
 pub mod calibrate;
 mod config;
