@@ -9,7 +9,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 RUNS="${RUNS:-50}"
-BIN="${GELSTEREO:-$ROOT/target/release/gelstereo}"
+BIN="${GELSTEREO:-${CARGO_TARGET_DIR:-$ROOT/target}/release/gelstereo}"
 if [ ! -x "$BIN" ]; then
   bash scripts/setup.sh
   cargo build --release --locked -p gelstereo-cli

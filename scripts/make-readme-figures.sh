@@ -5,7 +5,7 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-BIN="${GELSTEREO:-$ROOT/target/release/gelstereo}"
+BIN="${GELSTEREO:-${CARGO_TARGET_DIR:-$ROOT/target}/release/gelstereo}"
 [ -x "$BIN" ] || { bash scripts/setup.sh; cargo build --release --locked -p gelstereo-cli; }
 OUT="$(mktemp -d)"
 trap 'rm -rf "$OUT"' EXIT

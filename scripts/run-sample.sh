@@ -5,7 +5,8 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 bash scripts/setup.sh
 cargo build --release --locked -p gelstereo-cli
-BIN="$ROOT/target/release/gelstereo"
+# Where cargo put it (CARGO_TARGET_DIR when set).
+BIN="${CARGO_TARGET_DIR:-$ROOT/target}/release/gelstereo"
 OUT="$ROOT/out/sample"
 mkdir -p "$OUT"
 "$BIN" --version

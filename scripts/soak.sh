@@ -29,7 +29,7 @@ cp "$sample/calib.yaml" "$rec/calib.yaml"
 bin=${GELSTEREO_BIN:-}
 if [[ -z "$bin" ]]; then
     cargo build --release -q -p gelstereo-cli --manifest-path "$root/Cargo.toml"
-    bin="$root/target/release/gelstereo"
+    bin="${CARGO_TARGET_DIR:-$root/target}/release/gelstereo"
 fi
 start=$(date +%s)
 "$bin" track --quiet --no-ply --overlay-every 0 --out "$work/out" "$@" "$rec" &
