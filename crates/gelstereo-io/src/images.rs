@@ -38,8 +38,10 @@ pub fn read_image(path: &Path) -> Result<Mat> {
             what: "expected an image file, found a folder".into(),
         });
     }
-    check_image_file(path)?;
-    if let Some(mat) = decode_png(path) {
+    let format = checked_format(path)?;
+    if format == Format::Png
+        && let Some(mat) = decode_png(path)
+    {
         return Ok(mat);
     }
     let mat = imgcodecs::imread(path, imgcodecs::IMREAD_COLOR).map_err(|source| Error::OpenCv {
@@ -62,9 +64,6 @@ pub fn read_image(path: &Path) -> Result<Mat> {
 /// errors stay OpenCV's.
 fn decode_png(path: &Path) -> Option<Mat> {
     let bytes = std::fs::read(path).ok()?;
-    if !bytes.starts_with(b"\x89PNG") {
-        return None;
-    }
     let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
     decoder.ignore_checksums(false);
     let mut reader = decoder.read_info().ok()?;
@@ -109,6 +108,20 @@ const END_MARKER_WINDOW_BYTES: u64 = 4096;
 /// JPEG with its EOI marker (libjpeg decodes a truncated JPEG partly, with a warning that names no
 /// file). Formats this does not recognise are left to the decoder.
 pub fn check_image_file(path: &Path) -> Result<()> {
+    checked_format(path).map(|_| ())
+}
+
+/// The container format told by a file's first bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Format {
+    Png,
+    Jpeg,
+    Other,
+}
+
+/// [`check_image_file`], returning the format it read from the header (so the decoder is chosen
+/// without reading the file again).
+fn checked_format(path: &Path) -> Result<Format> {
     let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
@@ -116,10 +129,10 @@ pub fn check_image_file(path: &Path) -> Result<()> {
     let mut file = std::fs::File::open(path).map_err(io)?;
     let mut head = [0u8; 8];
     let head_len = read_up_to(&mut file, &mut head).map_err(io)?;
-    let end_marker: &[u8] = match &head[..head_len] {
-        [0x89, b'P', b'N', b'G', ..] => b"IEND",
-        [0xFF, 0xD8, 0xFF, ..] => &[0xFF, 0xD9],
-        _ => return check_dimensions(path),
+    let (format, end_marker): (Format, &[u8]) = match &head[..head_len] {
+        [0x89, b'P', b'N', b'G', ..] => (Format::Png, b"IEND"),
+        [0xFF, 0xD8, 0xFF, ..] => (Format::Jpeg, &[0xFF, 0xD9]),
+        _ => return check_dimensions(path).map(|()| Format::Other),
     };
     let len = file.metadata().map_err(io)?.len();
     let start = len.saturating_sub(END_MARKER_WINDOW_BYTES);
@@ -131,7 +144,7 @@ pub fn check_image_file(path: &Path) -> Result<()> {
             path: path.to_path_buf(),
         });
     }
-    check_dimensions(path)
+    check_dimensions(path).map(|()| format)
 }
 
 /// The header's dimensions against the limits (formats the header reader does not know pass).
