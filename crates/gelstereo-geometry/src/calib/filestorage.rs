@@ -16,7 +16,8 @@ use std::path::Path;
 use roxmltree::{Document, ParsingOptions};
 use yaml_rust2::{Yaml, YamlLoader};
 
-use crate::error::{Error, Result};
+use super::structure::syntax;
+use crate::error::Result;
 
 /// Most XML nodes a calibration file may hold (a 12-coefficient stereo calibration has ~60).
 const MAX_XML_NODES: u32 = 100_000;
@@ -64,14 +65,6 @@ pub(crate) fn parse(path: &Path, text: &str, xml: bool) -> Result<Value> {
         parse_xml(path, text)
     } else {
         parse_yaml(path, text)
-    }
-}
-
-fn syntax(path: &Path, line: usize, message: impl Into<String>) -> Error {
-    Error::Syntax {
-        path: path.to_path_buf(),
-        line,
-        message: message.into(),
     }
 }
 

@@ -61,11 +61,12 @@ pub(crate) fn read_calibration_file(path: &Path) -> Result<CheckedText> {
     }
 }
 
-fn syntax(path: &Path, line: usize, message: String) -> Error {
+/// A syntax error of the calibration file `path` at 1-based `line` (0 when unknown).
+pub(crate) fn syntax(path: &Path, line: usize, message: impl Into<String>) -> Error {
     Error::Syntax {
         path: path.to_path_buf(),
         line,
-        message,
+        message: message.into(),
     }
 }
 
