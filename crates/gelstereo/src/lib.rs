@@ -49,7 +49,7 @@ mod start;
 pub mod track;
 pub mod truth;
 
-pub use config::{PipelineConfig, RecordingMeta, localizer, parse_grid, project_home};
+pub use config::{PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python};
 pub use error::{Error, Result};
 pub use pipeline::{Frame, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
 

@@ -6,7 +6,7 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use crate::{Error, Result, project_home};
+use crate::{Error, Result, project_home, project_python};
 
 /// The trainer's module, run with `python -m` from the checkout's `train/` folder.
 const MODULE: &str = "gelstereo_train.adapt";
@@ -20,7 +20,7 @@ const FIND_MODULES: &str = "import importlib.util as u, sys; \
 /// The Python to run: `given`, else the checkout's `.venv/bin/python`; checked to exist and to have
 /// PyTorch, ONNX and ONNX Runtime.
 pub(super) fn find_python(given: Option<&Path>) -> Result<PathBuf> {
-    let python = given.map_or_else(|| project_home().join(".venv/bin/python"), Path::to_path_buf);
+    let python = given.map_or_else(|| project_python(&project_home()), Path::to_path_buf);
     if !python.exists() {
         return Err(Error::Invalid(format!(
             "{}: not found; the fine-tuning needs the project's Python environment with PyTorch: run \
