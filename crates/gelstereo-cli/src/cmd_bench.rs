@@ -60,7 +60,8 @@ pub struct Args {
     /// Pipeline benchmark: marker lattice ROWSxCOLS (default: the recording's meta.json, else 23x23).
     #[arg(long, value_name = "ROWSxCOLS")]
     grid: Option<String>,
-    /// Pipeline benchmark: worker threads of the throughput mode (0: one per core; at most 256).
+    /// Pipeline benchmark: worker threads of the throughput mode; --track: localization threads of
+    /// `gelstereo track`'s default mode (0: one per core; at most 256).
     #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
     workers: usize,
     #[command(flatten)]
@@ -150,6 +151,7 @@ fn run_end_to_end(args: &Args) -> anyhow::Result<()> {
         sinks: gelstereo::track::SinkOptions::default(),
         runs: args.runs,
         out: scratch.path().join("out"),
+        workers: args.workers,
     })?;
     write_report(&report, args.out.as_deref())
 }

@@ -78,6 +78,10 @@ pub struct Args {
     /// Stop after this many frames.
     #[arg(long)]
     max_frames: Option<usize>,
+    /// Threads that localize the frames after the reference frame ahead of the tracker (0: one per
+    /// core; 1: one frame at a time, its two views in parallel). The outputs are the same.
+    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo::core::limits::parse_thread_count)]
+    workers: usize,
     /// Write an overlay PNG every N frames (0: none).
     #[arg(long, default_value_t = 10, value_name = "N")]
     overlay_every: usize,
@@ -194,6 +198,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         max_frames: args.max_frames,
         rezero_at: args.rezero_at.clone(),
         detections: ground_truth(args)?,
+        workers: args.workers,
     };
     let folder = match &args.out {
         Some(dir) => Some(Arc::new(OutputFolder::prepare(dir, args.force)?)),

@@ -283,6 +283,10 @@ impl Localizer for BlobLocalizer {
         "blob"
     }
 
+    fn fork(&self, _intra_threads: usize) -> Option<Result<Box<dyn Localizer + Send>>> {
+        Some(BlobLocalizer::new(self.params).map(|b| Box::new(b) as Box<dyn Localizer + Send>))
+    }
+
     fn detect(&mut self, image: &Mat) -> Result<Vec<Detection>> {
         check_image(image)?;
         let grey: &Mat = match image.channels() {

@@ -179,6 +179,16 @@ pub trait Localizer: Send {
         let _ = parallel;
     }
 
+    /// Another localizer of the same method, models and settings that goes on where this one is in
+    /// a stream (Marknet's pitch remembered per image size), its network on `intra_threads` ONNX
+    /// Runtime threads (0: one per core) and its views worked on one after the other: one per worker
+    /// thread when frames of one stream are localized in parallel. `None`: this localizer cannot be
+    /// forked (the frames are then localized one at a time).
+    fn fork(&self, intra_threads: usize) -> Option<Result<Box<dyn Localizer + Send>>> {
+        let _ = intra_threads;
+        None
+    }
+
     /// Markers in both views of a stereo pair. The two views must have the same size; the learned
     /// localizer runs both in one batch.
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {

@@ -527,6 +527,7 @@ impl Mre {
 /// The Marknet localizer: `marknet` (c > `conf_marknet_only`) or, with an [`Mre`], `marknet-mre`.
 pub struct Marknet {
     path: PathBuf,
+    options: SessionOptions,
     session: Session,
     contract: MarknetContract,
     post: PostProcess,
@@ -572,6 +573,7 @@ impl Marknet {
         let contract = MarknetContract::from_model(path, &meta, &inputs, &outputs)?;
         Ok(Self {
             path: path.to_path_buf(),
+            options: *options,
             session,
             post: contract.postprocess,
             contract,
@@ -626,6 +628,24 @@ impl Marknet {
         if !remember {
             self.pitch_memory.clear();
         }
+    }
+
+    /// [`Localizer::fork`]: the models loaded again with `intra_threads`, the thresholds, the fit
+    /// and the remembered pitches copied.
+    fn forked(&self, intra_threads: usize) -> Result<Self> {
+        let options = SessionOptions {
+            intra_threads,
+            ..self.options
+        };
+        let mut net = Marknet::load(&self.path, &options)?;
+        if let Some(mre) = &self.mre {
+            net = net.with_mre(Mre::load(&mre.path, &options)?)?;
+        }
+        net.post = self.post;
+        net.fit = self.fit;
+        net.remember_pitch = self.remember_pitch;
+        net.pitch_memory = self.pitch_memory.clone();
+        Ok(net)
     }
 
     /// Whether the "auto" fit applies (an [`InputFit::Auto`] localizer on a dynamic-input model).
@@ -1041,6 +1061,10 @@ impl Localizer for Marknet {
 
     fn set_parallel(&mut self, parallel: bool) {
         Marknet::set_parallel(self, parallel);
+    }
+
+    fn fork(&self, intra_threads: usize) -> Option<Result<Box<dyn Localizer + Send>>> {
+        Some(self.forked(intra_threads).map(|n| Box::new(n) as Box<dyn Localizer + Send>))
     }
 
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {

@@ -404,6 +404,7 @@ pub fn model_path(config: &crate::LocalizerConfig) -> PathBuf {
 /// The YOLOv3 localizer (`yolo`).
 pub struct YoloLocalizer {
     path: PathBuf,
+    options: SessionOptions,
     session: Session,
     contract: YoloContract,
     post: YoloPost,
@@ -433,6 +434,7 @@ impl YoloLocalizer {
         let contract = YoloContract::from_model(path, &map, &inputs, &outputs)?;
         Ok(Self {
             path: path.to_path_buf(),
+            options: *options,
             session,
             post: contract.post,
             contract,
@@ -540,6 +542,17 @@ impl YoloLocalizer {
 impl Localizer for YoloLocalizer {
     fn name(&self) -> &str {
         "yolo"
+    }
+
+    fn fork(&self, intra_threads: usize) -> Option<Result<Box<dyn Localizer + Send>>> {
+        let options = SessionOptions {
+            intra_threads,
+            ..self.options
+        };
+        Some(YoloLocalizer::load(&self.path, &options).map(|mut y| {
+            y.post = self.post;
+            Box::new(y) as Box<dyn Localizer + Send>
+        }))
     }
 
     fn detect(&mut self, image: &Mat) -> Result<Vec<Detection>> {

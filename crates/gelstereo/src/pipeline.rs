@@ -480,13 +480,37 @@ impl Pipeline {
     }
 
     fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
-        Ok(match images {
-            Images::Stereo(pair) => self.localizer.detect_stereo_tiered(pair)?,
-            Images::Mono(m) => StereoPair::new(
-                start::detect_padded(self.localizer.as_mut(), m, self.pad_border_px)?,
-                TieredDetections::default(),
-            ),
-        })
+        localize_with(self.localizer.as_mut(), images, self.pad_border_px)
+    }
+
+    /// A localizer for a worker thread that localizes frames of this pipeline's stream ahead of it
+    /// ([`FrameLocalizer`]), its network on `intra_threads` ONNX Runtime threads; `None` when the
+    /// pipeline's localizer cannot be forked ([`Localizer::fork`]).
+    pub fn fork_localizer(&self, intra_threads: usize) -> Option<Result<FrameLocalizer>> {
+        let forked = self.localizer.fork(intra_threads)?;
+        Some(forked.map_err(Error::from).map(|localizer| FrameLocalizer {
+            localizer,
+            pad_border_px: self.pad_border_px,
+        }))
+    }
+
+    /// [`Self::process`] of a frame localized elsewhere by a [`FrameLocalizer`] of this pipeline:
+    /// the same output, a frame that does not fit or could not be localized flagged alike.
+    pub fn process_localized(
+        &mut self,
+        frame: &Frame,
+        found: Result<StereoPair<TieredDetections>>,
+    ) -> Result<FrameOutput> {
+        match found {
+            Ok(dets) => self.process_detected(frame, dets),
+            Err(e) => {
+                let reason = match self.check_size(&frame.images) {
+                    Err(size) => size.full_message(),
+                    Ok(()) => e.full_message(),
+                };
+                Ok(self.flag(frame.time_s, reason))
+            }
+        }
     }
 
     /// Indexes the reference frame: the whole lattice, else (a grid that overfills the view) the
@@ -519,6 +543,36 @@ impl Pipeline {
             Err(e) => Err(e),
         }
     }
+}
+
+/// Localizes frames of a [`Pipeline`]'s stream on another thread, as the pipeline itself would
+/// ([`Pipeline::fork_localizer`]; hand the result to [`Pipeline::process_localized`]).
+pub struct FrameLocalizer {
+    localizer: Box<dyn Localizer + Send>,
+    pad_border_px: i32,
+}
+
+impl FrameLocalizer {
+    /// The markers of both views (stereo) or of the padded image (mono).
+    pub fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
+        localize_with(self.localizer.as_mut(), images, self.pad_border_px)
+    }
+}
+
+/// The markers of `images` as the pipeline localizes them: both views in one batch, a mono image
+/// with its border padded by `pad_border_px`.
+fn localize_with(
+    localizer: &mut (dyn Localizer + Send),
+    images: &Images,
+    pad_border_px: i32,
+) -> Result<StereoPair<TieredDetections>> {
+    Ok(match images {
+        Images::Stereo(pair) => localizer.detect_stereo_tiered(pair)?,
+        Images::Mono(m) => StereoPair::new(
+            start::detect_padded(localizer, m, pad_border_px)?,
+            TieredDetections::default(),
+        ),
+    })
 }
 
 /// The ids whose lattice position is in contact.

@@ -592,55 +592,43 @@ pub struct EndToEndBench {
     pub runs: usize,
     /// Where the outputs go (emptied of its own files before each run).
     pub out: PathBuf,
+    /// Localization threads of the default mode (0: one per core), timed against one frame at a
+    /// time.
+    pub workers: usize,
 }
 
 /// `gelstereo track` end to end, as [`crate::track::run`] runs it: frames read and decoded from disk
-/// on the prefetch thread, the pipeline, the default outputs written; `runs` timed runs after a
+/// on the prefetch thread, the pipeline, the default outputs written. Two modes in turn within each
+/// run, so machine load hits them alike: frames localized one at a time (`--workers 1`) and ahead of
+/// the tracker by `workers` threads (`gelstereo track`'s default); `runs` timed runs of each after a
 /// warm-up run, each with a fresh pipeline (models loaded before the clock starts).
 pub fn end_to_end(b: &EndToEndBench) -> Result<Report> {
     if b.runs < 1 {
         return Err(Error::Invalid("--runs must be at least 1".into()));
     }
-    let (mut walls, mut cpus, mut fps) = (Vec::new(), Vec::new(), Vec::new());
+    let ahead_workers = TrackOptions {
+        workers: b.workers,
+        ..TrackOptions::default()
+    }
+    .localization_threads();
+    let modes = [1, ahead_workers];
+    let mut timed: [EndToEndRuns; 2] = Default::default();
     let mut frames = 0;
     let load_start = load_average();
-    let stop = AtomicBool::new(false);
     for run in 0..=b.runs {
-        let mut pipeline = Pipeline::new(&b.config)?;
-        let source = FrameSource::open_path(&b.recording, false)?;
-        let stereo = source.is_stereo();
-        let folder = std::sync::Arc::new(crate::sink::OutputFolder::prepare(&b.out, false)?);
-        let mut sinks = crate::track::sinks(&folder, &b.sinks, stereo)?;
-        let c0 = process_cpu_clock_ns();
-        let t0 = Instant::now();
-        let summary = crate::track::run(
-            &mut pipeline,
-            source.prefetch(crate::track::PREFETCH_FRAMES),
-            &mut sinks,
-            &TrackOptions::default(),
-            &stop,
-            &mut |_| {},
-        )?;
-        let wall_s = t0.elapsed().as_secs_f64();
-        let cpu_ms = c0
-            .zip(process_cpu_clock_ns())
-            .map(|(a, z)| z.saturating_sub(a) as f64 * 1e-6);
-        frames = summary.frames;
-        if run == 0 {
-            continue;
+        for (mode, &workers) in modes.iter().enumerate() {
+            let (n, wall_s, cpu_ms) = end_to_end_run(b, workers)?;
+            frames = n;
+            if run > 0 {
+                timed[mode].push(n, wall_s, cpu_ms);
+            }
         }
-        walls.push(wall_s * 1e3 / frames.max(1) as f64);
-        fps.push(frames as f64 / wall_s.max(1e-9));
-        cpus.extend(cpu_ms.map(|c| c / frames.max(1) as f64));
     }
-    let (wall_med, wall_p90, _) = stats(&mut walls);
-    let (fps_med, _, _) = stats(&mut fps);
-    let cpu_med = (!cpus.is_empty()).then(|| stats(&mut cpus).0);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut text = String::new();
     let _ = writeln!(
         text,
-        "gelstereo track end to end, {}: {frames} frames read and decoded from disk on the prefetch thread, {} ({}), outputs: {}; {} timed runs after 1 warm-up, {cores} cores, load average {load_start} at start, {} at end",
+        "gelstereo track end to end, {}: {frames} frames read and decoded from disk on the prefetch thread, {} ({}), outputs: {}; {} timed runs of each mode after 1 warm-up, in turn; {cores} cores, load average {load_start} at start, {} at end",
         b.recording.display(),
         b.config.chosen_method(),
         if b.config.calibration.is_some() {
@@ -652,22 +640,112 @@ pub fn end_to_end(b: &EndToEndBench) -> Result<Report> {
         b.runs,
         load_average()
     );
+    let [one, ahead] = timed.map(|mut t| t.summary());
+    let labels = [
+        "one frame at a time (--workers 1)".to_owned(),
+        format!("localized ahead by {ahead_workers} threads (default)"),
+    ];
+    for (label, m) in labels.iter().zip([&one, &ahead]) {
+        let _ = writeln!(
+            text,
+            "{label}: median {:.1} stereo frames/s; {:.2} ms per frame (p90 of runs {:.2} ms); CPU {} per frame (all threads)",
+            m.fps,
+            m.wall_ms,
+            m.wall_p90_ms,
+            m.cpu_ms.map_or_else(|| "/".to_owned(), |c| format!("{c:.2} ms"))
+        );
+    }
     let _ = writeln!(
         text,
-        "end to end: median {fps_med:.1} stereo frames/s; {wall_med:.2} ms per frame (p90 of runs {wall_p90:.2} ms); CPU {} per frame (all threads)",
-        cpu_med.map_or_else(|| "/".to_owned(), |c| format!("{c:.2} ms"))
+        "end to end: median {:.1} stereo frames/s with the default, {:.2}x the frames/s of one frame at a time",
+        ahead.fps,
+        ahead.fps / one.fps.max(1e-9)
     );
+    let mode_json = |m: &EndToEndSummary, workers: usize| {
+        json!({
+            "workers": workers,
+            "frames_per_s_median": m.fps,
+            "ms_per_frame": {"median": m.wall_ms, "p90": m.wall_p90_ms},
+            "cpu_ms_per_frame_median": m.cpu_ms,
+        })
+    };
     let json = json!({
         "recording": b.recording.display().to_string(),
         "frames": frames,
         "runs": b.runs,
         "method": b.config.chosen_method().as_str(),
         "outputs": b.sinks.describe(),
-        "frames_per_s_median": fps_med,
-        "ms_per_frame": {"median": wall_med, "p90": wall_p90},
-        "cpu_ms_per_frame_median": cpu_med,
+        "frames_per_s_median": ahead.fps,
+        "one_at_a_time": mode_json(&one, 1),
+        "localized_ahead": mode_json(&ahead, ahead_workers),
         "cores": cores,
         "load_average_at_start": load_start,
     });
     Ok(Report { text, json })
+}
+
+/// One end-to-end run with `workers` localization threads: frames, wall time (s), CPU time (ms).
+fn end_to_end_run(b: &EndToEndBench, workers: usize) -> Result<(usize, f64, Option<f64>)> {
+    let mut pipeline = Pipeline::new(&b.config)?;
+    let source = FrameSource::open_path(&b.recording, false)?;
+    let stereo = source.is_stereo();
+    let folder = std::sync::Arc::new(crate::sink::OutputFolder::prepare(&b.out, false)?);
+    let mut sinks = crate::track::sinks(&folder, &b.sinks, stereo)?;
+    let options = TrackOptions {
+        workers,
+        ..TrackOptions::default()
+    };
+    let stop = AtomicBool::new(false);
+    let c0 = process_cpu_clock_ns();
+    let t0 = Instant::now();
+    let summary = crate::track::run(
+        &mut pipeline,
+        source.prefetch(crate::track::PREFETCH_FRAMES),
+        &mut sinks,
+        &options,
+        &stop,
+        &mut |_| {},
+    )?;
+    let wall_s = t0.elapsed().as_secs_f64();
+    let cpu_ms = c0
+        .zip(process_cpu_clock_ns())
+        .map(|(a, z)| z.saturating_sub(a) as f64 * 1e-6);
+    Ok((summary.frames, wall_s, cpu_ms))
+}
+
+/// The timed runs of one end-to-end mode, per frame.
+#[derive(Default)]
+struct EndToEndRuns {
+    walls_ms: Vec<f64>,
+    fps: Vec<f64>,
+    cpus_ms: Vec<f64>,
+}
+
+/// Medians of [`EndToEndRuns`].
+struct EndToEndSummary {
+    fps: f64,
+    wall_ms: f64,
+    wall_p90_ms: f64,
+    cpu_ms: Option<f64>,
+}
+
+impl EndToEndRuns {
+    fn push(&mut self, frames: usize, wall_s: f64, cpu_ms: Option<f64>) {
+        let n = frames.max(1) as f64;
+        self.walls_ms.push(wall_s * 1e3 / n);
+        self.fps.push(frames as f64 / wall_s.max(1e-9));
+        self.cpus_ms.extend(cpu_ms.map(|c| c / n));
+    }
+
+    fn summary(&mut self) -> EndToEndSummary {
+        let (wall_ms, wall_p90_ms, _) = stats(&mut self.walls_ms);
+        let (fps, _, _) = stats(&mut self.fps);
+        let cpu_ms = (!self.cpus_ms.is_empty()).then(|| stats(&mut self.cpus_ms).0);
+        EndToEndSummary {
+            fps,
+            wall_ms,
+            wall_p90_ms,
+            cpu_ms,
+        }
+    }
 }

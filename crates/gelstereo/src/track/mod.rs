@@ -10,6 +10,8 @@ use crate::sink::{FrameContext, Sink};
 use crate::source::SourceFrame;
 use crate::{Error, Frame, FrameOutput, Pipeline, Result, Stages};
 
+mod ahead;
+
 /// How [`run`] goes over the frames.
 #[derive(Debug, Clone, Default)]
 pub struct TrackOptions {
@@ -19,6 +21,20 @@ pub struct TrackOptions {
     pub rezero_at: Vec<u32>,
     /// Per frame, the markers to use instead of localizing (ground truth of a simulated recording).
     pub detections: Option<Vec<StereoPair<Vec<Detection>>>>,
+    /// Threads that localize the frames after the reference frame ahead of the tracker, each with
+    /// its own localizer at one ONNX Runtime thread (0: one per core; 1: every frame localized in
+    /// turn by the pipeline's own localizer, its views in parallel). The outputs are the same.
+    pub workers: usize,
+}
+
+impl TrackOptions {
+    /// The number of localization threads [`run`] starts (`workers`, 0 resolved to the cores).
+    pub fn localization_threads(&self) -> usize {
+        match self.workers {
+            0 => std::thread::available_parallelism().map_or(1, std::num::NonZero::get),
+            n => n,
+        }
+    }
 }
 
 /// What a run did.
@@ -42,39 +58,107 @@ pub struct TrackSummary {
 
 /// Runs `frames` through `pipeline` into `sinks`, calling `on_frame` after each frame (progress,
 /// warnings). Stops at the end of the source, after `options.max_frames`, or when `stop` is raised;
-/// the sinks are finished in every case but an error.
+/// the sinks are finished in every case but an error. Frames up to the reference frame are
+/// localized in turn; the later ones ahead of the tracker by `options.workers` threads when the
+/// pipeline's localizer can be forked ([`Pipeline::fork_localizer`]).
 pub fn run(
     pipeline: &mut Pipeline,
-    frames: impl Iterator<Item = SourceFrame>,
+    frames: impl Iterator<Item = SourceFrame> + Send,
     sinks: &mut [Box<dyn Sink + '_>],
     options: &TrackOptions,
     stop: &AtomicBool,
     on_frame: &mut dyn FnMut(&FrameOutput),
 ) -> Result<TrackSummary> {
-    let mut summary = TrackSummary::default();
-    let (mut tracked, mut visible) = (0usize, 0usize);
-    for source_frame in frames.take(options.max_frames.unwrap_or(usize::MAX)) {
+    let mut run = Run {
+        pipeline,
+        sinks,
+        options,
+        on_frame,
+        summary: TrackSummary::default(),
+        tracked: 0,
+        visible: 0,
+    };
+    let mut frames = frames.take(options.max_frames.unwrap_or(usize::MAX));
+    let mut interrupted = false;
+    while !run.pipeline.is_started() {
+        let Some(frame) = frames.next() else { break };
         if stop.load(Ordering::SeqCst) {
-            summary.interrupted = true;
+            interrupted = true;
             break;
         }
+        run.frame(frame, None)?;
+    }
+    let workers = if interrupted || !run.pipeline.is_started() || options.detections.is_some() {
+        Vec::new()
+    } else {
+        fork_workers(run.pipeline, options.localization_threads())?
+    };
+    if workers.len() > 1 {
+        ahead::localize_ahead(frames, workers, stop, &mut |frame, found| {
+            if stop.load(Ordering::SeqCst) {
+                interrupted = true;
+                return Ok(false);
+            }
+            run.frame(frame, found)?;
+            Ok(true)
+        })?;
+        interrupted |= stop.load(Ordering::SeqCst);
+    } else if !interrupted {
+        for frame in frames {
+            if stop.load(Ordering::SeqCst) {
+                interrupted = true;
+                break;
+            }
+            run.frame(frame, None)?;
+        }
+    }
+    run.finish(interrupted)
+}
+
+/// `n` forked localizers of `pipeline`, one ONNX Runtime thread each; none when `n` < 2 or the
+/// localizer cannot be forked.
+fn fork_workers(pipeline: &Pipeline, n: usize) -> Result<Vec<crate::FrameLocalizer>> {
+    if n < 2 {
+        return Ok(Vec::new());
+    }
+    (0..n)
+        .map_while(|_| pipeline.fork_localizer(1))
+        .collect::<Result<Vec<_>>>()
+}
+
+/// The state of one [`run`].
+struct Run<'a, 's> {
+    pipeline: &'a mut Pipeline,
+    sinks: &'a mut [Box<dyn Sink + 's>],
+    options: &'a TrackOptions,
+    on_frame: &'a mut dyn FnMut(&FrameOutput),
+    summary: TrackSummary,
+    tracked: usize,
+    visible: usize,
+}
+
+impl Run<'_, '_> {
+    /// One frame: localized here unless `found` holds its markers, tracked, written to the sinks.
+    fn frame(&mut self, source_frame: SourceFrame, found: ahead::Found) -> Result<()> {
+        let pipeline = &mut *self.pipeline;
         let frame_no = source_frame.index as u32;
-        if options.rezero_at.contains(&frame_no) {
+        if self.options.rezero_at.contains(&frame_no) {
             pipeline.rezero();
         }
         let time_s = Some(source_frame.time_s);
         let (out, frame) = match source_frame.images {
             Ok(images) => {
                 let frame = Frame { images, time_s };
-                let out = match &options.detections {
-                    Some(all) => match all.get(frame_no as usize) {
+                let out = match (&self.options.detections, found) {
+                    (Some(all), _) => match all.get(frame_no as usize) {
                         Some(d) => {
                             let dets = StereoPair::new(d.left.clone().into(), d.right.clone().into());
                             pipeline.process_detected(&frame, dets)?
                         }
                         None => pipeline.flag(time_s, format!("no ground truth for frame {frame_no}")),
                     },
-                    None => pipeline.process(&frame)?,
+                    (None, Some(found)) => pipeline.process_localized(&frame, found)?,
+                    (None, None) => pipeline.process(&frame)?,
                 };
                 (out, Some(frame))
             }
@@ -86,21 +170,22 @@ pub fn run(
                 images: None,
                 pipeline,
             };
-            sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+            self.sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
         }
+        let summary = &mut self.summary;
         if !pipeline.is_started() {
             // Flagged before the reference lattice: its rows follow once the ids are known.
             summary.frames += 1;
             summary.flagged.extend(out.note.clone());
-            on_frame(&out);
-            continue;
+            (self.on_frame)(&out);
+            return Ok(());
         }
         let ctx = FrameContext {
             output: &out,
             images: frame.as_ref().map(|f| &f.images),
             pipeline,
         };
-        sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+        self.sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
         summary.frames += 1;
         summary.flagged.extend(out.note.clone());
         summary.contact_frames += usize::from(out.summary.contact);
@@ -114,24 +199,31 @@ pub fn run(
             None => None,
         };
         if let Some(l) = left {
-            tracked += l.count(MarkerStatus::Tracked);
-            visible += l.markers.len();
+            self.tracked += l.count(MarkerStatus::Tracked);
+            self.visible += l.markers.len();
         }
-        on_frame(&out);
+        (self.on_frame)(&out);
+        Ok(())
     }
-    summary.started = pipeline.is_started();
-    if !summary.started {
-        return Err(Error::Invalid(format!(
-            "no frame could be indexed as the reference lattice ({} frames read): {}",
-            summary.frames,
-            summary.flagged.last().map_or("no frames", String::as_str)
-        )));
+
+    /// The summary, after the sinks are finished; an error when no reference frame was indexed.
+    fn finish(mut self, interrupted: bool) -> Result<TrackSummary> {
+        let mut summary = std::mem::take(&mut self.summary);
+        summary.interrupted = interrupted;
+        summary.started = self.pipeline.is_started();
+        if !summary.started {
+            return Err(Error::Invalid(format!(
+                "no frame could be indexed as the reference lattice ({} frames read): {}",
+                summary.frames,
+                summary.flagged.last().map_or("no frames", String::as_str)
+            )));
+        }
+        for s in self.sinks.iter_mut() {
+            s.finish()?;
+        }
+        summary.tracked_fraction = self.tracked as f64 / self.visible.max(1) as f64;
+        Ok(summary)
     }
-    for s in sinks.iter_mut() {
-        s.finish()?;
-    }
-    summary.tracked_fraction = tracked as f64 / visible.max(1) as f64;
-    Ok(summary)
 }
 
 /// Frames read and decoded ahead of the pipeline by [`crate::source::Prefetch`] (bounded: memory
