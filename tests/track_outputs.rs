@@ -51,14 +51,18 @@ fn track_ok(args: &[&str]) -> String {
 #[test]
 fn tables_on_the_sample_are_byte_identical_and_frames_csv_ends_with_time_and_note() {
     let dir = tempfile::tempdir().unwrap();
-    for (method, frames_file) in [
-        ("marknet-mre", "press-slide-frames.csv"),
-        ("blob", "press-slide-frames-blob.csv"),
+    // Frames localized ahead by worker threads (the default) and one at a time: the same tables.
+    for (method, frames_file, workers) in [
+        ("marknet-mre", "press-slide-frames.csv", "0"),
+        ("marknet-mre", "press-slide-frames.csv", "1"),
+        ("blob", "press-slide-frames-blob.csv", "0"),
     ] {
-        let out = dir.path().join(method);
+        let out = dir.path().join(format!("{method}-{workers}"));
         track_ok(&[
             "--method",
             method,
+            "--workers",
+            workers,
             "--out",
             out.to_str().unwrap(),
             sample().to_str().unwrap(),
@@ -66,7 +70,7 @@ fn tables_on_the_sample_are_byte_identical_and_frames_csv_ends_with_time_and_not
         assert_eq!(
             sha256(&out.join("markers.csv")),
             expected_hash(method),
-            "{method}"
+            "{method}, --workers {workers}"
         );
         let expected = std::fs::read_to_string(repo().join("tests/data").join(frames_file)).unwrap();
         let written = std::fs::read_to_string(out.join("frames.csv")).unwrap();

@@ -77,9 +77,6 @@ fn decode_png(path: &Path) -> Option<Mat> {
         return None;
     }
     let (width, height) = (i32::try_from(info.width).ok()?, i32::try_from(info.height).ok()?);
-    let mut pixels = vec![0u8; reader.output_buffer_size()?];
-    reader.next_frame(&mut pixels).ok()?;
-    reader.finish().ok()?;
     let mut mat = Mat::new_rows_cols_with_default(
         height,
         width,
@@ -89,14 +86,22 @@ fn decode_png(path: &Path) -> Option<Mat> {
     .ok()?;
     let bgr = mat.data_bytes_mut().ok()?;
     if grey {
+        let mut pixels = vec![0u8; reader.output_buffer_size()?];
+        reader.next_frame(&mut pixels).ok()?;
         for (d, &v) in bgr.chunks_exact_mut(3).zip(&pixels) {
             d.fill(v);
         }
     } else {
-        for (d, s) in bgr.chunks_exact_mut(3).zip(pixels.chunks_exact(3)) {
-            d.copy_from_slice(&[s[2], s[1], s[0]]);
+        // Decoded straight into the image, then R and B swapped in place: no second buffer.
+        if reader.output_buffer_size()? != bgr.len() {
+            return None;
+        }
+        reader.next_frame(bgr).ok()?;
+        for px in bgr.chunks_exact_mut(3) {
+            px.swap(0, 2);
         }
     }
+    reader.finish().ok()?;
     Some(mat)
 }
 

@@ -1064,7 +1064,10 @@ impl Localizer for Marknet {
     }
 
     fn fork(&self, intra_threads: usize) -> Option<Result<Box<dyn Localizer + Send>>> {
-        Some(self.forked(intra_threads).map(|n| Box::new(n) as Box<dyn Localizer + Send>))
+        Some(
+            self.forked(intra_threads)
+                .map(|n| Box::new(n) as Box<dyn Localizer + Send>),
+        )
     }
 
     fn detect_stereo(&mut self, pair: &StereoPair<Mat>) -> Result<StereoPair<Vec<Detection>>> {
