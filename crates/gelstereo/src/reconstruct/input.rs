@@ -11,6 +11,8 @@ use gelstereo_geometry::StereoRig;
 use gelstereo_io::{images, video};
 use gelstereo_markers::{Localizer, LocalizerConfig, Method};
 use gelstereo_matching::eval::GroundTruth;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 
 use crate::pipeline::size_of;
 use crate::{Error, Result};
@@ -35,7 +37,7 @@ impl Perturbation {
     }
 
     /// `dets` with this perturbation applied, drawn from `rng`.
-    fn apply(&self, dets: Vec<Detection>, rng: &mut SplitMix64) -> Vec<Detection> {
+    fn apply(&self, dets: Vec<Detection>, rng: &mut ChaCha8Rng) -> Vec<Detection> {
         if self.is_none() {
             return dets;
         }
@@ -46,18 +48,18 @@ impl Perturbation {
         }
         let mut out: Vec<Detection> = Vec::with_capacity(dets.len() + self.dust);
         for d in dets {
-            if rng.uniform() < self.missing {
+            if uniform(rng) < self.missing {
                 continue;
             }
             let position = Point2::new(
-                d.position.x + self.noise_px * rng.normal(),
-                d.position.y + self.noise_px * rng.normal(),
+                d.position.x + self.noise_px * normal(rng),
+                d.position.y + self.noise_px * normal(rng),
             );
             out.push(Detection { position, ..d });
         }
         if x1 >= x0 {
             for _ in 0..self.dust {
-                let position = Point2::new(x0 + (x1 - x0) * rng.uniform(), y0 + (y1 - y0) * rng.uniform());
+                let position = Point2::new(x0 + (x1 - x0) * uniform(rng), y0 + (y1 - y0) * uniform(rng));
                 out.push(Detection {
                     position,
                     confidence: 1.0,
@@ -68,28 +70,15 @@ impl Perturbation {
     }
 }
 
-/// SplitMix64 (Steele, Lea & Flood 2014): a small seeded generator for the perturbations.
-struct SplitMix64(u64);
+/// Uniform in [0, 1).
+fn uniform(rng: &mut ChaCha8Rng) -> f64 {
+    rng.random::<f64>()
+}
 
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1).
-    fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Standard normal (Box-Muller).
-    fn normal(&mut self) -> f64 {
-        let u1 = self.uniform().max(1e-300);
-        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * self.uniform()).cos()
-    }
+/// Standard normal (Box-Muller).
+fn normal(rng: &mut ChaCha8Rng) -> f64 {
+    let u1 = uniform(rng).max(1e-300);
+    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * uniform(rng)).cos()
 }
 
 /// One stereo frame of the input.
@@ -145,7 +134,7 @@ pub(super) fn ground_truth_frames(truth: &GroundTruth, perturbation: &Perturbati
         .frames
         .iter()
         .map(|(&frame, markers)| {
-            let mut rng = SplitMix64(perturbation.seed ^ (u64::from(frame) << 32));
+            let mut rng = ChaCha8Rng::seed_from_u64(perturbation.seed ^ (u64::from(frame) << 32));
             let left: Vec<Detection> = markers.values().filter_map(|m| detection(m.left_px)).collect();
             let right: Vec<Detection> = markers.values().filter_map(|m| detection(m.right_px)).collect();
             FrameInput {
