@@ -298,6 +298,42 @@ fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
     }
 }
 
+/// Frames localized ahead of the tracker by worker threads (the default) give the tables of one
+/// frame at a time on a real mono video with a padded border: the workers go on with the remembered
+/// pitch of the reference frame's localizer, whose auto layout scales this sensor's image.
+#[test]
+fn real_mono_video_tracks_alike_with_frames_localized_ahead_and_one_at_a_time() {
+    let video = repo().join("../shared/real/gelsight-mini-press/mini_example.avi");
+    if !video.is_file() {
+        eprintln!("SKIPPED: {} is absent", video.display());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let tables = |workers: &str| {
+        let out = dir.path().join(workers);
+        let (ok, err) = track(&[
+            "--workers",
+            workers,
+            "--grid",
+            "8x10",
+            "--pad-border",
+            "8",
+            "--max-frames",
+            "80",
+            "--overlay-every",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+            video.to_str().unwrap(),
+        ]);
+        assert!(ok, "--workers {workers}: {err}");
+        ["markers.csv", "frames.csv"].map(|f| std::fs::read_to_string(out.join(f)).unwrap())
+    };
+    let one = tables("1");
+    assert_eq!(frames(&dir.path().join("1/frames.csv")).len(), 80);
+    assert_eq!(tables("2"), one);
+}
+
 /// A sensor whose 28 x 13 grid overfills the 400 x 300 views (data/fixtures, the sensor variant of
 /// `gelstereo simulate --seed 606` train/exp_0006): the whole-lattice indexing refused it; now the
 /// recording's sensor description places the visible markers on the sensor's own grid indices, in
