@@ -79,7 +79,8 @@ pub struct Args {
     #[arg(long)]
     max_frames: Option<usize>,
     /// Threads that localize the frames after the reference frame ahead of the tracker (0: one per
-    /// core; 1: one frame at a time, its two views in parallel). The outputs are the same.
+    /// core for recordings and videos, 1 for live cameras; 1: one frame at a time, its two views in
+    /// parallel, the lowest latency per frame). The outputs are the same.
     #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo::core::limits::parse_thread_count)]
     workers: usize,
     /// Write an overlay PNG every N frames (0: none).
@@ -198,7 +199,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         max_frames: args.max_frames,
         rezero_at: args.rezero_at.clone(),
         detections: ground_truth(args)?,
-        workers: args.workers,
+        // Live frames want the lowest latency per frame rather than the most frames per second.
+        workers: match args.workers {
+            0 if !args.camera.is_empty() => 1,
+            n => n,
+        },
     };
     let folder = match &args.out {
         Some(dir) => Some(Arc::new(OutputFolder::prepare(dir, args.force)?)),
