@@ -23,9 +23,11 @@ from .data import experiment_families, list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
+    FINE_PROBE_SCALE,
     MIN_PITCH_SUPPORT,
     PROBE_MIN_COVER,
     PROBE_MIN_GAIN,
+    PROBE_SCALE,
     FitConfig,
     Layout,
     PostConfig,
@@ -52,7 +54,8 @@ class MarknetRunner:
     Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
     docs/model-contract.md: a first pass without a pitch and a probe at ``PROBE_SCALE`` x its scale (kept
     when it finds at least ``MIN_PITCH_SUPPORT`` and ``PROBE_MIN_GAIN`` x as many confident candidates,
-    covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover); then, when the pitch measured on the kept one asks for a scale more than
+    covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover), and where neither found a
+    lattice a fine probe at ``FINE_PROBE_SCALE`` x under the same rule; then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a last pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
@@ -101,7 +104,7 @@ class MarknetRunner:
         return decode_layout(raw, self.stride, (img.shape[1], img.shape[0]), lay)
 
     def fitted(self, img: np.ndarray) -> tuple[np.ndarray, Layout]:
-        """Decoded candidates of one image and the layout they came from (up to three passes)."""
+        """Decoded candidates of one image and the layout they came from (up to four passes)."""
         lay = self.layout(img)
         dec = self.run_layout(img, lay)
         if self.fit is None:
@@ -125,13 +128,19 @@ class MarknetRunner:
         def cover(n: int, p: float) -> float:  # the area the supporting finds cover, see PROBE_MIN_COVER
             return n * (p * p if np.isfinite(p) else 0.0)
 
-        probe = probe_layout(img.shape[1], img.shape[0], self.fit)
-        probed = self.run_layout(img, probe)
         n_first, p_first = support(dec, lay)
-        n, p_probe = support(probed, probe)
-        gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * n_first
-        if gain and cover(n, p_probe) >= PROBE_MIN_COVER * cover(n_first, p_first):
-            lay, dec, n_first, p_first = probe, probed, n, p_probe
+        for scale in (PROBE_SCALE, FINE_PROBE_SCALE):
+            # The fine probe only where no pass so far found a lattice.
+            if scale != PROBE_SCALE and n_first >= MIN_PITCH_SUPPORT:
+                continue
+            probe = probe_layout(img.shape[1], img.shape[0], self.fit, scale)
+            if probe == lay:
+                continue
+            probed = self.run_layout(img, probe)
+            n, p_probe = support(probed, probe)
+            gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * n_first
+            if gain and cover(n, p_probe) >= PROBE_MIN_COVER * cover(n_first, p_first):
+                lay, dec, n_first, p_first = probe, probed, n, p_probe
         if n_first >= MIN_PITCH_SUPPORT and np.isfinite(p_first):
             pitch = p_first
             better = self.layout(img, pitch)

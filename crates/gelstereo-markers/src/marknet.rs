@@ -87,6 +87,13 @@ pub const MIN_PITCH_SUPPORT: usize = 8;
 /// is remembered).
 pub const PROBE_SCALE: f64 = 2.0;
 
+/// Scale of the fine probe relative to the nominal fit (`FINE_PROBE_SCALE` in the trainer): when
+/// neither the first pass nor the probe finds a lattice, the image is probed once more at this scale,
+/// kept under the probe's rule. A fine lattice on a large image (a 9 px pitch at 1280 x 720 is 2.9 px
+/// at the nominal fit and 5.9 px in the probe, under the 8 px the lattice check needs) shows only
+/// there. Images with a lattice never pay for it; a stream pays it only until a pitch is remembered.
+pub const FINE_PROBE_SCALE: f64 = 4.0;
+
 /// How many times the first pass's confident candidates the probe must find (`PROBE_MIN_GAIN` in the
 /// trainer): a sensor the nominal fit serves keeps its first pass (a few more finds at another scale
 /// would only move the layout a little), one it fails gains several times over.
@@ -189,9 +196,20 @@ fn layout_at_scale(w: f64, h: f64, p: f64, s: f64, multiple: u32) -> InputLayout
 /// The probe of the "auto" fit: the isotropic layout of an image of `size` at [`PROBE_SCALE`] times the
 /// nominal fit's scale, no margin (sides capped at [`MAX_INPUT_SIDE_PX`]).
 pub fn probe_layout(size: ImageSize, nominal_width: u32, nominal_height: u32, fit: &AutoFit) -> InputLayout {
+    probe_layout_at(size, nominal_width, nominal_height, fit, PROBE_SCALE)
+}
+
+/// [`probe_layout`] at `scale` times the nominal fit's scale ([`FINE_PROBE_SCALE`] for the fine probe).
+fn probe_layout_at(
+    size: ImageSize,
+    nominal_width: u32,
+    nominal_height: u32,
+    fit: &AutoFit,
+    scale: f64,
+) -> InputLayout {
     let (w, h) = (f64::from(size.width), f64::from(size.height));
     let nominal = (f64::from(nominal_width) / w).min(f64::from(nominal_height) / h);
-    layout_at_scale(w, h, 0.0, PROBE_SCALE * nominal, fit.multiple)
+    layout_at_scale(w, h, 0.0, scale * nominal, fit.multiple)
 }
 
 /// Input px per original px of an image of `size` under `layout` (geometric mean of the two axes).
@@ -880,17 +898,25 @@ impl Marknet {
             return Ok(found.into_iter().zip(layouts).collect());
         };
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
-        let probes: Vec<(usize, InputLayout)> = (0..images.len())
+        let unknown: Vec<usize> = (0..images.len())
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
-            .map(|i| (i, probe_layout(sizes[i], iw, ih, &fit)))
             .collect();
-        let probed = self.decode_subset(images, &sizes, &probes, min_confidence)?;
-        for ((i, layout), probe) in probes.into_iter().zip(probed) {
-            let n = probe.support;
-            let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * found[i].support as f64;
-            if gain && probe.cover() >= PROBE_MIN_COVER * found[i].cover() {
-                found[i] = probe;
-                layouts[i] = layout;
+        for scale in [PROBE_SCALE, FINE_PROBE_SCALE] {
+            // The fine probe only where no pass so far found a lattice.
+            let probes: Vec<(usize, InputLayout)> = unknown
+                .iter()
+                .filter(|&&i| scale == PROBE_SCALE || found[i].support < MIN_PITCH_SUPPORT)
+                .map(|&i| (i, probe_layout_at(sizes[i], iw, ih, &fit, scale)))
+                .filter(|&(i, probe)| probe != layouts[i])
+                .collect();
+            let probed = self.decode_subset(images, &sizes, &probes, min_confidence)?;
+            for ((i, layout), probe) in probes.into_iter().zip(probed) {
+                let n = probe.support;
+                let gain = n >= MIN_PITCH_SUPPORT && n as f64 >= PROBE_MIN_GAIN * found[i].support as f64;
+                if gain && probe.cover() >= PROBE_MIN_COVER * found[i].cover() {
+                    found[i] = probe;
+                    layouts[i] = layout;
+                }
             }
         }
         let mut wanted: Vec<Option<InputLayout>> = vec![None; images.len()];

@@ -176,6 +176,42 @@ fn images_without_markers_give_at_most_a_handful() {
     }
 }
 
+/// A fine lattice on a large image: a 9 px pitch at 1280 x 720 is 2.9 px at the nominal fit and 5.9 px
+/// in the probe, too fine for the network and the lattice check there; the fine probe at four times
+/// the nominal scale finds it and sets the layout. Nearly every whole dot is found, on its dot.
+#[test]
+fn a_fine_lattice_on_a_large_image_is_found_by_the_fine_probe() {
+    let mut net = shipped();
+    let (w, h, pitch, radius) = (1280.0, 720.0, 9.0, 2.6);
+    let centres = grid(w, h, pitch, (4.3, 3.7), radius);
+    let img = render(
+        w as i32,
+        h as i32,
+        [175.0, 180.0, 185.0],
+        [60.0, 55.0, 50.0],
+        radius,
+        &centres,
+    );
+    let found = net.detect(&img).unwrap();
+    let whole: Vec<(f64, f64)> = centres.into_iter().filter(|&p| inside(p, w, h, radius)).collect();
+    let on_dot = whole
+        .iter()
+        .filter(|&&p| nearest(&found, p) <= 0.25 * pitch)
+        .count();
+    assert!(
+        on_dot as f64 >= 0.97 * whole.len() as f64,
+        "{on_dot} of {} whole dots found ({} markers)",
+        whole.len(),
+        found.len()
+    );
+    assert!(
+        found.len() <= whole.len() + 40,
+        "{} markers for {} dots",
+        found.len(),
+        whole.len()
+    );
+}
+
 /// TacTip-like: bright pins on a hexagonal lattice inside a dark circular membrane, a bright housing
 /// around it with a few glints. Every pin clear of the rim (by a pin radius) is found within 0.25 pitch
 /// (the metrics' match radius), half of them within 0.1 pitch; nothing outside the membrane, and at
