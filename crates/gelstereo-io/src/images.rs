@@ -105,6 +105,33 @@ fn decode_png(path: &Path) -> Option<Mat> {
     Some(mat)
 }
 
+/// Encodes 8-bit pixels, row by row, as a PNG in memory: grey (`channels` 1) or RGB (3), with
+/// `compression` and, when given, one `filter` for every row (else the crate's adaptive choice).
+pub fn encode_png(
+    pixels: &[u8],
+    (width, height): (u32, u32),
+    channels: u8,
+    compression: png::Compression,
+    filter: Option<png::Filter>,
+) -> std::result::Result<Vec<u8>, png::EncodingError> {
+    let mut out = Vec::with_capacity(pixels.len() * 2 / 3);
+    let mut encoder = png::Encoder::new(&mut out, width, height);
+    encoder.set_color(if channels == 1 {
+        png::ColorType::Grayscale
+    } else {
+        png::ColorType::Rgb
+    });
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(compression);
+    if let Some(filter) = filter {
+        encoder.set_filter(filter);
+    }
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(pixels)?;
+    writer.finish()?;
+    Ok(out)
+}
+
 /// How many bytes at the end of a file are searched for its format's end marker.
 const END_MARKER_WINDOW_BYTES: u64 = 4096;
 

@@ -290,16 +290,8 @@ pub fn write_checkerboard_set(
 fn encode_grey_png(img: &Mat) -> Result<Vec<u8>> {
     let (w, h) = (img.cols() as u32, img.rows() as u32);
     let data = img.data_bytes().map_err(cv_err("target buffer"))?;
-    let mut out = Vec::new();
-    let png_err = |e: png::EncodingError| Error::Png(e.to_string());
-    let mut enc = png::Encoder::new(&mut out, w, h);
-    enc.set_color(png::ColorType::Grayscale);
-    enc.set_depth(png::BitDepth::Eight);
-    enc.set_compression(png::Compression::Fastest);
-    let mut writer = enc.write_header().map_err(png_err)?;
-    writer.write_image_data(data).map_err(png_err)?;
-    writer.finish().map_err(png_err)?;
-    Ok(out)
+    gelstereo_io::images::encode_png(data, (w, h), 1, png::Compression::Fastest, None)
+        .map_err(|e| Error::Png(e.to_string()))
 }
 
 #[cfg(test)]

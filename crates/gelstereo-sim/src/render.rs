@@ -677,19 +677,8 @@ fn apply_stripes(buf: &mut [u8], w: usize, textures: &[Texture]) {
 pub fn encode_png(img: &Mat) -> Result<Vec<u8>> {
     let (w, h) = (img.cols() as u32, img.rows() as u32);
     let data = img.data_bytes().map_err(cv_err("image buffer"))?;
-    let mut out = Vec::with_capacity(data.len() * 2 / 3);
-    let png_err = |e: png::EncodingError| crate::error::Error::Png(e.to_string());
-    {
-        let mut enc = png::Encoder::new(&mut out, w, h);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_compression(png::Compression::Fastest);
-        enc.set_filter(png::Filter::Up);
-        let mut writer = enc.write_header().map_err(png_err)?;
-        writer.write_image_data(data).map_err(png_err)?;
-        writer.finish().map_err(png_err)?;
-    }
-    Ok(out)
+    gelstereo_io::images::encode_png(data, (w, h), 3, png::Compression::Fastest, Some(png::Filter::Up))
+        .map_err(|e| crate::error::Error::Png(e.to_string()))
 }
 
 /// Converts an RGB image to OpenCV's BGR order (for `imwrite` and friends).
