@@ -273,15 +273,12 @@ impl Pipeline {
         self.rezero_requested = true;
     }
 
-    /// Processes one frame: localization, then [`Self::process_detected`].
+    /// Processes one frame: the size checks and localization, then [`Self::process_localized`].
     pub fn process(&mut self, frame: &Frame) -> Result<FrameOutput> {
         let located = self
             .check_size(&frame.images)
             .and_then(|()| self.localize(&frame.images));
-        match located {
-            Ok(dets) => self.process_detected(frame, dets),
-            Err(e) => Ok(self.flag(frame.time_s, e.full_message())),
-        }
+        self.process_localized(frame, located)
     }
 
     /// Processes one frame whose markers were found elsewhere (e.g. ground truth of a simulated
@@ -494,8 +491,9 @@ impl Pipeline {
         }))
     }
 
-    /// [`Self::process`] of a frame localized elsewhere by a [`FrameLocalizer`] of this pipeline:
-    /// the same output, a frame that does not fit or could not be localized flagged alike.
+    /// A frame and its localization (by [`Self::process`], or by a [`FrameLocalizer`] of this
+    /// pipeline on another thread): tracked, or flagged when it does not fit the calibration or the
+    /// first frame (that reason first) or could not be localized.
     pub fn process_localized(
         &mut self,
         frame: &Frame,
