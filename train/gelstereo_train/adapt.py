@@ -49,13 +49,15 @@ def base_architecture(path: Path) -> dict:
         raise SystemExit(f"{path}: cannot read the base Marknet: {e}") from e
     meta = {p.key: p.value for p in m.metadata_props}
     inits = {t.name: t for t in m.graph.initializer}
-    first = next((n for n in m.graph.node if n.op_type == "Conv"), None)
-    if first is None or first.input[1] not in inits:
-        raise SystemExit(f"{path}: no convolution with constant weights: not a Marknet")
-    w = numpy_helper.to_array(inits[first.input[1]])
-    # s4: one 5x5 stride-4 convolution to 2 x width channels; s2: a 3x3 stride-2 one to width channels.
+    convs = [n for n in m.graph.node if n.op_type == "Conv" and n.input[1] in inits]
+    if len(convs) < 2:
+        raise SystemExit(f"{path}: fewer than two convolutions with constant weights: not a Marknet")
+    w, second = (numpy_helper.to_array(inits[c.input[1]]) for c in convs[:2])
+    # s4: one 5x5 stride-4 convolution to 2 x width channels, then a residual block (its 1x1 first);
+    # s4-bare: the same convolution, then the 3x3 stride-2 one of stride 8; s2: a 3x3 stride-2 one to
+    # width channels.
     if w.shape[2:] == (5, 5):
-        stem, width = "s4", w.shape[0] // 2
+        stem, width = ("s4" if second.shape[2:] == (1, 1) else "s4-bare"), w.shape[0] // 2
     else:
         stem, width = "s2", w.shape[0]
     try:

@@ -18,8 +18,10 @@ import torch.nn.functional as F
 
 STRIDE_FOR_GRID_416 = {13: 32, 26: 16, 52: 8}
 # Stems: "s2" = 3x3 stride-2 convolution + residual block, then stride 4 (the first shipped model);
-# "s4" = one 5x5 stride-4 convolution (about 2x faster on a CPU; less accurate after 46 min of training).
-STEMS = ("s2", "s4")
+# "s4" = one 5x5 stride-4 convolution + residual block (about 2x faster on a CPU than "s2");
+# "s4-bare" = the same convolution without the residual block: the block's 104 x 80 maps (reference
+# sensor) are memory-bound and cost about a quarter of the network's CPU time for ~12 % of its FLOPs.
+STEMS = ("s2", "s4", "s4-bare")
 
 
 def conv_bn(cin: int, cout: int, k: int, s: int = 1) -> nn.Sequential:
@@ -104,7 +106,8 @@ class Marknet(nn.Module):
             # One 5x5 stride-4 convolution straight to stride 4: the stride-2 stage with its 8-channel
             # 208 x 208 maps was ~45 % of the CPU time (memory-bound), for ~15 % of the FLOPs.
             self.stem = nn.Identity()
-            self.s4 = nn.Sequential(conv_bn(3, 2 * w, 5, 4), Residual(2 * w))
+            residual = [] if stem == "s4-bare" else [Residual(2 * w)]
+            self.s4 = nn.Sequential(conv_bn(3, 2 * w, 5, 4), *residual)
         self.s8 = nn.Sequential(conv_bn(2 * w, 4 * w, 3, 2), Residual(4 * w))
         self.s16 = nn.Sequential(conv_bn(4 * w, 8 * w, 3, 2), Residual(8 * w))
         self.s32 = nn.Sequential(conv_bn(8 * w, 8 * w, 3, 2), Residual(8 * w))

@@ -88,19 +88,25 @@ def load_checkpoint(path: Path | str) -> tuple[Marknet, dict]:
 
 
 def load_init(model: Marknet, path: Path) -> dict:
-    """Copies a checkpoint's weights into `model`; its architecture must be the one asked for. Returns the
-    checkpoint's training record (steps, seconds, its own warm start) for this run's metadata."""
+    """Copies a checkpoint's weights into `model`. The architecture must be the one asked for, or one
+    that holds every weight of it with the same name and shape (an "s4" checkpoint warm-starts an
+    "s4-bare" model: the residual block it lacks is left out). Returns the checkpoint's training record
+    (steps, seconds, its own warm start, the weights left out) for this run's metadata."""
     if not path.is_file():
         raise SystemExit(f"--init {path}: no such checkpoint file")
     ck = torch.load(path, map_location="cpu", weights_only=False)
     want = {"stride": model.stride, "candidates": model.candidates, "width": model.width, "stem": model.stem_kind}
     have = ck.get("arch") if isinstance(ck, dict) else None
-    if have != want:
+    mine = model.state_dict()
+    theirs = ck.get("model", {}) if isinstance(ck, dict) else {}
+    if have != want and any(k not in theirs or theirs[k].shape != v.shape for k, v in mine.items()):
         raise SystemExit(f"--init {path}: checkpoint architecture {have} differs from the one asked for {want} "
-                         "(give the same --grid, --candidates, --width and --stem)")
-    model.load_state_dict(ck["model"])
+                         "and lacks some of its weights (give the same --grid, --candidates, --width and --stem)")
+    left_out = sorted(k for k in theirs if k not in mine)
+    model.load_state_dict({k: theirs[k] for k in mine})
     meta = ck.get("meta", {})
-    return {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
+    record = {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
+    return record | ({"left_out": left_out} if left_out else {})
 
 
 def train(args, log=print) -> Path:
@@ -270,8 +276,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=int, default=52, choices=(13, 26, 52), help="S at 416x416")
     p.add_argument("--candidates", type=int, default=5, help="m, candidates per cell (1..5)")
     p.add_argument("--stem", default="s2", choices=STEMS,
-                   help="s2: stride-2 stage (the shipped model); s4: one 5x5 stride-4 convolution (~2x faster, "
-                   "less accurate at our budget, see data/models/MODEL_CARD.md)")
+                   help="s2: stride-2 stage; s4: one 5x5 stride-4 convolution and a residual block (~2x faster); "
+                   "s4-bare: the same convolution alone (~1.4x faster than s4; see model.py)")
     p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
                    help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
                    "shipped model was trained) or auto (the auto layout)")

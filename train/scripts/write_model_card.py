@@ -22,6 +22,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gelstereo_train.evaluate import format_table  # noqa: E402
 from gelstereo_train.model import Marknet, count_flops  # noqa: E402
 
+STEM_WORDS = {
+    "s2": "3x3 stride-2 convolution + residual block",
+    "s4": "one 5x5 stride-4 convolution + residual block",
+    "s4-bare": "one 5x5 stride-4 convolution, no residual block at stride 4",
+}
+
 
 def sha(p: Path) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()[:16]
@@ -65,7 +71,7 @@ def main(argv=None) -> int:
              f"{arch['width']}; {sum(q.numel() for q in net.parameters())} parameters, "
              f"{count_flops(net):.3f} GFLOP at 416x416 ({count_flops(net, 320, 416):.3f} at 416x320, the reference "
              f"sensor's auto layout); stem `{arch.get('stem', 's2')}` ("
-             + ("one 5x5 stride-4 convolution" if arch.get("stem") == "s4" else "3x3 stride-2 convolution + residual block")
+             + STEM_WORDS.get(arch.get("stem", "s2"), "?")
              + "). Conv + BatchNorm + LeakyReLU, Darknet residual blocks down to stride 32, a top-down path with nearest upsampling and lateral concatenation back to "
              "stride 8, one 1x1 detection head (`train/gelstereo_train/model.py`).")
     L.append("- MRE: 11 -> 32 -> 32 -> 1 fully connected, ReLU, sigmoid inside the exported graph.")

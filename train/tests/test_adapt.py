@@ -5,11 +5,15 @@ exported file."""
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from gelstereo_train.adapt import base_architecture, compact
 from gelstereo_train.augment import AugConfig, make_batch, make_batch_with_ignore, sample_crops
+from gelstereo_train.export import export_marknet, marknet_metadata
 from gelstereo_train.loss import build_targets, ignore_cells, marknet_loss
+from gelstereo_train.model import Marknet
+from gelstereo_train.postprocess import PostConfig
 from gelstereo_train.tinydata import grid_points, render_dots
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -84,6 +88,15 @@ def test_base_architecture_of_the_shipped_model():
     arch = base_architecture(ROOT / "data/models/marknet.onnx")
     assert (arch["stem"], arch["width"], arch["grid"], arch["candidates"]) == ("s4", 8, 52, 5)
     assert arch["canonical"] == "auto" and arch["input_hw"] == (416, 416)
+
+
+@pytest.mark.parametrize("stem", ["s2", "s4", "s4-bare"])
+def test_base_architecture_tells_the_stems_apart(stem, tmp_path):
+    model = Marknet(stride=8, candidates=3, width=4, stem=stem).eval()
+    path = tmp_path / "marknet.onnx"
+    export_marknet(model, path, (128, 128), marknet_metadata(model, (128, 128), "tiny", "test", PostConfig()))
+    arch = base_architecture(path)
+    assert (arch["stem"], arch["width"], arch["candidates"]) == (stem, 4, 3)
 
 
 def test_compact_frame_list():

@@ -123,6 +123,29 @@ def test_warm_start_continues_from_a_checkpoint_of_the_same_architecture(trained
                                                                        "8", "--init", str(ck)]), log=lambda *_: None)
 
 
+def test_an_s4_checkpoint_warm_starts_the_bare_stem_and_not_the_reverse(tiny_root, tmp_path):
+    base = ["--data", str(tiny_root), "--steps", "1", "--batch", "2", "--crop", "64", "--input-size", "128",
+            "--candidates", "3", "--width", "4", "--save-every-min", "0"]
+    s4 = tmp_path / "s4.pt"
+    train_marknet.train(train_marknet.parser().parse_args(base + ["--out", str(s4), "--stem", "s4"]),
+                        log=lambda *_: None)
+    bare = tmp_path / "bare.pt"
+    train_marknet.train(train_marknet.parser().parse_args(
+        base + ["--out", str(bare), "--stem", "s4-bare", "--lr", "0", "--init", str(s4)]), log=lambda *_: None)
+    start, _ = train_marknet.load_checkpoint(s4)
+    warm, meta = train_marknet.load_checkpoint(bare)
+    # Every weight of the bare model is the s4 checkpoint's; only the stride-4 residual block is left out.
+    theirs = dict(start.named_parameters())
+    for k, a in warm.named_parameters():
+        assert torch.equal(a, theirs[k]), k
+    assert meta["init"]["left_out"] and all(k.startswith("s4.1.") for k in meta["init"]["left_out"])
+    assert len(list(warm.parameters())) < len(list(start.parameters()))
+    # The bare model lacks the block s4 needs: refused, naming the stem.
+    with pytest.raises(SystemExit, match="stem"):
+        train_marknet.train(train_marknet.parser().parse_args(
+            base + ["--out", str(tmp_path / "x.pt"), "--stem", "s4", "--init", str(bare)]), log=lambda *_: None)
+
+
 def test_warm_start_from_an_exported_onnx_reproduces_it(trained, tiny_root, tmp_path):
     _, _, onnx_dir = trained
     base = ["--data", str(tiny_root), "--steps", "1", "--lr", "0", "--batch", "2", "--crop", "64",
