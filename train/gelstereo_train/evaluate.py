@@ -23,6 +23,7 @@ from .data import experiment_families, list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
+    COARSE_PROBE_SCALE,
     FINE_PROBE_SCALE,
     MIN_PITCH_SUPPORT,
     PROBE_MIN_COVER,
@@ -55,7 +56,8 @@ class MarknetRunner:
     docs/model-contract.md: a first pass without a pitch and a probe at ``PROBE_SCALE`` x its scale (kept
     when it finds at least ``MIN_PITCH_SUPPORT`` and ``PROBE_MIN_GAIN`` x as many confident candidates,
     covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover), and where neither found a
-    lattice a fine probe at ``FINE_PROBE_SCALE`` x under the same rule; then, when the pitch measured on the kept one asks for a scale more than
+    lattice a fine probe at ``FINE_PROBE_SCALE`` x and a coarse one at ``COARSE_PROBE_SCALE`` x under the
+    same rule; then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a last pass at that scale (each image on its own, as
     ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
@@ -129,8 +131,8 @@ class MarknetRunner:
             return n * (p * p if np.isfinite(p) else 0.0)
 
         n_first, p_first = support(dec, lay)
-        for scale in (PROBE_SCALE, FINE_PROBE_SCALE):
-            # The fine probe only where no pass so far found a lattice.
+        for scale in (PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE):
+            # The fine and coarse probes only where no pass so far found a lattice.
             if scale != PROBE_SCALE and n_first >= MIN_PITCH_SUPPORT:
                 continue
             probe = probe_layout(img.shape[1], img.shape[0], self.fit, scale)

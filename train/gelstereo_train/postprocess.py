@@ -129,6 +129,7 @@ MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a 
 
 PROBE_SCALE = 2.0  # a first pass without a pitch is run again at this x the scale (see MarknetRunner.fitted)
 FINE_PROBE_SCALE = 4.0  # where neither the first pass nor the probe finds a lattice: probed once more at this x
+COARSE_PROBE_SCALE = 0.25  # where no pass so far finds a lattice: probed at this x too (markers too coarse)
 PROBE_MIN_GAIN = 2.0  # times the first pass's confident candidates the probe must find
 PROBE_MIN_COVER = 0.5  # share of the first pass's covered area (confident x pitch^2) the probe must cover
 
@@ -137,7 +138,7 @@ def probe_layout(w: int, h: int, fit: FitConfig, scale: float = PROBE_SCALE) -> 
     """The probe of the "auto" fit: isotropic, PROBE_SCALE x the nominal fit's scale, no margin (capped at
     fit.max_side). A sensor whose pitch falls below the network's range at the nominal fit shows only a
     scattered few markers there, whose nearest-neighbour distances overstate the pitch, so the measured
-    pitch alone never asks for the larger scale. ``scale``: FINE_PROBE_SCALE for the fine probe.
+    pitch alone never asks for the larger scale. ``scale``: FINE_PROBE_SCALE for the fine probe, COARSE_PROBE_SCALE for the coarse one.
     Mirrors ``probe_layout`` / ``probe_layout_at`` in gelstereo-markers."""
     nh, nw = fit.nominal_hw
     return _layout_at_scale(w, h, 0.0, scale * min(nw / w, nh / h), fit)

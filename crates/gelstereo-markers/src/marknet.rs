@@ -94,6 +94,12 @@ pub const PROBE_SCALE: f64 = 2.0;
 /// there. Images with a lattice never pay for it; a stream pays it only until a pitch is remembered.
 pub const FINE_PROBE_SCALE: f64 = 4.0;
 
+/// Scale of the coarse probe relative to the nominal fit (`COARSE_PROBE_SCALE` in the trainer): where
+/// no pass so far found a lattice, the image is probed at this scale too, kept under the probe's rule.
+/// A coarse sensor (a 50 px pitch on a 320 x 240 image is 65 px at the nominal fit, beyond the
+/// network's range, where it finds nothing or several finds per dot) shows its lattice only there.
+pub const COARSE_PROBE_SCALE: f64 = 0.25;
+
 /// How many times the first pass's confident candidates the probe must find (`PROBE_MIN_GAIN` in the
 /// trainer): a sensor the nominal fit serves keeps its first pass (a few more finds at another scale
 /// would only move the layout a little), one it fails gains several times over.
@@ -199,7 +205,8 @@ pub fn probe_layout(size: ImageSize, nominal_width: u32, nominal_height: u32, fi
     probe_layout_at(size, nominal_width, nominal_height, fit, PROBE_SCALE)
 }
 
-/// [`probe_layout`] at `scale` times the nominal fit's scale ([`FINE_PROBE_SCALE`] for the fine probe).
+/// [`probe_layout`] at `scale` times the nominal fit's scale ([`FINE_PROBE_SCALE`] for the fine probe,
+/// [`COARSE_PROBE_SCALE`] for the coarse one).
 fn probe_layout_at(
     size: ImageSize,
     nominal_width: u32,
@@ -901,8 +908,8 @@ impl Marknet {
         let unknown: Vec<usize> = (0..images.len())
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .collect();
-        for scale in [PROBE_SCALE, FINE_PROBE_SCALE] {
-            // The fine probe only where no pass so far found a lattice.
+        for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
+            // The fine and coarse probes only where no pass so far found a lattice.
             let probes: Vec<(usize, InputLayout)> = unknown
                 .iter()
                 .filter(|&&i| scale == PROBE_SCALE || found[i].support < MIN_PITCH_SUPPORT)

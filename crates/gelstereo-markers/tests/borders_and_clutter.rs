@@ -212,6 +212,39 @@ fn a_fine_lattice_on_a_large_image_is_found_by_the_fine_probe() {
     );
 }
 
+/// A coarse lattice on a small image: dots 30 px wide at a 50 px pitch on 320 x 240 are 65 px apart
+/// at the nominal fit, beyond the network's range, and further still in the probes that enlarge; the
+/// coarse probe at a quarter of the nominal scale finds the lattice and sets the layout. Every whole dot
+/// is found, on its dot, and nothing is reported beyond the dots whose centre lies in the image.
+#[test]
+fn a_coarse_lattice_on_a_small_image_is_found_by_the_coarse_probe() {
+    let mut net = shipped();
+    let (w, h, pitch, radius) = (320.0, 240.0, 50.0, 15.0);
+    let centres = grid(w, h, pitch, (35.0, 35.0), radius);
+    let img = render(
+        w as i32,
+        h as i32,
+        [200.0, 225.0, 205.0],
+        [70.0, 65.0, 65.0],
+        radius,
+        &centres,
+    );
+    let found = net.detect(&img).unwrap();
+    let in_image = centres.iter().filter(|&&p| inside(p, w, h, 0.0)).count();
+    let whole: Vec<(f64, f64)> = centres.into_iter().filter(|&p| inside(p, w, h, radius)).collect();
+    let on_dot = whole
+        .iter()
+        .filter(|&&p| nearest(&found, p) <= 0.25 * pitch)
+        .count();
+    assert!(whole.len() >= 20, "{} whole dots drawn", whole.len());
+    assert_eq!(on_dot, whole.len(), "{} markers found", found.len());
+    assert!(
+        found.len() <= in_image,
+        "{} markers for {in_image} dots centred in the image",
+        found.len()
+    );
+}
+
 /// TacTip-like: bright pins on a hexagonal lattice inside a dark circular membrane, a bright housing
 /// around it with a few glints. Every pin clear of the rim (by a pin radius) is found within 0.25 pitch
 /// (the metrics' match radius), half of them within 0.1 pitch; nothing outside the membrane, and at
