@@ -32,6 +32,9 @@ pub struct Buckets {
     /// `start[c]..start[c + 1]` are the entries of cell `c` in `items`.
     start: Vec<u32>,
     items: Vec<u32>,
+    /// `points[items[k]]` for every `k`: the queries read the points of a run of cells from one
+    /// contiguous slice instead of through the index.
+    item_points: Vec<Point2>,
     points: Vec<Point2>,
 }
 
@@ -69,6 +72,7 @@ impl Buckets {
             items[fill[c] as usize] = i as u32;
             fill[c] += 1;
         }
+        let item_points = items.iter().map(|&i| points[i as usize]).collect();
         Self {
             x0,
             y0,
@@ -77,6 +81,7 @@ impl Buckets {
             ny,
             start,
             items,
+            item_points,
             points: points.to_vec(),
         }
     }
@@ -112,56 +117,107 @@ impl Buckets {
         let cy0 = lo_y.max(0.0) as usize;
         let cy1 = (hi_y as usize).min(self.ny - 1);
         for cy in cy0..=cy1 {
-            for cx in cx0..=cx1 {
-                let c = cy * self.nx + cx;
-                for &i in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
-                    let q = self.points[i as usize];
-                    let d2 = (q.x - p.x).powi(2) + (q.y - p.y).powi(2);
-                    if d2 <= r2 {
-                        f(i as usize, d2);
-                    }
+            // The cells of one row are consecutive in `items`: one loop per row, not per cell (the
+            // loop exits of the nearly empty cells were what a query spent its time on).
+            let run = self.run(cy * self.nx + cx0, cy * self.nx + cx1);
+            for (&i, q) in self.items[run.clone()].iter().zip(&self.item_points[run]) {
+                let d2 = (q.x - p.x).powi(2) + (q.y - p.y).powi(2);
+                if d2 <= r2 {
+                    f(i as usize, d2);
                 }
             }
         }
     }
+
+    /// The entries of cells `first..=last` (of one row) in `items`.
+    fn run(&self, first: usize, last: usize) -> std::ops::Range<usize> {
+        self.start[first] as usize..self.start[last + 1] as usize
+    }
+
+    /// The smallest squared distance from `p` to the points of cells `first..=last` (of one row)
+    /// other than point `i`, or `best` if none is closer.
+    fn nearest_in_run(&self, p: Point2, i: usize, (first, last): (usize, usize), mut best: f64) -> f64 {
+        let run = self.run(first, last);
+        for (&j, q) in self.items[run.clone()].iter().zip(&self.item_points[run]) {
+            if j as usize != i {
+                best = best.min((q.x - p.x) * (q.x - p.x) + (q.y - p.y) * (q.y - p.y));
+            }
+        }
+        best
+    }
+
     /// Distance from `points[i]` to its nearest other point, px (`None` if it is alone or `i` is out of
-    /// range). Searches rings of cells outwards until no closer point can remain.
+    /// range). Searches square rings of cells outwards until no closer point can remain: until the
+    /// nearest one found is no farther than the edge of the cells searched (a side at the grid's
+    /// edge has nothing beyond it).
     pub fn nearest_other_px(&self, i: usize) -> Option<f64> {
         let p = *self.points.get(i)?;
         let cell_px = 1.0 / self.inv_cell;
         let cx = (((p.x - self.x0) * self.inv_cell) as usize).min(self.nx - 1) as isize;
         let cy = (((p.y - self.y0) * self.inv_cell) as usize).min(self.ny - 1) as isize;
         let (nx, ny) = (self.nx as isize, self.ny as isize);
+        // Where `p` lies in its cell, and a margin far above the rounding of the cell arithmetic
+        // (a point may sit a few ulps outside the cell it was sorted into).
+        let fx = p.x - self.x0 - cx as f64 * cell_px;
+        let fy = p.y - self.y0 - cy as f64 * cell_px;
+        let margin = 1e-9 * (cell_px + self.x0.abs() + self.y0.abs() + p.x.abs() + p.y.abs());
         let mut best = f64::INFINITY;
         for ring in 0..=nx.max(ny) {
-            for gy in cy - ring..=cy + ring {
-                if gy < 0 || gy >= ny {
-                    continue;
-                }
-                // Inner rows of the ring: only its two edge cells.
-                let on_edge_row = gy == cy - ring || gy == cy + ring;
-                let step = if on_edge_row { 1 } else { (2 * ring).max(1) };
-                let mut gx = cx - ring;
-                while gx <= cx + ring {
-                    if gx >= 0 && gx < nx {
-                        let c = gy as usize * self.nx + gx as usize;
-                        for &j in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
-                            if j as usize != i {
-                                let q = self.points[j as usize];
-                                best = best.min((q.x - p.x) * (q.x - p.x) + (q.y - p.y) * (q.y - p.y));
-                            }
-                        }
-                    }
-                    gx += step;
-                }
-            }
-            // Points in the next ring are at least `ring` cells away.
-            if best.is_finite() && best.sqrt() <= ring as f64 * cell_px {
+            best = self.nearest_in_ring(p, i, (cx, cy), ring, best);
+            let reach =
+                clearance(cx, nx, ring, fx, cell_px).min(clearance(cy, ny, ring, fy, cell_px)) - margin;
+            if best.is_finite() && reach > 0.0 && best <= reach * reach {
                 break;
             }
         }
         best.is_finite().then(|| best.sqrt())
     }
+
+    /// [`nearest_in_run`](Self::nearest_in_run) over the cells `ring` cells away from cell `(cx, cy)`:
+    /// the ring's top and bottom rows whole, its other rows at their two ends.
+    fn nearest_in_ring(
+        &self,
+        p: Point2,
+        i: usize,
+        (cx, cy): (isize, isize),
+        ring: isize,
+        mut best: f64,
+    ) -> f64 {
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let row = |gy: isize| gy as usize * self.nx;
+        let (x0, x1) = ((cx - ring).max(0) as usize, (cx + ring).min(nx - 1) as usize);
+        let edge_rows = if ring == 0 { 1 } else { 2 };
+        for gy in [cy - ring, cy + ring].into_iter().take(edge_rows) {
+            if (0..ny).contains(&gy) {
+                best = self.nearest_in_run(p, i, (row(gy) + x0, row(gy) + x1), best);
+            }
+        }
+        for gy in (cy - ring + 1).max(0)..=(cy + ring - 1).min(ny - 1) {
+            for gx in [cx - ring, cx + ring] {
+                if (0..nx).contains(&gx) {
+                    let c = row(gy) + gx as usize;
+                    best = self.nearest_in_run(p, i, (c, c), best);
+                }
+            }
+        }
+        best
+    }
+}
+
+/// Along one axis of `n` cells: the distance from a point at `offset` into cell `c` to the cells more
+/// than `ring` cells away from `c`, on the nearer side that has any (infinite when neither has).
+fn clearance(c: isize, n: isize, ring: isize, offset: f64, cell_px: f64) -> f64 {
+    let below = if c - ring > 0 {
+        offset + ring as f64 * cell_px
+    } else {
+        f64::INFINITY
+    };
+    let above = if c + ring < n - 1 {
+        (ring + 1) as f64 * cell_px - offset
+    } else {
+        f64::INFINITY
+    };
+    below.min(above)
 }
 
 #[cfg(test)]
@@ -193,6 +249,34 @@ mod tests {
                 got.sort_unstable();
                 let want: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].distance(*q) <= r).collect();
                 assert_eq!(got, want, "query {k} radius {r}");
+            }
+        }
+    }
+
+    /// The ring search stops early only where no unsearched point can be closer: its answer is the
+    /// brute-force minimum to the last bit, on a jittered lattice (many near-ties at the pitch) and
+    /// with cells of every size around it.
+    #[test]
+    fn nearest_neighbours_are_the_exact_minimum() {
+        let pts: Vec<Point2> = (0..400)
+            .map(|k| {
+                let (r, c) = (f64::from(k / 20), f64::from(k % 20));
+                Point2::new(
+                    c * 14.3 + (r * 0.37).sin() * 1e-3,
+                    r * 14.3 + (c * 0.3).cos() * 1e-3,
+                )
+            })
+            .collect();
+        let mut grids = vec![Buckets::with_one_point_per_cell(&pts)];
+        grids.extend([3.0, 7.15, 14.3, 14.31, 20.0, 50.0].map(|cell| Buckets::new(&pts, cell)));
+        for grid in &grids {
+            for (i, p) in pts.iter().enumerate() {
+                let brute = (0..pts.len())
+                    .filter(|&j| j != i)
+                    .map(|j| (pts[j].x - p.x) * (pts[j].x - p.x) + (pts[j].y - p.y) * (pts[j].y - p.y))
+                    .fold(f64::INFINITY, f64::min)
+                    .sqrt();
+                assert_eq!(grid.nearest_other_px(i), Some(brute), "point {i}");
             }
         }
     }

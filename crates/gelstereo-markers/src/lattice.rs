@@ -191,12 +191,23 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
             // post-processing (tens of thousands of pairs per stereo frame), and a `hypot` per pair
             // cost more than the rest of the check.
             let limit2 = check.tolerance_frac * check.tolerance_frac * d2_ij;
-            for &(_, k) in &near[a + 1..] {
+            // A third point within the limit of where equal spacing puts it is at most (1 + tol) x
+            // the spacing from i, and `near` is sorted by distance: past that (with a margin far
+            // above rounding) no later one can be.
+            let beyond2 = (1.0 + check.tolerance_frac.abs()).powi(2) * d2_ij * (1.0 + 1e-6);
+            for &(d2_ik, k) in &near[a + 1..] {
+                if d2_ik > beyond2 {
+                    break;
+                }
                 let (dx, dy) = (points[k].x - ox, points[k].y - oy);
                 if dx * dx + dy * dy <= limit2 {
-                    let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
-                    for q in [i, j, k] {
-                        lines[q].add(angle, min_angle);
+                    // The direction only matters to a point not yet on two lines (most are, once
+                    // their neighbours were visited), and the arctangent is the dearest step here.
+                    if [i, j, k].iter().any(|&q| !lines[q].two) {
+                        let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
+                        for q in [i, j, k] {
+                            lines[q].add(angle, min_angle);
+                        }
                     }
                     bonds.extend([(i, j), (i, k)]);
                 }

@@ -18,7 +18,7 @@ use crate::error::{Result, config_err};
 use crate::fit::{affine_at, quadratic_at};
 use crate::planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 use crate::slip::{SlipConfig, SlipDetector, SlipFrame};
-use crate::tracker::{TrackFrame, Tracker, TrackerConfig, lattice_neighbourhood};
+use crate::tracker::{TrackFrame, Tracker, TrackerConfig, lattice_neighbourhood, median_in};
 
 /// All settings of a session.
 #[derive(Debug, Clone, PartialEq)]
@@ -627,6 +627,7 @@ pub fn reject_outliers(
     // Per marker: (lattice position, |residual|, neighbours' median residual).
     let mut tests: Vec<(usize, f64, f64)> = Vec::new();
     let mut neigh: Vec<Vector3<f64>> = Vec::with_capacity(8);
+    let mut scratch = Vec::with_capacity(8);
     for r in 0..rows {
         for c in 0..cols {
             let k = r * cols + c;
@@ -646,11 +647,9 @@ pub fn reject_outliers(
             if neigh.len() < 3 {
                 continue;
             }
-            let med = Vector3::from_fn(|i, _| {
-                crate::tracker::median(neigh.iter().map(|v| v[i]).collect()).unwrap_or(0.0)
-            });
-            let spread =
-                crate::tracker::median(neigh.iter().map(|v| (v - med).norm()).collect()).unwrap_or(0.0);
+            let med =
+                Vector3::from_fn(|i, _| median_in(neigh.iter().map(|v| v[i]), &mut scratch).unwrap_or(0.0));
+            let spread = median_in(neigh.iter().map(|v| (v - med).norm()), &mut scratch).unwrap_or(0.0);
             tests.push((k, (d - med).norm(), spread));
         }
     }

@@ -874,6 +874,19 @@ fn local_pitch(
 /// Median of finite values; `None` for an empty list.
 pub(crate) fn median(mut v: Vec<f64>) -> Option<f64> {
     v.retain(|x| x.is_finite());
+    median_of_finite(&mut v)
+}
+
+/// [`median`] of `values`, collected into `scratch` (kept between calls: the per-marker medians of
+/// a frame then allocate nothing).
+pub(crate) fn median_in(values: impl Iterator<Item = f64>, scratch: &mut Vec<f64>) -> Option<f64> {
+    scratch.clear();
+    scratch.extend(values.filter(|x| x.is_finite()));
+    median_of_finite(scratch)
+}
+
+/// [`median`] of values all finite (reorders them).
+fn median_of_finite(v: &mut [f64]) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
