@@ -176,39 +176,80 @@ fn images_without_markers_give_at_most_a_handful() {
     }
 }
 
+/// A square lattice of dots drawn on a uniform image: size, pitch, dot radius, the position of one
+/// node, and the background and dot colours.
+struct LatticeScene {
+    size: (f64, f64),
+    pitch: f64,
+    radius: f64,
+    origin: (f64, f64),
+    background: [f64; 3],
+    dot: [f64; 3],
+}
+
+/// What the shipped default reports on a [`LatticeScene`].
+struct LatticeFinds {
+    markers: usize,
+    whole_dots: usize,
+    whole_dots_found: usize,
+    centred_in_image: usize,
+}
+
+/// Draws `scene`, localizes it with the shipped default, and counts the markers, the whole dots (centre
+/// at least a radius inside), those found within 0.25 pitch (the metrics' match radius) and the dots
+/// whose centre lies in the image.
+fn detect_lattice(scene: &LatticeScene) -> LatticeFinds {
+    let (w, h) = scene.size;
+    let centres = grid(w, h, scene.pitch, scene.origin, scene.radius);
+    let img = render(
+        w as i32,
+        h as i32,
+        scene.background,
+        scene.dot,
+        scene.radius,
+        &centres,
+    );
+    let found = shipped().detect(&img).unwrap();
+    let whole: Vec<&(f64, f64)> = centres
+        .iter()
+        .filter(|&&p| inside(p, w, h, scene.radius))
+        .collect();
+    LatticeFinds {
+        markers: found.len(),
+        whole_dots: whole.len(),
+        whole_dots_found: whole
+            .iter()
+            .filter(|&&&p| nearest(&found, p) <= 0.25 * scene.pitch)
+            .count(),
+        centred_in_image: centres.iter().filter(|&&p| inside(p, w, h, 0.0)).count(),
+    }
+}
+
 /// A fine lattice on a large image: a 9 px pitch at 1280 x 720 is 2.9 px at the nominal fit and 5.9 px
 /// in the probe, too fine for the network and the lattice check there; the fine probe at four times
 /// the nominal scale finds it and sets the layout. Nearly every whole dot is found, on its dot.
 #[test]
 fn a_fine_lattice_on_a_large_image_is_found_by_the_fine_probe() {
-    let mut net = shipped();
-    let (w, h, pitch, radius) = (1280.0, 720.0, 9.0, 2.6);
-    let centres = grid(w, h, pitch, (4.3, 3.7), radius);
-    let img = render(
-        w as i32,
-        h as i32,
-        [175.0, 180.0, 185.0],
-        [60.0, 55.0, 50.0],
-        radius,
-        &centres,
-    );
-    let found = net.detect(&img).unwrap();
-    let whole: Vec<(f64, f64)> = centres.into_iter().filter(|&p| inside(p, w, h, radius)).collect();
-    let on_dot = whole
-        .iter()
-        .filter(|&&p| nearest(&found, p) <= 0.25 * pitch)
-        .count();
+    let f = detect_lattice(&LatticeScene {
+        size: (1280.0, 720.0),
+        pitch: 9.0,
+        radius: 2.6,
+        origin: (4.3, 3.7),
+        background: [175.0, 180.0, 185.0],
+        dot: [60.0, 55.0, 50.0],
+    });
     assert!(
-        on_dot as f64 >= 0.97 * whole.len() as f64,
-        "{on_dot} of {} whole dots found ({} markers)",
-        whole.len(),
-        found.len()
+        f.whole_dots_found as f64 >= 0.97 * f.whole_dots as f64,
+        "{} of {} whole dots found ({} markers)",
+        f.whole_dots_found,
+        f.whole_dots,
+        f.markers
     );
     assert!(
-        found.len() <= whole.len() + 40,
+        f.markers <= f.whole_dots + 40,
         "{} markers for {} dots",
-        found.len(),
-        whole.len()
+        f.markers,
+        f.whole_dots
     );
 }
 
@@ -218,30 +259,21 @@ fn a_fine_lattice_on_a_large_image_is_found_by_the_fine_probe() {
 /// is found, on its dot, and nothing is reported beyond the dots whose centre lies in the image.
 #[test]
 fn a_coarse_lattice_on_a_small_image_is_found_by_the_coarse_probe() {
-    let mut net = shipped();
-    let (w, h, pitch, radius) = (320.0, 240.0, 50.0, 15.0);
-    let centres = grid(w, h, pitch, (35.0, 35.0), radius);
-    let img = render(
-        w as i32,
-        h as i32,
-        [200.0, 225.0, 205.0],
-        [70.0, 65.0, 65.0],
-        radius,
-        &centres,
-    );
-    let found = net.detect(&img).unwrap();
-    let in_image = centres.iter().filter(|&&p| inside(p, w, h, 0.0)).count();
-    let whole: Vec<(f64, f64)> = centres.into_iter().filter(|&p| inside(p, w, h, radius)).collect();
-    let on_dot = whole
-        .iter()
-        .filter(|&&p| nearest(&found, p) <= 0.25 * pitch)
-        .count();
-    assert!(whole.len() >= 20, "{} whole dots drawn", whole.len());
-    assert_eq!(on_dot, whole.len(), "{} markers found", found.len());
+    let f = detect_lattice(&LatticeScene {
+        size: (320.0, 240.0),
+        pitch: 50.0,
+        radius: 15.0,
+        origin: (35.0, 35.0),
+        background: [200.0, 225.0, 205.0],
+        dot: [70.0, 65.0, 65.0],
+    });
+    assert!(f.whole_dots >= 20, "{} whole dots drawn", f.whole_dots);
+    assert_eq!(f.whole_dots_found, f.whole_dots, "{} markers found", f.markers);
     assert!(
-        found.len() <= in_image,
-        "{} markers for {in_image} dots centred in the image",
-        found.len()
+        f.markers <= f.centred_in_image,
+        "{} markers for {} dots centred in the image",
+        f.markers,
+        f.centred_in_image
     );
 }
 
