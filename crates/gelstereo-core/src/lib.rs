@@ -18,6 +18,7 @@ pub mod interrupt;
 pub mod limits;
 mod marker;
 pub mod spatial;
+pub mod stats;
 pub mod table;
 
 pub use grid::{GridIndex, GridShape};

@@ -28,9 +28,8 @@
 //! lines up across the other direction).
 
 use gelstereo_core::spatial::Buckets;
+use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, Point2, TieredDetections};
-
-use crate::postprocess::median;
 
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
 #[derive(Debug, Clone, Copy, PartialEq)]

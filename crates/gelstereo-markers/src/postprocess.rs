@@ -14,6 +14,7 @@
 //!    ones, or all when the pitch is undefined, = 4.0), then c.
 
 use gelstereo_core::spatial::Buckets;
+use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, Point2, TieredDetections};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
@@ -139,21 +140,6 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
         }
     }
     out
-}
-
-/// The median of `values` (reordered in place); `None` when empty. The middle values are picked by
-/// selection, not a full sort: the same values, in a fraction of the time.
-pub(crate) fn median(values: &mut [f64]) -> Option<f64> {
-    let n = values.len();
-    if n == 0 {
-        return None;
-    }
-    let (below, &mut middle, _) = values.select_nth_unstable_by(n / 2, f64::total_cmp);
-    if n % 2 == 1 {
-        return Some(middle);
-    }
-    let below_middle = below.iter().copied().max_by(f64::total_cmp)?;
-    Some(0.5 * (below_middle + middle))
 }
 
 /// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
@@ -407,38 +393,6 @@ mod tests {
             let want = raw.chunks_exact(3).filter(|s| sigmoid(s[2]) > min).count();
             assert_eq!(decode(&raw, &g, min).len(), want, "min {min}");
         }
-    }
-
-    /// Selection gives the median a full sort gives, bit for bit (odd and even counts, repeated
-    /// values, both zeros).
-    #[test]
-    fn median_by_selection_is_the_sorted_median() {
-        let mut state = 11u64;
-        for n in 1..60usize {
-            let values: Vec<f64> = (0..n)
-                .map(|k| {
-                    state = state
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
-                    match k % 7 {
-                        0 => -0.0,
-                        1 => 0.0,
-                        2 => 3.5,
-                        _ => (state >> 11) as f64 / (1u64 << 53) as f64 * 20.0 - 5.0,
-                    }
-                })
-                .collect();
-            let mut sorted = values.clone();
-            sorted.sort_by(f64::total_cmp);
-            let want = if n % 2 == 1 {
-                sorted[n / 2]
-            } else {
-                0.5 * (sorted[n / 2 - 1] + sorted[n / 2])
-            };
-            let got = median(&mut values.clone()).map(f64::to_bits);
-            assert_eq!(got, Some(want.to_bits()), "{n} values");
-        }
-        assert_eq!(median(&mut []), None);
     }
 
     fn logit(p: f32) -> f32 {

@@ -874,7 +874,7 @@ fn local_pitch(
 /// Median of finite values; `None` for an empty list.
 pub(crate) fn median(mut v: Vec<f64>) -> Option<f64> {
     v.retain(|x| x.is_finite());
-    median_of_finite(&mut v)
+    gelstereo_core::stats::median(&mut v)
 }
 
 /// [`median`] of `values`, collected into `scratch` (kept between calls: the per-marker medians of
@@ -882,23 +882,7 @@ pub(crate) fn median(mut v: Vec<f64>) -> Option<f64> {
 pub(crate) fn median_in(values: impl Iterator<Item = f64>, scratch: &mut Vec<f64>) -> Option<f64> {
     scratch.clear();
     scratch.extend(values.filter(|x| x.is_finite()));
-    median_of_finite(scratch)
-}
-
-/// [`median`] of values all finite (reorders them).
-fn median_of_finite(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    let mid = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
-    let m = *m;
-    if v.len() % 2 == 1 {
-        Some(m)
-    } else {
-        let lo = v[..mid].iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        Some(0.5 * (lo + m))
-    }
+    gelstereo_core::stats::median(scratch)
 }
 
 #[cfg(test)]
