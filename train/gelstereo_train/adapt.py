@@ -37,6 +37,7 @@ from onnx import numpy_helper
 from .export import export_marknet, marknet_metadata
 from .model import STRIDE_FOR_GRID_416
 from .postprocess import FitConfig, PostConfig
+from .batches import add_device_args
 from .train_marknet import add_training_args, train
 
 
@@ -89,6 +90,7 @@ def parser() -> argparse.ArgumentParser:
                    help="the folder's final name, for the model card (default: --out-dir; `gelstereo adapt` "
                    "writes into a temporary folder and renames it)")
     p.add_argument("--p-contact", type=float, default=0.0)
+    add_device_args(p)
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--beta", type=float, default=1.0)
     return p

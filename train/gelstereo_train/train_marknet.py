@@ -15,6 +15,7 @@ import json
 import math
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -22,13 +23,25 @@ import numpy as np
 import torch
 
 from .augment import AugConfig, make_batch, make_batch_with_ignore
+from .batches import add_device_args, batch_stream, describe, pick_device
 from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
 from .loss import build_targets, ignore_cells, marknet_loss
 from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 from .onnx_init import load_onnx_weights
 
 
-def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print, max_gb: float | None = None):
+def decoded(samples, threads: int):
+    """(sample, image) in the samples' order, decoded by `threads` threads (OpenCV's decoders release
+    the GIL) a few chunks ahead of the consumer, so stopping early decodes little more."""
+    chunk = 4 * max(threads, 1)
+    with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
+        for start in range(0, len(samples), chunk):
+            part = samples[start:start + chunk]
+            yield from zip(part, pool.map(lambda s: s.load(), part))
+
+
+def load_images(samples, max_images: int | None, rng: np.random.Generator, log=print, max_gb: float | None = None,
+                threads: int = 1):
     """Decode a random subset of the samples into memory (at most max_images, at most max_gb of
     uint8 pixels): images, label points, per-image pitch."""
     order = rng.permutation(len(samples))
@@ -38,9 +51,7 @@ def load_images(samples, max_images: int | None, rng: np.random.Generator, log=p
     kept, images, points, pitches = [], [], [], []
     total = 0
     t0 = time.time()
-    for k in np.sort(order):
-        s = samples[k]
-        img = s.load()
+    for s, img in decoded([samples[k] for k in np.sort(order)], threads):
         if budget is not None and total + img.nbytes > budget:
             log(f"memory budget {max_gb} GB reached after {len(images)} images")
             break
@@ -65,7 +76,7 @@ def save_checkpoint(path: Path, model: Marknet, meta: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".part")
     torch.save(
         {
-            "model": model.state_dict(),
+            "model": {k: v.cpu() for k, v in model.state_dict().items()},
             "arch": {
                 "stride": model.stride,
                 "candidates": model.candidates,
@@ -124,7 +135,8 @@ def train(args, log=print) -> Path:
         log(f"held out families {exclude}: {before - len(samples)} of {before} images left out")
         if not samples:
             raise SystemExit(f"{args.data}/train: every image belongs to a held-out family {exclude}")
-    samples, images, points, pitches = load_images(samples, args.max_images, rng, log, args.max_gb)
+    samples, images, points, pitches = load_images(samples, args.max_images, rng, log, args.max_gb,
+                                                   threads=max(args.threads, args.workers))
     n_markers = sum(len(p) for p in points)
     # Pseudo-labelled data (`gelstereo adapt`) marks uncertain regions: no negatives there.
     ignore = [getattr(s, "ignore", None) for s in samples]
@@ -151,7 +163,11 @@ def train(args, log=print) -> Path:
         log(f"initialised from {init} (warm start: fine-tunes those weights under this run's schedule)")
     log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
-    model = model.to(memory_format=torch.channels_last)
+    device = pick_device(args.device)
+    torch.backends.cudnn.benchmark = device.type == "cuda"  # fixed crop shapes: pick the fastest kernels once
+    log(f"training on {describe(device)}, batches made by "
+        f"{f'{args.workers} worker processes' if args.workers else 'the training process'}")
+    model = model.to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     if cfg.p_contact > 0:
         log(f"{sum(len(c) > 0 for c in contact)} of {len(samples)} images show contact markers; "
@@ -163,6 +179,13 @@ def train(args, log=print) -> Path:
     hist = []
     last_log = t0
     last_save = t0
+    if ignore is None:
+        def make(r):
+            return make_batch(images, points, pitches, args.batch, cfg, r, contact)
+    else:
+        def make(r):
+            return make_batch_with_ignore(images, points, pitches, args.batch, cfg, r, contact, ignore)
+    batches = batch_stream(make, rng, args.workers, args.seed, pin_memory=device.type == "cuda")
     model.train()
     while True:
         elapsed = time.time() - t0
@@ -177,16 +200,12 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        if ignore is None:
-            x, labels = make_batch(images, points, pitches, args.batch, cfg, rng, contact)
-            cells = None
-        else:
-            x, labels, crop_ignore = make_batch_with_ignore(images, points, pitches, args.batch, cfg, rng, contact,
-                                                            ignore)
-            cells = ignore_cells(crop_ignore, stride)
-        x = x.contiguous(memory_format=torch.channels_last)
+        x, labels, *crop_ignore = next(batches)
+        cells = ignore_cells(crop_ignore[0].to(device), stride) if crop_ignore else None
+        x = x.to(device, non_blocking=True).contiguous(memory_format=torch.channels_last)
         raw = model(x)
         tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
+        tgt, mask = tgt.to(device, non_blocking=True), mask.to(device, non_blocking=True)
         loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta, cells)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -203,19 +222,22 @@ def train(args, log=print) -> Path:
             last_log = now
         if args.save_every_min and now - last_save > 60.0 * args.save_every_min:
             save_checkpoint(Path(args.out), model.to(memory_format=torch.contiguous_format),
-                            run_meta(args, cfg, images, hist, step, now - t0, init_record, partial=True))
+                            run_meta(args, cfg, images, hist, step, now - t0, init_record, partial=True,
+                                     device=describe(device)))
             model = model.to(memory_format=torch.channels_last)
             model.train()
             log(f"checkpoint {args.out} at step {step}")
             last_save = now
     train_s = time.time() - t0
     model = model.to(memory_format=torch.contiguous_format)
-    save_checkpoint(Path(args.out), model, run_meta(args, cfg, images, hist, step, train_s, init_record))
+    save_checkpoint(Path(args.out), model, run_meta(args, cfg, images, hist, step, train_s, init_record,
+                                                     device=describe(device)))
     log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
     return Path(args.out)
 
 
-def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, partial: bool = False) -> dict:
+def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, partial: bool = False,
+             device: str = "cpu") -> dict:
     """The checkpoint's metadata: dataset, input size, training record (`partial` while running)."""
     return {
         "dataset": dataset_tag(args.data, len(images)),
@@ -229,6 +251,7 @@ def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, pa
         "aug": dataclasses.asdict(cfg),
         "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
         "init": init_record,
+        "device": device,
         "partial": partial,
     }
 
@@ -292,6 +315,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--p-contact", type=float, default=0.0,
                    help="share of crops centred near a marker in contact (images with contact only; the shipped "
                    "models: 0, i.e. anywhere)")
+    add_device_args(p)
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     return p
