@@ -36,13 +36,15 @@ class LatticeCheck:
     ``gelstereo_markers::lattice``). A point is a member when it lies on equally spaced lines of three
     points (it and two neighbours, spacing within ``tolerance_frac``) in at least two directions
     ``min_angle_deg`` apart, and such points joined by those lines form a patch of at least
-    ``min_patch``. Neighbours are searched within ``reach_frac`` x max(own nearest-neighbour distance,
+    ``min_patch`` whose spacing is within ``patch_pitch_ratio`` of the largest patch's (texture lines up
+    by chance at its own, finer spacing). Neighbours are searched within ``reach_frac`` x max(own nearest-neighbour distance,
     median of them)."""
 
     tolerance_frac: float = 0.2
     reach_frac: float = 1.6
     min_angle_deg: float = 30.0
     min_patch: int = 6
+    patch_pitch_ratio: float = 1.3  # a patch's spacing against the largest patch's, at most
     max_neighbours: int = 12
     min_support: int = 8  # members needed for a lattice (and for its pitch to steer the layout)
     min_input_pitch_px: float = 8.0  # smallest lattice spacing at the network input
@@ -411,6 +413,15 @@ def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) ->
     roots = np.array([root(i) for i in range(n)])
     sizes = np.bincount(roots[two_lines], minlength=n)
     member = two_lines & (sizes[roots] >= check.min_patch)
+    if member.any():
+        # the largest patch (ties: the smallest root) sets the pitch the other patches must share
+        patch_ids = np.unique(roots[member])
+        counts = np.array([(member & (roots == r)).sum() for r in patch_ids])
+        pitch = {r: float(np.median(nn[member & (roots == r)])) for r in patch_ids}
+        reference = pitch[patch_ids[int(np.argmax(counts))]]
+        ok = {r: pitch[r] <= reference * check.patch_pitch_ratio and pitch[r] * check.patch_pitch_ratio >= reference
+              for r in patch_ids}
+        member &= np.array([ok.get(r, False) for r in roots])
     return member
 
 

@@ -8,7 +8,11 @@
 //! 1. it is on an equally spaced line of three points (it and two neighbours: `q - p` and `p - r`
 //!    within [`LatticeCheck::tolerance_frac`] of their length, as the middle or at either end) in at
 //!    least two directions [`LatticeCheck::min_angle_deg`] apart, and
-//! 2. such points, joined by those lines, form a patch of at least [`LatticeCheck::min_patch`].
+//! 2. such points, joined by those lines, form a patch of at least [`LatticeCheck::min_patch`],
+//! 3. whose spacing (median nearest-neighbour distance) is within [`LatticeCheck::patch_pitch_ratio`]
+//!    of the largest patch's: dense texture (speckle on a housing, a membrane's grain) lines up by
+//!    chance at its own, finer spacing, while the patches of one marker lattice (split by a contact
+//!    or an occluder) share the lattice's pitch up to perspective and strain.
 //!
 //! A point that is no member but has at least [`LatticeCheck::adjacent_members`] members within
 //! `reach_frac` x the lattice's pitch is *on the lattice* too: a marker pushed off its lines in a
@@ -44,6 +48,11 @@ pub struct LatticeCheck {
     pub min_angle_deg: f64,
     /// Smallest patch of members joined by lines.
     pub min_patch: usize,
+    /// Largest ratio between a patch's spacing and the largest patch's (1.3: the patches of one
+    /// lattice share its pitch up to perspective and strain; the speckle of a housing next to a
+    /// reference-sensor lattice of pitch 16 px lined up at 7-9 px and, once those patches were
+    /// gone, at 11.5 px).
+    pub patch_pitch_ratio: f64,
     /// Nearest neighbours paired per point, at most (bounds the work on dense clutter).
     pub max_neighbours: usize,
     /// Members needed for a lattice (and for its pitch to steer the input layout).
@@ -63,6 +72,7 @@ impl Default for LatticeCheck {
             reach_frac: 1.6,
             min_angle_deg: 30.0,
             min_patch: 6,
+            patch_pitch_ratio: 1.3,
             max_neighbours: 12,
             min_support: 8,
             min_input_pitch_px: 8.0,
@@ -225,8 +235,15 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
         let r = patches.root(i);
         size[r] += 1;
     }
-    for i in 0..n {
-        fit.member[i] = two_lines[i] && size[patches.root(i)] >= check.min_patch;
+    let patch_of: Vec<Option<usize>> = (0..n)
+        .map(|i| {
+            let r = patches.root(i);
+            (two_lines[i] && size[r] >= check.min_patch).then_some(r)
+        })
+        .collect();
+    let pitch_ok = patches_at_the_lattice_pitch(&patch_of, &nn, check.patch_pitch_ratio);
+    for (member, patch) in fit.member.iter_mut().zip(&patch_of) {
+        *member = patch.is_some_and(|r| pitch_ok[r]);
     }
     let mut member_nn: Vec<f64> = (0..n).filter(|&i| fit.member[i]).map(|i| nn[i]).collect();
     fit.members = member_nn.len();
@@ -250,6 +267,26 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
             .pitch_px
             .is_some_and(|p| p * input_per_px >= check.min_input_pitch_px);
     fit
+}
+
+/// Per patch root: whether the patch's spacing (median of its points' nearest-neighbour distances
+/// `nn`) is within `ratio` of the largest patch's (ties: the one with the smallest root).
+fn patches_at_the_lattice_pitch(patch_of: &[Option<usize>], nn: &[f64], ratio: f64) -> Vec<bool> {
+    let mut spacing: Vec<Vec<f64>> = vec![Vec::new(); patch_of.len()];
+    for (i, r) in patch_of.iter().enumerate() {
+        if let Some(r) = r {
+            spacing[*r].push(nn[i]);
+        }
+    }
+    let largest = (0..spacing.len()).max_by_key(|&r| (spacing[r].len(), std::cmp::Reverse(r)));
+    let pitch: Vec<Option<f64>> = spacing.iter_mut().map(|s| median(s)).collect();
+    let Some(reference) = largest.and_then(|r| pitch[r]) else {
+        return vec![false; patch_of.len()];
+    };
+    pitch
+        .iter()
+        .map(|p| p.is_some_and(|p| p <= reference * ratio && p * ratio >= reference))
+        .collect()
 }
 
 /// `found` with its accepted markers moved to the second tier unless they are members, or on the
@@ -307,6 +344,30 @@ mod tests {
         assert_eq!(fit.members, 80);
         assert!(fit.is_lattice);
         assert_eq!(fit.pitch_px, Some(20.0));
+    }
+
+    #[test]
+    fn texture_lined_up_at_a_finer_spacing_beside_the_lattice_is_no_member() {
+        // A 12 x 10 marker lattice (pitch 16) and, well apart, a 5 x 5 patch at pitch 7: the speckle
+        // of a housing that the network took for dots and that lines up by chance.
+        let mut pts = square(12, 10, 16.0);
+        let speckle: Vec<Point2> = square(5, 5, 7.0)
+            .into_iter()
+            .map(|p| Point2::new(p.x + 300.0, p.y + 200.0))
+            .collect();
+        pts.extend(&speckle);
+        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        assert_eq!(fit.members, 120, "only the marker lattice");
+        assert!(fit.member[..120].iter().all(|&m| m));
+        assert!(fit.on_lattice[120..].iter().all(|&m| !m));
+        // Two patches of one lattice (split by an occluder) at the same pitch both stay.
+        let mut split = square(12, 4, 16.0);
+        split.extend(
+            square(12, 4, 16.0)
+                .into_iter()
+                .map(|p| Point2::new(p.x, p.y + 120.0)),
+        );
+        assert_eq!(fit_lattice(&split, &LatticeCheck::default(), 1.0).members, 96);
     }
 
     #[test]
