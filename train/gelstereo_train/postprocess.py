@@ -318,8 +318,9 @@ def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px:
         accept[low[scores > cfg.accept]] = True
     marknet_mre = kept[accept]
     if cfg.lattice is not None and input_per_px is not None:
-        marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px)
-        marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px)
+        marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px,
+                                   unsure=kept[kept[:, 2] <= cfg.conf_marknet_only])
+        marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px, unsure=kept[~accept])
     return Detections(kept, pitch, marknet, marknet_mre, low, feats, scores)
 
 
@@ -444,15 +445,63 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float):
     return member, on, pitch, ok
 
 
-def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float) -> np.ndarray:
+SITE_STEP = (0.75, 1.33)  # spacing of the lines that place an empty site, in pitches (Rust: SITE_STEP)
+SITE_REACH = 2.2  # members searched around an empty site, in pitches (Rust: SITE_REACH)
+
+
+def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pitch: float,
+                      check: LatticeCheck) -> bool:
+    """Rust: ``lattice::at_an_empty_site``: no taken site within half a pitch, and on equally spaced
+    lines of three with members in two directions, the middle of at least one."""
+    if len(taken) and np.hypot(taken[:, 0] - p[0], taken[:, 1] - p[1]).min() <= 0.5 * pitch:
+        return False
+    near = members[np.hypot(members[:, 0] - p[0], members[:, 1] - p[1]) <= SITE_REACH * pitch]
+    tol2 = check.tolerance_frac ** 2
+    any_angles, middle_angles = [], []
+    for a in range(len(near)):
+        q = near[a]
+        for r in near[a + 1:]:
+            pq2, pr2 = ((p - q) ** 2).sum(), ((p - r) ** 2).sum()
+            if not SITE_STEP[0] <= math.sqrt(min(pq2, pr2)) / pitch <= SITE_STEP[1]:
+                continue
+            is_middle = ((2 * p - q - r) ** 2).sum() <= tol2 * pq2
+            is_end = ((2 * q - p - r) ** 2).sum() <= tol2 * pq2 or ((2 * r - p - q) ** 2).sum() <= tol2 * pr2
+            if is_middle or is_end:
+                angle = math.atan2(r[1] - q[1], r[0] - q[0]) % math.pi
+                any_angles.append(angle)
+                if is_middle:
+                    middle_angles.append(angle)
+    a = np.array(any_angles)
+    d = np.abs(a[:, None] - a[None, :])
+    two = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= math.radians(check.min_angle_deg)).any())
+    return bool(middle_angles) and two
+
+
+def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float,
+                     unsure: np.ndarray | None = None) -> np.ndarray:
     """The rows (x, y, c) of ``markers`` that are lattice members, or on the lattice with a confidence of at
-    least ``adjacent_min_confidence`` (none without a lattice); all of them
-    when ``check`` is None (Rust: ``lattice::keep_the_lattice``)."""
+    least ``adjacent_min_confidence`` (none without a lattice), plus the rows of ``unsure`` (the second
+    tier) and the refused ``markers`` that sit at an empty lattice site, most confident first; all of
+    ``markers`` when ``check`` is None (Rust: ``lattice::keep_the_lattice``)."""
     if check is None:
         return markers
-    member, on, _, ok = lattice_fit(markers[:, :2], check, input_per_px)
+    member, on, pitch, ok = lattice_fit(markers[:, :2], check, input_per_px)
     keep = member | (on & (markers[:, 2] >= check.adjacent_min_confidence))
-    return markers[keep] if ok else markers[:0]
+    if not ok:
+        return markers[:0]
+    kept = markers[keep]
+    pool = markers[~keep] if unsure is None else np.concatenate([markers[~keep], unsure.reshape(-1, 3)])
+    if len(pool) and np.isfinite(pitch):
+        members = markers[member, :2]
+        taken = kept[:, :2]
+        moved = []
+        for row in pool[np.argsort(-pool[:, 2], kind="stable")]:
+            if _at_an_empty_site(row[:2], members, taken, pitch, check):
+                moved.append(row)
+                taken = np.vstack([taken, row[None, :2]])
+        if moved:
+            kept = np.vstack([kept, np.array(moved)])
+    return kept
 
 
 def input_per_px(image_wh: tuple[int, int], lay: Layout) -> float:

@@ -116,3 +116,26 @@ def test_lattice_check_keeps_a_lattice_and_drops_scatter():
     rows = np.column_stack([np.vstack([square, [[300.0, 45.0]]]), np.full(81, 0.9)])
     kept = keep_the_lattice(rows, LatticeCheck(), 1.0)
     assert len(kept) == 80 and not (kept[:, 0] == 300.0).any()
+
+
+def test_the_lattice_check_moves_up_unsure_candidates_at_empty_sites_and_drops_texture_patches():
+    """The Python twin of the Rust lattice tests: an unsure candidate at an empty interior or edge site
+    joins the markers, one at a taken site, past the edge or at a cell centre does not; a patch lined up
+    at a finer spacing beside the lattice is no member."""
+    from gelstereo_train.postprocess import LatticeCheck, keep_the_lattice, lattice_fit
+
+    holes = {(90.0, 70.0), (190.0, 70.0)}
+    lattice = np.array([(10 + 20.0 * c, 10 + 20.0 * r) for r in range(8) for c in range(10)
+                        if (10 + 20.0 * c, 10 + 20.0 * r) not in holes])
+    rows = np.column_stack([lattice, np.full(len(lattice), 0.99)])
+    unsure = np.array([[91.0, 69.0, 0.3], [189.0, 71.0, 0.3], [88.0, 71.0, 0.2], [52.0, 50.0, 0.35],
+                       [210.0, 50.0, 0.3], [100.0, 80.0, 0.3]])
+    kept = keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=unsure)
+    assert len(kept) == len(lattice) + 2
+    for x, y in [(91.0, 69.0), (189.0, 71.0)]:
+        assert ((kept[:, 0] == x) & (kept[:, 1] == y)).any()
+
+    markers = np.array([(10 + 16.0 * c, 10 + 16.0 * r) for r in range(10) for c in range(12)])
+    speckle = np.array([(310 + 7.0 * c, 210 + 7.0 * r) for r in range(5) for c in range(5)])
+    member = lattice_fit(np.vstack([markers, speckle]), LatticeCheck(), 1.0)[0]
+    assert member[:120].all() and not member[120:].any()

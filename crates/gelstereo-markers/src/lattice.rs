@@ -21,6 +21,15 @@
 //! only when the network is sure of it ([`LatticeCheck::adjacent_min_confidence`]): a doubtful find
 //! beside the lattice is as often a membrane's rim as a marker.
 //!
+//! An uncertain candidate (the second tier: below the confidence the output needs, or refused by the
+//! MRE) that sits at an *empty lattice site* joins the markers ([`keep_the_lattice`]): no marker within
+//! half a pitch, and it lies on equally spaced lines of three with members in two directions at least
+//! [`LatticeCheck::min_angle_deg`] apart, as the middle point of at least one of them. The lattice
+//! itself says a marker belongs there; the network was merely unsure of it (a look it has seen
+//! little of, a dot in a pile-up). Being the middle of a line keeps a rim or housing find just past
+//! the lattice's edge out (it could only be the end of lines); the lines must have the lattice's own
+//! spacing (0.75-1.33 pitch), or the centre of a square cell would be the middle of its diagonals.
+//!
 //! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
 //! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
 //! at the network input: below it the network cannot resolve markers, and what lines up there is its
@@ -289,9 +298,73 @@ fn patches_at_the_lattice_pitch(patch_of: &[Option<usize>], nn: &[f64], ratio: f
         .collect()
 }
 
+/// The spacing, in pitches, of the lines that place an empty lattice site (contact strain changes it
+/// by well under a quarter from one marker to the next).
+const SITE_STEP: (f64, f64) = (0.75, 1.33);
+
+/// Members searched around an empty site, in pitches: the far end of a line that ends at the site
+/// lies two steps away.
+const SITE_REACH: f64 = 2.2;
+
+/// The sites taken: the accepted markers (bucketed) and those moved up from the second tier so far.
+struct Taken {
+    accepted: Buckets,
+    moved_up: Vec<Point2>,
+}
+
+impl Taken {
+    fn within(&self, p: Point2, radius: f64) -> bool {
+        let mut hit = false;
+        self.accepted.for_each_within(p, radius, |_, _| hit = true);
+        hit || self
+            .moved_up
+            .iter()
+            .any(|q| (q.x - p.x).hypot(q.y - p.y) <= radius)
+    }
+}
+
+/// Whether `p` sits at an empty lattice site of the `members` (see the module documentation):
+/// no accepted marker within half a `pitch`, and on equally spaced lines of three with members in two
+/// directions, the middle of at least one.
+fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, check: &LatticeCheck) -> bool {
+    if taken.within(p, 0.5 * pitch) {
+        return false;
+    }
+    let mut near: Vec<Point2> = Vec::new();
+    members.for_each_within(p, SITE_REACH * pitch, |j, _| near.push(members.points()[j]));
+    let min_angle = check.min_angle_deg.to_radians();
+    let (mut middle, mut any) = (Lines::NONE, Lines::NONE);
+    for (a, &q) in near.iter().enumerate() {
+        for &r in &near[a + 1..] {
+            // p in the middle of q and r, or p at the end of the line q, r (either way round).
+            let spacing2 = |u: Point2, v: Point2| (u.x - v.x).powi(2) + (u.y - v.y).powi(2);
+            let off2 = |x: f64, y: f64, t: Point2| (x - t.x).powi(2) + (y - t.y).powi(2);
+            let tol2 = check.tolerance_frac * check.tolerance_frac;
+            // At the lattice's own spacing: the centre of a square cell is the middle of its
+            // diagonals (0.71 pitch) and of longer chords, and no site.
+            let step = spacing2(p, q).min(spacing2(p, r)).sqrt() / pitch;
+            if !(SITE_STEP.0..=SITE_STEP.1).contains(&step) {
+                continue;
+            }
+            let is_middle = off2(2.0 * p.x - q.x, 2.0 * p.y - q.y, r) <= tol2 * spacing2(p, q);
+            let is_end = off2(2.0 * q.x - p.x, 2.0 * q.y - p.y, r) <= tol2 * spacing2(p, q)
+                || off2(2.0 * r.x - p.x, 2.0 * r.y - p.y, q) <= tol2 * spacing2(p, r);
+            if is_middle || is_end {
+                let angle = (r.y - q.y).atan2(r.x - q.x).rem_euclid(std::f64::consts::PI);
+                any.add(angle, min_angle);
+                if is_middle {
+                    middle.add(angle, min_angle);
+                }
+            }
+        }
+    }
+    middle.count > 0 && any.two
+}
+
 /// `found` with its accepted markers moved to the second tier unless they are members, or on the
 /// lattice with a confidence of at least [`LatticeCheck::adjacent_min_confidence`] (all of them when
-/// the accepted markers form no lattice), both tiers sorted by y then x.
+/// the accepted markers form no lattice), and second-tier candidates at empty lattice sites moved up
+/// (most confident first), both tiers sorted by y then x.
 pub fn keep_the_lattice(
     found: TieredDetections,
     check: &LatticeCheck,
@@ -300,12 +373,34 @@ pub fn keep_the_lattice(
     let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
     let fit = fit_lattice(&points, check, input_per_px);
     let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
+    let mut member_points = Vec::new();
     for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {
+        if member {
+            member_points.push(d.position);
+        }
         if fit.is_lattice && (member || (on && d.confidence >= check.adjacent_min_confidence)) {
             accepted.push(d);
         } else {
             second_tier.push(d);
         }
+    }
+    if let (true, Some(pitch)) = (fit.is_lattice, fit.pitch_px) {
+        second_tier.sort_by(|a, b| b.confidence.total_cmp(&a.confidence));
+        let members = Buckets::new(&member_points, check.reach_frac * pitch);
+        let mut taken = Taken {
+            accepted: Buckets::new(&accepted.iter().map(|a| a.position).collect::<Vec<_>>(), pitch),
+            moved_up: Vec::new(),
+        };
+        let mut unsure = Vec::new();
+        for d in second_tier {
+            if at_an_empty_site(d.position, &members, &taken, pitch, check) {
+                taken.moved_up.push(d.position);
+                accepted.push(d);
+            } else {
+                unsure.push(d);
+            }
+        }
+        second_tier = unsure;
     }
     crate::sort_detections(&mut accepted);
     crate::sort_detections(&mut second_tier);
@@ -368,6 +463,39 @@ mod tests {
                 .map(|p| Point2::new(p.x, p.y + 120.0)),
         );
         assert_eq!(fit_lattice(&split, &LatticeCheck::default(), 1.0).members, 96);
+    }
+
+    fn tiers(accepted: &[Point2], second_tier: &[(Point2, f32)]) -> TieredDetections {
+        let det = |position: Point2, confidence: f32| Detection { position, confidence };
+        TieredDetections {
+            accepted: accepted.iter().map(|&p| det(p, 0.99)).collect(),
+            second_tier: second_tier.iter().map(|&(p, c)| det(p, c)).collect(),
+        }
+    }
+
+    #[test]
+    fn an_unsure_candidate_at_an_empty_lattice_site_joins_and_others_stay_unsure() {
+        // A 10 x 8 lattice (pitch 20, origin 10) without the markers at column 4, row 3 and at
+        // column 9 (the right edge), row 3.
+        let holes = [Point2::new(90.0, 70.0), Point2::new(190.0, 70.0)];
+        let lattice: Vec<Point2> = square(10, 8, 20.0)
+            .into_iter()
+            .filter(|p| !holes.contains(p))
+            .collect();
+        let unsure = [
+            (Point2::new(91.0, 69.0), 0.3),  // at the empty site
+            (Point2::new(189.0, 71.0), 0.3), // at the empty edge site: the middle of the edge
+            (Point2::new(88.0, 71.0), 0.2),  // the same site again: taken by now
+            (Point2::new(52.0, 50.0), 0.35), // 2 px from a marker: its site is taken
+            (Point2::new(210.0, 50.0), 0.3), // one pitch past the right edge: only the end of a line
+            (Point2::new(100.0, 80.0), 0.3), // between four markers: no line through it
+        ];
+        let out = keep_the_lattice(tiers(&lattice, &unsure), &LatticeCheck::default(), 1.0);
+        assert_eq!(out.accepted.len(), lattice.len() + 2);
+        for site in [Point2::new(91.0, 69.0), Point2::new(189.0, 71.0)] {
+            assert!(out.accepted.iter().any(|d| d.position == site), "{site:?}");
+        }
+        assert_eq!(out.second_tier.len(), 4);
     }
 
     #[test]
