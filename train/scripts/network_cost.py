@@ -1,6 +1,6 @@
 """What one Marknet view costs in ONNX Runtime on this CPU, and where: medians side by side in one run.
 
-    cd train && ../.venv/bin/python scripts/network_cost.py ../data/models/marknet.onnx ../data/models/wide/marknet.onnx
+    cd train && ../.venv/bin/python scripts/network_cost.py ../data/models/marknet.onnx OTHER/marknet.onnx
         [--height 320 --width 416] [--runs 200] [--int8 DATA_ROOT] [--profile]
 
 Per model: fp32 at 1 and 2 intra-op threads (graph optimisation "all", as `gelstereo-markers` sets it, no
