@@ -248,6 +248,18 @@ impl SlipDetector {
                 turned_rad: self.turned_rad,
             };
         }
+        // An indentation does not slide by more than its own radius from one frame to the next: a
+        // material centroid that far from the last one is another contact region taking over (a
+        // shallow touch-down beside a patch of depth noise), so the drift starts afresh there
+        // rather than reading the jump as a slide.
+        if let (Some(c), Some(last)) = (frame.material_centroid_mm, self.history.back()) {
+            let radius_mm = (frame.contact_area_mm2 / std::f64::consts::PI).sqrt();
+            if (c - last).norm() > radius_mm {
+                self.history.clear();
+                self.depths.clear();
+                self.drifting = 0;
+            }
+        }
         let oldest = self.history.front().copied();
         let span = self.history.len();
         let smoothed = crate::contact::smooth3(surface.shape(), &frame.depth_mm);
@@ -570,6 +582,26 @@ mod tests {
                 NoContact
             ]
         );
+    }
+
+    #[test]
+    fn a_contact_that_appears_elsewhere_is_not_a_slide() {
+        // A sheared cap held at x = -4 mm for two frames (from images: a patch of depth noise read
+        // as a contact), then the real contact at x = 0, held: the depth pattern jumps 4 mm, 1.7 x
+        // its radius, in one frame. Nothing slides (read as a drift, the jump latched gross slip).
+        let flat = flattened(&frame(0.0, 0.0));
+        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
+        let cfg = ContactConfig::default();
+        let states: Vec<SlipState> = [-4.0, -4.0, 0.0, 0.0, 0.0]
+            .iter()
+            .map(|&m| {
+                let c = surface.analyze(&frame(m, 0.3), &cfg).unwrap();
+                det.update(&surface, &c).state
+            })
+            .collect();
+        assert!(!states.contains(&SlipState::GrossSlip), "{states:?}");
+        assert!(states.iter().all(|s| *s != SlipState::NoContact), "{states:?}");
     }
 
     #[test]
