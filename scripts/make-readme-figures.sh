@@ -9,7 +9,7 @@ BIN="${GELSTEREO:-${CARGO_TARGET_DIR:-$ROOT/target}/release/gelstereo}"
 [ -x "$BIN" ] || { bash scripts/setup.sh; cargo build --release --locked -p gelstereo-cli; }
 OUT="$(mktemp -d)"
 trap 'rm -rf "$OUT"' EXIT
-"$BIN" track --quiet --no-ply --out "$OUT" data/sample/press-slide
+"$BIN" track --quiet --no-ply --overlay-every 16 --out "$OUT" data/sample/press-slide
 mkdir -p docs/images
 cp "$OUT/overlays/000016.png" docs/images/overlay.png
 cp "$OUT/plots/contact_surface.png" docs/images/contact_surface.png
