@@ -333,22 +333,22 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
     let mut near: Vec<Point2> = Vec::new();
     members.for_each_within(p, SITE_REACH * pitch, |j, _| near.push(members.points()[j]));
     let min_angle = check.min_angle_deg.to_radians();
+    let tol2 = check.tolerance_frac * check.tolerance_frac;
+    let dist2 = |u: Point2, x: f64, y: f64| (u.x - x).powi(2) + (u.y - y).powi(2);
     let (mut middle, mut any) = (Lines::NONE, Lines::NONE);
     for (a, &q) in near.iter().enumerate() {
         for &r in &near[a + 1..] {
-            // p in the middle of q and r, or p at the end of the line q, r (either way round).
-            let spacing2 = |u: Point2, v: Point2| (u.x - v.x).powi(2) + (u.y - v.y).powi(2);
-            let off2 = |x: f64, y: f64, t: Point2| (x - t.x).powi(2) + (y - t.y).powi(2);
-            let tol2 = check.tolerance_frac * check.tolerance_frac;
+            let (pq2, pr2) = (dist2(p, q.x, q.y), dist2(p, r.x, r.y));
             // At the lattice's own spacing: the centre of a square cell is the middle of its
             // diagonals (0.71 pitch) and of longer chords, and no site.
-            let step = spacing2(p, q).min(spacing2(p, r)).sqrt() / pitch;
+            let step = pq2.min(pr2).sqrt() / pitch;
             if !(SITE_STEP.0..=SITE_STEP.1).contains(&step) {
                 continue;
             }
-            let is_middle = off2(2.0 * p.x - q.x, 2.0 * p.y - q.y, r) <= tol2 * spacing2(p, q);
-            let is_end = off2(2.0 * q.x - p.x, 2.0 * q.y - p.y, r) <= tol2 * spacing2(p, q)
-                || off2(2.0 * r.x - p.x, 2.0 * r.y - p.y, q) <= tol2 * spacing2(p, r);
+            // p in the middle of q and r, or p at the end of the line q, r (either way round).
+            let is_middle = dist2(r, 2.0 * p.x - q.x, 2.0 * p.y - q.y) <= tol2 * pq2;
+            let is_end = dist2(r, 2.0 * q.x - p.x, 2.0 * q.y - p.y) <= tol2 * pq2
+                || dist2(q, 2.0 * r.x - p.x, 2.0 * r.y - p.y) <= tol2 * pr2;
             if is_middle || is_end {
                 let angle = (r.y - q.y).atan2(r.x - q.x).rem_euclid(std::f64::consts::PI);
                 any.add(angle, min_angle);

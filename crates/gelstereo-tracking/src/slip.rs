@@ -224,21 +224,22 @@ impl SlipDetector {
 
     /// Forgets the history (after re-zeroing the reference).
     pub fn reset(&mut self) {
+        self.restart_drift();
+        self.sliding = false;
+        self.turned_rad = 0.0;
+    }
+
+    /// Forgets the frames the drift is measured over.
+    fn restart_drift(&mut self) {
         self.history.clear();
         self.depths.clear();
-        self.sliding = false;
         self.drifting = 0;
-        self.turned_rad = 0.0;
     }
 
     /// Classifies the next frame.
     pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
         if !frame.contact {
-            self.history.clear();
-            self.depths.clear();
-            self.sliding = false;
-            self.drifting = 0;
-            self.turned_rad = 0.0;
+            self.reset();
             return SlipFrame {
                 state: SlipState::NoContact,
                 shear_mm: Vector3::zeros(),
@@ -255,9 +256,7 @@ impl SlipDetector {
         if let (Some(c), Some(last)) = (frame.material_centroid_mm, self.history.back()) {
             let radius_mm = (frame.contact_area_mm2 / std::f64::consts::PI).sqrt();
             if (c - last).norm() > radius_mm {
-                self.history.clear();
-                self.depths.clear();
-                self.drifting = 0;
+                self.restart_drift();
             }
         }
         let oldest = self.history.front().copied();
