@@ -25,6 +25,7 @@ from .runtime import ort_session
 from .postprocess import (
     COARSE_PROBE_SCALE,
     FINE_PROBE_SCALE,
+    MAX_RELAYOUTS,
     MIN_PITCH_SUPPORT,
     PROBE_MIN_COVER,
     PROBE_MIN_GAIN,
@@ -58,8 +59,8 @@ class MarknetRunner:
     covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover), and where neither found a
     lattice a fine probe at ``FINE_PROBE_SCALE`` x and a coarse one at ``COARSE_PROBE_SCALE`` x under the
     same rule; then, when the pitch measured on the kept one asks for a scale more than
-    ``RELAYOUT_SCALE_CHANGE`` away, a last pass at that scale (each image on its own, as
-    ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
+    ``RELAYOUT_SCALE_CHANGE`` away, a pass at that scale, repeated (at most ``MAX_RELAYOUTS`` passes) while
+    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
     def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
         if fit not in ("auto", "stretch"):
@@ -124,7 +125,7 @@ class MarknetRunner:
             if self.post.lattice is None:
                 return len(conf), p
             conf = conf[dedup(conf, self.post.dedup_radius_frac * p)]
-            member, _, lp, ok = lattice_fit(conf[:, :2], self.post.lattice, input_per_px(wh, used))
+            member, _, lp, ok = lattice_fit(conf[:, :2], self.post.lattice, input_per_px(wh, used), conf[:, 2])
             return (int(member.sum()), lp) if ok else (0, float("nan"))
 
         def cover(n: int, p: float) -> float:  # the area the supporting finds cover, see PROBE_MIN_COVER
@@ -132,8 +133,11 @@ class MarknetRunner:
 
         n_first, p_first = support(dec, lay)
         for scale in (PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE):
-            # The fine and coarse probes only where no pass so far found a lattice.
-            if scale != PROBE_SCALE and n_first >= MIN_PITCH_SUPPORT:
+            # The fine and coarse probes only where no pass so far found a lattice; the fine one also where
+            # the lattice found lies below the network's range at its input (maybe a thinned-out finer one).
+            unresolved = (self.post.lattice is not None and np.isfinite(p_first)
+                          and p_first * input_per_px(wh, lay) < self.fit.pitch_range_px[0])
+            if scale != PROBE_SCALE and n_first >= MIN_PITCH_SUPPORT and not (scale == FINE_PROBE_SCALE and unresolved):
                 continue
             probe = probe_layout(img.shape[1], img.shape[0], self.fit, scale)
             if probe == lay:
@@ -143,12 +147,17 @@ class MarknetRunner:
             gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * n_first
             if gain and cover(n, p_probe) >= PROBE_MIN_COVER * cover(n_first, p_first):
                 lay, dec, n_first, p_first = probe, probed, n, p_probe
-        if n_first >= MIN_PITCH_SUPPORT and np.isfinite(p_first):
-            pitch = p_first
-            better = self.layout(img, pitch)
-            if relayout_needed(lay, better):
-                lay = better
-                dec = self.run_layout(img, lay)
+        # each pass brings a partly resolved lattice's pitch closer; without the lattice check a pitch is any
+        # candidates' spacing (a random network's lies at its output stride at every scale): one relayout
+        for _ in range(MAX_RELAYOUTS if self.post.lattice is not None else 1):
+            if not (n_first >= MIN_PITCH_SUPPORT and np.isfinite(p_first)):
+                break
+            better = self.layout(img, p_first)
+            if not relayout_needed(lay, better):
+                break
+            lay = better
+            dec = self.run_layout(img, lay)
+            n_first, p_first = support(dec, lay)
         return dec, lay
 
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:

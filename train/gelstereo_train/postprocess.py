@@ -126,6 +126,7 @@ def _layout_at_scale(w: int, h: int, p: float, s: float, fit: FitConfig) -> Layo
 
 
 RELAYOUT_SCALE_CHANGE = 0.1  # a second pass when the measured pitch moves the scale by more than this
+MAX_RELAYOUTS = 3  # passes at the layout of a measured pitch, at most (Rust: MAX_RELAYOUTS)
 MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a measured pitch
 
 
@@ -426,15 +427,56 @@ def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) ->
     return member
 
 
-def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float):
-    """(member mask, on-lattice mask, pitch_px or NaN, is_lattice) of ``points`` (Rust:
-    ``lattice::fit_lattice``): a lattice needs ``min_support`` members whose median nearest-neighbour
-    distance is at least ``min_input_pitch_px`` at the network input; a non-member with
-    ``adjacent_members`` members within ``reach_frac`` x that pitch is on the lattice too (a marker
-    pushed off its lines in a pile-up)."""
+SPACING_LEFT_OUT = 0.2  # share of the sure points the lines leave out before spacing is asked (Rust: SPACING_LEFT_OUT)
+SPACED_NN = (0.6, 1.6)  # nearest-neighbour range of a member by spacing, in medians (Rust: SPACED_NN)
+SPACED_REACH = 2.0  # neighbours by spacing are searched within this many medians (Rust: SPACED_REACH)
+SURROUNDED_GAP_DEG = 120.0  # largest gap between an inner point's neighbours (Rust: SURROUNDED_GAP_DEG)
+
+
+def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = LatticeCheck()) -> np.ndarray:
+    """Boolean mask of the members by spacing (Rust: ``lattice::spaced_members``): points whose nearest
+    neighbour is within SPACED_NN of the median, in patches of at least ``min_patch``, at least half of them
+    ``sure``, held together by inner points (three such neighbours within SPACED_REACH medians around them,
+    no gap above SURROUNDED_GAP_DEG); a sure spaced point with an inner one within reach joins its patch."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    member = lattice_members(p, check)
-    pitch = float(np.median(_nearest_other(p)[member])) if member.sum() >= 2 else float("nan")
+    n = len(p)
+    nn = _nearest_other(p)
+    if n < 3 or not np.isfinite(nn).any():
+        return np.zeros(n, dtype=bool)
+    median_nn = float(np.median(nn[np.isfinite(nn)]))
+    spaced = (nn >= SPACED_NN[0] * median_nn) & (nn <= SPACED_NN[1] * median_nn)
+    d = np.sqrt(((p[:, None, :] - p[None, :, :]) ** 2).sum(-1))
+    near = (d <= SPACED_REACH * median_nn) & ~np.eye(n, dtype=bool)
+    inner = np.zeros(n, dtype=bool)
+    for i in np.nonzero(spaced)[0]:
+        j = np.nonzero(near[i] & spaced)[0]
+        if len(j) >= 3:
+            a = np.sort(np.arctan2(p[j, 1] - p[i, 1], p[j, 0] - p[i, 0]))
+            gap = max(float(np.diff(a).max(initial=0.0)), 2 * math.pi - (a[-1] - a[0]))
+            inner[i] = gap <= math.radians(SURROUNDED_GAP_DEG)
+    parent = list(range(n))
+
+    def root(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for i in np.nonzero(spaced)[0]:
+        for j in np.nonzero(near[i] & inner)[0]:
+            ri, rj = root(i), root(j)
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+    member = inner | (spaced & sure & ((near & inner[None, :]).sum(1) >= 1))
+    roots = np.array([root(i) for i in range(n)])
+    sizes = np.bincount(roots[member], minlength=n)
+    sure_sizes = np.bincount(roots[member & sure], minlength=n)
+    return member & (sizes[roots] >= check.min_patch) & (2 * sure_sizes[roots] >= sizes[roots])
+
+
+def _finish_fit(p: np.ndarray, member: np.ndarray, check: LatticeCheck, input_per_px: float):
+    nn = _nearest_other(p)
+    pitch = float(np.median(nn[member])) if member.sum() >= 2 else float("nan")
     ok = bool(member.sum() >= check.min_support and np.isfinite(pitch)
               and pitch * input_per_px >= check.min_input_pitch_px)
     on = member.copy()
@@ -443,6 +485,33 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float):
             d = np.hypot(p[member, 0] - p[i, 0], p[member, 1] - p[i, 1])
             on[i] = int((d <= check.reach_frac * pitch).sum()) >= check.adjacent_members
     return member, on, pitch, ok
+
+
+def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, conf: np.ndarray | None = None):
+    """(member mask, on-lattice mask, pitch_px or NaN, is_lattice) of ``points`` with confidences ``conf``
+    (None: all sure) (Rust: ``lattice::fit_lattice``): a lattice needs ``min_support`` members whose median
+    nearest-neighbour distance is at least ``min_input_pitch_px`` at the network input; a non-member with
+    ``adjacent_members`` members within ``reach_frac`` x that pitch is on the lattice too (a marker pushed
+    off its lines in a pile-up). The members are those of the lines and, where those leave more than one
+    in 5 of the sure points (confidence >= ``adjacent_min_confidence``) out, those of ``spaced_members``:
+    both lattices at one pitch are one (their union), else the larger is."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    lined_member = lattice_members(p, check)
+    sure = np.ones(len(p), dtype=bool) if conf is None else np.asarray(conf) >= check.adjacent_min_confidence
+    left_out = int((sure & ~lined_member).sum())
+    if left_out < 3 or left_out <= SPACING_LEFT_OUT * int(sure.sum()):
+        return _finish_fit(p, lined_member, check, input_per_px)
+    spaced_member = spaced_members(p, sure, check)
+    lined = _finish_fit(p, lined_member, check, input_per_px)
+    spaced = _finish_fit(p, spaced_member, check, input_per_px)
+    if not spaced[3]:
+        return lined
+    if not lined[3]:
+        return spaced
+    a, b = lined[2], spaced[2]
+    if a <= b * check.patch_pitch_ratio and b <= a * check.patch_pitch_ratio:
+        return _finish_fit(p, lined_member | spaced_member, check, input_per_px)
+    return spaced if spaced_member.sum() > lined_member.sum() else lined
 
 
 SITE_STEP = (0.75, 1.33)  # spacing of the lines that place an empty site, in pitches (Rust: SITE_STEP)
@@ -485,7 +554,7 @@ def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_
     ``markers`` when ``check`` is None (Rust: ``lattice::keep_the_lattice``)."""
     if check is None:
         return markers
-    member, on, pitch, ok = lattice_fit(markers[:, :2], check, input_per_px)
+    member, on, pitch, ok = lattice_fit(markers[:, :2], check, input_per_px, markers[:, 2])
     keep = member | (on & (markers[:, 2] >= check.adjacent_min_confidence))
     if not ok:
         return markers[:0]

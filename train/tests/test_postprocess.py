@@ -139,3 +139,18 @@ def test_the_lattice_check_moves_up_unsure_candidates_at_empty_sites_and_drops_t
     speckle = np.array([(310 + 7.0 * c, 210 + 7.0 * r) for r in range(5) for c in range(5)])
     member = lattice_fit(np.vstack([markers, speckle]), LatticeCheck(), 1.0)[0]
     assert member[:120].all() and not member[120:].any()
+
+
+def test_an_irregular_lattice_the_network_is_sure_of_is_kept_and_doubtful_spacing_is_not():
+    """The Python twin of the Rust test: hand-placed dots (a 12 x 10 lattice of pitch 20, each moved up
+    to a quarter pitch per axis) are a lattice by their spacing when the network is sure of them; the
+    same places with a doubtful confidence are not (a blurred texture's extrema keep a spacing too)."""
+    from gelstereo_train.postprocess import LatticeCheck, lattice_fit
+
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        pts = np.array([(10 + 20.0 * c, 10 + 20.0 * r) for r in range(10) for c in range(12)])
+        pts = pts + rng.uniform(-5.0, 5.0, pts.shape)
+        member, _, pitch, ok = lattice_fit(pts, LatticeCheck(), 1.0, np.full(len(pts), 0.99))
+        assert ok and member.sum() >= 108 and 15.0 < pitch < 21.0
+        assert lattice_fit(pts, LatticeCheck(), 1.0, np.full(len(pts), 0.6))[0].sum() < 60

@@ -35,6 +35,13 @@
 //! at the network input: below it the network cannot resolve markers, and what lines up there is its
 //! own output grid (stride 8) on noise or banding. Without a lattice a view reports no markers.
 //!
+//! An *irregular* lattice (hand-placed or irregularly printed dots, each up to a quarter pitch off its
+//! site) lines up too loosely for rule 1 to hold all of it. Where the lines leave more than one in 5
+//! of the detections the network is sure of out, the detections are also checked by their spacing
+//! ([`spaced_members`]): printed dots keep their distance from each other, and the neighbours of an
+//! inner dot surround it. Patches by spacing must be mostly sure detections (the extrema of a blurred
+//! texture keep a spacing too, but the network is rarely sure of them).
+//!
 //! Uniform random points almost never pass (rule 1 needs two lucky coincidences per point, rule 2 six
 //! of those in a row); a marker lattice passes up to its corners (each the end of two lines), its
 //! markers cut by the image border and its pile-ups (a marker squeezed against its neighbour still
@@ -163,29 +170,125 @@ impl Lines {
     }
 }
 
-/// The lattice members among `points` (see the module documentation); `input_per_px` is the network
-/// input's scale (input px per original px) for the spacing rule.
-pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -> LatticeFit {
+/// The lattice members among the `found` detections (see the module documentation); `input_per_px`
+/// is the network input's scale (input px per original px) for the spacing rule. The members are
+/// those of the lines (equally spaced lines in two directions) and, where those leave more than one
+/// in 5 of the sure detections (confidence at least [`LatticeCheck::adjacent_min_confidence`]) out,
+/// those of the spacing rule ([`spaced_members`]: an irregular lattice, hand-placed or irregularly
+/// printed dots, lines up too loosely for the lines alone). Both fits at one pitch are one lattice
+/// (their union); otherwise the one with the most members is.
+pub fn fit_lattice(found: &[Detection], check: &LatticeCheck, input_per_px: f64) -> LatticeFit {
+    let points: Vec<Point2> = found.iter().map(|d| d.position).collect();
     let n = points.len();
-    let mut fit = LatticeFit {
-        member: vec![false; n],
-        on_lattice: vec![false; n],
-        members: 0,
-        pitch_px: None,
-        is_lattice: false,
+    let Some(hood) = Neighbourhood::of(&points, check) else {
+        return LatticeFit {
+            member: vec![false; n],
+            on_lattice: vec![false; n],
+            members: 0,
+            pitch_px: None,
+            is_lattice: false,
+        };
     };
-    if n < 3 {
-        return fit;
-    }
-    let nearest_grid = Buckets::with_one_point_per_cell(points);
-    let nn: Vec<f64> = (0..n)
-        .map(|i| nearest_grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
+    let finish = |member: Vec<bool>| finish_fit(member, &hood, check, input_per_px);
+    let lined = lined_members(&points, &hood, check);
+    // Spacing is weaker evidence than lines (the extrema of a blurred texture keep a spacing of
+    // their own), so it is asked only where the lines leave more than one in 5 of the detections
+    // the network is sure of out, and its patches must be mostly sure ones.
+    let sure: Vec<bool> = found
+        .iter()
+        .map(|d| d.confidence >= check.adjacent_min_confidence)
         .collect();
-    let Some(median_nn) = median(&mut nn.iter().copied().filter(|d| d.is_finite()).collect::<Vec<_>>())
-    else {
-        return fit;
+    let sure_count = sure.iter().filter(|&&s| s).count();
+    let left_out = (0..n).filter(|&i| sure[i] && !lined[i]).count();
+    if left_out < 3 || (left_out as f64) <= SPACING_LEFT_OUT * sure_count as f64 {
+        return finish(lined);
+    }
+    let spaced = spaced_members(&points, &sure, &hood, check);
+    let union: Vec<bool> = lined.iter().zip(&spaced).map(|(a, b)| *a || *b).collect();
+    let (lined, spaced) = (finish(lined), finish(spaced));
+    let one_pitch = |a: f64, b: f64| a <= b * check.patch_pitch_ratio && b <= a * check.patch_pitch_ratio;
+    match (
+        lined.is_lattice,
+        spaced.is_lattice,
+        lined.pitch_px,
+        spaced.pitch_px,
+    ) {
+        (_, false, ..) => lined,
+        (false, true, ..) => spaced,
+        // One lattice seen both ways: its regular part by the lines, the rest by spacing.
+        (true, true, Some(a), Some(b)) if one_pitch(a, b) => finish(union),
+        _ if spaced.members > lined.members => spaced,
+        _ => lined,
+    }
+}
+
+/// Each point's nearest-neighbour distance, their median, and the points bucketed for searches
+/// within `reach_frac` x that median.
+struct Neighbourhood {
+    nn: Vec<f64>,
+    median_nn: f64,
+    grid: Buckets,
+}
+
+impl Neighbourhood {
+    /// `None` with fewer than three points or no finite distance.
+    fn of(points: &[Point2], check: &LatticeCheck) -> Option<Self> {
+        if points.len() < 3 {
+            return None;
+        }
+        let nearest_grid = Buckets::with_one_point_per_cell(points);
+        let nn: Vec<f64> = (0..points.len())
+            .map(|i| nearest_grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
+            .collect();
+        let median_nn = median(&mut nn.iter().copied().filter(|d| d.is_finite()).collect::<Vec<_>>())?;
+        let grid = Buckets::new(points, check.reach_frac * median_nn);
+        Some(Self { nn, median_nn, grid })
+    }
+}
+
+/// The fit of the `member`s: their pitch, the points on the lattice beside them, whether they form one.
+fn finish_fit(
+    member: Vec<bool>,
+    hood: &Neighbourhood,
+    check: &LatticeCheck,
+    input_per_px: f64,
+) -> LatticeFit {
+    let mut member_nn: Vec<f64> = (0..member.len())
+        .filter(|&i| member[i])
+        .map(|i| hood.nn[i])
+        .collect();
+    let members = member_nn.len();
+    let pitch_px = if members >= 2 {
+        median(&mut member_nn)
+    } else {
+        None
     };
-    let grid = Buckets::new(points, check.reach_frac * median_nn);
+    let mut on_lattice = member.clone();
+    if let Some(pitch) = pitch_px {
+        for (i, &p) in hood.grid.points().iter().enumerate().filter(|&(i, _)| !member[i]) {
+            let mut adjacent = 0;
+            hood.grid.for_each_within(p, check.reach_frac * pitch, |j, _| {
+                adjacent += usize::from(member[j])
+            });
+            on_lattice[i] = adjacent >= check.adjacent_members;
+        }
+    }
+    let is_lattice = members >= check.min_support
+        && pitch_px.is_some_and(|p| p * input_per_px >= check.min_input_pitch_px);
+    LatticeFit {
+        member,
+        on_lattice,
+        members,
+        pitch_px,
+        is_lattice,
+    }
+}
+
+/// Members by the lines: points on equally spaced lines of three in two directions, in patches of
+/// at least [`LatticeCheck::min_patch`] at the lattice's pitch (module documentation, rules 1-3).
+fn lined_members(points: &[Point2], hood: &Neighbourhood, check: &LatticeCheck) -> Vec<bool> {
+    let Neighbourhood { nn, median_nn, grid } = hood;
+    let (n, median_nn) = (points.len(), *median_nn);
     let min_angle = check.min_angle_deg.to_radians();
     // The lines through each point, and the pairs each line joins.
     let mut lines = vec![Lines::NONE; n];
@@ -250,32 +353,97 @@ pub fn fit_lattice(points: &[Point2], check: &LatticeCheck, input_per_px: f64) -
             (two_lines[i] && size[r] >= check.min_patch).then_some(r)
         })
         .collect();
-    let pitch_ok = patches_at_the_lattice_pitch(&patch_of, &nn, check.patch_pitch_ratio);
-    for (member, patch) in fit.member.iter_mut().zip(&patch_of) {
-        *member = patch.is_some_and(|r| pitch_ok[r]);
-    }
-    let mut member_nn: Vec<f64> = (0..n).filter(|&i| fit.member[i]).map(|i| nn[i]).collect();
-    fit.members = member_nn.len();
-    fit.pitch_px = if fit.members >= 2 {
-        median(&mut member_nn)
-    } else {
-        None
-    };
-    fit.on_lattice.clone_from(&fit.member);
-    if let Some(pitch) = fit.pitch_px {
-        for (i, &p) in points.iter().enumerate().filter(|&(i, _)| !fit.member[i]) {
-            let mut adjacent = 0;
-            grid.for_each_within(p, check.reach_frac * pitch, |j, _| {
-                adjacent += usize::from(fit.member[j])
+    let pitch_ok = patches_at_the_lattice_pitch(&patch_of, nn, check.patch_pitch_ratio);
+    patch_of
+        .iter()
+        .map(|patch| patch.is_some_and(|r| pitch_ok[r]))
+        .collect()
+}
+
+/// Share of the sure detections the lines must leave out before the spacing rule is asked: on a
+/// regular lattice the lines hold nearly all (pile-ups at an indenter's rim leave some out, and the
+/// spacing rule there changed which of them were kept: 23 instead of 21 id swaps on the tracking
+/// split at one in 20); on an irregular one they leave most out.
+const SPACING_LEFT_OUT: f64 = 0.2;
+
+/// Nearest-neighbour distance of a member by the spacing rule, in medians of them: printed dots keep
+/// their distance (an irregular lattice's dots, moved up to 0.25 pitch per axis, stay 0.5 pitch apart),
+/// where points strewn at random are closer than 0.6 median to their nearest in 22 % of cases.
+const SPACED_NN: (f64, f64) = (0.6, 1.6);
+
+/// Neighbours of a point by spacing are searched within this many medians of the nearest-neighbour
+/// distance: the median is about 0.8 pitch on an irregular lattice, so its diagonal neighbours
+/// (1.41 pitch) are mostly inside.
+const SPACED_REACH: f64 = 2.0;
+
+/// Largest angle between the directions to consecutive neighbours of a point inside a lattice,
+/// degrees: the six to eight neighbours of an inner dot surround it with gaps under 90, where the
+/// neighbours of a point strewn at random do so only 4 % of the time.
+const SURROUNDED_GAP_DEG: f64 = 120.0;
+
+/// Members by spacing: points whose nearest neighbour lies within [`SPACED_NN`] of the median, in
+/// patches of at least [`LatticeCheck::min_patch`], at least half of them `sure`, held together by
+/// *inner* points (at least three such neighbours within [`SPACED_REACH`] medians, around it with no
+/// gap above [`SURROUNDED_GAP_DEG`]); a sure spaced point with an inner one within reach joins its
+/// patch (the lattice's edge, whose points have the lattice on one side only; a find one pitch beyond
+/// the edge has no inner point within reach, and a doubtful one at the edge is as often a dot cut by
+/// the image border).
+fn spaced_members(points: &[Point2], sure: &[bool], hood: &Neighbourhood, check: &LatticeCheck) -> Vec<bool> {
+    let Neighbourhood { nn, median_nn, grid } = hood;
+    let (n, median_nn) = (points.len(), *median_nn);
+    let spaced: Vec<bool> = nn
+        .iter()
+        .map(|&d| (SPACED_NN.0 * median_nn..=SPACED_NN.1 * median_nn).contains(&d))
+        .collect();
+    let reach = SPACED_REACH * median_nn;
+    let mut angles = Vec::new();
+    let inner: Vec<bool> = (0..n)
+        .map(|i| {
+            angles.clear();
+            let p = points[i];
+            grid.for_each_within(p, reach, |j, _| {
+                if j != i && spaced[j] {
+                    angles.push((points[j].y - p.y).atan2(points[j].x - p.x));
+                }
             });
-            fit.on_lattice[i] = adjacent >= check.adjacent_members;
-        }
+            spaced[i] && angles.len() >= 3 && largest_gap(&mut angles) <= SURROUNDED_GAP_DEG.to_radians()
+        })
+        .collect();
+    let mut patches = Patches((0..n).collect());
+    let mut inner_near = vec![0usize; n];
+    for (i, &p) in points.iter().enumerate().filter(|&(i, _)| spaced[i]) {
+        grid.for_each_within(p, reach, |j, _| {
+            if j != i && inner[j] {
+                inner_near[i] += 1;
+                patches.join(i, j);
+            }
+        });
     }
-    fit.is_lattice = fit.members >= check.min_support
-        && fit
-            .pitch_px
-            .is_some_and(|p| p * input_per_px >= check.min_input_pitch_px);
-    fit
+    let member: Vec<bool> = (0..n)
+        .map(|i| inner[i] || (spaced[i] && sure[i] && inner_near[i] >= 1))
+        .collect();
+    let (mut size, mut sure_size) = (vec![0usize; n], vec![0usize; n]);
+    for i in (0..n).filter(|&i| member[i]) {
+        let r = patches.root(i);
+        size[r] += 1;
+        sure_size[r] += usize::from(sure[i]);
+    }
+    (0..n)
+        .map(|i| {
+            let r = patches.root(i);
+            member[i] && size[r] >= check.min_patch && 2 * sure_size[r] >= size[r]
+        })
+        .collect()
+}
+
+/// The largest angle between consecutive `angles` (radians, any order) around the circle.
+fn largest_gap(angles: &mut [f64]) -> f64 {
+    angles.sort_by(f64::total_cmp);
+    let wrap = angles
+        .first()
+        .zip(angles.last())
+        .map_or(0.0, |(a, b)| std::f64::consts::TAU - (b - a));
+    angles.windows(2).map(|w| w[1] - w[0]).fold(wrap, f64::max)
 }
 
 /// Per patch root: whether the patch's spacing (median of its points' nearest-neighbour distances
@@ -370,8 +538,7 @@ pub fn keep_the_lattice(
     check: &LatticeCheck,
     input_per_px: f64,
 ) -> TieredDetections {
-    let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
-    let fit = fit_lattice(&points, check, input_per_px);
+    let fit = fit_lattice(&found.accepted, check, input_per_px);
     let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
     let mut member_points = Vec::new();
     for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {
@@ -422,6 +589,17 @@ mod tests {
             .collect()
     }
 
+    /// Detections the network is sure of at `points`.
+    fn sure(points: &[Point2]) -> Vec<Detection> {
+        points
+            .iter()
+            .map(|&position| Detection {
+                position,
+                confidence: 0.99,
+            })
+            .collect()
+    }
+
     /// Uniform random points from a fixed linear congruential sequence (no dependency for a test).
     fn scattered(n: usize, side: f64, mut state: u64) -> Vec<Point2> {
         let mut next = move || {
@@ -435,7 +613,7 @@ mod tests {
 
     #[test]
     fn every_point_of_a_square_lattice_is_a_member_corners_included() {
-        let fit = fit_lattice(&square(10, 8, 20.0), &LatticeCheck::default(), 1.0);
+        let fit = fit_lattice(&sure(&square(10, 8, 20.0)), &LatticeCheck::default(), 1.0);
         assert_eq!(fit.members, 80);
         assert!(fit.is_lattice);
         assert_eq!(fit.pitch_px, Some(20.0));
@@ -451,7 +629,7 @@ mod tests {
             .map(|p| Point2::new(p.x + 300.0, p.y + 200.0))
             .collect();
         pts.extend(&speckle);
-        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        let fit = fit_lattice(&sure(&pts), &LatticeCheck::default(), 1.0);
         assert_eq!(fit.members, 120, "only the marker lattice");
         assert!(fit.member[..120].iter().all(|&m| m));
         assert!(fit.on_lattice[120..].iter().all(|&m| !m));
@@ -462,7 +640,10 @@ mod tests {
                 .into_iter()
                 .map(|p| Point2::new(p.x, p.y + 120.0)),
         );
-        assert_eq!(fit_lattice(&split, &LatticeCheck::default(), 1.0).members, 96);
+        assert_eq!(
+            fit_lattice(&sure(&split), &LatticeCheck::default(), 1.0).members,
+            96
+        );
     }
 
     fn tiers(accepted: &[Point2], second_tier: &[(Point2, f32)]) -> TieredDetections {
@@ -508,14 +689,48 @@ mod tests {
                 })
             })
             .collect();
-        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        let fit = fit_lattice(&sure(&pts), &LatticeCheck::default(), 1.0);
         assert_eq!(fit.members, pts.len());
+    }
+
+    /// A 12 x 10 lattice (pitch 20) whose markers are moved up to `jitter` pitch per axis, as
+    /// hand-placed dots are.
+    fn jittered(jitter: f64, seed: u64) -> Vec<Point2> {
+        let offsets = scattered(240, 2.0 * jitter * 20.0, seed);
+        square(12, 10, 20.0)
+            .into_iter()
+            .zip(offsets.chunks(2))
+            .map(|(p, o)| Point2::new(p.x + o[0].x - jitter * 20.0, p.y + o[1].y - jitter * 20.0))
+            .collect()
+    }
+
+    #[test]
+    fn an_irregular_lattice_the_network_is_sure_of_is_a_lattice() {
+        for seed in 1..=5 {
+            let pts = jittered(0.25, seed);
+            let fit = fit_lattice(&sure(&pts), &LatticeCheck::default(), 1.0);
+            assert!(fit.is_lattice, "seed {seed}");
+            assert!(fit.members >= 108, "seed {seed}: {} of 120 members", fit.members);
+            // The pitch is the members' median nearest-neighbour distance: under 20 px with jitter.
+            assert!(
+                (15.0..21.0).contains(&fit.pitch_px.unwrap_or(0.0)),
+                "{:?}",
+                fit.pitch_px
+            );
+            // Doubtful detections in the same places: the spacing alone does not make them markers.
+            let doubtful: Vec<Detection> = sure(&pts)
+                .into_iter()
+                .map(|d| Detection { confidence: 0.6, ..d })
+                .collect();
+            let fit = fit_lattice(&doubtful, &LatticeCheck::default(), 1.0);
+            assert!(fit.members < 60, "seed {seed}: {} doubtful members", fit.members);
+        }
     }
 
     #[test]
     fn random_points_are_not_a_lattice() {
         for (n, seed) in [(200, 1), (2000, 2), (5000, 3)] {
-            let fit = fit_lattice(&scattered(n, 640.0, seed), &LatticeCheck::default(), 1.0);
+            let fit = fit_lattice(&sure(&scattered(n, 640.0, seed)), &LatticeCheck::default(), 1.0);
             assert!(fit.members <= n / 100, "{n} points: {} members", fit.members);
         }
     }
@@ -535,7 +750,7 @@ mod tests {
             Point2::new(-40.0, 97.0),
             Point2::new(120.0, 200.0),
         ]);
-        let fit = fit_lattice(&pts, &LatticeCheck::default(), 1.0);
+        let fit = fit_lattice(&sure(&pts), &LatticeCheck::default(), 1.0);
         assert!(
             fit.on_lattice[..lattice].iter().all(|m| *m),
             "{:?}",
@@ -546,10 +761,10 @@ mod tests {
 
     #[test]
     fn a_lattice_finer_than_the_network_resolves_is_none() {
-        let fit = fit_lattice(&square(10, 8, 20.0), &LatticeCheck::default(), 0.3);
+        let fit = fit_lattice(&sure(&square(10, 8, 20.0)), &LatticeCheck::default(), 0.3);
         assert_eq!(fit.members, 80);
         assert!(!fit.is_lattice, "6 px at the input");
-        let few = fit_lattice(&square(3, 2, 20.0), &LatticeCheck::default(), 1.0);
+        let few = fit_lattice(&sure(&square(3, 2, 20.0)), &LatticeCheck::default(), 1.0);
         assert!(!few.is_lattice, "{} members", few.members);
     }
 }

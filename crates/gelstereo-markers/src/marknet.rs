@@ -73,6 +73,13 @@ pub const MAX_INPUT_SIDE_PX: u32 = 2048;
 /// from the one used (`RELAYOUT_SCALE_CHANGE` in the trainer).
 pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 
+/// Passes at the layout of a measured pitch, at most, with the lattice check on (one without it;
+/// `MAX_RELAYOUTS` in the trainer). A lattice the
+/// network resolves only in part at one scale shows a pitch that overstates the true one (its few
+/// finds lie apart), so one step leaves it still too small; each pass brings the pitch closer. A
+/// 960 x 540 sensor of 6.2 px pitch: 18, 11, 7, then 6.2 px, 311 then 2,404 finds.
+pub const MAX_RELAYOUTS: usize = 3;
+
 /// Confident candidates (c > `conf_keep`) needed before a measured pitch may change the layout
 /// (`MIN_PITCH_SUPPORT` in the trainer).
 pub const MIN_PITCH_SUPPORT: usize = 8;
@@ -257,8 +264,7 @@ impl Pass {
                     &mut confident,
                     pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p),
                 );
-                let points: Vec<_> = confident.iter().map(|d| d.position).collect();
-                let fit = fit_lattice(&points, check, input_per_px(size, layout));
+                let fit = fit_lattice(&confident, check, input_per_px(size, layout));
                 if fit.is_lattice {
                     (fit.members, fit.pitch_px)
                 } else {
@@ -909,10 +915,23 @@ impl Marknet {
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .collect();
         for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
-            // The fine and coarse probes only where no pass so far found a lattice.
+            // The fine and coarse probes only where no pass so far found a lattice; the fine one also
+            // where the lattice found (with the lattice check) lies below the network's range at its
+            // input: its dots barely
+            // resolved, it may be a thinned-out part of a finer lattice (a 6.2 px pitch at 960 x 540
+            // showed 119 of its 3,001 dots at 19 px, 8.2 px at the input, at the nominal fit).
+            let with_lattice = self.post.lattice.is_some();
             let probes: Vec<(usize, InputLayout)> = unknown
                 .iter()
-                .filter(|&&i| scale == PROBE_SCALE || found[i].support < MIN_PITCH_SUPPORT)
+                .filter(|&&i| {
+                    let unresolved = || {
+                        let pitch = found[i].layout_pitch_px.unwrap_or(f64::INFINITY);
+                        pitch * input_per_px(sizes[i], &layouts[i]) < fit.pitch_min_px
+                    };
+                    scale == PROBE_SCALE
+                        || found[i].support < MIN_PITCH_SUPPORT
+                        || (scale == FINE_PROBE_SCALE && with_lattice && unresolved())
+                })
                 .map(|&i| (i, probe_layout_at(sizes[i], iw, ih, &fit, scale)))
                 .filter(|&(i, probe)| probe != layouts[i])
                 .collect();
@@ -926,12 +945,44 @@ impl Marknet {
                 }
             }
         }
-        let mut wanted: Vec<Option<InputLayout>> = vec![None; images.len()];
-        for (i, pass) in found.iter().enumerate() {
-            if pass.support < MIN_PITCH_SUPPORT {
-                continue; // too few markers to trust a pitch (an empty or unusual frame): keep the layout
+        // Without the lattice check a pitch is any candidates' spacing (a random network's lies at its
+        // output stride at every scale), and repeating would only zoom in: one relayout, as before.
+        let rounds = if self.post.lattice.is_some() {
+            MAX_RELAYOUTS
+        } else {
+            1
+        };
+        let mut todo: Vec<usize> = (0..images.len()).collect();
+        for _ in 0..rounds {
+            let redo = self.relayouts(&todo, &found, &sizes, &mut layouts);
+            let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;
+            todo = redo.iter().map(|&(i, _)| i).collect();
+            for ((i, _), d) in redo.into_iter().zip(again) {
+                found[i] = d;
             }
-            let Some(pitch) = pass.layout_pitch_px else {
+            if todo.is_empty() {
+                break;
+            }
+        }
+        Ok(found.into_iter().zip(layouts).collect())
+    }
+
+    /// The images of `todo` to run again and their new layouts (set in `layouts`): those whose pass
+    /// measured a pitch (with enough support) that asks for a layout more than
+    /// [`RELAYOUT_SCALE_CHANGE`] away and, with the pitch remembered, every image of a size under the
+    /// layout the next one gets; the remembered pitch follows the measured one.
+    fn relayouts(
+        &mut self,
+        todo: &[usize],
+        found: &[Pass],
+        sizes: &[ImageSize],
+        layouts: &mut [InputLayout],
+    ) -> Vec<(usize, InputLayout)> {
+        let mut wanted: Vec<Option<InputLayout>> = vec![None; found.len()];
+        for &i in todo {
+            let pass = &found[i];
+            // Too few markers to trust a pitch (an empty or unusual frame): keep the layout.
+            let Some(pitch) = pass.layout_pitch_px.filter(|_| pass.support >= MIN_PITCH_SUPPORT) else {
                 continue;
             };
             let layout = self.layout(sizes[i], Some(pitch));
@@ -944,26 +995,22 @@ impl Marknet {
             }
         }
         // With the pitch remembered, every image of a size runs under the layout the next one gets,
-        // including the first (measured under the layout without a pitch, a few % off in scale):
-        // a tracker's reference frame localized at another scale than the frames compared with it
+        // including the first (measured under the layout without a pitch, a few % off in scale): a
+        // tracker's reference frame localized at another scale than the frames compared with it
         // carries a per-marker bias (~0.15 px for the fast model) into every displacement.
-        let mut redo: Vec<(usize, InputLayout)> = Vec::new();
-        for (i, wanted) in wanted.into_iter().enumerate() {
+        let mut redo = Vec::new();
+        for &i in todo {
             let target = if self.remember_pitch && self.pitch_memory.contains_key(&sizes[i]) {
                 Some(self.next_layout(sizes[i]))
             } else {
-                wanted
+                wanted[i]
             };
             if let Some(target) = target.filter(|t| *t != layouts[i]) {
                 layouts[i] = target;
                 redo.push((i, target));
             }
         }
-        let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;
-        for ((i, _), d) in redo.into_iter().zip(again) {
-            found[i] = d;
-        }
-        Ok(found.into_iter().zip(layouts).collect())
+        redo
     }
 
     /// [`decode_pass`](Self::decode_pass) over the images picked by `subset` (index into `images`

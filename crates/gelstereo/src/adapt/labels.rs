@@ -111,7 +111,7 @@ impl ViewCandidates {
         let accepted: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
         // Original pixels: the spacing rule is about what the network resolves, and the default
         // already ran at its own scale; 1 px per px keeps only the rule's meaning for real markers.
-        let fit = fit_lattice(&accepted, &LatticeCheck::default(), 1.0);
+        let fit = fit_lattice(&found.accepted, &LatticeCheck::default(), 1.0);
         let confident = found
             .accepted
             .iter()
