@@ -126,6 +126,7 @@ def _layout_at_scale(w: int, h: int, p: float, s: float, fit: FitConfig) -> Layo
 
 
 RELAYOUT_SCALE_CHANGE = 0.1  # a second pass when the measured pitch moves the scale by more than this
+AREA_BELOW_SCALE = 0.34  # below this scale the image is reduced by area averaging first (Rust: AREA_BELOW_SCALE)
 MAX_RELAYOUTS = 3  # passes at the layout of a measured pitch, at most (Rust: MAX_RELAYOUTS)
 MIN_PITCH_SUPPORT = 8  # confident candidates (c > conf_keep) needed to trust a measured pitch
 
@@ -181,11 +182,17 @@ FILL_SAMPLE_STEP = 4  # the margin's colour: median of every 4th pixel of every 
 
 def preprocess_layout(rgb: np.ndarray, lay: Layout) -> torch.Tensor:
     """uint8 RGB (H, W, 3) or grey -> float (1, 3, input_h, input_w): rgb/255, bilinear resize to the
-    layout's scaled size (half-pixel centres, no antialiasing), the margin filled with the resized
+    layout's scaled size (half-pixel centres, no antialiasing; below AREA_BELOW_SCALE along either axis the
+    8-bit image is first reduced to that size by area averaging, cv2.INTER_AREA), the margin filled with the resized
     image's median colour per channel (lower median of the sampled pixels). A mirrored margin would
     complete a dot cut by the border into a phantom marker on the edge and pull whole dots near the
     edge towards their reflections."""
-    x = preprocess(rgb, (lay.scaled_h, lay.scaled_w))
+    a = np.asarray(rgb)
+    if lay.scaled_w < AREA_BELOW_SCALE * a.shape[1] or lay.scaled_h < AREA_BELOW_SCALE * a.shape[0]:
+        import cv2  # the trainer's requirements; only large reductions need it
+
+        a = cv2.resize(np.ascontiguousarray(a), (lay.scaled_w, lay.scaled_h), interpolation=cv2.INTER_AREA)
+    x = preprocess(a, (lay.scaled_h, lay.scaled_w))
     if (lay.scaled_w, lay.scaled_h) == (lay.input_w, lay.input_h):
         return x
     step = FILL_SAMPLE_STEP

@@ -154,3 +154,26 @@ def test_an_irregular_lattice_the_network_is_sure_of_is_kept_and_doubtful_spacin
         member, _, pitch, ok = lattice_fit(pts, LatticeCheck(), 1.0, np.full(len(pts), 0.99))
         assert ok and member.sum() >= 108 and 15.0 < pitch < 21.0
         assert lattice_fit(pts, LatticeCheck(), 1.0, np.full(len(pts), 0.6))[0].sum() < 60
+
+
+def test_large_reductions_average_areas_and_mild_ones_stay_bilinear():
+    """Rust twin: marknet::write_layout. Below AREA_BELOW_SCALE the scaled image is the 8-bit area
+    average (cv2.INTER_AREA) / 255; at a mild reduction it is the bilinear resize of rgb / 255."""
+    import cv2
+    import torch.nn.functional as F
+    from gelstereo_train.postprocess import AREA_BELOW_SCALE, Layout, preprocess_layout
+
+    rgb = np.zeros((300, 400, 3), dtype=np.uint8)
+    rgb[::4] = 200  # scan lines: every 4th row bright
+    rgb[1::4] = 200
+    small = Layout(64, 64, 40, 30, 12, 17)  # 0.1 x
+    assert 40 / 400 < AREA_BELOW_SCALE
+    x = preprocess_layout(rgb, small)[0, :, 17:47, 12:52].numpy()
+    area = cv2.resize(rgb, (40, 30), interpolation=cv2.INTER_AREA).transpose(2, 0, 1) / 255.0
+    assert np.allclose(x, area, atol=1e-6)
+    assert 90 < x.mean() * 255 < 110  # the banding averages to its mean; bilinear sampling would alias
+    mild = Layout(224, 160, 200, 150, 12, 5)  # 0.5 x
+    x = preprocess_layout(rgb, mild)[0, :, 5:155, 12:212]
+    t = torch.from_numpy(rgb).permute(2, 0, 1).float()[None] / 255.0
+    bilinear = F.interpolate(t, size=(150, 200), mode="bilinear", align_corners=False, antialias=False)[0]
+    assert torch.allclose(x, bilinear, atol=1e-6)

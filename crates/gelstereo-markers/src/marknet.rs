@@ -73,6 +73,17 @@ pub const MAX_INPUT_SIDE_PX: u32 = 2048;
 /// from the one used (`RELAYOUT_SCALE_CHANGE` in the trainer).
 pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 
+/// Below this scale (output px per original px, along either axis) the image is first reduced to its
+/// scaled size by area averaging (OpenCV `INTER_AREA`; `AREA_BELOW_SCALE` in the trainer), then
+/// placed as usual: bilinear sampling reads 2 x 2 pixels per output pixel, so a reduction of 3x or
+/// more skips most pixels, and scan lines or dots a few pixels wide alias into stripes and blobs. Milder
+/// reductions stay bilinear, as the network's training crops are (the GelSight Mini, run at 0.39 x,
+/// lost markers in 5 contact frames at 0.5) (a 1280 x 720 gel of
+/// bright 25 px dots at a 90 px pitch under 4 px scan-line banding, run at 0.13 x: 54 of its 64 dots
+/// with bilinear sampling, all 64 and nothing else with area averaging;
+/// `bright_dots_under_scan_lines_reduced_a_lot_are_found_and_the_banding_is_not`).
+pub const AREA_BELOW_SCALE: f64 = 0.34;
+
 /// Passes at the layout of a measured pitch, at most, with the lattice check on (one without it;
 /// `MAX_RELAYOUTS` in the trainer). A lattice the
 /// network resolves only in part at one scale shows a pitch that overstates the true one (its few
@@ -437,10 +448,23 @@ pub(crate) fn write_layout(
         &owned
     };
     let size = check_image(image)?;
+    let reduced;
+    let image = if f64::from(layout.scaled_width) < AREA_BELOW_SCALE * f64::from(size.width)
+        || f64::from(layout.scaled_height) < AREA_BELOW_SCALE * f64::from(size.height)
+    {
+        let mut out = Mat::default();
+        let to = opencv::core::Size::new(layout.scaled_width as i32, layout.scaled_height as i32);
+        opencv::imgproc::resize(image, &mut out, to, 0.0, 0.0, opencv::imgproc::INTER_AREA)
+            .map_err(cv_err("area reduction of a large image"))?;
+        reduced = out;
+        &reduced
+    } else {
+        image
+    };
     let view = Image {
         bytes: image.data_bytes().map_err(cv_err("image data"))?,
-        width: size.width as usize,
-        height: size.height as usize,
+        width: image.cols() as usize,
+        height: image.rows() as usize,
         channels: image.channels() as usize,
     };
     resize_into_planar(&view, layout, scratch, plane);
