@@ -76,12 +76,12 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 /// Below this scale (output px per original px, along either axis) the image is first reduced to its
 /// scaled size by area averaging (OpenCV `INTER_AREA`; `AREA_BELOW_SCALE` in the trainer), then
 /// placed as usual: bilinear sampling reads 2 x 2 pixels per output pixel, so a reduction of 3x or
-/// more skips most pixels, and scan lines or dots a few pixels wide alias into stripes and blobs. Milder
-/// reductions stay bilinear, as the network's training crops are (the GelSight Mini, run at 0.39 x,
-/// lost markers in 5 contact frames at 0.5) (a 1280 x 720 gel of
-/// bright 25 px dots at a 90 px pitch under 4 px scan-line banding, run at 0.13 x: 54 of its 64 dots
-/// with bilinear sampling, all 64 and nothing else with area averaging;
-/// `bright_dots_under_scan_lines_reduced_a_lot_are_found_and_the_banding_is_not`).
+/// more skips most pixels, and scan lines or dots a few pixels wide alias into stripes and blobs (a
+/// 1280 x 720 gel of bright 25 px dots at a 90 px pitch under scan-line banding, run at 0.13 x: 54 of
+/// its 64 dots with bilinear sampling, all 64 and nothing else with area averaging;
+/// `bright_dots_under_scan_lines_reduced_a_lot_are_found_and_the_banding_is_not`). Milder reductions
+/// stay bilinear, as the network's training crops are (with the threshold at 0.5, the GelSight Mini,
+/// run at 0.39 x, lost markers in 5 contact frames).
 pub const AREA_BELOW_SCALE: f64 = 0.34;
 
 /// Passes at the layout of a measured pitch, at most, with the lattice check on (one without it;
