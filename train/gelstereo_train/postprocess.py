@@ -367,6 +367,24 @@ def _nearest_other(p: np.ndarray) -> np.ndarray:
     return out
 
 
+class _Patches:
+    """A union-find forest whose roots are the smallest index of their set (Rust: ``lattice::Patches``)."""
+
+    def __init__(self, n: int):
+        self.parent = list(range(n))
+
+    def root(self, x: int) -> int:
+        while self.parent[x] != x:
+            self.parent[x] = self.parent[self.parent[x]]
+            x = self.parent[x]
+        return x
+
+    def join(self, a: int, b: int) -> None:
+        ra, rb = self.root(a), self.root(b)
+        if ra != rb:
+            self.parent[max(ra, rb)] = min(ra, rb)
+
+
 def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) -> np.ndarray:
     """Boolean mask of the points (n, 2) that sit on a locally consistent lattice (see LatticeCheck)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -406,20 +424,12 @@ def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) ->
         d = np.abs(a[:, None] - a[None, :])
         # two lines: some pair of directions differs by at least min_angle (modulo pi)
         two_lines[i] = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= min_angle).any())
-    parent = list(range(n))
-
-    def root(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
+    patches = _Patches(n)
 
     for i, j in bonds:
         if two_lines[i] and two_lines[j]:
-            ri, rj = root(i), root(j)
-            if ri != rj:
-                parent[max(ri, rj)] = min(ri, rj)
-    roots = np.array([root(i) for i in range(n)])
+            patches.join(i, j)
+    roots = np.array([patches.root(i) for i in range(n)])
     sizes = np.bincount(roots[two_lines], minlength=n)
     member = two_lines & (sizes[roots] >= check.min_patch)
     if member.any():
@@ -461,21 +471,13 @@ def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = L
             a = np.sort(np.arctan2(p[j, 1] - p[i, 1], p[j, 0] - p[i, 0]))
             gap = max(float(np.diff(a).max(initial=0.0)), 2 * math.pi - (a[-1] - a[0]))
             inner[i] = gap <= math.radians(SURROUNDED_GAP_DEG)
-    parent = list(range(n))
-
-    def root(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
+    patches = _Patches(n)
 
     for i in np.nonzero(spaced)[0]:
         for j in np.nonzero(near[i] & inner)[0]:
-            ri, rj = root(i), root(j)
-            if ri != rj:
-                parent[max(ri, rj)] = min(ri, rj)
+            patches.join(i, j)
     member = inner | (spaced & sure & ((near & inner[None, :]).sum(1) >= 1))
-    roots = np.array([root(i) for i in range(n)])
+    roots = np.array([patches.root(i) for i in range(n)])
     sizes = np.bincount(roots[member], minlength=n)
     sure_sizes = np.bincount(roots[member & sure], minlength=n)
     return member & (sizes[roots] >= check.min_patch) & (2 * sure_sizes[roots] >= sizes[roots])
