@@ -60,7 +60,8 @@ class MarknetRunner:
     lattice a fine probe at ``FINE_PROBE_SCALE`` x and a coarse one at ``COARSE_PROBE_SCALE`` x under the
     same rule; then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a pass at that scale, repeated (at most ``MAX_RELAYOUTS`` passes) while
-    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does). Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
+    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does).
+    Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
     def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
         if fit not in ("auto", "stretch"):

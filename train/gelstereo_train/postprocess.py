@@ -37,8 +37,8 @@ class LatticeCheck:
     points (it and two neighbours, spacing within ``tolerance_frac``) in at least two directions
     ``min_angle_deg`` apart, and such points joined by those lines form a patch of at least
     ``min_patch`` whose spacing is within ``patch_pitch_ratio`` of the largest patch's (texture lines up
-    by chance at its own, finer spacing). Neighbours are searched within ``reach_frac`` x max(own nearest-neighbour distance,
-    median of them)."""
+    by chance at its own, finer spacing). Neighbours are searched within ``reach_frac`` x max(own
+    nearest-neighbour distance, median of them)."""
 
     tolerance_frac: float = 0.2
     reach_frac: float = 1.6
@@ -183,8 +183,8 @@ FILL_SAMPLE_STEP = 4  # the margin's colour: median of every 4th pixel of every 
 def preprocess_layout(rgb: np.ndarray, lay: Layout) -> torch.Tensor:
     """uint8 RGB (H, W, 3) or grey -> float (1, 3, input_h, input_w): rgb/255, bilinear resize to the
     layout's scaled size (half-pixel centres, no antialiasing; below AREA_BELOW_SCALE along either axis the
-    8-bit image is first reduced to that size by area averaging, cv2.INTER_AREA), the margin filled with the resized
-    image's median colour per channel (lower median of the sampled pixels). A mirrored margin would
+    8-bit image is first reduced to that size by area averaging, cv2.INTER_AREA), the margin filled with
+    the resized image's median colour per channel (lower median of the sampled pixels). A mirrored margin would
     complete a dot cut by the border into a phantom marker on the edge and pull whole dots near the
     edge towards their reflections."""
     a = np.asarray(rgb)
@@ -450,14 +450,16 @@ SPACED_REACH = 2.0  # neighbours by spacing are searched within this many median
 SURROUNDED_GAP_DEG = 120.0  # largest gap between an inner point's neighbours (Rust: SURROUNDED_GAP_DEG)
 
 
-def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = LatticeCheck()) -> np.ndarray:
+def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = LatticeCheck(),
+                   nn: np.ndarray | None = None) -> np.ndarray:
     """Boolean mask of the members by spacing (Rust: ``lattice::spaced_members``): points whose nearest
     neighbour is within SPACED_NN of the median, in patches of at least ``min_patch``, at least half of them
     ``sure``, held together by inner points (three such neighbours within SPACED_REACH medians around them,
-    no gap above SURROUNDED_GAP_DEG); a sure spaced point with an inner one within reach joins its patch."""
+    no gap above SURROUNDED_GAP_DEG); a sure spaced point with an inner one within reach joins its patch.
+    ``nn``: the points' nearest-neighbour distances, when the caller has them."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     n = len(p)
-    nn = _nearest_other(p)
+    nn = _nearest_other(p) if nn is None else nn
     if n < 3 or not np.isfinite(nn).any():
         return np.zeros(n, dtype=bool)
     median_nn = float(np.median(nn[np.isfinite(nn)]))
@@ -483,8 +485,8 @@ def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = L
     return member & (sizes[roots] >= check.min_patch) & (2 * sure_sizes[roots] >= sizes[roots])
 
 
-def _finish_fit(p: np.ndarray, member: np.ndarray, check: LatticeCheck, input_per_px: float):
-    nn = _nearest_other(p)
+def _finish_fit(p: np.ndarray, nn: np.ndarray, member: np.ndarray, check: LatticeCheck, input_per_px: float):
+    """The fit of the ``member`` points among ``p`` (nearest-neighbour distances ``nn``; Rust: ``finish_fit``)."""
     pitch = float(np.median(nn[member])) if member.sum() >= 2 else float("nan")
     ok = bool(member.sum() >= check.min_support and np.isfinite(pitch)
               and pitch * input_per_px >= check.min_input_pitch_px)
@@ -505,21 +507,22 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, co
     in 5 of the sure points (confidence >= ``adjacent_min_confidence``) out, those of ``spaced_members``:
     both lattices at one pitch are one (their union), else the larger is."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    nn = _nearest_other(p)
     lined_member = lattice_members(p, check)
     sure = np.ones(len(p), dtype=bool) if conf is None else np.asarray(conf) >= check.adjacent_min_confidence
     left_out = int((sure & ~lined_member).sum())
     if left_out < 3 or left_out <= SPACING_LEFT_OUT * int(sure.sum()):
-        return _finish_fit(p, lined_member, check, input_per_px)
-    spaced_member = spaced_members(p, sure, check)
-    lined = _finish_fit(p, lined_member, check, input_per_px)
-    spaced = _finish_fit(p, spaced_member, check, input_per_px)
+        return _finish_fit(p, nn, lined_member, check, input_per_px)
+    spaced_member = spaced_members(p, sure, check, nn)
+    lined = _finish_fit(p, nn, lined_member, check, input_per_px)
+    spaced = _finish_fit(p, nn, spaced_member, check, input_per_px)
     if not spaced[3]:
         return lined
     if not lined[3]:
         return spaced
     a, b = lined[2], spaced[2]
     if a <= b * check.patch_pitch_ratio and b <= a * check.patch_pitch_ratio:
-        return _finish_fit(p, lined_member | spaced_member, check, input_per_px)
+        return _finish_fit(p, nn, lined_member | spaced_member, check, input_per_px)
     return spaced if spaced_member.sum() > lined_member.sum() else lined
 
 

@@ -85,10 +85,10 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 pub const AREA_BELOW_SCALE: f64 = 0.34;
 
 /// Passes at the layout of a measured pitch, at most, with the lattice check on (one without it;
-/// `MAX_RELAYOUTS` in the trainer). A lattice the
-/// network resolves only in part at one scale shows a pitch that overstates the true one (its few
-/// finds lie apart), so one step leaves it still too small; each pass brings the pitch closer. A
-/// 960 x 540 sensor of 6.2 px pitch: 18, 11, 7, then 6.2 px, 311 then 2,404 finds.
+/// `MAX_RELAYOUTS` in the trainer). A lattice the network resolves only in part at one scale shows a
+/// pitch that overstates the true one (its few finds lie apart), so one step leaves it still too
+/// small; each pass brings the pitch closer. A 960 x 540 sensor of 6.2 px pitch: 18, 11, 7, then
+/// 6.2 px, 311 then 2,404 finds.
 pub const MAX_RELAYOUTS: usize = 3;
 
 /// Confident candidates (c > `conf_keep`) needed before a measured pitch may change the layout
@@ -941,9 +941,9 @@ impl Marknet {
         for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
             // The fine and coarse probes only where no pass so far found a lattice; the fine one also
             // where the lattice found (with the lattice check) lies below the network's range at its
-            // input: its dots barely
-            // resolved, it may be a thinned-out part of a finer lattice (a 6.2 px pitch at 960 x 540
-            // showed 119 of its 3,001 dots at 19 px, 8.2 px at the input, at the nominal fit).
+            // input: its dots barely resolved, it may be a thinned-out part of a finer lattice (a
+            // 6.2 px pitch at 960 x 540 showed 119 of its 3,001 dots at 19 px, 8.2 px at the input,
+            // at the nominal fit).
             let with_lattice = self.post.lattice.is_some();
             let probes: Vec<(usize, InputLayout)> = unknown
                 .iter()
