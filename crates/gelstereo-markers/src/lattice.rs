@@ -539,6 +539,16 @@ pub fn keep_the_lattice(
     input_per_px: f64,
 ) -> TieredDetections {
     let fit = fit_lattice(&found.accepted, check, input_per_px);
+    keep_fitted_lattice(found, fit, check)
+}
+
+/// [`keep_the_lattice`] with `fit`, the [`fit_lattice`] of `found.accepted` already made (a localizer
+/// that fitted the same markers to choose its input layout reuses that fit).
+pub(crate) fn keep_fitted_lattice(
+    found: TieredDetections,
+    fit: LatticeFit,
+    check: &LatticeCheck,
+) -> TieredDetections {
     let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
     let mut member_points = Vec::new();
     for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {

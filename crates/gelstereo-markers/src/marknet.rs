@@ -20,7 +20,7 @@ use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::lattice::{fit_lattice, keep_the_lattice};
+use crate::lattice::{LatticeFit, fit_lattice, keep_fitted_lattice};
 use crate::postprocess::{DecodeGeometry, Selection, decode, deduplicate, estimate_pitch_px};
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::{
@@ -257,6 +257,25 @@ struct Pass {
     support: usize,
     /// The marker pitch the layout follows (`None`: no lattice, the layout stays).
     layout_pitch_px: Option<f64>,
+    /// With the lattice check: the de-duplicated confident candidates (sorted by y then x) and their
+    /// lattice fit, which the final lattice check reuses when its accepted markers are exactly these
+    /// (the MRE accepted none of the rest), as it does on most frames.
+    fitted: Option<FittedSet>,
+}
+
+/// Detections and their lattice fit at one input scale.
+#[derive(Debug, Clone)]
+struct FittedSet {
+    detections: Vec<Detection>,
+    input_per_px: f64,
+    fit: LatticeFit,
+}
+
+impl FittedSet {
+    /// The fit, if it was made of exactly `accepted` at `input_per_px`.
+    fn fit_of(self, accepted: &[Detection], input_per_px: f64) -> Option<LatticeFit> {
+        (self.detections == accepted && self.input_per_px == input_per_px).then_some(self.fit)
+    }
 }
 
 impl Pass {
@@ -268,19 +287,28 @@ impl Pass {
             .filter(|d| d.confidence > post.conf_keep)
             .copied()
             .collect();
-        let (support, layout_pitch_px) = match &post.lattice {
-            None => (confident.len(), pitch_px),
+        let (support, layout_pitch_px, fitted) = match &post.lattice {
+            None => (confident.len(), pitch_px, None),
             Some(check) => {
                 deduplicate(
                     &mut confident,
                     pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p),
                 );
-                let fit = fit_lattice(&confident, check, input_per_px(size, layout));
-                if fit.is_lattice {
+                // In the order of the final accepted markers, so that their check can reuse the fit.
+                crate::sort_detections(&mut confident);
+                let scale = input_per_px(size, layout);
+                let fit = fit_lattice(&confident, check, scale);
+                let (support, pitch) = if fit.is_lattice {
                     (fit.members, fit.pitch_px)
                 } else {
                     (0, None)
-                }
+                };
+                let fitted = FittedSet {
+                    detections: confident,
+                    input_per_px: scale,
+                    fit,
+                };
+                (support, pitch, Some(fitted))
             }
         };
         Self {
@@ -288,6 +316,7 @@ impl Pass {
             pitch_px,
             support,
             layout_pitch_px,
+            fitted,
         }
     }
 
@@ -1105,18 +1134,29 @@ impl Marknet {
                 input_per_px(size, layout)
             })
             .collect();
-        let selections = map_images(self.parallel, candidates, |(pass, _)| {
-            Selection::with_pitch(pass.candidates, pass.pitch_px, &post, with_mre)
-        });
-        let on_lattice = |found: TieredDetections, scale: f64| match &post.lattice {
-            Some(check) => keep_the_lattice(found, check, scale),
+        let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
+            map_images(self.parallel, candidates, |(pass, _)| {
+                let selection = Selection::with_pitch(pass.candidates, pass.pitch_px, &post, with_mre);
+                (selection, pass.fitted)
+            })
+            .into_iter()
+            .unzip();
+        let on_lattice = |found: TieredDetections, scale: f64, fitted: Option<FittedSet>| match &post.lattice
+        {
+            Some(check) => {
+                let fit = fitted
+                    .and_then(|f| f.fit_of(&found.accepted, scale))
+                    .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
+                keep_fitted_lattice(found, fit, check)
+            }
             None => found,
         };
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections
                 .into_iter()
                 .zip(scales)
-                .map(|(s, scale)| on_lattice(s.finish_tiered(&[], post.accept), scale))
+                .zip(fitted)
+                .map(|((s, scale), fitted)| on_lattice(s.finish_tiered(&[], post.accept), scale, fitted))
                 .collect());
         };
         let features: Vec<[f32; MRE_FEATURES]> = selections
@@ -1128,11 +1168,12 @@ impl Marknet {
         Ok(selections
             .into_iter()
             .zip(scales)
-            .map(|(s, scale)| {
+            .zip(fitted)
+            .map(|((s, scale), fitted)| {
                 let n = s.pending.len();
                 let mine = scores.get(offset..offset + n).unwrap_or(&[]);
                 offset += n;
-                on_lattice(s.finish_tiered(mine, post.accept), scale)
+                on_lattice(s.finish_tiered(mine, post.accept), scale, fitted)
             })
             .collect())
     }
