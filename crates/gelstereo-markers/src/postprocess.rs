@@ -305,11 +305,14 @@ impl Selection {
                 ..Self::default()
             };
         }
-        let coords: Vec<[f64; 2]> = candidates.iter().map(|d| [d.position.x, d.position.y]).collect();
-        let tree: Option<ImmutableKdTree<f64, 2>> = if coords.is_empty() {
-            None
-        } else {
+        // The tree serves the features of the candidates MRE scores: none to score (most frames of
+        // a clean sensor), no tree.
+        let any_pending = candidates.iter().any(|d| d.confidence <= params.conf_keep);
+        let tree: Option<ImmutableKdTree<f64, 2>> = if any_pending {
+            let coords: Vec<[f64; 2]> = candidates.iter().map(|d| [d.position.x, d.position.y]).collect();
             ImmutableKdTree::new_from_slice(&coords).ok()
+        } else {
+            None
         };
         let mut out = Self {
             pitch_px,
