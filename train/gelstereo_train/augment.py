@@ -5,8 +5,12 @@ Geometry (per sample): either the *canonical* view (the image scaled as the "aut
 ``postprocess.fit_layout`` with its true marker pitch, then a random crop) or a *jittered* view (marker pitch at the input drawn log-uniformly in
 ``pitch_in_px``, independent x/y scale for anisotropic resizes, flips, a small rotation). Sampling is
 bilinear with half-pixel centres (OpenCV INTER_LINEAR / torch ``align_corners=False``), i.e. the same
-geometry as the inference resize. Labels are mapped with the same affine transform in continuous
-coordinates (pixel i covers [i, i+1)); markers whose centre falls outside the crop are dropped.
+geometry as the inference resize. Where a crop reduces the image below ``AREA_BELOW_SCALE`` along
+either axis, the source window is first reduced to the crop's scale by area averaging (OpenCV
+INTER_AREA), as the inference preprocessing reduces such images: bilinear sampling alone would alias
+fine texture (scan lines) into patterns the network never meets at inference. Labels are mapped with
+the same affine transform in continuous coordinates (pixel i covers [i, i+1)); markers whose centre
+falls outside the crop are dropped.
 
 Photometry (per sample, a fraction of samples stays clean): colour gains, brightness/contrast, gamma,
 low-frequency colour shading (the illumination of GelSight-type sensors), greyscale, polarity
@@ -19,12 +23,13 @@ import io
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .postprocess import FitConfig, fit_layout
+from .postprocess import AREA_BELOW_SCALE, FitConfig, fit_layout
 
 
 @dataclass
@@ -102,6 +107,20 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng, focus=None):
     return a, cen
 
 
+def _area_reduced(sub: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """The source window ``sub`` (H, W, C uint8) reduced by area averaging to the scale of the crop
+    whose affine map (crop to source) is ``a``, where that scale lies below ``AREA_BELOW_SCALE`` along
+    either axis; else ``sub`` itself. The reduced window spans the same extent, so the normalised
+    coordinates that ``grid_sample`` reads it by, and with them the labels, are unchanged."""
+    scale = 1.0 / np.maximum(np.hypot(a[:, 0], a[:, 1]), 1e-12)  # crop px per source px, along x and y
+    if scale.min() >= AREA_BELOW_SCALE:
+        return sub
+    hs, ws = sub.shape[:2]
+    size = (max(1, min(ws, round(ws * scale[0]))), max(1, min(hs, round(hs * scale[1]))))
+    out = cv2.resize(np.ascontiguousarray(sub), size, interpolation=cv2.INTER_AREA)
+    return out.reshape(size[1], size[0], -1)
+
+
 def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Generator, focus=None,
                  ignore=None, ignore_out: list | None = None):
     """Cut one crop per index. Returns a float tensor (B, 3, ch, cw) in [0, 1] and a list of (n, 2)
@@ -123,8 +142,9 @@ def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Ge
         y0 = int(max(0, math.floor(cen[1] - half[1]) - 2))
         x1 = int(min(w_img, math.ceil(cen[0] + half[0]) + 2))
         y1 = int(min(h_img, math.ceil(cen[1] + half[1]) + 2))
-        sub = torch.from_numpy(np.array(img[y0:y1, x0:x1])).permute(2, 0, 1).float() / 255.0
-        hs, ws = sub.shape[1:]
+        hs, ws = y1 - y0, x1 - x0
+        window = _area_reduced(img[y0:y1, x0:x1], a)
+        sub = torch.from_numpy(np.array(window)).permute(2, 0, 1).float() / 255.0
         # Normalised coords of the sub-window: xn = 2 * (p - x0) / ws - 1, u_n in [-1, 1] over the crop.
         theta = torch.tensor(
             [

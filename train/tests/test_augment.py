@@ -105,3 +105,38 @@ def test_contact_points_do_not_change_the_crops_of_a_recipe_without_contact_crop
     b = sample_crops([img] * 3, [pts] * 3, np.full(3, pitch), idx, cfg, np.random.default_rng(7), [pts[:5]] * 3)
     assert torch.equal(a[0], b[0])
     assert all(np.array_equal(x, y) for x, y in zip(a[1], b[1]))
+
+
+def _reduced_config() -> AugConfig:
+    """Jittered crops that reduce a source with a 45 px pitch to 9 px (scale 0.2, below the area
+    averaging threshold), no rotation or flips."""
+    return AugConfig(crop=(64, 64), input_size=(160, 160), p_canonical=0.0, rotate_deg=0.0, flip=False,
+                     pitch_in_px=(9.0, 9.0), aspect=(1.0, 1.0))
+
+
+def test_crops_reduced_a_lot_average_scan_lines_away_as_inference_does():
+    # Scan lines (rows alternating between two grey levels) sampled bilinearly at 0.2 x alias into
+    # stripes; averaged by area, as the inference preprocessing reduces such images, they are grey.
+    img = np.empty((600, 800, 3), np.uint8)
+    img[0::2], img[1::2] = 60, 200
+    rng = np.random.default_rng(5)
+    x, _ = sample_crops([img] * 4, [np.zeros((0, 2))] * 4, np.full(4, 45.0), np.arange(4), _reduced_config(), rng)
+    assert float(x.std()) < 0.01
+    assert abs(float(x.mean()) - 130 / 255) < 0.01
+
+
+def test_labels_sit_on_the_dots_of_crops_reduced_by_area():
+    rng = np.random.default_rng(7)
+    pitch = 45.0
+    pts, _, _ = grid_points(600, 800, pitch, 12, 16)
+    img = render_dots(600, 800, pts, 11.0, rng)
+    errs = []
+    for _ in range(6):
+        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), _reduced_config(), rng)
+        grey = x[0].mean(0).numpy()
+        for u, v in labels[0]:
+            c = _centroid(grey, u, v, 3.5)
+            if c is not None:
+                errs.append(np.hypot(c[0] - u, c[1] - v))
+    assert len(errs) > 40
+    assert np.median(errs) < 0.1 and np.max(errs) < 0.25
