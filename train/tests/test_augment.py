@@ -21,6 +21,20 @@ def _centroid(img, u, v, r):
     return (xx * wgt).sum() / s, (yy * wgt).sum() / s
 
 
+def _label_errors(img, pts, pitch, cfg, rng, radius):
+    """Distances between each crop label and the centroid of the dot around it (radius ``radius``),
+    over 6 crops of ``img``."""
+    errs = []
+    for _ in range(6):
+        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), cfg, rng)
+        grey = x[0].mean(0).numpy()
+        for u, v in labels[0]:
+            c = _centroid(grey, u, v, radius)
+            if c is not None:
+                errs.append(np.hypot(c[0] - u, c[1] - v))
+    return errs
+
+
 @pytest.mark.parametrize("canonical", [1.0, 0.0])
 def test_crop_labels_sit_on_the_dots(canonical):
     rng = np.random.default_rng(3)
@@ -29,14 +43,7 @@ def test_crop_labels_sit_on_the_dots(canonical):
     img = render_dots(200, 260, pts, 5.0, rng)
     cfg = AugConfig(crop=(96, 96), input_size=(160, 160), p_canonical=canonical, rotate_deg=10.0,
                     pitch_in_px=(14.0, 24.0))
-    errs = []
-    for _ in range(6):
-        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), cfg, rng)
-        grey = x[0].mean(0).numpy()
-        for u, v in labels[0]:
-            c = _centroid(grey, u, v, 6.5)
-            if c is not None:
-                errs.append(np.hypot(c[0] - u, c[1] - v))
+    errs = _label_errors(img, pts, pitch, cfg, rng, 6.5)
     assert len(errs) > 40
     # tolerance: centroid of a bilinearly resampled, anti-aliased dot; 0.25 input px
     assert np.median(errs) < 0.1 and np.max(errs) < 0.25
@@ -130,13 +137,6 @@ def test_labels_sit_on_the_dots_of_crops_reduced_by_area():
     pitch = 45.0
     pts, _, _ = grid_points(600, 800, pitch, 12, 16)
     img = render_dots(600, 800, pts, 11.0, rng)
-    errs = []
-    for _ in range(6):
-        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), _reduced_config(), rng)
-        grey = x[0].mean(0).numpy()
-        for u, v in labels[0]:
-            c = _centroid(grey, u, v, 3.5)
-            if c is not None:
-                errs.append(np.hypot(c[0] - u, c[1] - v))
+    errs = _label_errors(img, pts, pitch, _reduced_config(), rng, 3.5)
     assert len(errs) > 40
     assert np.median(errs) < 0.1 and np.max(errs) < 0.25
