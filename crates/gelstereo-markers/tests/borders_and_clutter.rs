@@ -197,6 +197,30 @@ struct LatticeFinds {
     centred_in_image: usize,
 }
 
+impl LatticeFinds {
+    /// At least `share` of the whole dots are found, each on its dot.
+    fn assert_found_at_least(&self, share: f64, what: &str) {
+        assert!(
+            self.whole_dots_found as f64 >= share * self.whole_dots as f64,
+            "{what}: {} of {} whole dots found ({} markers)",
+            self.whole_dots_found,
+            self.whole_dots,
+            self.markers
+        );
+    }
+
+    /// Nothing is reported beyond the dots whose centre lies in the image (no phantom on a border,
+    /// no texture taken for a marker).
+    fn assert_nothing_beyond_the_dots(&self, what: &str) {
+        assert!(
+            self.markers <= self.centred_in_image,
+            "{what}: {} markers for {} dots centred in the image",
+            self.markers,
+            self.centred_in_image
+        );
+    }
+}
+
 /// Draws `scene`, localizes it with the shipped default, and counts the markers, the whole dots (centre
 /// at least a radius inside), those found within 0.25 pitch (the metrics' match radius) and the dots
 /// whose centre lies in the image.
@@ -260,13 +284,7 @@ fn a_fine_lattice_on_a_large_image_is_found_by_the_fine_probe() {
         background: [175.0, 180.0, 185.0],
         dot: [60.0, 55.0, 50.0],
     });
-    assert!(
-        f.whole_dots_found as f64 >= 0.97 * f.whole_dots as f64,
-        "{} of {} whole dots found ({} markers)",
-        f.whole_dots_found,
-        f.whole_dots,
-        f.markers
-    );
+    f.assert_found_at_least(0.97, "fine lattice");
     assert!(
         f.markers <= f.whole_dots + 40,
         "{} markers for {} dots",
@@ -292,12 +310,7 @@ fn a_coarse_lattice_on_a_small_image_is_found_by_the_coarse_probe() {
     });
     assert!(f.whole_dots >= 20, "{} whole dots drawn", f.whole_dots);
     assert_eq!(f.whole_dots_found, f.whole_dots, "{} markers found", f.markers);
-    assert!(
-        f.markers <= f.centred_in_image,
-        "{} markers for {} dots centred in the image",
-        f.markers,
-        f.centred_in_image
-    );
+    f.assert_nothing_beyond_the_dots("coarse lattice");
 }
 
 /// Hand-placed dots: a lattice whose dots are moved up to a quarter pitch per axis lines up too loosely
@@ -316,19 +329,9 @@ fn an_irregular_lattice_of_hand_placed_dots_is_found() {
             background: [175.0, 180.0, 185.0],
             dot: [60.0, 55.0, 50.0],
         });
-        assert!(
-            f.whole_dots_found as f64 >= 0.95 * f.whole_dots as f64,
-            "pitch {pitch}: {} of {} whole dots found ({} markers)",
-            f.whole_dots_found,
-            f.whole_dots,
-            f.markers
-        );
-        assert!(
-            f.markers <= f.centred_in_image,
-            "{} markers for {} dots",
-            f.markers,
-            f.centred_in_image
-        );
+        let what = format!("pitch {pitch}");
+        f.assert_found_at_least(0.95, &what);
+        f.assert_nothing_beyond_the_dots(&what);
     }
 }
 
