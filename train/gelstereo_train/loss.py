@@ -9,6 +9,11 @@ slots of that cell are all positive). Every other slot is a negative for the con
 Loss (paper eq. 3-4): L = alpha * BCE(c) + beta * sum of Euclidean distances (input pixels) between the
 decoded positions of the assigned slots and their markers; both sums are divided by the number of
 assigned slots in the batch.
+
+Distillation (`distillation_loss`): a student of another architecture learns a trained teacher's
+outputs slot by slot, as well as the labels. Both nets share the head's layout (stride, m), and a
+student warm-started from the teacher shares its slot order, so each slot's confidence learns the
+teacher's probability and each slot the teacher is not sure is empty learns its position.
 """
 
 from __future__ import annotations
@@ -68,3 +73,27 @@ def marknet_loss(raw: torch.Tensor, tgt: torch.Tensor, mask: torch.Tensor, strid
     total = (alpha * bce + beta * dist) / npos
     mean_d = d.mean() if d.numel() else torch.zeros(())
     return total, bce / npos, dist / npos, mean_d
+
+
+def distillation_loss(raw: torch.Tensor, teacher_raw: torch.Tensor, stride: int, conf_from: float = 0.1):
+    """Loss of a student's raw logits against a teacher's on the same crops, both (B, gy, gx, m, 3):
+    BCE of every slot's confidence against the teacher's probability, plus the Euclidean distance
+    (input px) between decoded positions, weighted by the teacher's confidence, over the slots where
+    it exceeds `conf_from` (post-processing's lowest tier: the rest are never read). Divided by the
+    teacher's expected marker count (its summed confidence), as `marknet_loss` divides by the
+    assigned slots. Returns (total, confidence part, distance part)."""
+    if raw.shape != teacher_raw.shape:
+        raise ValueError(f"student output {tuple(raw.shape)} and teacher output {tuple(teacher_raw.shape)} "
+                         "differ: give the student the teacher's --grid and --candidates")
+    with torch.no_grad():
+        p = torch.sigmoid(teacher_raw[..., 2])
+        norm = p.sum().clamp_min(1.0)
+        weight = torch.where(p > conf_from, p, torch.zeros_like(p))
+        target_xy = decode(teacher_raw, stride)[..., :2]
+    bce = F.binary_cross_entropy_with_logits(raw[..., 2], p, reduction="sum")
+    # the soft targets' own entropy is the BCE's floor: subtract it so that a perfect copy scores 0
+    floor = F.binary_cross_entropy(p, p, reduction="sum")
+    d = torch.sqrt(((decode(raw, stride)[..., :2] - target_xy) ** 2).sum(-1) + 1e-8)
+    dist = (weight * d).sum()
+    conf = (bce - floor) / norm
+    return conf + dist / norm, conf, dist / norm

@@ -25,7 +25,7 @@ import torch
 from .augment import AugConfig, make_batch, make_batch_with_ignore
 from .batches import add_device_args, batch_stream, describe, pick_device
 from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
-from .loss import build_targets, ignore_cells, marknet_loss
+from .loss import build_targets, distillation_loss, ignore_cells, marknet_loss
 from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 from .onnx_init import load_onnx_weights
 
@@ -120,6 +120,23 @@ def load_init(model: Marknet, path: Path) -> dict:
     return record | ({"left_out": left_out} if left_out else {})
 
 
+def load_teacher(path: Path | None, student: Marknet, log=print) -> Marknet | None:
+    """The Marknet checkpoint whose outputs the student learns besides the labels (`--teacher`), frozen
+    in eval mode; it must share the student's head (stride, candidates)."""
+    if path is None:
+        return None
+    if not Path(path).is_file():
+        raise SystemExit(f"--teacher {path}: no such checkpoint file")
+    teacher, _ = load_checkpoint(path)
+    if (teacher.stride, teacher.candidates) != (student.stride, student.candidates):
+        raise SystemExit(f"--teacher {path}: its head has stride {teacher.stride} and {teacher.candidates} candidates "
+                         f"per cell, the student's {student.stride} and {student.candidates}")
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    log(f"distilling from {path} ({sum(p.numel() for p in teacher.parameters())} params)")
+    return teacher
+
+
 def train(args, log=print) -> Path:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -164,10 +181,13 @@ def train(args, log=print) -> Path:
     log(f"Marknet stride {stride} m {args.candidates} width {args.width}: "
         f"{sum(p.numel() for p in model.parameters())} params, {count_flops(model):.3f} GFLOP at 416x416")
     device = pick_device(args.device)
+    teacher = load_teacher(getattr(args, "teacher", None), model, log)
     torch.backends.cudnn.benchmark = device.type == "cuda"  # fixed crop shapes: pick the fastest kernels once
     log(f"training on {describe(device)}, batches made by "
         f"{f'{args.workers} worker processes' if args.workers else 'the training process'}")
     model = model.to(device, memory_format=torch.channels_last)
+    if teacher is not None:
+        teacher = teacher.to(device, memory_format=torch.channels_last)
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     if cfg.p_contact > 0:
         log(f"{sum(len(c) > 0 for c in contact)} of {len(samples)} images show contact markers; "
@@ -207,6 +227,10 @@ def train(args, log=print) -> Path:
         tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
         tgt, mask = tgt.to(device, non_blocking=True), mask.to(device, non_blocking=True)
         loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta, cells)
+        if teacher is not None:
+            with torch.no_grad():
+                teacher_raw = teacher(x)
+            loss = loss + args.distill_weight * distillation_loss(raw, teacher_raw, stride)[0]
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -316,6 +340,10 @@ def parser() -> argparse.ArgumentParser:
                    help="share of crops centred near a marker in contact (images with contact only; the shipped "
                    "models: 0, i.e. anywhere)")
     add_device_args(p)
+    p.add_argument("--teacher", type=Path, default=None,
+                   help="Marknet checkpoint whose outputs the student learns too (distillation; e.g. "
+                   "checkpoints/default/marknet.pt for a cheaper --stem warm-started with --init from it)")
+    p.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation loss")
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
     return p

@@ -1,7 +1,7 @@
 import numpy as np
 import torch
 
-from gelstereo_train.loss import build_targets, marknet_loss
+from gelstereo_train.loss import build_targets, distillation_loss, marknet_loss
 
 
 def test_assignment_cell_then_x_order_and_overflow():
@@ -28,3 +28,28 @@ def test_loss_is_small_at_the_targets_and_large_elsewhere():
     raw2 = raw.clone()
     raw2[..., 0] += 1.0
     assert float(marknet_loss(raw2, tgt, mask, 8)[3]) > 0.5
+
+
+def test_distillation_loss_is_zero_for_a_copy_of_the_teacher_and_grows_with_the_difference():
+    torch.manual_seed(0)
+    teacher = torch.randn(2, 4, 4, 3, 3) * 3.0
+    total, conf, dist = distillation_loss(teacher.clone(), teacher, 8)
+    assert abs(float(conf)) < 1e-5 and float(dist) < 1e-3
+    moved = teacher.clone()
+    moved[..., 0] += 1.0  # every slot's x moves
+    assert float(distillation_loss(moved, teacher, 8)[2]) > 0.5
+    unsure = teacher.clone()
+    unsure[..., 2] -= 2.0
+    assert float(distillation_loss(unsure, teacher, 8)[1]) > 0.05
+
+
+def test_distillation_ignores_positions_of_slots_the_teacher_calls_empty():
+    teacher = torch.zeros(1, 2, 2, 1, 3)
+    teacher[..., 2] = -8.0  # confidence 0.0003 everywhere: no marker
+    moved = teacher.clone()
+    moved[..., :2] += 3.0
+    assert float(distillation_loss(moved, teacher, 8)[2]) == 0.0
+    teacher[0, 0, 0, 0, 2] = 8.0  # one sure slot: its position counts
+    moved = teacher.clone()
+    moved[0, 0, 0, 0, :2] += 3.0
+    assert float(distillation_loss(moved, teacher, 8)[2]) > 1.0
