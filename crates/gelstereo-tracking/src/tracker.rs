@@ -6,7 +6,7 @@
 //! 1. **Predict** each marker at its last position plus `velocity_factor` times its last motion
 //!    (constant velocity, damped).
 //! 2. **Coarse association**: the `k` nearest detections of every prediction within
-//!    `gate_pitch` x the marker's local pitch (a kiddo k-d tree over the detections), assigned
+//!    `gate_pitch` x the marker's local pitch (a bucket grid over the detections), assigned
 //!    one-to-one, closest pairs first.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
 //!    mean frame-to-frame motion of the markers associated around it (lattice neighbours within
@@ -32,10 +32,8 @@
 //!    marker within `lost_near_detection_pitch` of a detection is written `lost` (its position may
 //!    be its neighbour's) but keeps being predicted.
 
-use std::num::NonZeroUsize;
-
+use gelstereo_core::spatial::Buckets;
 use gelstereo_core::{GridIndex, GridShape, MarkerStatus, Point2};
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::error::{Error, Result, config_err};
 use crate::fit::affine_at;
@@ -382,7 +380,8 @@ impl Tracker {
         let (finite, points) = finite_points(detections);
         let (finite2, points2) = finite_points(second_tier);
         let non_finite = detections.len() - finite.len() + second_tier.len() - finite2.len();
-        let tree = kd_tree(&points);
+        let grid = self.bucket_grid(&points);
+        let mut nearby = Vec::new();
 
         let n = self.ids.len();
         let steps = f64::from(std::mem::replace(&mut self.steps, 1));
@@ -396,7 +395,7 @@ impl Tracker {
             })
             .collect();
 
-        let coarse = self.associate(&pred, &points, tree.as_ref(), self.config.gate_pitch);
+        let coarse = self.associate(&pred, &grid, self.config.gate_pitch);
         // The coarse association is gated wide and has no motion check yet: a weighted mean is
         // enough to re-centre the predictions (the same fine associations as a median on the
         // v1 train / val splits and the seed-505 set) at half the association's cost.
@@ -409,7 +408,7 @@ impl Tracker {
                 )
             })
             .collect();
-        let mut fine = self.associate(&pred2, &points, tree.as_ref(), self.config.refine_gate_pitch);
+        let mut fine = self.associate(&pred2, &grid, self.config.refine_gate_pitch);
         if self.config.motion_outlier_pitch > 0.0 {
             self.drop_motion_outliers(&points, &mut fine, self.config.motion_outlier_pitch);
         }
@@ -471,8 +470,10 @@ impl Tracker {
             let near = self.config.lost_near_detection_pitch;
             if near > 0.0
                 && status == MarkerStatus::Predicted
-                && let Some(t) = tree.as_ref()
-                && self.within_gate(t, points.len(), i, pos, near).next().is_some()
+                && {
+                    self.within_gate(&grid, i, pos, near, &mut nearby);
+                    !nearby.is_empty()
+                }
             {
                 status = MarkerStatus::Lost;
             }
@@ -512,9 +513,11 @@ impl Tracker {
     ) -> Vec<u32> {
         let n = placed.len();
         let gate = self.config.second_tier_gate_pitch;
-        let Some(tree) = kd_tree(points).filter(|_| gate > 0.0) else {
+        if gate <= 0.0 || points.is_empty() {
             return vec![NONE; n];
-        };
+        }
+        let grid = self.bucket_grid(points);
+        let mut nearby = Vec::new();
         let mut cands: Vec<(f64, u32, u32)> = Vec::new();
         for (i, &(_, status, _)) in placed.iter().enumerate() {
             // Only a marker the neighbours place (predicted): a lost one has no prior to check
@@ -522,7 +525,8 @@ impl Tracker {
             if status != MarkerStatus::Predicted {
                 continue;
             }
-            for (d2, item) in self.within_gate(&tree, points.len(), i, centres[i], gate) {
+            self.within_gate(&grid, i, centres[i], gate, &mut nearby);
+            for &(d2, item) in &nearby {
                 let c = Point2::new(points[item as usize][0], points[item as usize][1]);
                 let nearest_is_mine = self.neighbours[i].iter().all(|&(j, _)| {
                     let q = if placed[j as usize].1 == MarkerStatus::Tracked {
@@ -543,45 +547,33 @@ impl Tracker {
 
     /// One-to-one association, closest pairs first, within `gate` x local pitch of each prediction.
     /// Returns the detection (position in `points`) of each slot, or [`NONE`].
-    fn associate(
-        &self,
-        pred: &[Point2],
-        points: &[[f64; 2]],
-        tree: Option<&ImmutableKdTree<f64, 2>>,
-        gate: f64,
-    ) -> Vec<u32> {
+    fn associate(&self, pred: &[Point2], grid: &Buckets, gate: f64) -> Vec<u32> {
         let n = pred.len();
-        let Some(tree) = tree else {
-            return vec![NONE; n];
-        };
+        let detections = grid.points().len();
         let mut cands: Vec<(f64, u32, u32)> = Vec::with_capacity(n * 2);
+        let mut nearby = Vec::new();
         for (i, p) in pred.iter().enumerate() {
-            for (d2, item) in self.within_gate(tree, points.len(), i, *p, gate) {
-                cands.push((d2, i as u32, item));
-            }
+            self.within_gate(grid, i, *p, gate, &mut nearby);
+            cands.extend(nearby.iter().map(|&(d2, item)| (d2, i as u32, item)));
         }
-        assign_closest_first(cands, n, points.len())
+        assign_closest_first(cands, n, detections)
     }
 
-    /// The nearest detections (at most `candidates`, of the `detections` in `tree`) within `gate` x
-    /// the local pitch of `slot` around `centre`: (squared distance, detection).
-    fn within_gate(
-        &self,
-        tree: &ImmutableKdTree<f64, 2>,
-        detections: usize,
-        slot: usize,
-        centre: Point2,
-        gate: f64,
-    ) -> impl Iterator<Item = (f64, u32)> {
-        let k = NonZeroUsize::new(self.config.candidates.clamp(1, detections.max(1)))
-            .unwrap_or(NonZeroUsize::MIN);
-        let g = gate * self.pitch_px[slot];
-        tree.query(&[centre.x, centre.y])
-            .nearest_n::<SquaredEuclidean<f64>>(k)
-            .within(g * g)
-            .execute()
-            .into_iter()
-            .map(|found| (found.distance, found.item))
+    /// A bucket grid over `points` for the gate queries: cells of one median pitch, so that a gate
+    /// below half a pitch looks at 2 x 2 cells.
+    fn bucket_grid(&self, points: &[[f64; 2]]) -> Buckets {
+        let points: Vec<Point2> = points.iter().map(|p| Point2::new(p[0], p[1])).collect();
+        Buckets::new(&points, self.median_pitch_px())
+    }
+
+    /// Fills `nearby` with the nearest detections of `grid` (at most `candidates`) within `gate` x
+    /// the local pitch of `slot` around `centre`: (squared distance, detection), nearest first
+    /// (equal distances by detection).
+    fn within_gate(&self, grid: &Buckets, slot: usize, centre: Point2, gate: f64, nearby: &mut Vec<(f64, u32)>) {
+        nearby.clear();
+        grid.for_each_within(centre, gate * self.pitch_px[slot], |item, d2| nearby.push((d2, item as u32)));
+        nearby.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        nearby.truncate(self.config.candidates);
     }
 
     /// Unassigns every association whose frame-to-frame motion differs from the weighted median
@@ -593,16 +585,19 @@ impl Tracker {
         let (mut bx, mut by) = (Vec::new(), Vec::new());
         for (i, e) in step.iter().enumerate() {
             let Some(e) = e else { continue };
-            if self.gather(i, &step, 0.0, &mut bx, &mut by) < 3 {
-                continue;
+            // The median lies in the box of the neighbours' motions: when every corner of that box
+            // is within the limit, so is the median (most markers; gathering and sorting cost).
+            let (mut count, mut far_x, mut far_y) = (0, 0.0f64, 0.0f64);
+            for m in self.neighbours[i].iter().filter_map(|&(j, _)| step[j as usize]) {
+                count += 1;
+                far_x = far_x.max((e[0] - m[0]).abs());
+                far_y = far_y.max((e[1] - m[1]).abs());
             }
             let g = limit * self.pitch_px[i];
-            // The median lies in the box of the neighbours' motions: when every corner of that box
-            // is within the limit, so is the median (most markers; sorting costs).
-            let far = |e: f64, v: &[(f64, f64)]| v.iter().map(|p| (e - p.0).abs()).fold(0.0, f64::max);
-            if far(e[0], &bx).hypot(far(e[1], &by)) <= g {
+            if count < 3 || far_x.hypot(far_y) <= g {
                 continue;
             }
+            self.gather(i, &step, 0.0, &mut bx, &mut by);
             let m = [weighted_median(&mut bx), weighted_median(&mut by)];
             if (e[0] - m[0]).hypot(e[1] - m[1]) > g {
                 assoc[i] = NONE;
@@ -728,14 +723,39 @@ impl Tracker {
             if unassociated_only && step[i].is_some() {
                 continue;
             }
-            count[i] = self.gather(i, &step, 2.0, &mut bx, &mut by);
-            motion[i] = match centre {
-                _ if bx.is_empty() => global,
-                Centre::MeanOfAll => [weighted_mean(&bx), weighted_mean(&by)],
-                Centre::MedianOfUnassociated => [weighted_median(&mut bx), weighted_median(&mut by)],
+            (motion[i], count[i]) = match centre {
+                Centre::MeanOfAll => self.mean_motion(i, &step, 2.0).unwrap_or((global, 0)),
+                Centre::MedianOfUnassociated => {
+                    let c = self.gather(i, &step, 2.0, &mut bx, &mut by);
+                    let m = if bx.is_empty() {
+                        global
+                    } else {
+                        [weighted_median(&mut bx), weighted_median(&mut by)]
+                    };
+                    (m, c)
+                }
             };
         }
         (motion, count)
+    }
+
+    /// The weighted mean of the motions [`gather`](Self::gather) would collect around `slot`, summed
+    /// in the same order (the same bits) without collecting them, and the number of associated
+    /// neighbours; `None` when there is no motion to average.
+    fn mean_motion(&self, slot: usize, step: &[Option<[f64; 2]>], own_weight: f64) -> Option<([f64; 2], u16)> {
+        let own = step[slot].filter(|_| own_weight > 0.0).map(|e| (e, own_weight));
+        let mut count = 0u16;
+        let around = self.neighbours[slot]
+            .iter()
+            .filter_map(|&(j, w)| step[j as usize].map(|e| (e, w)))
+            .inspect(|_| count += 1);
+        let (mut sx, mut sy, mut weight) = (0.0, 0.0, 0.0);
+        for (e, w) in own.into_iter().chain(around) {
+            sx += e[0] * w;
+            sy += e[1] * w;
+            weight += w;
+        }
+        (weight > 0.0).then(|| ([sx / weight, sy / weight], count))
     }
 }
 
@@ -766,12 +786,6 @@ enum Centre {
     /// associations in a patch (merged or shifted detections under a sliding edge) must not
     /// carry a missed marker onto its neighbour's place.
     MedianOfUnassociated,
-}
-
-/// Weighted mean of (value, weight) pairs (weights positive, at least one pair).
-fn weighted_mean(v: &[(f64, f64)]) -> f64 {
-    let (sum, weight) = v.iter().fold((0.0, 0.0), |(s, w), p| (s + p.0 * p.1, w + p.1));
-    sum / weight
 }
 
 /// Weighted median of (value, weight) pairs (reorders them); the lower one at an exact half.
@@ -817,15 +831,6 @@ fn finite_points(detections: &[Point2]) -> (Vec<usize>, Vec<[f64; 2]>) {
         .filter(|(_, p)| p.x.is_finite() && p.y.is_finite())
         .map(|(k, p)| (k, [p.x, p.y]))
         .unzip()
-}
-
-/// A k-d tree over `points`; `None` when empty.
-fn kd_tree(points: &[[f64; 2]]) -> Option<ImmutableKdTree<f64, 2>> {
-    if points.is_empty() {
-        None
-    } else {
-        ImmutableKdTree::<f64, 2>::new_from_slice(points).ok()
-    }
 }
 
 /// Local pitch per marker: the median distance to its 4-connected lattice neighbours on the
