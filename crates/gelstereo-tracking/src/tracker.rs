@@ -381,7 +381,6 @@ impl Tracker {
         let (finite2, points2) = finite_points(second_tier);
         let non_finite = detections.len() - finite.len() + second_tier.len() - finite2.len();
         let grid = self.bucket_grid(&points);
-        let mut nearby = Vec::new();
 
         let n = self.ids.len();
         let steps = f64::from(std::mem::replace(&mut self.steps, 1));
@@ -468,13 +467,7 @@ impl Tracker {
             // prediction has caught up with (val exp_0015). An empty cell rather than a position
             // that may be its neighbour's; the position is still carried on to predict the next frame.
             let near = self.config.lost_near_detection_pitch;
-            if near > 0.0
-                && status == MarkerStatus::Predicted
-                && {
-                    self.within_gate(&grid, i, pos, near, &mut nearby);
-                    !nearby.is_empty()
-                }
-            {
+            if near > 0.0 && status == MarkerStatus::Predicted && self.any_within(&grid, i, pos, near) {
                 status = MarkerStatus::Lost;
             }
             self.motion_px[i] = [
@@ -559,6 +552,13 @@ impl Tracker {
         assign_closest_first(cands, n, detections)
     }
 
+    /// Whether a detection of `grid` lies within `gate` x the local pitch of `slot` around `centre`.
+    fn any_within(&self, grid: &Buckets, slot: usize, centre: Point2, gate: f64) -> bool {
+        let mut any = false;
+        grid.for_each_within(centre, gate * self.pitch_px[slot], |_, _| any = true);
+        any
+    }
+
     /// A bucket grid over `points` for the gate queries: cells of one median pitch, so that a gate
     /// below half a pitch looks at 2 x 2 cells.
     fn bucket_grid(&self, points: &[[f64; 2]]) -> Buckets {
@@ -569,9 +569,18 @@ impl Tracker {
     /// Fills `nearby` with the nearest detections of `grid` (at most `candidates`) within `gate` x
     /// the local pitch of `slot` around `centre`: (squared distance, detection), nearest first
     /// (equal distances by detection).
-    fn within_gate(&self, grid: &Buckets, slot: usize, centre: Point2, gate: f64, nearby: &mut Vec<(f64, u32)>) {
+    fn within_gate(
+        &self,
+        grid: &Buckets,
+        slot: usize,
+        centre: Point2,
+        gate: f64,
+        nearby: &mut Vec<(f64, u32)>,
+    ) {
         nearby.clear();
-        grid.for_each_within(centre, gate * self.pitch_px[slot], |item, d2| nearby.push((d2, item as u32)));
+        grid.for_each_within(centre, gate * self.pitch_px[slot], |item, d2| {
+            nearby.push((d2, item as u32))
+        });
         nearby.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         nearby.truncate(self.config.candidates);
     }
@@ -742,7 +751,12 @@ impl Tracker {
     /// The weighted mean of the motions [`gather`](Self::gather) would collect around `slot`, summed
     /// in the same order (the same bits) without collecting them, and the number of associated
     /// neighbours; `None` when there is no motion to average.
-    fn mean_motion(&self, slot: usize, step: &[Option<[f64; 2]>], own_weight: f64) -> Option<([f64; 2], u16)> {
+    fn mean_motion(
+        &self,
+        slot: usize,
+        step: &[Option<[f64; 2]>],
+        own_weight: f64,
+    ) -> Option<([f64; 2], u16)> {
         let own = step[slot].filter(|_| own_weight > 0.0).map(|e| (e, own_weight));
         let mut count = 0u16;
         let around = self.neighbours[slot]
