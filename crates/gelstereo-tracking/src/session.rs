@@ -649,8 +649,15 @@ pub fn reject_outliers(
             }
             let med =
                 Vector3::from_fn(|i, _| median_in(neigh.iter().map(|v| v[i]), &mut scratch).unwrap_or(0.0));
-            let spread = median_in(neigh.iter().map(|v| (v - med).norm()), &mut scratch).unwrap_or(0.0);
-            tests.push((k, (d - med).norm(), spread));
+            let residual = (d - med).norm();
+            // Within `threshold` (>= 0) x the noise floor a marker stays whatever its neighbours' spread
+            // (the noise level is at least the floor): most markers, whose spread is not needed.
+            let spread = if threshold >= 0.0 && residual <= threshold * noise_mm {
+                0.0
+            } else {
+                median_in(neigh.iter().map(|v| (v - med).norm()), &mut scratch).unwrap_or(0.0)
+            };
+            tests.push((k, residual, spread));
         }
     }
     // The noise level: the configured floor, or the median residual over the whole lattice when the

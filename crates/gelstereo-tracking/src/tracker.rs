@@ -722,9 +722,15 @@ impl Tracker {
         let unassociated_only = centre == Centre::MedianOfUnassociated;
         let n = self.ids.len();
         let step = self.steps(points, assoc);
-        let sx: Vec<f64> = step.iter().flatten().map(|e| e[0]).collect();
-        let sy: Vec<f64> = step.iter().flatten().map(|e| e[1]).collect();
-        let global = [median(sx).unwrap_or(0.0), median(sy).unwrap_or(0.0)];
+        // Needed only by a marker with no associated neighbour (rare): computed on first use.
+        let mut global: Option<[f64; 2]> = None;
+        let mut global_motion = || {
+            *global.get_or_insert_with(|| {
+                let sx: Vec<f64> = step.iter().flatten().map(|e| e[0]).collect();
+                let sy: Vec<f64> = step.iter().flatten().map(|e| e[1]).collect();
+                [median(sx).unwrap_or(0.0), median(sy).unwrap_or(0.0)]
+            })
+        };
         let mut motion = vec![[0.0; 2]; n];
         let mut count = vec![0u16; n];
         let (mut bx, mut by) = (Vec::new(), Vec::new());
@@ -733,11 +739,13 @@ impl Tracker {
                 continue;
             }
             (motion[i], count[i]) = match centre {
-                Centre::MeanOfAll => self.mean_motion(i, &step, 2.0).unwrap_or((global, 0)),
+                Centre::MeanOfAll => self
+                    .mean_motion(i, &step, 2.0)
+                    .unwrap_or_else(|| (global_motion(), 0)),
                 Centre::MedianOfUnassociated => {
                     let c = self.gather(i, &step, 2.0, &mut bx, &mut by);
                     let m = if bx.is_empty() {
-                        global
+                        global_motion()
                     } else {
                         [weighted_median(&mut bx), weighted_median(&mut by)]
                     };
