@@ -1,8 +1,8 @@
 //! Marker tracking over time, displacement fields, contact geometry and slip detection.
 //!
 //! - [`tracker`]: ids (grid indices from the reference frame) followed frame to frame in one view,
-//!   with motion prediction, gated association on a bucket grid, neighbour-based prediction of missed markers and
-//!   re-acquisition.
+//!   with motion prediction, gated association on a bucket grid, neighbour-based prediction of
+//!   missed markers and re-acquisition.
 //! - [`slip`]: per-frame slip state from the 3-D field; [`planar`]: contact and slip of mono sensors.
 //! - [`session`]: whole recordings, stereo and mono, producing the `markers.csv` / `frames.csv` rows.
 //! - [`field`]: dense interpolation of per-marker fields on the lattice (for plots).
