@@ -12,7 +12,7 @@ import torch
 from gelstereo_train import evaluate, export, train_marknet, train_mre
 from gelstereo_train.augment import AugConfig, make_batch
 from gelstereo_train.data import list_samples, median_nn_distance
-from gelstereo_train.loss import build_targets, marknet_loss
+from gelstereo_train.loss import build_targets, distillation_loss, marknet_loss
 from gelstereo_train.model import Marknet
 
 
@@ -144,6 +144,40 @@ def test_an_s4_checkpoint_warm_starts_the_bare_stem_and_not_the_reverse(tiny_roo
     with pytest.raises(SystemExit, match="stem"):
         train_marknet.train(train_marknet.parser().parse_args(
             base + ["--out", str(tmp_path / "x.pt"), "--stem", "s4", "--init", str(bare)]), log=lambda *_: None)
+
+
+def test_a_student_trained_on_the_teacher_alone_moves_towards_its_outputs(trained, tiny_root, tmp_path):
+    # A teacher whose head says something else than a fresh network's prior (every slot ~0.02).
+    teacher, meta = train_marknet.load_checkpoint(trained[0])
+    with torch.no_grad():
+        teacher.head.weight.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(3))
+        teacher.head.bias.normal_(0.0, 1.0, generator=torch.Generator().manual_seed(4))
+    teacher_ck = tmp_path / "teacher.pt"
+    train_marknet.save_checkpoint(teacher_ck, teacher, meta)
+    s = list_samples(tiny_root, "train")
+    imgs, pts = [a.load() for a in s], [a.points_px for a in s]
+    x, _ = make_batch(imgs, pts, np.array([median_nn_distance(p) for p in pts]), 4,
+                      AugConfig(crop=(64, 64), input_size=(128, 128)), np.random.default_rng(5))
+    base = ["--data", str(tiny_root), "--batch", "2", "--crop", "64", "--input-size", "128", "--width", "4",
+            "--candidates", "3", "--seed", "7", "--save-every-min", "0", "--teacher", str(teacher_ck)]
+    # No label loss (alpha = beta = 0): whatever the student learns comes from the teacher.
+    student = {}
+    for steps in ("1", "20"):
+        out = tmp_path / f"student{steps}.pt"
+        train_marknet.train(train_marknet.parser().parse_args(
+            base + ["--out", str(out), "--steps", steps, "--lr", "0.5", "--alpha", "0", "--beta", "0"]),
+            log=lambda *_: None)
+        student[steps], _ = train_marknet.load_checkpoint(out)
+    with torch.no_grad():
+        want = teacher(x)
+        before = float(distillation_loss(student["1"](x), want, 8)[0])
+        after = float(distillation_loss(student["20"](x), want, 8)[0])
+    assert after < 0.5 * before, (before, after)
+    # A teacher with another head is refused, naming it.
+    with pytest.raises(SystemExit, match="candidates"):
+        train_marknet.train(train_marknet.parser().parse_args(
+            base[:-6] + ["--candidates", "2", "--teacher", str(teacher_ck), "--out", str(tmp_path / "x.pt"),
+                         "--steps", "1"]), log=lambda *_: None)
 
 
 def test_warm_start_from_an_exported_onnx_reproduces_it(trained, tiny_root, tmp_path):
