@@ -159,13 +159,14 @@ def test_a_student_trained_on_the_teacher_alone_moves_towards_its_outputs(traine
     x, _ = make_batch(imgs, pts, np.array([median_nn_distance(p) for p in pts]), 4,
                       AugConfig(crop=(64, 64), input_size=(128, 128)), np.random.default_rng(5))
     base = ["--data", str(tiny_root), "--batch", "2", "--crop", "64", "--input-size", "128", "--width", "4",
-            "--candidates", "3", "--seed", "7", "--save-every-min", "0", "--teacher", str(teacher_ck)]
+            "--seed", "7", "--save-every-min", "0", "--teacher", str(teacher_ck)]
     # No label loss (alpha = beta = 0): whatever the student learns comes from the teacher.
     student = {}
     for steps in ("1", "20"):
         out = tmp_path / f"student{steps}.pt"
         train_marknet.train(train_marknet.parser().parse_args(
-            base + ["--out", str(out), "--steps", steps, "--lr", "0.5", "--alpha", "0", "--beta", "0"]),
+            base + ["--candidates", "3", "--out", str(out), "--steps", steps, "--lr", "0.5", "--alpha", "0",
+                    "--beta", "0"]),
             log=lambda *_: None)
         student[steps], _ = train_marknet.load_checkpoint(out)
     with torch.no_grad():
@@ -176,8 +177,7 @@ def test_a_student_trained_on_the_teacher_alone_moves_towards_its_outputs(traine
     # A teacher with another head is refused, naming it.
     with pytest.raises(SystemExit, match="candidates"):
         train_marknet.train(train_marknet.parser().parse_args(
-            base[:-6] + ["--candidates", "2", "--teacher", str(teacher_ck), "--out", str(tmp_path / "x.pt"),
-                         "--steps", "1"]), log=lambda *_: None)
+            base + ["--candidates", "2", "--out", str(tmp_path / "x.pt"), "--steps", "1"]), log=lambda *_: None)
 
 
 def test_warm_start_from_an_exported_onnx_reproduces_it(trained, tiny_root, tmp_path):
