@@ -44,6 +44,12 @@ pub struct LocalizerArgs {
     /// input) or `pad` (isotropic, never enlarged, centred in the nominal input).
     #[arg(long, default_value = "auto", value_name = "auto|stretch|pad")]
     pub fit: InputFit,
+    /// Run Marknet on the whole input of every frame. By default a stream's later frames run on a
+    /// window of the input around the lattice its first frame showed (the whole input again for a
+    /// frame whose markers come near the window's edge); the markers are the same to a few
+    /// hundredths of a pixel (docs/localization.md, "Window around the lattice").
+    #[arg(long)]
+    pub whole_input: bool,
 }
 
 impl LocalizerArgs {
@@ -78,6 +84,7 @@ impl LocalizerArgs {
             },
             fit: self.fit,
             remember_pitch: true,
+            lattice_window: !self.whole_input,
         })
     }
 

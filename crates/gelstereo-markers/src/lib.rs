@@ -28,6 +28,7 @@ pub mod postprocess;
 mod resize;
 pub mod runtime;
 pub mod self_test;
+pub mod window;
 pub mod yolo;
 
 use std::path::PathBuf;
@@ -339,12 +340,16 @@ pub struct LocalizerConfig {
     /// Whether Marknet remembers the marker pitch per image size ([`Marknet::set_pitch_memory`]):
     /// on for streams of one sensor, off for datasets mixing sensors of one image size.
     pub remember_pitch: bool,
+    /// Whether Marknet, with the pitch remembered, runs a stream's later frames on a window of its
+    /// input around the lattice the first frame showed ([`Marknet::set_lattice_window`]).
+    pub lattice_window: bool,
 }
 
 impl Default for LocalizerConfig {
     /// The shipped models (`data/models` of [`project_home`]), the tuned blob parameters of
     /// `data/blob_params.json` ([`BlobParams::tuned`]), ONNX Runtime's defaults, the model's own
-    /// input layout, and the pitch remembered per image size (one sensor per stream).
+    /// input layout, the pitch remembered per image size (one sensor per stream) and a stream's
+    /// frames run on a window around its lattice.
     fn default() -> Self {
         let models = project_home().join("data/models");
         Self {
@@ -354,6 +359,7 @@ impl Default for LocalizerConfig {
             session: SessionOptions::default(),
             fit: InputFit::Auto,
             remember_pitch: true,
+            lattice_window: true,
         }
     }
 }
@@ -387,6 +393,7 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
             let mut net = Marknet::load(&config.marknet_path, &config.session)?;
             net.set_fit(config.fit);
             net.set_pitch_memory(config.remember_pitch);
+            net.set_lattice_window(config.lattice_window);
             Box::new(net)
         }
         Method::MarknetMre => {
@@ -394,6 +401,7 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
             let mut net = Marknet::load(&config.marknet_path, &config.session)?.with_mre(mre)?;
             net.set_fit(config.fit);
             net.set_pitch_memory(config.remember_pitch);
+            net.set_lattice_window(config.lattice_window);
             Box::new(net)
         }
     })

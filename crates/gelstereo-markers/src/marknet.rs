@@ -23,6 +23,7 @@ use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MR
 use crate::lattice::{LatticeFit, fit_lattice, keep_fitted_lattice};
 use crate::postprocess::{DecodeGeometry, Selection, decode, deduplicate, estimate_pitch_px};
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
+use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
     CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
     check_image, cv_err, runtime,
@@ -199,7 +200,7 @@ pub fn fit_layout(
 
 /// The layout of a `w x h` image at scale `s` with a margin of `p` px (capped so that no input side
 /// exceeds [`MAX_INPUT_SIDE_PX`]), its input sides rounded up to multiples of `multiple`.
-fn layout_at_scale(w: f64, h: f64, p: f64, s: f64, multiple: u32) -> InputLayout {
+pub(crate) fn layout_at_scale(w: f64, h: f64, p: f64, s: f64, multiple: u32) -> InputLayout {
     let max_side = f64::from(MAX_INPUT_SIDE_PX);
     let s = s.min(max_side / (w + p)).min(max_side / (h + p));
     let m = f64::from(multiple.max(1));
@@ -519,6 +520,39 @@ fn preprocess(
     write_layout(image, layout, scratch, plane)
 }
 
+/// [`preprocess`] into `whole` (the layout's whole input), then `window` of it copied into `plane`.
+fn preprocess_window(
+    image: &Mat,
+    layout: &InputLayout,
+    window: &Window,
+    scratch: &mut ResizeScratch,
+    whole: &mut Vec<f32>,
+    plane: &mut [f32],
+) -> Result<()> {
+    let (iw, ih) = (layout.input_width as usize, layout.input_height as usize);
+    whole.resize(3 * iw * ih, 0.0);
+    preprocess(image, layout, None, scratch, whole)?;
+    let (x, y, w, h) = (
+        window.x as usize,
+        window.y as usize,
+        window.width as usize,
+        window.height as usize,
+    );
+    for (c, out) in plane.chunks_exact_mut(w * h).enumerate() {
+        let src = &whole[c * iw * ih..(c + 1) * iw * ih];
+        for (row, dst) in out.chunks_exact_mut(w).enumerate() {
+            let start = (y + row) * iw + x;
+            dst.copy_from_slice(&src[start..start + w]);
+        }
+    }
+    Ok(())
+}
+
+/// The input size an image runs at: its layout's, or its window's.
+fn input_dims(layout: &InputLayout, window: Option<&Window>) -> (u32, u32) {
+    window.map_or((layout.input_width, layout.input_height), |w| (w.width, w.height))
+}
+
 /// `items` mapped by `f`, in order: on rayon's thread pool when `parallel` and there are several
 /// (the images of a batch), else on the calling thread.
 fn map_images<T: Send, R: Send>(parallel: bool, items: Vec<T>, f: impl Fn(T) -> R + Sync + Send) -> Vec<R> {
@@ -620,8 +654,15 @@ pub struct Marknet {
     /// Marker pitch (original px) measured per image size, for the "auto" fit of the next image.
     pitch_memory: HashMap<ImageSize, f64>,
     remember_pitch: bool,
+    /// Per image size and view (index in the batch): the window of the input the view runs on, or
+    /// `None` where its first frame showed that a window would not save enough or not hold
+    /// ([`crate::window`]).
+    window_memory: HashMap<(ImageSize, usize), Option<LatticeWindow>>,
+    lattice_window: bool,
     /// Scratch of each batch slot's preprocessing.
     resize: Vec<ResizeScratch>,
+    /// Each batch slot's whole input, when the network runs on a window of it.
+    whole_input: Vec<Vec<f32>>,
     /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
     parallel: bool,
     input: Vec<f32>,
@@ -665,7 +706,10 @@ impl Marknet {
             fit: InputFit::Auto,
             pitch_memory: HashMap::new(),
             remember_pitch: true,
+            window_memory: HashMap::new(),
+            lattice_window: true,
             resize: Vec::new(),
+            whole_input: Vec::new(),
             parallel: false,
             input: Vec::new(),
             times: LocalizationTimes::default(),
@@ -711,7 +755,23 @@ impl Marknet {
         self.remember_pitch = remember;
         if !remember {
             self.pitch_memory.clear();
+            self.window_memory.clear();
         }
+    }
+
+    /// Whether, with the pitch remembered, each view of a stream runs on a window around the
+    /// lattice its first frame showed ([`crate::window`]; default: yes). Off, every frame runs whole.
+    pub fn set_lattice_window(&mut self, remember: bool) {
+        self.lattice_window = remember;
+        if !remember {
+            self.window_memory.clear();
+        }
+    }
+
+    /// The window view `slot` (index in the batch: 0 = left, 1 = right) of images of `size` runs
+    /// on, if it has one.
+    pub fn lattice_window(&self, size: ImageSize, slot: usize) -> Option<LatticeWindow> {
+        self.window_memory.get(&(size, slot)).copied().flatten()
     }
 
     /// [`Localizer::fork`]: the models loaded again with `intra_threads`, the thresholds, the fit
@@ -729,6 +789,8 @@ impl Marknet {
         net.fit = self.fit;
         net.remember_pitch = self.remember_pitch;
         net.pitch_memory = self.pitch_memory.clone();
+        net.lattice_window = self.lattice_window;
+        net.window_memory = self.window_memory.clone();
         Ok(net)
     }
 
@@ -783,19 +845,27 @@ impl Marknet {
         self.mre.is_some()
     }
 
-    /// Runs the network once on `images`, all under layouts of one input size; returns the raw output
-    /// (`[Gy, Gx, m, 3]` logits per image, row-major, concatenated). Adds its preprocessing and network
-    /// times to [`LocalizationTimes`] (a batch may take two passes under the "auto" fit).
-    fn run_batch(&mut self, images: &[&Mat], layouts: &[InputLayout]) -> Result<Vec<f32>> {
+    /// Runs the network once on `images` under `layouts` (each on the whole input, or on the window
+    /// `windows` gives), all of one input size; returns the raw output (`[Gy, Gx, m, 3]` logits per
+    /// image, row-major, concatenated). Adds its preprocessing and network times to
+    /// [`LocalizationTimes`] (a batch may take two passes under the "auto" fit).
+    fn run_batch(
+        &mut self,
+        images: &[&Mat],
+        windows: &[Option<Window>],
+        layouts: &[InputLayout],
+    ) -> Result<Vec<f32>> {
         let Some(first) = layouts.first() else {
             return Ok(Vec::new());
         };
-        let (iw, ih) = (first.input_width as usize, first.input_height as usize);
+        let (iw, ih) = input_dims(first, windows.first().and_then(Option::as_ref));
+        let (iw, ih) = (iw as usize, ih as usize);
         let c0 = self.clock.and_then(|c| c());
         let t0 = std::time::Instant::now();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         if self.resize.len() < images.len() {
             self.resize.resize_with(images.len(), ResizeScratch::default);
+            self.whole_input.resize_with(images.len(), Vec::new);
         }
         // A stretch must keep the aspect ratio within bounds (the "auto" and "pad" layouts keep it).
         let stretch =
@@ -803,13 +873,19 @@ impl Marknet {
         let stretch_to = stretch.then_some((self.contract.input_width, self.contract.input_height));
         let slots = images
             .iter()
+            .zip(windows)
             .zip(layouts)
             .zip(self.input.chunks_exact_mut(3 * iw * ih))
-            .zip(self.resize.iter_mut())
+            .zip(self.resize.iter_mut().zip(self.whole_input.iter_mut()))
             .collect();
-        map_images(self.parallel, slots, |(((image, layout), plane), scratch)| {
-            preprocess(image, layout, stretch_to, scratch, plane)
-        })
+        map_images(
+            self.parallel,
+            slots,
+            |((((image, window), layout), plane), (scratch, whole))| match window {
+                Some(w) => preprocess_window(image, layout, w, scratch, whole, plane),
+                None => preprocess(image, layout, stretch_to, scratch, plane),
+            },
+        )
         .into_iter()
         .collect::<Result<()>>()?;
         let t1 = std::time::Instant::now();
@@ -870,7 +946,7 @@ impl Marknet {
                 found: format!("{}x{}", other.input_width, other.input_height),
             });
         }
-        let raw = self.run_batch(images, &layouts)?;
+        let raw = self.run_batch(images, &vec![None; images.len()], &layouts)?;
         Ok((sizes, raw))
     }
 
@@ -889,6 +965,25 @@ impl Marknet {
         }
     }
 
+    /// [`geometry_for`](Self::geometry_for) of the network run on `window` of the layout's input.
+    fn window_geometry(
+        &self,
+        size: ImageSize,
+        layout: &InputLayout,
+        window: Option<&Window>,
+    ) -> DecodeGeometry {
+        let whole = self.geometry_for(size, layout);
+        let Some(w) = window else { return whole };
+        let stride = self.contract.stride;
+        DecodeGeometry {
+            grid_y: (w.height / stride) as usize,
+            grid_x: (w.width / stride) as usize,
+            offset_x: whole.offset_x - f64::from(w.x),
+            offset_y: whole.offset_y - f64::from(w.y),
+            ..whole
+        }
+    }
+
     /// The decoding geometry the next image of `size` gets ([`next_layout`](Self::next_layout)).
     pub fn geometry(&self, size: ImageSize) -> DecodeGeometry {
         self.geometry_for(size, &self.next_layout(size))
@@ -896,10 +991,12 @@ impl Marknet {
 
     /// Runs `images` under `layouts` (grouped into one batch per input size) and decodes each image's
     /// candidates with c > `min_confidence`, in its own pixels; candidates in the padding are dropped
-    /// (a marker whose centre lies outside the image is not reported). Each image's [`Pass`].
+    /// (a marker whose centre lies outside the image is not reported). An image with a window in
+    /// `windows` runs on that window of its layout's input. Each image's [`Pass`].
     fn decode_pass(
         &mut self,
         images: &[&Mat],
+        windows: &[Option<Window>],
         sizes: &[ImageSize],
         layouts: &[InputLayout],
         min_confidence: f32,
@@ -907,19 +1004,24 @@ impl Marknet {
         let mut found = vec![Pass::default(); images.len()];
         let post = self.post;
         let mut pending: Vec<usize> = (0..images.len()).collect();
+        let dims = |i: usize| input_dims(&layouts[i], windows[i].as_ref());
         while let Some(&lead) = pending.first() {
-            let key = (layouts[lead].input_width, layouts[lead].input_height);
-            let (group, rest): (Vec<usize>, Vec<usize>) = pending
-                .iter()
-                .partition(|&&i| (layouts[i].input_width, layouts[i].input_height) == key);
+            let key = dims(lead);
+            let (group, rest): (Vec<usize>, Vec<usize>) = pending.iter().partition(|&&i| dims(i) == key);
             pending = rest;
             let batch_images: Vec<&Mat> = group.iter().map(|&i| images[i]).collect();
+            let batch_windows: Vec<Option<Window>> = group.iter().map(|&i| windows[i]).collect();
             let batch_layouts: Vec<InputLayout> = group.iter().map(|&i| layouts[i]).collect();
-            let raw = self.run_batch(&batch_images, &batch_layouts)?;
+            let raw = self.run_batch(&batch_images, &batch_windows, &batch_layouts)?;
             let per_image = raw.len() / group.len().max(1);
             let jobs = group
                 .iter()
-                .map(|&i| (i, self.geometry_for(sizes[i], &layouts[i])))
+                .map(|&i| {
+                    (
+                        i,
+                        self.window_geometry(sizes[i], &layouts[i], windows[i].as_ref()),
+                    )
+                })
                 .zip(raw.chunks(per_image.max(1)))
                 .collect();
             let decoded = map_images(self.parallel, jobs, |((i, geometry), raw)| {
@@ -942,29 +1044,39 @@ impl Marknet {
     /// image whose measured pitch asks for another scale is run again at that scale, and the pitch is
     /// remembered for its size.
     pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
-        let found = self.candidates_with_pitch(images, min_confidence)?;
+        let found = self.candidates_with_pitch(images, &vec![None; images.len()], min_confidence)?;
         Ok(found.into_iter().map(|(pass, _)| pass.candidates).collect())
     }
 
     /// [`candidates`](Self::candidates), each image's as a [`Pass`] (with its pitch estimate,
     /// post-processing step 2, computed once for both the layout decision and the post-processing)
-    /// and the layout it ran under.
+    /// and the layout it ran under. An image with a remembered window in `learnt` runs once, on
+    /// that window of its layout's input.
     fn candidates_with_pitch(
         &mut self,
         images: &[&Mat],
+        learnt: &[Option<LatticeWindow>],
         min_confidence: f32,
     ) -> Result<Vec<(Pass, InputLayout)>> {
         let sizes = images
             .iter()
             .map(|im| check_image(im))
             .collect::<Result<Vec<_>>>()?;
-        let mut layouts: Vec<InputLayout> = sizes.iter().map(|s| self.next_layout(*s)).collect();
-        let mut found = self.decode_pass(images, &sizes, &layouts, min_confidence)?;
+        let mut layouts: Vec<InputLayout> = sizes
+            .iter()
+            .zip(learnt)
+            .map(|(s, r)| r.map_or_else(|| self.next_layout(*s), |r| r.layout))
+            .collect();
+        let windows: Vec<Option<Window>> = learnt.iter().map(|r| r.map(|r| r.window)).collect();
+        let mut found = self.decode_pass(images, &windows, &sizes, &layouts, min_confidence)?;
         let Some(fit) = self.auto_fit().copied() else {
             return Ok(found.into_iter().zip(layouts).collect());
         };
         let (iw, ih) = (self.contract.input_width, self.contract.input_height);
-        let unknown: Vec<usize> = (0..images.len())
+        let whole_images: Vec<usize> = (0..images.len()).filter(|&i| learnt[i].is_none()).collect();
+        let unknown: Vec<usize> = whole_images
+            .iter()
+            .copied()
             .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
             .collect();
         for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
@@ -1005,7 +1117,7 @@ impl Marknet {
         } else {
             1
         };
-        let mut todo: Vec<usize> = (0..images.len()).collect();
+        let mut todo = whole_images;
         for _ in 0..rounds {
             let redo = self.relayouts(&todo, &found, &sizes, &mut layouts);
             let again = self.decode_subset(images, &sizes, &redo, min_confidence)?;
@@ -1066,8 +1178,9 @@ impl Marknet {
         redo
     }
 
-    /// [`decode_pass`](Self::decode_pass) over the images picked by `subset` (index into `images`
-    /// and `sizes`, layout to run it at), in the order of `subset`; nothing runs for an empty one.
+    /// [`decode_pass`](Self::decode_pass) over the whole images picked by `subset` (index into
+    /// `images` and `sizes`, layout to run it at), in the order of `subset`; nothing runs for an empty
+    /// one.
     fn decode_subset(
         &mut self,
         images: &[&Mat],
@@ -1081,7 +1194,13 @@ impl Marknet {
         let picked: Vec<&Mat> = subset.iter().map(|&(i, _)| images[i]).collect();
         let picked_sizes: Vec<ImageSize> = subset.iter().map(|&(i, _)| sizes[i]).collect();
         let layouts: Vec<InputLayout> = subset.iter().map(|&(_, l)| l).collect();
-        self.decode_pass(&picked, &picked_sizes, &layouts, min_confidence)
+        self.decode_pass(
+            &picked,
+            &vec![None; picked.len()],
+            &picked_sizes,
+            &layouts,
+            min_confidence,
+        )
     }
 
     /// Full localization of a batch of images: network, post-processing and (with MRE) one MRE run
@@ -1118,10 +1237,120 @@ impl Marknet {
         Ok(found)
     }
 
+    /// Localizes a batch: each image on its view's remembered window ([`crate::window`]) where it
+    /// has one and the window holds the frame's lattice, else whole. A view's first frame with a
+    /// lattice (and a remembered pitch) gives the view its window, and is then localized on it, as
+    /// every later frame of the view will be (one scale and sampling for a tracker's reference frame
+    /// and the frames compared with it).
     fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
+        let sizes = images
+            .iter()
+            .map(|im| check_image(im))
+            .collect::<Result<Vec<_>>>()?;
+        let learnt: Vec<Option<LatticeWindow>> = sizes
+            .iter()
+            .enumerate()
+            .map(|(slot, &size)| self.window_of(size, slot))
+            .collect();
+        let mut found = self.detect_in(images, &learnt)?;
+        let fallen: Vec<(usize, Option<LatticeWindow>)> = (0..images.len())
+            .filter(|&i| learnt[i].is_some_and(|r| !r.holds(&found[i].accepted, sizes[i])))
+            .map(|i| (i, None))
+            .collect();
+        for (i, again) in self.detect_subset(images, &fallen)? {
+            found[i] = again;
+        }
+        self.learn_windows(images, &sizes, &learnt, &mut found)?;
+        Ok(found)
+    }
+
+    /// Gives each view without a window (`learnt`) one around the lattice of its markers in `found`,
+    /// where it may learn one, and localizes its image again on it, as every later frame of the view
+    /// will be; a window that does not hold even there is remembered as none.
+    fn learn_windows(
+        &mut self,
+        images: &[&Mat],
+        sizes: &[ImageSize],
+        learnt: &[Option<LatticeWindow>],
+        found: &mut [TieredDetections],
+    ) -> Result<()> {
+        let fresh: Vec<(usize, Option<LatticeWindow>)> = (0..images.len())
+            .filter(|&i| learnt[i].is_none() && self.may_learn_window(sizes[i], i, found[i].accepted.len()))
+            .map(|i| (i, self.window_around(sizes[i], &found[i].accepted)))
+            .collect();
+        let tried: Vec<(usize, Option<LatticeWindow>)> =
+            fresh.iter().copied().filter(|(_, r)| r.is_some()).collect();
+        let mut kept = vec![false; images.len()];
+        for ((i, window), (_, again)) in tried.iter().zip(self.detect_subset(images, &tried)?) {
+            if window.is_some_and(|r| r.holds(&again.accepted, sizes[*i])) {
+                kept[*i] = true;
+                found[*i] = again;
+            }
+        }
+        for (i, r) in fresh {
+            self.window_memory.insert((sizes[i], i), r.filter(|_| kept[i]));
+        }
+        Ok(())
+    }
+
+    /// [`detect_in`](Self::detect_in) over the images picked by `subset` (index into `images`, the
+    /// window to run it on, if any): each picked index with its markers.
+    fn detect_subset(
+        &mut self,
+        images: &[&Mat],
+        subset: &[(usize, Option<LatticeWindow>)],
+    ) -> Result<Vec<(usize, TieredDetections)>> {
+        if subset.is_empty() {
+            return Ok(Vec::new());
+        }
+        let picked: Vec<&Mat> = subset.iter().map(|&(i, _)| images[i]).collect();
+        let learnt: Vec<Option<LatticeWindow>> = subset.iter().map(|&(_, r)| r).collect();
+        let found = self.detect_in(&picked, &learnt)?;
+        Ok(subset.iter().map(|&(i, _)| i).zip(found).collect())
+    }
+
+    /// The window remembered for view `slot` of images of `size`, while it still belongs to the
+    /// remembered pitch (a relayout that changed the pitch makes the view learn a new one).
+    fn window_of(&mut self, size: ImageSize, slot: usize) -> Option<LatticeWindow> {
+        let pitch = self.pitch_memory.get(&size).copied();
+        let entry = self.window_memory.get(&(size, slot)).copied()?;
+        match entry {
+            Some(r) if Some(r.pitch_px) != pitch => {
+                self.window_memory.remove(&(size, slot));
+                None
+            }
+            r => r,
+        }
+    }
+
+    /// Whether view `slot` of images of `size` may learn its window from a frame with `markers`
+    /// markers: windows on, the isotropic "auto" fit, a remembered pitch, nothing learnt yet.
+    fn may_learn_window(&self, size: ImageSize, slot: usize, markers: usize) -> bool {
+        self.remember_pitch
+            && self.lattice_window
+            && markers >= WINDOW_MIN_MARKERS
+            && self.auto_fit().is_some_and(|f| !f.prefer_stretch)
+            && self.pitch_memory.contains_key(&size)
+            && !self.window_memory.contains_key(&(size, slot))
+    }
+
+    /// The window around `markers` of an image of `size` in the input of the remembered pitch's
+    /// layout ([`window::window_around`]).
+    fn window_around(&self, size: ImageSize, markers: &[Detection]) -> Option<LatticeWindow> {
+        let pitch = *self.pitch_memory.get(&size)?;
+        let multiple = self.auto_fit()?.multiple;
+        window::window_around(markers, size, pitch, &self.next_layout(size), multiple)
+    }
+
+    /// Localizes `images` (each whole, or on its remembered window in `learnt`).
+    fn detect_in(
+        &mut self,
+        images: &[&Mat],
+        learnt: &[Option<LatticeWindow>],
+    ) -> Result<Vec<TieredDetections>> {
         let with_mre = self.mre.is_some();
         let post = self.post;
-        let candidates = self.candidates_with_pitch(images, post.conf_low)?;
+        let candidates = self.candidates_with_pitch(images, learnt, post.conf_low)?;
         // Input px per original px of each image's final layout, for the lattice check.
         let scales: Vec<f64> = candidates
             .iter()

@@ -103,6 +103,7 @@ fn self_test(models: &Path) -> Result<String, String> {
         session: gelstereo_markers::SessionOptions::default(),
         fit: gelstereo_markers::InputFit::Auto,
         remember_pitch: false,
+        lattice_window: false,
     };
     let mut localizer = gelstereo_markers::create_localizer(gelstereo_markers::Method::MarknetMre, &config)
         .map_err(|e| format!("{e:#}"))?;

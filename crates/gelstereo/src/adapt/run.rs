@@ -244,6 +244,7 @@ fn check_adapted(model: &Path, base: &LocalizerConfig) -> Result<SelfTest> {
         marknet_path: model.join("marknet.onnx"),
         mre_path: model.join("mre.onnx"),
         remember_pitch: false,
+        lattice_window: false,
         ..base.clone()
     };
     let mut adapted =
