@@ -82,6 +82,22 @@ fn tables_on_the_sample_are_byte_identical_and_frames_csv_ends_with_time_and_not
         }
         assert_eq!(lines.len(), expected.lines().count());
     }
+    // Every frame on the whole network input: the tables of a localizer without windows.
+    let whole = dir.path().join("whole-input");
+    track_ok(&[
+        "--whole-input",
+        "--out",
+        whole.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    assert_eq!(
+        sha256(&whole.join("markers.csv")),
+        expected_hash("marknet-mre --whole-input")
+    );
+    assert_ne!(
+        expected_hash("marknet-mre --whole-input"),
+        expected_hash("marknet-mre")
+    );
 }
 
 #[test]

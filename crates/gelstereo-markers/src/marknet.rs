@@ -761,6 +761,10 @@ impl Marknet {
 
     /// Whether, with the pitch remembered, each view of a stream runs on a window around the
     /// lattice its first frame showed ([`crate::window`]; default: yes). Off, every frame runs whole.
+    /// Windows are kept per image size and batch slot (a stereo pair's left and right), so the images
+    /// given to one slot must come from one camera: a second camera's images interleaved through
+    /// [`Localizer::detect`] would each fall back to the whole input after trying the first's window
+    /// (use `detect_stereo`, one localizer per camera, or turn windows off).
     pub fn set_lattice_window(&mut self, remember: bool) {
         self.lattice_window = remember;
         if !remember {

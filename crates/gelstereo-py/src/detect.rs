@@ -14,7 +14,10 @@ use crate::error::{GelstereoError, to_py};
 
 /// Localizers built so far, per method: loading a model takes longer than running it, so a loop
 /// calling `detect` loads each once. Each remembers the marker pitch per image size, as
-/// `gelstereo detect` does over the images of one call.
+/// `gelstereo detect` does over the images of one call, but runs every image on the whole network
+/// input: the images of a loop may come from either camera of a stereo sensor, and a window learnt
+/// on one camera's lattice would send every image of the other back to the whole input, at the cost
+/// of both passes.
 static LOCALIZERS: Mutex<BTreeMap<Method, Box<dyn Localizer + Send>>> = Mutex::new(BTreeMap::new());
 
 /// Marker centres in one image.
@@ -49,7 +52,11 @@ pub fn detect<'py>(
         let localizer = match cache.entry(method) {
             Entry::Occupied(built) => built.into_mut(),
             Entry::Vacant(slot) => {
-                slot.insert(create_localizer(method, &LocalizerConfig::default()).map_err(|e| to_py(&e))?)
+                let config = LocalizerConfig {
+                    lattice_window: false,
+                    ..LocalizerConfig::default()
+                };
+                slot.insert(create_localizer(method, &config).map_err(|e| to_py(&e))?)
             }
         };
         let detections = localizer.detect(&image).map_err(|e| to_py(&e))?;
