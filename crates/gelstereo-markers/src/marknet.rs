@@ -460,11 +460,13 @@ pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32)
 /// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
 /// centres, no antialiasing; the margin filled with the resized image's median colour) and writes it
 /// into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one pass
-/// bit-identical to OpenCV's resize + copyMakeBorder with that constant ([`crate::resize`]).
-/// `scratch` is kept between calls.
+/// bit-identical to OpenCV's resize + copyMakeBorder with that constant ([`crate::resize`]); with
+/// `window`, only that rectangle of the input (`plane` holds 3 x its pixels). `scratch` is kept
+/// between calls.
 pub(crate) fn write_layout(
     image: &Mat,
     layout: &InputLayout,
+    window: Option<&Window>,
     scratch: &mut ResizeScratch,
     plane: &mut [f32],
 ) -> Result<()> {
@@ -497,7 +499,7 @@ pub(crate) fn write_layout(
         height: image.rows() as usize,
         channels: image.channels() as usize,
     };
-    resize_into_planar(&view, layout, scratch, plane);
+    resize_into_planar(&view, layout, window, scratch, plane);
     Ok(())
 }
 
@@ -509,6 +511,7 @@ pub(crate) fn write_layout(
 fn preprocess(
     image: &Mat,
     layout: &InputLayout,
+    window: Option<&Window>,
     stretch_to: Option<(u32, u32)>,
     scratch: &mut ResizeScratch,
     plane: &mut [f32],
@@ -517,35 +520,7 @@ fn preprocess(
     if let Some((w, h)) = stretch_to {
         check_aspect(size, w, h)?;
     }
-    write_layout(image, layout, scratch, plane)
-}
-
-/// [`preprocess`] into `whole` (the layout's whole input), then `window` of it copied into `plane`.
-fn preprocess_window(
-    image: &Mat,
-    layout: &InputLayout,
-    window: &Window,
-    scratch: &mut ResizeScratch,
-    whole: &mut Vec<f32>,
-    plane: &mut [f32],
-) -> Result<()> {
-    let (iw, ih) = (layout.input_width as usize, layout.input_height as usize);
-    whole.resize(3 * iw * ih, 0.0);
-    preprocess(image, layout, None, scratch, whole)?;
-    let (x, y, w, h) = (
-        window.x as usize,
-        window.y as usize,
-        window.width as usize,
-        window.height as usize,
-    );
-    for (c, out) in plane.chunks_exact_mut(w * h).enumerate() {
-        let src = &whole[c * iw * ih..(c + 1) * iw * ih];
-        for (row, dst) in out.chunks_exact_mut(w).enumerate() {
-            let start = (y + row) * iw + x;
-            dst.copy_from_slice(&src[start..start + w]);
-        }
-    }
-    Ok(())
+    write_layout(image, layout, window, scratch, plane)
 }
 
 /// The input size an image runs at: its layout's, or its window's.
@@ -661,8 +636,6 @@ pub struct Marknet {
     lattice_window: bool,
     /// Scratch of each batch slot's preprocessing.
     resize: Vec<ResizeScratch>,
-    /// Each batch slot's whole input, when the network runs on a window of it.
-    whole_input: Vec<Vec<f32>>,
     /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
     parallel: bool,
     input: Vec<f32>,
@@ -709,7 +682,6 @@ impl Marknet {
             window_memory: HashMap::new(),
             lattice_window: true,
             resize: Vec::new(),
-            whole_input: Vec::new(),
             parallel: false,
             input: Vec::new(),
             times: LocalizationTimes::default(),
@@ -869,7 +841,6 @@ impl Marknet {
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         if self.resize.len() < images.len() {
             self.resize.resize_with(images.len(), ResizeScratch::default);
-            self.whole_input.resize_with(images.len(), Vec::new);
         }
         // A stretch must keep the aspect ratio within bounds (the "auto" and "pad" layouts keep it).
         let stretch =
@@ -880,14 +851,13 @@ impl Marknet {
             .zip(windows)
             .zip(layouts)
             .zip(self.input.chunks_exact_mut(3 * iw * ih))
-            .zip(self.resize.iter_mut().zip(self.whole_input.iter_mut()))
+            .zip(self.resize.iter_mut())
             .collect();
         map_images(
             self.parallel,
             slots,
-            |((((image, window), layout), plane), (scratch, whole))| match window {
-                Some(w) => preprocess_window(image, layout, w, scratch, whole, plane),
-                None => preprocess(image, layout, stretch_to, scratch, plane),
+            |((((image, window), layout), plane), scratch)| {
+                preprocess(image, layout, window.as_ref(), stretch_to, scratch, plane)
             },
         )
         .into_iter()
@@ -1488,7 +1458,7 @@ mod tests {
             let hw = (w * h) as usize;
             let mut plane = vec![-1.0f32; 3 * hw];
             let same = InputLayout::stretch(w as u32, h as u32);
-            write_layout(&m, &same, &mut ResizeScratch::default(), &mut plane)?;
+            write_layout(&m, &same, None, &mut ResizeScratch::default(), &mut plane)?;
             for p in 0..hw {
                 let px = &bytes[n * p..n * p + n];
                 let (r, g, b) = if n == 1 {

@@ -28,6 +28,7 @@
 //! every channel count.
 
 use crate::marknet::InputLayout;
+use crate::window::Window;
 
 /// OpenCV's fixed-point weight scale of 8-bit bilinear resizing (`INTER_RESIZE_COEF_SCALE`).
 const COEF_SCALE: f32 = 2048.0;
@@ -84,24 +85,21 @@ pub const FILL_SAMPLE_STEP: usize = 4;
 /// 2^23: `x + ROUND_BY_ADDING` holds the nearest integer to `x` (0 <= x < 2^23) in its mantissa.
 const ROUND_BY_ADDING: f32 = 8_388_608.0;
 
-/// The lower median of one plane's values (each `k / 255`) at the sampled pixels of the resized image
-/// (`nw x nh` at (`ox`, `oy`) in rows of `iw`).
-fn median_of_plane(plane: &[f32], iw: usize, (ox, oy, nw, nh): (usize, usize, usize, usize)) -> f32 {
-    let mut histogram = [0u32; 256];
-    let mut n = 0u32;
-    for y in (oy..oy + nh).step_by(FILL_SAMPLE_STEP) {
-        for &v in plane[y * iw + ox..y * iw + ox + nw]
-            .iter()
-            .step_by(FILL_SAMPLE_STEP)
-        {
-            // v is k / 255 for a grey level k, so v * 255 lies within rounding of k, and adding 2^23
-            // rounds it to k in the low mantissa bits (f32's unit in the last place at 2^23 is 1):
-            // no `round` (a libm call) and no saturating float-to-integer cast per sample, which
-            // showed in profiles of the preprocessing.
-            histogram[((v * 255.0 + ROUND_BY_ADDING).to_bits() & 0xff) as usize] += 1;
-            n += 1;
-        }
+/// Adds one resized row's values (each `k / 255`) at every `FILL_SAMPLE_STEP`-th column (from its
+/// first) to the histogram of grey levels.
+fn sample_row(row: &[f32], histogram: &mut [u32; 256]) {
+    for &v in row.iter().step_by(FILL_SAMPLE_STEP) {
+        // v is k / 255 for a grey level k, so v * 255 lies within rounding of k, and adding 2^23
+        // rounds it to k in the low mantissa bits (f32's unit in the last place at 2^23 is 1): no
+        // `round` (a libm call) and no saturating float-to-integer cast per sample, which showed in
+        // profiles of the preprocessing.
+        histogram[((v * 255.0 + ROUND_BY_ADDING).to_bits() & 0xff) as usize] += 1;
     }
+}
+
+/// The lower median of the grey levels counted in `histogram`, as a value `k / 255`.
+fn median_of(histogram: &[u32; 256]) -> f32 {
+    let n: u32 = histogram.iter().sum();
     let rank = n.saturating_sub(1) / 2;
     let mut seen = 0;
     for (k, count) in histogram.iter().enumerate() {
@@ -133,6 +131,8 @@ pub(crate) struct ResizeScratch {
     held: [Option<usize>; 2],
     /// Per buffer: the channel rows, each `nw` rounded up to 8 long.
     buffers: [Vec<i16>; 2],
+    /// One output row of one channel, for the median colour's samples.
+    row: Vec<f32>,
 }
 
 impl Default for ResizeScratch {
@@ -147,6 +147,7 @@ impl Default for ResizeScratch {
             split: Vec::new(),
             held: [None, None],
             buffers: [Vec::new(), Vec::new()],
+            row: Vec::new(),
         }
     }
 }
@@ -162,18 +163,24 @@ pub(crate) struct Image<'a> {
 }
 
 /// Resizes `image` into `layout` (bilinear, exactly OpenCV's `INTER_LINEAR`), fills the rest of the
-/// input with the resized image's median colour, and writes planar RGB f32 in [0, 1] into `plane`
-/// (3 x input pixels).
+/// input with the resized image's median colour, and writes planar RGB f32 in [0, 1] into `plane`:
+/// the whole input (3 x input pixels), or with `window` only that rectangle of it (3 x window
+/// pixels), with the same values the whole input holds there. Rows the window does not reach are
+/// resized only where the median colour samples them.
 pub(crate) fn resize_into_planar(
     image: &Image,
     layout: &InputLayout,
+    window: Option<&Window>,
     scratch: &mut ResizeScratch,
     plane: &mut [f32],
 ) {
     let (nw, nh) = (layout.scaled_width as usize, layout.scaled_height as usize);
     let (iw, ih) = (layout.input_width as usize, layout.input_height as usize);
     let (ox, oy) = (layout.offset_x as usize, layout.offset_y as usize);
-    let hw = iw * ih;
+    let (wx, wy, ww, wh) = window.map_or((0, 0, iw, ih), |w| {
+        (w.x as usize, w.y as usize, w.width as usize, w.height as usize)
+    });
+    let hw = ww * wh;
     let sizes = (image.width, image.height, nw, nh);
     if scratch.sizes != sizes || scratch.columns.len() != nw {
         scratch.sizes = sizes;
@@ -188,8 +195,19 @@ pub(crate) fn resize_into_planar(
     for b in &mut scratch.buffers {
         b.resize(planes * nw8, 0);
     }
+    scratch.row.resize(nw, 0.0);
     scratch.held = [None, None];
     let stride = image.width * image.channels;
+    // The window's part of each resized row: columns `c0..c1`, written from window column `dest`.
+    let (first, last) = (ox.max(wx), (ox + nw).min(wx + ww));
+    let (c0, c1, dest) = if first < last {
+        (first - ox, last - ox, first - wx)
+    } else {
+        (0, 0, 0)
+    };
+    // Whether the window shows any of the margin, whose median colour then has to be found.
+    let margin_shown = wx < ox || wy < oy || wx + ww > ox + nw || wy + wh > oy + nh;
+    let mut histograms = [[0u32; 256]; 3];
     let ResizeScratch {
         columns,
         rows,
@@ -198,9 +216,16 @@ pub(crate) fn resize_into_planar(
         split,
         held,
         buffers,
+        row,
         ..
     } = scratch;
     for (dy, tap) in rows.iter().enumerate() {
+        let y = oy + dy;
+        let shown = (wy..wy + wh).contains(&y);
+        let sampled = margin_shown && dy % FILL_SAMPLE_STEP == 0;
+        if !shown && !sampled {
+            continue;
+        }
         // The two source rows, each resized horizontally once (consecutive output rows share one).
         if held[0] != Some(tap.first) && held[1] == Some(tap.first) {
             buffers.swap(0, 1);
@@ -213,35 +238,45 @@ pub(crate) fn resize_into_planar(
             let src = &image.bytes[sy * stride..(sy + 1) * stride];
             split_channels(src, image.channels, planes, padded_width, split, *allow_simd);
             for c in 0..planes {
-                let row = &split[c * padded_width..(c + 1) * padded_width];
+                let source = &split[c * padded_width..(c + 1) * padded_width];
                 let out = &mut buffers[k][c * nw8..(c + 1) * nw8];
                 match blocks {
-                    Some(b) => b.horizontal(row, out),
-                    None => horizontal(row, columns, out),
+                    Some(b) => b.horizontal(source, out),
+                    None => horizontal(source, columns, out),
                 }
             }
             held[k] = Some(sy);
         }
-        let y = oy + dy;
         for c in 0..planes {
             let h0 = &buffers[0][c * nw8..c * nw8 + nw];
             let h1 = &buffers[1][c * nw8..c * nw8 + nw];
             // Source channel c is B, G, R: planes R, G, B.
             let p = if planes == 1 { 0 } else { 2 - c };
-            let out = &mut plane[p * hw + y * iw + ox..p * hw + y * iw + ox + nw];
-            simd::vertical(h0, h1, tap.w0, tap.w1, out, *allow_simd);
+            let at = p * hw + y.saturating_sub(wy) * ww + dest;
+            if sampled {
+                simd::vertical(h0, h1, tap.w0, tap.w1, row, *allow_simd);
+                sample_row(row, &mut histograms[p]);
+                if shown {
+                    plane[at..at + c1 - c0].copy_from_slice(&row[c0..c1]);
+                }
+            } else {
+                let out = &mut plane[at..at + c1 - c0];
+                simd::vertical(&h0[c0..c1], &h1[c0..c1], tap.w0, tap.w1, out, *allow_simd);
+            }
         }
     }
-    // Whole margin rows above and below, then the margins left and right of the image rows.
-    if nw < iw || nh < ih {
-        for p in 0..planes {
-            let pl = &mut plane[p * hw..(p + 1) * hw];
-            let fill = median_of_plane(pl, iw, (ox, oy, nw, nh));
-            pl[..oy * iw].fill(fill);
-            pl[(oy + nh) * iw..].fill(fill);
-            for row in pl[oy * iw..(oy + nh) * iw].chunks_exact_mut(iw) {
-                row[..ox].fill(fill);
-                row[ox + nw..].fill(fill);
+    // The window's margin: whole rows above and below the image, then left and right of it.
+    if margin_shown {
+        for (p, histogram) in histograms.iter().enumerate().take(planes) {
+            let fill = median_of(histogram);
+            for (r, line) in plane[p * hw..(p + 1) * hw].chunks_exact_mut(ww).enumerate() {
+                let y = wy + r;
+                if y < oy || y >= oy + nh {
+                    line.fill(fill);
+                } else {
+                    line[..dest].fill(fill);
+                    line[dest + c1 - c0..].fill(fill);
+                }
             }
         }
     }
@@ -622,7 +657,7 @@ mod tests {
                         height: h as usize,
                         channels,
                     };
-                    resize_into_planar(&image, &l, &mut scratch, &mut got);
+                    resize_into_planar(&image, &l, None, &mut scratch, &mut got);
                     let bad = got
                         .iter()
                         .zip(&want)
@@ -631,6 +666,91 @@ mod tests {
                         bad, None,
                         "{w}x{h}, {channels} channel(s), {l:?}, SIMD {allow_simd}"
                     );
+                }
+            }
+        }
+    }
+
+    /// A window of the input holds exactly the values the whole input holds there, the margin's
+    /// median colour (the whole image's) included: windows inside the image, over its margins, past
+    /// its last rows, and the whole input, for grey, BGR and BGRA, with and without SIMD.
+    #[test]
+    fn a_window_holds_the_whole_inputs_values() {
+        let l = layout(416, 320, 406, 304, 5, 8);
+        let windows = [
+            Window {
+                x: 64,
+                y: 0,
+                width: 288,
+                height: 320,
+            },
+            Window {
+                x: 96,
+                y: 64,
+                width: 224,
+                height: 192,
+            },
+            Window {
+                x: 0,
+                y: 288,
+                width: 416,
+                height: 32,
+            },
+            Window {
+                x: 384,
+                y: 0,
+                width: 32,
+                height: 320,
+            },
+            Window {
+                x: 0,
+                y: 0,
+                width: 416,
+                height: 320,
+            },
+        ];
+        for allow_simd in [true, false] {
+            let mut scratch = ResizeScratch {
+                allow_simd,
+                ..ResizeScratch::default()
+            };
+            for (typ, channels) in [(CV_8UC3, 3), (CV_8UC1, 1), (CV_8UC4, 4)] {
+                // Noise over a vertical ramp: the median of a few rows is not the whole image's.
+                let mut img = noise(640, 480, typ, 5);
+                let row_len = 640 * channels;
+                for (y, row) in img
+                    .data_bytes_mut()
+                    .expect("bytes")
+                    .chunks_exact_mut(row_len)
+                    .enumerate()
+                {
+                    for v in row {
+                        *v = (*v / 4).saturating_add((y / 2) as u8);
+                    }
+                }
+                let image = Image {
+                    bytes: img.data_bytes().expect("bytes"),
+                    width: 640,
+                    height: 480,
+                    channels,
+                };
+                let (iw, hw) = (416usize, 416 * 320);
+                let mut whole = vec![-1.0f32; 3 * hw];
+                resize_into_planar(&image, &l, None, &mut scratch, &mut whole);
+                for w in &windows {
+                    let (x, y, ww, wh) = (w.x as usize, w.y as usize, w.width as usize, w.height as usize);
+                    let mut got = vec![-1.0f32; 3 * ww * wh];
+                    resize_into_planar(&image, &l, Some(w), &mut scratch, &mut got);
+                    for (c, plane) in got.chunks_exact(ww * wh).enumerate() {
+                        for (r, line) in plane.chunks_exact(ww).enumerate() {
+                            let from = c * hw + (y + r) * iw + x;
+                            let want = &whole[from..from + ww];
+                            assert!(
+                                line.iter().zip(want).all(|(a, b)| a.to_bits() == b.to_bits()),
+                                "{w:?}, {channels} channel(s), plane {c}, row {r}, SIMD {allow_simd}"
+                            );
+                        }
+                    }
                 }
             }
         }

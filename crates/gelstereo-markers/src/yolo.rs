@@ -467,7 +467,7 @@ impl YoloLocalizer {
         let layout = InputLayout::stretch(iw, ih);
         let hw = (iw * ih) as usize;
         let plane = &mut self.input[slot * 3 * hw..(slot + 1) * 3 * hw];
-        write_layout(image, &layout, &mut self.resize, plane)?;
+        write_layout(image, &layout, None, &mut self.resize, plane)?;
         Ok(size)
     }
 
