@@ -16,8 +16,10 @@ def test_detect_agrees_with_the_command_line(left_bgr, sample, gelstereo_bin, tm
     found = gelstereo.detect(left_bgr)
     assert found.dtype == np.float64 and found.ndim == 2 and found.shape[1] == 3
     out = tmp_path / "found.csv"
+    # `detect` runs every image on the whole network input; the command line, given a stream, runs a
+    # view's frames on a window around its lattice (the same markers to a fraction of a pixel).
     subprocess.run(
-        [str(gelstereo_bin), "detect", "--out", str(out), str(sample / "left" / "000000.jpg")],
+        [str(gelstereo_bin), "detect", "--whole-input", "--out", str(out), str(sample / "left" / "000000.jpg")],
         check=True,
     )
     with open(out) as f:
