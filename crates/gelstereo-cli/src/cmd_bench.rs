@@ -115,6 +115,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         runs: args.runs,
         warmup: args.warmup,
         blob_params: args.localizer.blob_params.clone(),
+        one_recording: localization::one_recording(args.dataset.as_deref(), &args.inputs),
     })?;
     write_report(&report, args.out.as_deref())
 }

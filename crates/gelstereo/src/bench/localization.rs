@@ -1,6 +1,8 @@
 //! The localization benchmark: latency of each method per view and per stereo pair, measured side
 //! by side in one process (the runs of the methods are interleaved, so machine load hits all alike),
-//! with the ratio to the blob baseline. Criterion benches of the same code are in
+//! with the ratio to the blob baseline. Each method has one localizer per camera (left views go to
+//! one, right views to the other, pairs to the left one as a batch), so the views of one recording
+//! reach each localizer as a stream would. Criterion benches of the same code are in
 //! `crates/gelstereo-markers/benches`.
 
 use std::fmt::Write as _;
@@ -30,6 +32,15 @@ pub struct LocalizationBench {
     pub warmup: usize,
     /// The blob parameters' name, for the report.
     pub blob_params: String,
+    /// Whether the pairs are frames of one recording ([`one_recording`]): a stream, whose views
+    /// Marknet runs on a window around the lattice where `config` allows it; pairs of several
+    /// recordings (sensors) run on the whole input, as `gelstereo eval` runs datasets.
+    pub one_recording: bool,
+}
+
+/// Whether [`load_pairs`] of these arguments takes its pairs from one stereo recording.
+pub fn one_recording(dataset: Option<&Path>, inputs: &[PathBuf]) -> bool {
+    dataset.is_none() && inputs.len() == 1 && images::is_stereo_recording(&inputs[0])
 }
 
 /// Up to `count` stereo pairs: frames spread over the recordings of `dataset`'s `split` and the
@@ -143,12 +154,18 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
     }
     let (pairs, methods) = (&b.pairs, &b.methods);
     let views: Vec<&Mat> = pairs.iter().flat_map(|p| [&p.left, &p.right]).collect();
-    let mut locs: Vec<Box<dyn Localizer + Send>> = methods
+    let config = LocalizerConfig {
+        lattice_window: b.config.lattice_window && b.one_recording,
+        ..b.config.clone()
+    };
+    let create = |m: &Method| {
+        create_localizer(*m, &config)
+            .map_err(|e| Error::from(e).context(format!("cannot set up method '{m}'")))
+    };
+    // Per method: the left camera's localizer (left views and whole pairs), then the right one's.
+    let mut locs: Vec<[Box<dyn Localizer + Send>; 2]> = methods
         .iter()
-        .map(|m| {
-            create_localizer(*m, &b.config)
-                .map_err(|e| Error::from(e).context(format!("cannot set up method '{m}'")))
-        })
+        .map(|m| Ok([create(m)?, create(m)?]))
         .collect::<Result<_>>()?;
     let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
     let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
@@ -181,13 +198,14 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
     let mut markers = vec![0usize; n];
     for run in 0..b.warmup + b.runs {
         let counted = run >= b.warmup;
-        let view = views[run % views.len()];
+        let (view, side) = (views[run % views.len()], run % views.len() % 2);
         let pair = &pairs[run % pairs.len()];
-        for (i, loc) in locs.iter_mut().enumerate() {
-            let (found, view_ms, view_cpu) = timed(overhead_ns, || loc.detect(view));
-            let found = found.map_err(|e| Error::from(e).context(format!("{} failed", loc.name())))?;
-            let (both, pair_ms, pair_cpu) = timed(overhead_ns, || loc.detect_stereo(pair));
-            let both = both.map_err(|e| Error::from(e).context(format!("{} failed", loc.name())))?;
+        for (i, [left, right]) in locs.iter_mut().enumerate() {
+            let camera = if side == 0 { &mut *left } else { &mut *right };
+            let (found, view_ms, view_cpu) = timed(overhead_ns, || camera.detect(view));
+            let found = found.map_err(|e| Error::from(e).context(format!("{} failed", camera.name())))?;
+            let (both, pair_ms, pair_cpu) = timed(overhead_ns, || left.detect_stereo(pair));
+            let both = both.map_err(|e| Error::from(e).context(format!("{} failed", left.name())))?;
             if counted {
                 per_view[i].push(view_ms);
                 per_pair[i].push(pair_ms);
@@ -267,4 +285,22 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
         "results": rows,
     });
     Ok(Report { text, json })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Only one stereo recording and nothing else is a stream; a dataset, several inputs or loose
+    /// images are not.
+    #[test]
+    fn only_one_recording_is_benchmarked_as_a_stream() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+        let sample = root.join("data/sample/press-slide");
+        assert!(one_recording(None, std::slice::from_ref(&sample)));
+        assert!(!one_recording(Some(&root), std::slice::from_ref(&sample)));
+        assert!(!one_recording(None, &[sample.clone(), sample.clone()]));
+        assert!(!one_recording(None, &[sample.join("left")]));
+        assert!(!one_recording(None, &[]));
+    }
 }
