@@ -737,9 +737,9 @@ impl Marknet {
     /// given to one slot must come from one camera: a second camera's images interleaved through
     /// [`Localizer::detect`] would each fall back to the whole input after trying the first's window
     /// (use `detect_stereo`, one localizer per camera, or turn windows off).
-    pub fn set_lattice_window(&mut self, remember: bool) {
-        self.lattice_window = remember;
-        if !remember {
+    pub fn set_lattice_window(&mut self, on: bool) {
+        self.lattice_window = on;
+        if !on {
             self.window_memory.clear();
         }
     }

@@ -5,7 +5,7 @@
 //! around it ([`window_around`]): the image is resized into its usual layout, and the window's corners
 //! lie on multiples of the input multiple (the network's coarsest stride), so every convolution sees
 //! the same pixels on the same grid as on the whole input, and the markers come out as they would
-//! there (on the bundled sample, within 0.0001 px for the median marker). A frame whose markers come
+//! there (on the bundled sample, 0.0003 px apart for the median marker). A frame whose markers come
 //! near an edge of the window that lies inside the input, or that shows far fewer markers than the
 //! first, is run whole instead ([`LatticeWindow::holds`]): a lattice that slid out of the window, a
 //! column the first frame missed, another scene. The window never changes after the first frame, so
@@ -32,8 +32,8 @@ pub const WINDOW_MIN_SHARE: f64 = 0.75;
 /// Markers the first frame needs before a window is drawn around them.
 pub const WINDOW_MIN_MARKERS: usize = 16;
 
-/// A window is used only when it is at most this share of the whole input: below that, the cost of
-/// a fallback is not worth the saving.
+/// A window is used only when it is at most this share of the whole input: a larger one saves too
+/// little to be worth its cost on the frames that fall back.
 pub const WINDOW_MAX_INPUT_SHARE: f64 = 0.85;
 
 /// A rectangle of the network input, px, its corners on multiples of the input multiple.
