@@ -80,6 +80,52 @@ fn pipeline_bench_lists_every_stage_with_positive_figures() {
     assert!(report["latency"]["whole_ms"]["median"].as_f64().unwrap() > 0.0);
     assert!(report["throughput"]["frames_per_s"].as_f64().unwrap() > 0.0);
     assert_eq!(report["tracking_stages_from"], "StereoSession::track stage marks");
+    // The blob detector has no window around the lattice: no whole-input run beside it.
+    assert!(report["throughput"]["whole_input"].is_null());
+    assert!(!text.contains("--whole-input"), "{text}");
+}
+
+/// Marknet runs a stream on a window around the lattice; the throughput mode is then measured on the
+/// whole input too, in the same run, with the ratio of their CPU times.
+#[test]
+fn pipeline_bench_measures_the_whole_input_beside_the_window() {
+    let rec = common::repo().join("data/sample/press-slide");
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("bench.json");
+    let args = [
+        "bench",
+        "--pipeline",
+        "--frames",
+        "4",
+        "--runs",
+        "6",
+        "--warmup",
+        "1",
+        "--threads",
+        "1",
+    ];
+    let out = common::gelstereo(
+        &[
+            &args[..],
+            &["--json", json.to_str().unwrap(), rec.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    let text = common::text(&out);
+    assert!(out.status.success(), "{text}");
+    assert!(
+        text.contains("throughput mode on the whole input of every frame (--whole-input)")
+            && text.contains("the window: "),
+        "{text}"
+    );
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(report["method"], "marknet-mre");
+    assert!(
+        report["throughput"]["whole_input"]["frames_per_s"]
+            .as_f64()
+            .unwrap()
+            > 0.0
+    );
 }
 
 #[test]

@@ -458,12 +458,27 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     pipeline.record_stage_marks(process_cpu_clock_ns);
     let mut lat = latency(&mut pipeline, &loaded, b, overhead_ns)?;
     lat.index_ms = index_ms;
-    let mut tp_pipeline =
-        Pipeline::with_localizer(&b.config, create_localizer(Method::Blob, &b.config.localizer)?)?;
-    tp_pipeline.process_detected(&loaded.frames[0], dets0)?;
-    let (elapsed_s, cpu_ns) = throughput(&mut tp_pipeline, &loaded.frames, b, workers)?;
-    let fps = b.runs as f64 / elapsed_s.max(1e-9);
-    let cpu_per_frame_tp = cpu_ns.map(|c| c as f64 * 1e-6 / b.runs as f64);
+    let throughput_of = |bench: &PipelineBench| -> Result<(f64, Option<f64>)> {
+        let mut tp_pipeline = Pipeline::with_localizer(
+            &bench.config,
+            create_localizer(Method::Blob, &bench.config.localizer)?,
+        )?;
+        tp_pipeline.process_detected(&loaded.frames[0], dets0.clone())?;
+        let (elapsed_s, cpu_ns) = throughput(&mut tp_pipeline, &loaded.frames, bench, workers)?;
+        let fps = bench.runs as f64 / elapsed_s.max(1e-9);
+        Ok((fps, cpu_ns.map(|c| c as f64 * 1e-6 / bench.runs as f64)))
+    };
+    let (fps, cpu_per_frame_tp) = throughput_of(b)?;
+    // Marknet on a window around the lattice: the same mode on the whole input, right after.
+    let windowed =
+        matches!(method, Method::Marknet | Method::MarknetMre) && b.config.localizer.lattice_window;
+    let whole_input = if windowed {
+        let mut whole = b.clone();
+        whole.config.localizer.lattice_window = false;
+        Some(throughput_of(&whole)?)
+    } else {
+        None
+    };
     let ort = matches!(method, Method::Marknet | Method::MarknetMre | Method::Yolo);
     let load_end = load_average();
 
@@ -542,6 +557,19 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         },
         ms(cpu_per_frame_tp)
     );
+    if let Some((whole_fps, whole_cpu)) = whole_input {
+        let _ = writeln!(
+            text,
+            "throughput mode on the whole input of every frame (--whole-input), right after: {whole_fps:.1} stereo frames/s; CPU {} per frame{}",
+            ms(whole_cpu),
+            cpu_per_frame_tp
+                .zip(whole_cpu)
+                .map_or_else(String::new, |(w, f)| format!(
+                    " (the window: {:.2}x its CPU)",
+                    w / f.max(1e-9)
+                ))
+        );
+    }
     let _ = writeln!(
         text,
         "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; tracking stages from StereoSession::track's own stage marks; load average {load_start} at start, {load_end} at end",
@@ -572,6 +600,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
             "frames": b.runs,
             "frames_per_s": fps,
             "cpu_ms_per_frame": cpu_per_frame_tp,
+            "whole_input": whole_input.map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})),
         },
         "tracking_stages_from": "StereoSession::track stage marks",
         "not_timed": "exports (CSV rows, PLY, overlays, plots)",
