@@ -20,32 +20,38 @@ fn first_ms(text: &str, label: &str) -> f64 {
         .unwrap_or_else(|| panic!("no number on '{line}'"))
 }
 
-#[test]
-fn pipeline_bench_lists_every_stage_with_positive_figures() {
+/// `gelstereo bench` with `args` on 4 frames of the sample, 6 timed runs: its text and JSON report.
+fn pipeline_bench(args: &[&str]) -> (String, serde_json::Value) {
     let rec = common::repo().join("data/sample/press-slide");
-    let calib = rec.join("calib.yaml");
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("bench.json");
-    let out = common::gelstereo(&[
-        "bench",
+    let common_args = ["--frames", "4", "--runs", "6", "--warmup", "1", "--json"];
+    let out = common::gelstereo(
+        &[
+            &["bench"][..],
+            args,
+            &common_args,
+            &[json.to_str().unwrap(), rec.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    let text = common::text(&out);
+    assert!(out.status.success(), "{text}");
+    let report = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    (text, report)
+}
+
+#[test]
+fn pipeline_bench_lists_every_stage_with_positive_figures() {
+    let calib = common::repo().join("data/sample/press-slide/calib.yaml");
+    let (text, report) = pipeline_bench(&[
         "--calib",
         calib.to_str().unwrap(),
         "--method",
         "blob",
-        "--frames",
-        "4",
-        "--runs",
-        "6",
-        "--warmup",
-        "1",
         "--workers",
         "2",
-        "--json",
-        json.to_str().unwrap(),
-        rec.to_str().unwrap(),
     ]);
-    let text = common::text(&out);
-    assert!(out.status.success(), "{text}");
     for stage in [
         "decode (both views, from bytes in memory)",
         "localization (both views, one batch)",
@@ -70,7 +76,6 @@ fn pipeline_bench_lists_every_stage_with_positive_figures() {
     assert!(text.contains("StereoSession::track's own stage marks"), "{text}");
     assert!(text.contains("load average"), "{text}");
 
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(report["method"], "blob");
     assert_eq!(report["frames"], 4);
     assert_eq!(report["image_size"], serde_json::json!([640, 480]));
@@ -89,36 +94,12 @@ fn pipeline_bench_lists_every_stage_with_positive_figures() {
 /// whole input too, in the same run, with the ratio of their CPU times.
 #[test]
 fn pipeline_bench_measures_the_whole_input_beside_the_window() {
-    let rec = common::repo().join("data/sample/press-slide");
-    let dir = tempfile::tempdir().unwrap();
-    let json = dir.path().join("bench.json");
-    let args = [
-        "bench",
-        "--pipeline",
-        "--frames",
-        "4",
-        "--runs",
-        "6",
-        "--warmup",
-        "1",
-        "--threads",
-        "1",
-    ];
-    let out = common::gelstereo(
-        &[
-            &args[..],
-            &["--json", json.to_str().unwrap(), rec.to_str().unwrap()],
-        ]
-        .concat(),
-    );
-    let text = common::text(&out);
-    assert!(out.status.success(), "{text}");
+    let (text, report) = pipeline_bench(&["--pipeline", "--threads", "1"]);
     assert!(
         text.contains("throughput mode on the whole input of every frame (--whole-input)")
             && text.contains("the window: "),
         "{text}"
     );
-    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(report["method"], "marknet-mre");
     assert!(
         report["throughput"]["whole_input"]["frames_per_s"]
