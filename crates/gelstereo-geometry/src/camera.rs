@@ -82,6 +82,11 @@ impl Distortion {
     /// normalised point and its 2x2 Jacobian with respect to the input, or `None` where the rational
     /// model's denominator vanishes or the result is not finite.
     pub fn distort_with_jacobian(&self, xy: Vector2<f64>) -> Option<(Vector2<f64>, Matrix2<f64>)> {
+        match self.coeffs[..] {
+            [k1, k2, p1, p2] => return distort_polynomial([k1, k2, p1, p2, 0.0], xy),
+            [k1, k2, p1, p2, k3] => return distort_polynomial([k1, k2, p1, p2, k3], xy),
+            _ => {}
+        }
         let [k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4] = self.padded();
         let (x, y) = (xy.x, xy.y);
         let r2 = x * x + y * y;
@@ -91,10 +96,12 @@ impl Distortion {
         if b == 0.0 {
             return None;
         }
-        let radial = a / b;
+        // One division: trackers distort every marker several times a frame.
+        let inv_b = 1.0 / b;
+        let radial = a * inv_b;
         let da = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
         let db = k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2);
-        let d_radial = (da * b - a * db) / (b * b);
+        let d_radial = (da - radial * db) * inv_b;
         let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r4;
         let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r4;
         let dsx = s1 + 2.0 * s2 * r2;
@@ -121,6 +128,13 @@ impl Distortion {
     /// residual is below 1e-14 (about 1e-11 px at f = 1000 px). `None` when it does not converge in
     /// 100 iterations or the Jacobian is singular.
     pub fn undistort(&self, distorted: Vector2<f64>) -> Option<Vector2<f64>> {
+        self.undistort_from(distorted, distorted)
+    }
+
+    /// [`Distortion::undistort`] with Newton's method started from `start`, a guess of the answer
+    /// (`UndistortionGrid` interpolates one); from the distorted point where `start` has no
+    /// distortion.
+    pub fn undistort_from(&self, distorted: Vector2<f64>, start: Vector2<f64>) -> Option<Vector2<f64>> {
         if self.is_zero() {
             return Some(distorted);
         }
@@ -128,22 +142,26 @@ impl Distortion {
         // Newton's residual after a step of length s is about s^2 x the distortion's curvature over
         // its slope: ~1e-16 after a step of 1e-8 (`undistortion_residual_is_within_its_tolerance`).
         const NEGLIGIBLE_STEP: f64 = 1e-8;
-        let mut x = distorted;
-        let (fx0, mut jac) = self.distort_with_jacobian(x)?;
+        let (mut x, (fx0, mut jac)) = match self.distort_with_jacobian(start) {
+            Some(d) => (start, d),
+            None => (distorted, self.distort_with_jacobian(distorted)?),
+        };
         let mut res = fx0 - distorted;
         for _ in 0..100 {
-            if res.norm() <= TOL {
+            // Squared norms: no square roots in the loop.
+            if res.norm_squared() <= TOL * TOL {
                 return Some(x);
             }
             let det = jac[(0, 0)] * jac[(1, 1)] - jac[(0, 1)] * jac[(1, 0)];
             if det == 0.0 || !det.is_finite() {
                 return None;
             }
+            let inv_det = 1.0 / det;
             let step = Vector2::new(
-                (jac[(1, 1)] * res.x - jac[(0, 1)] * res.y) / det,
-                (jac[(0, 0)] * res.y - jac[(1, 0)] * res.x) / det,
+                (jac[(1, 1)] * res.x - jac[(0, 1)] * res.y) * inv_det,
+                (jac[(0, 0)] * res.y - jac[(1, 0)] * res.x) * inv_det,
             );
-            if step.norm() <= NEGLIGIBLE_STEP {
+            if step.norm_squared() <= NEGLIGIBLE_STEP * NEGLIGIBLE_STEP {
                 // Quadratic convergence: what is left after this step is ~ step^2, far below TOL,
                 // so the step is taken without evaluating the distortion once more.
                 return Some(x - step);
@@ -153,7 +171,7 @@ impl Distortion {
                 let cand = x - step * t;
                 if let Some((f2, j2)) = self.distort_with_jacobian(cand) {
                     let r2 = f2 - distorted;
-                    if r2.norm() < res.norm() {
+                    if r2.norm_squared() < res.norm_squared() {
                         x = cand;
                         jac = j2;
                         res = r2;
@@ -168,6 +186,28 @@ impl Distortion {
         }
         (res.norm() <= 1e-10).then_some(x)
     }
+}
+
+/// [`Distortion::distort_with_jacobian`] of the common 4- and 5-coefficient model (`k1 k2 p1 p2
+/// [k3]`): the same arithmetic without the rational and thin-prism terms, whose zero coefficients
+/// leave every result bit as it is (the denominator is exactly 1, the added terms exactly 0), at
+/// about half the cost; trackers distort every marker several times a frame.
+fn distort_polynomial(
+    [k1, k2, p1, p2, k3]: [f64; 5],
+    xy: Vector2<f64>,
+) -> Option<(Vector2<f64>, Matrix2<f64>)> {
+    let (x, y) = (xy.x, xy.y);
+    let r2 = x * x + y * y;
+    let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    let d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
+    let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+    let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+    let j00 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x;
+    let j01 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y;
+    let j11 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x;
+    let jac = Matrix2::new(j00, j01, j01, j11);
+    let finite = (xd + yd + j00 + j01 + j01 + j11).is_finite();
+    finite.then_some((Vector2::new(xd, yd), jac))
 }
 
 /// A pinhole camera with OpenCV distortion. Intrinsics in pixels.
@@ -420,6 +460,36 @@ mod tests {
             Distortion::new(vec![0.0; 6]),
             Err(Error::DistortionCount { count: 6 })
         ));
+    }
+
+    /// The 4- and 5-coefficient model's own path gives the bits of the full model with its other
+    /// coefficients zero, and the same `None`s.
+    #[test]
+    fn the_polynomial_path_gives_the_full_models_bits() {
+        for coeffs in [
+            vec![-0.28, 0.09, 1e-3, -5e-4, -0.01],
+            vec![0.3, -0.1, -2e-3, 4e-4],
+        ] {
+            let short = Distortion::new(coeffs.clone()).unwrap();
+            let mut padded = coeffs.clone();
+            padded.resize(8, 0.0);
+            let full = Distortion::new(padded).unwrap();
+            for k in 0..4000 {
+                let t = f64::from(k);
+                let xy = Vector2::new((t * 0.37).sin() * t * 2e-4, (t * 0.73).cos() * t * 3e-4);
+                let bits = |d: Option<(Vector2<f64>, Matrix2<f64>)>| {
+                    d.map(|(v, j)| (v.map(f64::to_bits), j.map(f64::to_bits)))
+                };
+                assert_eq!(
+                    bits(short.distort_with_jacobian(xy)),
+                    bits(full.distort_with_jacobian(xy)),
+                    "{coeffs:?} at {xy:?}"
+                );
+            }
+            let far = Vector2::new(1e200, 1e200);
+            assert!(short.distort_with_jacobian(far).is_none());
+            assert!(full.distort_with_jacobian(far).is_none());
+        }
     }
 
     #[test]

@@ -5,7 +5,8 @@
 //!
 //! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),
 //! [`cv`] (conversions to and from OpenCV matrices), [`triangulation`] (mid-point, Lee-Civera Mid2,
-//! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`checkerboard`] (stereo
+//! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`undistortion`] (a
+//! camera's undistortion tabulated to start from), [`checkerboard`] (stereo
 //! checkerboard calibration with OpenCV).
 //!
 //! ```
@@ -29,6 +30,7 @@ pub mod checkerboard;
 pub mod cv;
 pub mod error;
 pub mod triangulation;
+pub mod undistortion;
 
 /// The `nalgebra` this crate's API uses (points, isometries), re-exported.
 pub use nalgebra;
@@ -40,3 +42,4 @@ pub use checkerboard::{
 };
 pub use error::{Error, Result};
 pub use triangulation::{Rejection, Triangulated, TriangulationConfig, TriangulationMethod, Triangulator};
+pub use undistortion::UndistortionGrid;

@@ -26,6 +26,7 @@ use nalgebra::{Matrix3, Matrix3x4, Point3, Vector2, Vector3, Vector4};
 
 use crate::camera::{Camera, StereoRig};
 use crate::error::{Error, Result};
+use crate::undistortion::UndistortionGrid;
 
 /// Which triangulation method to use (see the [module docs](self)).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -152,6 +153,8 @@ impl Triangulated {
 pub struct Triangulator {
     rig: StereoRig,
     config: TriangulationConfig,
+    /// Each camera's undistortion, tabulated to start from (left, right).
+    undistortion: StereoPair<UndistortionGrid>,
     /// `left_from_right` rotation.
     r_lr: Matrix3<f64>,
     /// `right_from_left` rotation.
@@ -195,6 +198,10 @@ impl Triangulator {
         // x_right ~ R x_left + t  =>  x_right^T [t]x R x_left = 0  =>  x_left^T (R^T [t]x^T) x_right = 0.
         let e_lr = r_lr * skew(&t_rl).transpose();
         Ok(Self {
+            undistortion: StereoPair::new(
+                UndistortionGrid::new(&rig.left),
+                UndistortionGrid::new(&rig.right),
+            ),
             rig,
             config,
             r_lr,
@@ -218,21 +225,27 @@ impl Triangulator {
     /// Triangulates one pair of pixels (left, right) into the left camera frame.
     pub fn triangulate(&self, left: Point2, right: Point2) -> Result<Triangulated, Rejection> {
         let nl = self
-            .rig
+            .undistortion
             .left
             .undistort(left)
             .ok_or(Rejection::Undistortion { view: View::Left })?;
         let nr = self
-            .rig
+            .undistortion
             .right
             .undistort(right)
             .ok_or(Rejection::Undistortion { view: View::Right })?;
-        let p = self.point_from_normalized(nl, nr, left, right)?;
-        let el =
-            reprojection(&self.rig.left, &p, left).ok_or(Rejection::BehindCamera { view: View::Left })?;
-        let pr = Point3::from(self.r_rl * p.coords + self.t_rl);
-        let er =
-            reprojection(&self.rig.right, &pr, right).ok_or(Rejection::BehindCamera { view: View::Right })?;
+        let (p, residual) = self.point_from_normalized(nl, nr, left, right)?;
+        let (el, er) = match residual {
+            Some(r) => (r.xy().norm(), Vector2::new(r.z, r.w).norm()),
+            None => {
+                let el = reprojection(&self.rig.left, &p, left)
+                    .ok_or(Rejection::BehindCamera { view: View::Left })?;
+                let pr = Point3::from(self.r_rl * p.coords + self.t_rl);
+                let er = reprojection(&self.rig.right, &pr, right)
+                    .ok_or(Rejection::BehindCamera { view: View::Right })?;
+                (el, er)
+            }
+        };
         let bound = self.config.max_reprojection_error_px;
         if el > bound || er > bound {
             return Err(Rejection::Reprojection {
@@ -288,25 +301,23 @@ impl Triangulator {
         0.5 * (dl + dr)
     }
 
-    /// The 3-D point from normalised coordinates, by the configured method (no reprojection bound).
+    /// The 3-D point from normalised coordinates, by the configured method (no reprojection bound),
+    /// with its pixel residuals (left x, y, right x, y) where the method computed them.
     fn point_from_normalized(
         &self,
         nl: Vector2<f64>,
         nr: Vector2<f64>,
         left_px: Point2,
         right_px: Point2,
-    ) -> Result<Point3<f64>, Rejection> {
+    ) -> Result<(Point3<f64>, Option<Vector4<f64>>), Rejection> {
         let f0 = Vector3::new(nl.x, nl.y, 1.0);
         let f1 = self.r_lr * Vector3::new(nr.x, nr.y, 1.0);
-        let angle_rad = f0.cross(&f1).norm().atan2(f0.dot(&f1));
-        if angle_rad.is_nan() || angle_rad < self.config.min_ray_angle_rad {
-            return Err(Rejection::ParallelRays { angle_rad });
-        }
+        self.check_ray_angle(&f0, &f1)?;
         let t = self.c_right_in_left;
-        let p = match self.config.method {
-            TriangulationMethod::Midpoint => midpoint(&f0, &f1, &t)?,
-            TriangulationMethod::LeeCiveraMid2 => mid2(&f0, &f1, &t)?,
-            TriangulationMethod::Lindstrom => self.lindstrom(nl, nr)?,
+        let (p, residual) = match self.config.method {
+            TriangulationMethod::Midpoint => (midpoint(&f0, &f1, &t)?, None),
+            TriangulationMethod::LeeCiveraMid2 => (mid2(&f0, &f1, &t)?, None),
+            TriangulationMethod::Lindstrom => (self.lindstrom(nl, nr)?, None),
             TriangulationMethod::PixelOptimal => {
                 let p0 = self.lindstrom(nl, nr)?;
                 self.refine_px(p0, left_px, right_px)
@@ -319,7 +330,25 @@ impl Triangulator {
         if in_right.z.is_nan() || in_right.z <= 0.0 {
             return Err(Rejection::BehindCamera { view: View::Right });
         }
-        Ok(Point3::from(p))
+        Ok((Point3::from(p), residual))
+    }
+
+    /// Rejects rays `f0`, `f1` (left frame) less than `min_ray_angle_rad` apart. The angle
+    /// `atan2(|f0 x f1|, f0 . f1)` is only computed for a rejection: below a right angle it is
+    /// under the bound exactly when `|f0 x f1| < tan(bound) (f0 . f1)`.
+    fn check_ray_angle(&self, f0: &Vector3<f64>, f1: &Vector3<f64>) -> Result<(), Rejection> {
+        let (sine, cosine) = (f0.cross(f1).norm(), f0.dot(f1));
+        let bound = self.config.min_ray_angle_rad;
+        let clearly_apart = bound < std::f64::consts::FRAC_PI_4
+            && (cosine <= 0.0 || sine >= bound.tan() * cosine * (1.0 + 1e-12));
+        if clearly_apart && sine.is_finite() {
+            return Ok(());
+        }
+        let angle_rad = sine.atan2(cosine);
+        if angle_rad.is_nan() || angle_rad < bound {
+            return Err(Rejection::ParallelRays { angle_rad });
+        }
+        Ok(())
     }
 
     /// Lindstrom's niter2 in the normalised planes, then the intersection of the corrected rays.
@@ -349,8 +378,14 @@ impl Triangulator {
         midpoint(&xc, &(self.r_lr * xpc), &self.c_right_in_left)
     }
 
-    /// Gauss-Newton on the pixel reprojection error of both views, from `p0` (left frame, mm).
-    fn refine_px(&self, p0: Vector3<f64>, left_px: Point2, right_px: Point2) -> Vector3<f64> {
+    /// Gauss-Newton on the pixel reprojection error of both views, from `p0` (left frame, mm); with
+    /// the residuals at the point returned, where they are known.
+    fn refine_px(
+        &self,
+        p0: Vector3<f64>,
+        left_px: Point2,
+        right_px: Point2,
+    ) -> (Vector3<f64>, Option<Vector4<f64>>) {
         let mut p = p0;
         let cost = |p: &Vector3<f64>| -> Option<(Vector4<f64>, Matrix3x4<f64>)> {
             let (rl, jl) = residual_and_jacobian(&self.rig.left, p, left_px)?;
@@ -364,7 +399,7 @@ impl Triangulator {
             Some((r, jt))
         };
         let Some((mut r, mut jt)) = cost(&p) else {
-            return p0;
+            return (p0, None);
         };
         for _ in 0..self.config.max_refine_iterations {
             let h = jt * jt.transpose();
@@ -374,8 +409,9 @@ impl Triangulator {
             };
             let cand = p - step;
             if step.norm() < NEGLIGIBLE_STEP_MM {
-                // Converged: what a further step could change is ~ this step squared.
-                return cand;
+                // Converged: what a further step could change is ~ this step squared, and the
+                // residuals at `cand` are those at `p` moved along the Jacobian, to that order.
+                return (cand, Some(r - jt.transpose() * step));
             }
             match cost(&cand) {
                 Some((r2, jt2)) if r2.norm_squared() <= r.norm_squared() => {
@@ -386,7 +422,7 @@ impl Triangulator {
                 _ => break,
             }
         }
-        p
+        (p, Some(r))
     }
 }
 
@@ -460,4 +496,62 @@ fn mid2(f0: &Vector3<f64>, f1: &Vector3<f64>, t: &Vector3<f64>) -> Result<Vector
         return Err(Rejection::BehindCamera { view: View::Left });
     }
     Ok((f0 * l0 + t + f1 * l1) * 0.5)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+
+    fn triangulator(min_ray_angle_rad: f64) -> Triangulator {
+        let size = gelstereo_core::ImageSize {
+            width: 640,
+            height: 480,
+        };
+        let camera = Camera::pinhole(size, 520.0, 520.0, 320.0, 240.0);
+        let rig = StereoRig {
+            left: camera.clone(),
+            right: camera,
+            right_from_left: nalgebra::Isometry3::translation(-10.0, 0.0, 0.0),
+        };
+        let config = TriangulationConfig {
+            min_ray_angle_rad,
+            ..Default::default()
+        };
+        Triangulator::new(rig, config).unwrap()
+    }
+
+    /// The angle test without the arctangent decides as `atan2(|f0 x f1|, f0 . f1) < bound` does,
+    /// for rays from parallel to opposite, at bounds below and above 45 degrees, and reports that
+    /// angle when it rejects.
+    #[test]
+    fn the_ray_angle_test_decides_as_the_arctangent() {
+        let f0 = Vector3::new(0.1, -0.2, 1.0);
+        let axis = f0.cross(&Vector3::new(0.3, 0.5, 0.2)).normalize();
+        for bound in [1e-4, 0.3, 1.0, 2.0] {
+            let t = triangulator(bound);
+            let mut rejected = 0;
+            for k in 0..=4000 {
+                let angle = std::f64::consts::PI * f64::from(k) / 4000.0 + 1e-13 * f64::from(k % 3);
+                for near in [angle, bound, bound * (1.0 + 1e-15), bound * (1.0 - 1e-15)] {
+                    let rotation = nalgebra::Rotation3::new(axis * near);
+                    let f1 = (rotation * f0) * 1.7;
+                    let exact = f0.cross(&f1).norm().atan2(f0.dot(&f1));
+                    match t.check_ray_angle(&f0, &f1) {
+                        Ok(()) => assert!(exact >= bound, "{near} kept against {bound}"),
+                        Err(Rejection::ParallelRays { angle_rad }) => {
+                            assert!(exact < bound, "{near} rejected against {bound}");
+                            assert_eq!(angle_rad, exact);
+                            rejected += 1;
+                        }
+                        Err(other) => panic!("{other:?}"),
+                    }
+                }
+            }
+            assert!(rejected > 0, "{bound}");
+        }
+        let t = triangulator(1e-4);
+        let nan = Vector3::new(f64::NAN, 0.0, 1.0);
+        assert!(t.check_ray_angle(&nan, &Vector3::new(0.0, 0.0, 1.0)).is_err());
+    }
 }

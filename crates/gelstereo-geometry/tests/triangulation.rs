@@ -386,6 +386,39 @@ fn rejections_are_typed_and_never_nan() {
     assert!(rejected[2] > 0 && rejected[3] > 0);
 }
 
+/// Each method's reported reprojection errors are the distances between the point's projections
+/// and the pixels (the pixel-optimal method reuses its last Gauss-Newton residuals for them).
+#[test]
+fn reported_reprojection_errors_are_the_projections_distances() {
+    let rig = rig();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    for method in METHODS {
+        let t = triangulator(method);
+        for (_, l, r) in gel_points(&mut rng, 300) {
+            let noisy = |p: Point2, rng: &mut ChaCha8Rng| {
+                Point2::new(
+                    p.x + rng.random_range(-0.6..0.6),
+                    p.y + rng.random_range(-0.6..0.6),
+                )
+            };
+            let (l, r) = (noisy(l, &mut rng), noisy(r, &mut rng));
+            let Ok(found) = t.triangulate(l, r) else {
+                continue;
+            };
+            let (pl, pr) = rig.project(&found.p_in_left_mm).unwrap();
+            let errors = found.reprojection_error_px;
+            assert!(
+                (errors.left - pl.distance(l)).abs() < 1e-9,
+                "{method:?}: {errors:?}"
+            );
+            assert!(
+                (errors.right - pr.distance(r)).abs() < 1e-9,
+                "{method:?}: {errors:?}"
+            );
+        }
+    }
+}
+
 #[test]
 fn many_markers_are_fast() {
     let mut rng = ChaCha8Rng::seed_from_u64(10);

@@ -523,6 +523,39 @@ fn blur(src: &[f64], rows: usize, cols: usize, taps: &[f64], tmp: &mut [f64], ds
 /// `out[i] = start + sum_k taps[k] * src[i + k - r]` over the `lines` lines of `len` values (line i of
 /// `src` is `src[i * len..(i + 1) * len]`), skipping the lines beyond either end, taps in order.
 fn tap_lines(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        return wide::tap_lines(src, lines, len, taps, start, out);
+    }
+    tap_lines_portable(src, lines, len, taps, start, out);
+}
+
+/// [`tap_lines`] compiled for AVX: 4 doubles per instruction instead of SSE2's 2. No FMA: each
+/// `o += t * v` rounds the product and the sum apart, as the portable build does, so the bits are
+/// the same.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod wide {
+    pub(super) fn tap_lines(
+        src: &[f64],
+        lines: usize,
+        len: usize,
+        taps: &[f64],
+        start: f64,
+        out: &mut [f64],
+    ) {
+        // SAFETY: called only where the CPU has AVX (`is_x86_feature_detected!` in the caller).
+        unsafe { tap_lines_avx(src, lines, len, taps, start, out) }
+    }
+
+    #[target_feature(enable = "avx")]
+    fn tap_lines_avx(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
+        super::tap_lines_portable(src, lines, len, taps, start, out);
+    }
+}
+
+#[inline(always)]
+fn tap_lines_portable(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
     let r = taps.len() / 2;
     out.fill(start);
     for (k, t) in taps.iter().enumerate() {

@@ -603,7 +603,8 @@ impl Tracker {
                 far_y = far_y.max((e[1] - m[1]).abs());
             }
             let g = limit * self.pitch_px[i];
-            if count < 3 || far_x.hypot(far_y) <= g {
+            // Squared lengths: a bound, not the decision, needs no correctly rounded `hypot`.
+            if count < 3 || far_x * far_x + far_y * far_y <= g * g {
                 continue;
             }
             self.gather(i, &step, 0.0, &mut bx, &mut by);
@@ -785,7 +786,9 @@ impl Tracker {
 /// (ties by slot, then detection, so the result does not depend on the candidates' order): the
 /// detection of each of the `slots`, or [`NONE`].
 fn assign_closest_first(mut cands: Vec<(f64, u32, u32)>, slots: usize, detections: usize) -> Vec<u32> {
-    cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    // Each (slot, detection) pair appears once, so the order is total and an unstable sort gives
+    // the one order a stable sort would.
+    cands.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
     let mut out = vec![NONE; slots];
     let mut used = vec![false; detections];
     for (_, i, d) in cands {
