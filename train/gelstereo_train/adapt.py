@@ -71,8 +71,11 @@ def base_architecture(path: Path) -> dict:
     if grid is None:
         raise SystemExit(f"{path}: metadata 'stride': expected 8, 16 or 32, found {stride}")
     layout = meta.get("preferred_layout", "stretch")
+    # The convolution before the 1x1 head is the last top-down step's second fusing one.
+    fuse_kernel = int(numpy_helper.to_array(inits[convs[-2].input[1]]).shape[2])
     return {"stem": stem, "width": width, "grid": grid, "candidates": candidates, "input_hw": hw,
-            "canonical": "auto" if layout == "isotropic" else "stretch", "meta": meta}
+            "canonical": "auto" if layout == "isotropic" else "stretch", "fuse_kernel": fuse_kernel,
+            "meta": meta}
 
 
 def sha16(path: Path) -> str:
@@ -122,7 +125,7 @@ def main(argv=None) -> int:
     # The trainer's own options, for the base architecture (--out is the checkpoint).
     targs = argparse.Namespace(**vars(args))
     targs.init = base_marknet
-    targs.stem, targs.width = arch["stem"], arch["width"]
+    targs.stem, targs.width, targs.fuse_kernel = arch["stem"], arch["width"], arch["fuse_kernel"]
     targs.grid, targs.candidates = arch["grid"], arch["candidates"]
     targs.canonical = arch["canonical"]
     targs.input_size = arch["input_hw"][0]

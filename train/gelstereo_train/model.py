@@ -22,6 +22,10 @@ STRIDE_FOR_GRID_416 = {13: 32, 26: 16, 52: 8}
 # "s4-bare" = the same convolution without the residual block: the block's 104 x 80 maps (reference
 # sensor) are memory-bound and cost about a quarter of the network's CPU time for ~12 % of its FLOPs.
 STEMS = ("s2", "s4", "s4-bare")
+# The second fusing convolution of each top-down step: 3x3 (YOLOv3's), or 1x1, which with "s4-bare"
+# takes the network from ~2.9 to ~2.4 ms of CPU per stereo pair of 2 x 320 x 288 (one thread); the
+# backbone's 3x3 convolutions still give every cell its neighbourhood.
+FUSE_KERNELS = (1, 3)
 
 
 def conv_bn(cin: int, cout: int, k: int, s: int = 1) -> nn.Sequential:
@@ -45,11 +49,11 @@ class Residual(nn.Module):
         return x + self.b(self.a(x))
 
 
-def top_down_path(chans: dict[int, int], to_stride: int) -> tuple[nn.ModuleList, int]:
+def top_down_path(chans: dict[int, int], to_stride: int, fuse_kernel: int = 3) -> tuple[nn.ModuleList, int]:
     """YOLOv3's top-down path from stride 32 down to `to_stride`: per halving, a 1x1 reduction,
     nearest upsampling, concatenation with the backbone's map of that stride and two fusing
-    convolutions. `chans` = backbone channels per stride. Returns the blocks and the channels of the
-    finest fused map."""
+    convolutions, the second `fuse_kernel` x `fuse_kernel`. `chans` = backbone channels per stride.
+    Returns the blocks and the channels of the finest fused map."""
     blocks = nn.ModuleList()
     cur, s = chans[32], 32
     while s > to_stride:
@@ -60,7 +64,7 @@ def top_down_path(chans: dict[int, int], to_stride: int) -> tuple[nn.ModuleList,
                 {
                     "reduce": conv_bn(cur, lat // 2, 1),
                     "fuse1": conv_bn(lat // 2 + lat, lat // 2, 1),
-                    "fuse2": conv_bn(lat // 2, lat, 3),
+                    "fuse2": conv_bn(lat // 2, lat, fuse_kernel),
                 }
             )
         )
@@ -85,7 +89,8 @@ def run_top_down(blocks: nn.ModuleList, feats: dict[int, torch.Tensor]) -> dict[
 class Marknet(nn.Module):
     """Marknet. Input (N, 3, H, W) RGB in [0, 1]; output (N, H/stride, W/stride, m, 3) raw logits."""
 
-    def __init__(self, stride: int = 8, candidates: int = 5, width: int = 8, stem: str = "s2"):
+    def __init__(self, stride: int = 8, candidates: int = 5, width: int = 8, stem: str = "s2",
+                 fuse_kernel: int = 3):
         super().__init__()
         if stem not in STEMS:
             raise ValueError(f"stem must be one of {sorted(STEMS)}, got {stem!r}")
@@ -93,10 +98,13 @@ class Marknet(nn.Module):
             raise ValueError(f"stride must be 8, 16 or 32 (S = 52, 26, 13 at 416), got {stride}")
         if not 1 <= candidates <= 5:
             raise ValueError(f"candidates m must be in 1..5, got {candidates}")
+        if fuse_kernel not in FUSE_KERNELS:
+            raise ValueError(f"fuse_kernel must be one of {FUSE_KERNELS}, got {fuse_kernel}")
         self.stride = stride
         self.candidates = candidates
         self.width = width
         self.stem_kind = stem
+        self.fuse_kernel = fuse_kernel
         w = width
         # Backbone: stride 2, 4, 8, 16, 32.
         if stem == "s2":
@@ -112,7 +120,7 @@ class Marknet(nn.Module):
         self.s16 = nn.Sequential(conv_bn(4 * w, 8 * w, 3, 2), Residual(8 * w))
         self.s32 = nn.Sequential(conv_bn(8 * w, 8 * w, 3, 2), Residual(8 * w))
         # Top-down path (upsampling + lateral concatenation) down to the head's stride.
-        self.up, cur = top_down_path({8: 4 * w, 16: 8 * w, 32: 8 * w}, stride)
+        self.up, cur = top_down_path({8: 4 * w, 16: 8 * w, 32: 8 * w}, stride, fuse_kernel)
         self.head = nn.Conv2d(cur, candidates * 3, 1)
         with torch.no_grad():
             self.head.weight.mul_(0.1)
@@ -130,6 +138,12 @@ class Marknet(nn.Module):
         out = self.head(fused[self.stride])  # (N, m*3, Gy, Gx), channel = k*3 + j
         n, _, gy, gx = out.shape
         return out.view(n, self.candidates, 3, gy, gx).permute(0, 3, 4, 1, 2).contiguous()
+
+    def arch(self) -> dict:
+        """The constructor's arguments, as checkpoints record them (`fuse_kernel` only where not 3,
+        so the checkpoints written before it existed keep their records)."""
+        arch = {"stride": self.stride, "candidates": self.candidates, "width": self.width, "stem": self.stem_kind}
+        return arch | ({"fuse_kernel": self.fuse_kernel} if self.fuse_kernel != 3 else {})
 
 
 def decode(raw: torch.Tensor, stride: int) -> torch.Tensor:

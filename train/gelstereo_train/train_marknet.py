@@ -26,7 +26,7 @@ from .augment import AugConfig, make_batch, make_batch_with_ignore
 from .batches import add_device_args, batch_stream, describe, pick_device
 from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
 from .loss import build_targets, distillation_loss, ignore_cells, marknet_loss
-from .model import STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
+from .model import FUSE_KERNELS, STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 from .onnx_init import load_onnx_weights
 
 
@@ -77,12 +77,7 @@ def save_checkpoint(path: Path, model: Marknet, meta: dict) -> None:
     torch.save(
         {
             "model": {k: v.cpu() for k, v in model.state_dict().items()},
-            "arch": {
-                "stride": model.stride,
-                "candidates": model.candidates,
-                "width": model.width,
-                "stem": model.stem_kind,
-            },
+            "arch": model.arch(),
             "meta": meta,
         },
         tmp,
@@ -106,10 +101,10 @@ def load_init(model: Marknet, path: Path) -> dict:
     if not path.is_file():
         raise SystemExit(f"--init {path}: no such checkpoint file")
     ck = torch.load(path, map_location="cpu", weights_only=False)
-    want = {"stride": model.stride, "candidates": model.candidates, "width": model.width, "stem": model.stem_kind}
+    want = model.arch()
     have = ck.get("arch") if isinstance(ck, dict) else None
     mine = model.state_dict()
-    theirs = ck.get("model", {}) if isinstance(ck, dict) else {}
+    theirs = narrowed_kernels(ck.get("model", {}) if isinstance(ck, dict) else {}, mine)
     if have != want and any(k not in theirs or theirs[k].shape != v.shape for k, v in mine.items()):
         raise SystemExit(f"--init {path}: checkpoint architecture {have} differs from the one asked for {want} "
                          "and lacks some of its weights (give the same --grid, --candidates, --width and --stem)")
@@ -118,6 +113,19 @@ def load_init(model: Marknet, path: Path) -> dict:
     meta = ck.get("meta", {})
     record = {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
     return record | ({"left_out": left_out} if left_out else {})
+
+
+def narrowed_kernels(theirs: dict, mine: dict) -> dict:
+    """`theirs` with each square convolution kernel that `mine` holds narrower (a 3x3 fusing
+    convolution where the model has a 1x1) summed over its taps: the narrow kernel then answers a
+    locally constant input as the wide one did, a warm start training refines."""
+    out = dict(theirs)
+    for k, v in theirs.items():
+        m = mine.get(k)
+        if (m is not None and v.dim() == 4 and m.dim() == 4 and v.shape[:2] == m.shape[:2]
+                and m.shape[2:] == (1, 1) and v.shape[2] == v.shape[3] > 1):
+            out[k] = v.sum(dim=(2, 3), keepdim=True)
+    return out
 
 
 def load_teacher(path: Path | None, student: Marknet, log=print) -> Marknet | None:
@@ -165,7 +173,8 @@ def train(args, log=print) -> Path:
     log(f"train images {len(images)}, markers {n_markers}, median pitch {np.nanmedian(pitches):.2f} px")
 
     stride = STRIDE_FOR_GRID_416[args.grid]  # S is defined at 416x416; the stride is what the net has
-    model = Marknet(stride=stride, candidates=args.candidates, width=args.width, stem=args.stem)
+    model = Marknet(stride=stride, candidates=args.candidates, width=args.width, stem=args.stem,
+                    fuse_kernel=args.fuse_kernel)
     init, init_record = getattr(args, "init", None), None
     cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
                     canonical=args.canonical, p_contact=args.p_contact)
@@ -328,6 +337,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--canonical", choices=("auto", "stretch"), default="stretch",
                    help="scale of the crops sampled as at inference: stretch (whole image to the input, how the "
                    "shipped model was trained) or auto (the auto layout)")
+    p.add_argument("--fuse-kernel", type=int, default=3, choices=FUSE_KERNELS,
+                   help="kernel of the top-down path's second fusing convolution (1: cheaper; a 3x3 "
+                        "checkpoint warm-starts it with each kernel summed over its taps)")
     p.add_argument("--init", type=Path, default=None,
                    help="start from this Marknet checkpoint's weights (same architecture) instead of random ones; "
                    "an exported .onnx works too (e.g. data/models/marknet.onnx)")

@@ -96,7 +96,14 @@ def test_base_architecture_tells_the_stems_apart(stem, tmp_path):
     path = tmp_path / "marknet.onnx"
     export_marknet(model, path, (128, 128), marknet_metadata(model, (128, 128), "tiny", "test", PostConfig()))
     arch = base_architecture(path)
-    assert (arch["stem"], arch["width"], arch["candidates"]) == (stem, 4, 3)
+    assert (arch["stem"], arch["width"], arch["candidates"], arch["fuse_kernel"]) == (stem, 4, 3, 3)
+
+
+def test_base_architecture_tells_the_fusing_kernels_apart(tmp_path):
+    model = Marknet(stride=8, candidates=3, width=4, stem="s4-bare", fuse_kernel=1).eval()
+    path = tmp_path / "marknet.onnx"
+    export_marknet(model, path, (128, 128), marknet_metadata(model, (128, 128), "tiny", "test", PostConfig()))
+    assert base_architecture(path)["fuse_kernel"] == 1
 
 
 def test_compact_frame_list():

@@ -146,6 +146,34 @@ def test_an_s4_checkpoint_warm_starts_the_bare_stem_and_not_the_reverse(tiny_roo
             base + ["--out", str(tmp_path / "x.pt"), "--stem", "s4", "--init", str(bare)]), log=lambda *_: None)
 
 
+def test_a_3x3_fusing_checkpoint_warm_starts_a_1x1_one_with_its_kernels_summed(tiny_root, tmp_path):
+    base = ["--data", str(tiny_root), "--steps", "1", "--batch", "2", "--crop", "64", "--input-size", "128",
+            "--candidates", "3", "--width", "4", "--save-every-min", "0", "--stem", "s4-bare"]
+    wide = tmp_path / "wide.pt"
+    train_marknet.train(train_marknet.parser().parse_args(base + ["--out", str(wide)]), log=lambda *_: None)
+    narrow = tmp_path / "narrow.pt"
+    train_marknet.train(train_marknet.parser().parse_args(
+        base + ["--out", str(narrow), "--fuse-kernel", "1", "--lr", "0", "--init", str(wide)]), log=lambda *_: None)
+    start, _ = train_marknet.load_checkpoint(wide)
+    warm, _ = train_marknet.load_checkpoint(narrow)
+    assert warm.arch()["fuse_kernel"] == 1 and "fuse_kernel" not in start.arch()
+    theirs = dict(start.named_parameters())
+    narrowed = 0
+    for k, a in warm.named_parameters():
+        if a.shape == theirs[k].shape:
+            assert torch.equal(a, theirs[k]), k
+        else:
+            # Each 3x3 fusing kernel became the sum of its taps: the same answer to a constant input.
+            assert a.shape[2:] == (1, 1) and theirs[k].shape[2:] == (3, 3), k
+            assert torch.allclose(a, theirs[k].sum(dim=(2, 3), keepdim=True)), k
+            narrowed += 1
+    assert narrowed == len(warm.up)
+    # The narrow model cannot warm-start the wide one: refused.
+    with pytest.raises(SystemExit, match="architecture"):
+        train_marknet.train(train_marknet.parser().parse_args(
+            base + ["--out", str(tmp_path / "x.pt"), "--init", str(narrow)]), log=lambda *_: None)
+
+
 def test_a_student_trained_on_the_teacher_alone_moves_towards_its_outputs(trained, tiny_root, tmp_path):
     # A teacher whose head says something else than a fresh network's prior (every slot ~0.02).
     teacher, meta = train_marknet.load_checkpoint(trained[0])
