@@ -128,13 +128,6 @@ impl Distortion {
     /// residual is below 1e-14 (about 1e-11 px at f = 1000 px). `None` when it does not converge in
     /// 100 iterations or the Jacobian is singular.
     pub fn undistort(&self, distorted: Vector2<f64>) -> Option<Vector2<f64>> {
-        self.undistort_from(distorted, distorted)
-    }
-
-    /// [`Distortion::undistort`] with Newton's method started from `start`, a guess of the answer
-    /// (`UndistortionGrid` interpolates one); from the distorted point where `start` has no
-    /// distortion.
-    pub fn undistort_from(&self, distorted: Vector2<f64>, start: Vector2<f64>) -> Option<Vector2<f64>> {
         if self.is_zero() {
             return Some(distorted);
         }
@@ -142,10 +135,8 @@ impl Distortion {
         // Newton's residual after a step of length s is about s^2 x the distortion's curvature over
         // its slope: ~1e-16 after a step of 1e-8 (`undistortion_residual_is_within_its_tolerance`).
         const NEGLIGIBLE_STEP: f64 = 1e-8;
-        let (mut x, (fx0, mut jac)) = match self.distort_with_jacobian(start) {
-            Some(d) => (start, d),
-            None => (distorted, self.distort_with_jacobian(distorted)?),
-        };
+        let mut x = distorted;
+        let (fx0, mut jac) = self.distort_with_jacobian(x)?;
         let mut res = fx0 - distorted;
         for _ in 0..100 {
             // Squared norms: no square roots in the loop.

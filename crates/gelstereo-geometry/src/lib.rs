@@ -5,8 +5,7 @@
 //!
 //! Modules: [`camera`] (pinhole + OpenCV distortion, [`StereoRig`]), [`calib`] (calibration files),
 //! [`cv`] (conversions to and from OpenCV matrices), [`triangulation`] (mid-point, Lee-Civera Mid2,
-//! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`undistortion`] (a
-//! camera's undistortion tabulated to start from), [`checkerboard`] (stereo
+//! Lindstrom, pixel-optimal; per-point reprojection error and rejection), [`checkerboard`] (stereo
 //! checkerboard calibration with OpenCV).
 //!
 //! ```
@@ -30,7 +29,6 @@ pub mod checkerboard;
 pub mod cv;
 pub mod error;
 pub mod triangulation;
-pub mod undistortion;
 
 /// The `nalgebra` this crate's API uses (points, isometries), re-exported.
 pub use nalgebra;
@@ -42,4 +40,3 @@ pub use checkerboard::{
 };
 pub use error::{Error, Result};
 pub use triangulation::{Rejection, Triangulated, TriangulationConfig, TriangulationMethod, Triangulator};
-pub use undistortion::UndistortionGrid;

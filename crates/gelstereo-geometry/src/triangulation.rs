@@ -26,7 +26,6 @@ use nalgebra::{Matrix3, Matrix3x4, Point3, Vector2, Vector3, Vector4};
 
 use crate::camera::{Camera, StereoRig};
 use crate::error::{Error, Result};
-use crate::undistortion::UndistortionGrid;
 
 /// Which triangulation method to use (see the [module docs](self)).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -153,8 +152,6 @@ impl Triangulated {
 pub struct Triangulator {
     rig: StereoRig,
     config: TriangulationConfig,
-    /// Each camera's undistortion, tabulated to start from (left, right).
-    undistortion: StereoPair<UndistortionGrid>,
     /// `left_from_right` rotation.
     r_lr: Matrix3<f64>,
     /// `right_from_left` rotation.
@@ -198,10 +195,6 @@ impl Triangulator {
         // x_right ~ R x_left + t  =>  x_right^T [t]x R x_left = 0  =>  x_left^T (R^T [t]x^T) x_right = 0.
         let e_lr = r_lr * skew(&t_rl).transpose();
         Ok(Self {
-            undistortion: StereoPair::new(
-                UndistortionGrid::new(&rig.left),
-                UndistortionGrid::new(&rig.right),
-            ),
             rig,
             config,
             r_lr,
@@ -225,12 +218,12 @@ impl Triangulator {
     /// Triangulates one pair of pixels (left, right) into the left camera frame.
     pub fn triangulate(&self, left: Point2, right: Point2) -> Result<Triangulated, Rejection> {
         let nl = self
-            .undistortion
+            .rig
             .left
             .undistort(left)
             .ok_or(Rejection::Undistortion { view: View::Left })?;
         let nr = self
-            .undistortion
+            .rig
             .right
             .undistort(right)
             .ok_or(Rejection::Undistortion { view: View::Right })?;
