@@ -107,7 +107,8 @@ def load_init(model: Marknet, path: Path) -> dict:
     theirs = narrowed_kernels(ck.get("model", {}) if isinstance(ck, dict) else {}, mine)
     if have != want and any(k not in theirs or theirs[k].shape != v.shape for k, v in mine.items()):
         raise SystemExit(f"--init {path}: checkpoint architecture {have} differs from the one asked for {want} "
-                         "and lacks some of its weights (give the same --grid, --candidates, --width and --stem)")
+                         "and lacks some of its weights (give the same --grid, --candidates, --width, --stem and "
+                         "--fuse-kernel)")
     left_out = sorted(k for k in theirs if k not in mine)
     model.load_state_dict({k: theirs[k] for k in mine})
     meta = ck.get("meta", {})

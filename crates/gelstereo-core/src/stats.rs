@@ -2,8 +2,9 @@
 
 /// The median of `values` (which may be reordered): the middle value, or the mean of the two middle
 /// ones for an even count, in `f64::total_cmp` order, so equal to the median of a full sort bit for
-/// bit; `None` when empty. Picked by selection, not a full sort: the per-marker medians of the
-/// post-processing and the tracker run on every frame.
+/// bit; `None` when empty. Picked by selection, not a full sort (up to 16 values: a sort of integer
+/// keys on the stack): the per-marker medians of the post-processing and the tracker run on every
+/// frame.
 pub fn median(values: &mut [f64]) -> Option<f64> {
     let n = values.len();
     if n == 0 {

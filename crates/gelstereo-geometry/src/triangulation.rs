@@ -162,6 +162,8 @@ pub struct Triangulator {
     c_right_in_left: Vector3<f64>,
     /// Essential matrix with `x_left^T E x_right = 0` (normalised coordinates).
     e_lr: Matrix3<f64>,
+    /// `tan(min_ray_angle_rad)` below 45 degrees (`check_ray_angle`), else `None`.
+    min_ray_tan: Option<f64>,
 }
 
 /// A Gauss-Newton step of [`TriangulationMethod::PixelOptimal`] this short (mm) ends the refinement.
@@ -202,6 +204,8 @@ impl Triangulator {
             t_rl,
             c_right_in_left,
             e_lr,
+            min_ray_tan: (config.min_ray_angle_rad < std::f64::consts::FRAC_PI_4)
+                .then(|| config.min_ray_angle_rad.tan()),
         })
     }
 
@@ -331,12 +335,13 @@ impl Triangulator {
     /// under the bound exactly when `|f0 x f1| < tan(bound) (f0 . f1)`.
     fn check_ray_angle(&self, f0: &Vector3<f64>, f1: &Vector3<f64>) -> Result<(), Rejection> {
         let (sine, cosine) = (f0.cross(f1).norm(), f0.dot(f1));
-        let bound = self.config.min_ray_angle_rad;
-        let clearly_apart = bound < std::f64::consts::FRAC_PI_4
-            && (cosine <= 0.0 || sine >= bound.tan() * cosine * (1.0 + 1e-12));
+        let clearly_apart = self
+            .min_ray_tan
+            .is_some_and(|tan| cosine <= 0.0 || sine >= tan * cosine * (1.0 + 1e-12));
         if clearly_apart && sine.is_finite() {
             return Ok(());
         }
+        let bound = self.config.min_ray_angle_rad;
         let angle_rad = sine.atan2(cosine);
         if angle_rad.is_nan() || angle_rad < bound {
             return Err(Rejection::ParallelRays { angle_rad });
