@@ -93,6 +93,7 @@ def parser() -> argparse.ArgumentParser:
                    help="the folder's final name, for the model card (default: --out-dir; `gelstereo adapt` "
                    "writes into a temporary folder and renames it)")
     p.add_argument("--p-contact", type=float, default=0.0)
+    p.add_argument("--p-edge", type=float, default=0.0, help="share of crops laid across an image edge")
     add_device_args(p)
     p.add_argument("--alpha", type=float, default=1.0)
     p.add_argument("--beta", type=float, default=1.0)

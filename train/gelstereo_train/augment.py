@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from .postprocess import AREA_BELOW_SCALE, FitConfig, fit_layout
+from .postprocess import AREA_BELOW_SCALE, FILL_SAMPLE_STEP, FitConfig, fit_layout
 
 
 @dataclass
@@ -42,6 +42,11 @@ class AugConfig:
     # Share of crops centred near a marker in contact (where the image has one; else anywhere): contact
     # markers are ~4 % of the training markers, and the tracker's contact and slip figures rest on them.
     p_contact: float = 0.0
+    # Share of crops laid across an image edge (one or both axes), overhanging it by up to half a pitch
+    # plus one input multiple (32 px), the outside filled with the image's median colour: what the auto
+    # layout's margin shows the network at inference, where markers cut by the border sit. At 0 the
+    # crops stay inside the image and the outside of an image smaller than a crop repeats its border.
+    p_edge: float = 0.0
     # How the canonical crops are scaled: "auto" (the auto layout, isotropic) or "stretch" (whole image to
     # input_size, the first contract's preprocessing, which the shipped model was trained with)
     canonical: str = "auto"
@@ -104,7 +109,28 @@ def _window_transform(cfg, h_img, w_img, pitch_px, rng, focus=None):
             cen[k] = min(max(near[k], lo), hi)
         else:
             cen[k] = rng.uniform(lo, hi)
+    # No draw at p_edge = 0, as for p_contact.
+    if cfg.p_edge > 0 and near is None and rng.random() < cfg.p_edge:
+        _lay_across_edge(cen, half, (w_img, h_img), pitch_px, (cw, ch), rng)
     return a, cen
+
+
+EDGE_MULTIPLE_PX = 32  # the auto layout rounds its input up to this multiple: the most margin beyond half a pitch
+
+
+def _lay_across_edge(cen, half, size, pitch_px, crop, rng):
+    """Moves the crop centre ``cen`` (in place) so that the crop overhangs one edge of the image along
+    one axis or both: by up to half a pitch plus ``EDGE_MULTIPLE_PX`` input px (the auto layout's
+    margin), drawn uniformly; an axis where the crop spans the image stays centred."""
+    axes = [k for k in (0, 1) if size[k] > 2 * half[k]]
+    if not axes:
+        return
+    chosen = [k for k in axes if rng.random() < 0.5] or [axes[rng.integers(len(axes))]]
+    for k in chosen:
+        src_per_crop_px = 2.0 * half[k] / crop[k]
+        pitch = pitch_px if math.isfinite(pitch_px) else 0.0
+        overhang = rng.uniform(0.0, 0.5 * pitch + EDGE_MULTIPLE_PX * src_per_crop_px)
+        cen[k] = half[k] - overhang if rng.random() < 0.5 else size[k] - half[k] + overhang
 
 
 def _area_reduced(sub: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -155,6 +181,8 @@ def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Ge
         )
         grid = F.affine_grid(theta[None], [1, 3, ch, cw], align_corners=False)
         out[b] = F.grid_sample(sub[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+        if cfg.p_edge > 0:
+            _fill_outside(out[b], grid[0], (x0, y0, ws, hs), (w_img, h_img), img)
         if ignore_out is not None:
             mask = None if ignore is None else ignore[i]
             if mask is None:
@@ -168,6 +196,21 @@ def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Ge
         keep = (u[:, 0] >= 0) & (u[:, 0] < cw) & (u[:, 1] >= 0) & (u[:, 1] < ch)
         labels.append(u[keep].astype(np.float32))
     return out, labels
+
+
+def _fill_outside(crop: torch.Tensor, grid: torch.Tensor, sub: tuple, size: tuple, img: np.ndarray) -> None:
+    """Sets the pixels of ``crop`` (3, ch, cw) whose source point (``grid``, normalised coordinates of the
+    sub-window ``sub`` = (x0, y0, width, height)) lies outside the ``size`` = (w, h) image to the image's
+    median colour, sampled as the inference margin's (every 4th pixel of every 4th row, lower median)."""
+    x0, y0, ws, hs = sub
+    sx = x0 + (grid[..., 0] + 1.0) * (ws / 2.0)
+    sy = y0 + (grid[..., 1] + 1.0) * (hs / 2.0)
+    outside = (sx < 0) | (sx > size[0]) | (sy < 0) | (sy > size[1])
+    if not bool(outside.any()):
+        return
+    sample = torch.from_numpy(np.ascontiguousarray(img[::FILL_SAMPLE_STEP, ::FILL_SAMPLE_STEP])).reshape(-1, img.shape[2])
+    fill = sample.float().median(dim=0).values / 255.0
+    crop[:, outside] = fill[:, None]
 
 
 def _gaussian_blur(x: torch.Tensor, sigmas: np.ndarray) -> torch.Tensor:

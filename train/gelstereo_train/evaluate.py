@@ -223,11 +223,12 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             lay = runner.layout(img, median_nn_distance(gt))
             in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range
+            size = (img.shape[1], img.shape[0])
             for e in (ev, ev_in) if in_range else (ev,):
-                e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r)
+                e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r, size)
                 if mre_fn is not None:
-                    e["marknet_mre"].add_image(det.marknet_mre, gt, hard, s.in_contact, r)
-                e["blob"].add_image(bl, gt, hard, s.in_contact, r)
+                    e["marknet_mre"].add_image(det.marknet_mre, gt, hard, s.in_contact, r, size)
+                e["blob"].add_image(bl, gt, hard, s.in_contact, r, size)
         if (i // batch) % 25 == 0:
             log(f"evaluated {i + len(chunk)}/{len(samples)} images ({time.time() - t0:.0f} s)")
     out = {k: v.summary() for k, v in ev.items() if v.radii}

@@ -6,7 +6,8 @@ image's visible ground-truth markers, original pixels). precision = PT / (PT + P
 loss = mean squared distance (original px^2) of the correct points. A matched prediction counts towards
 the split(s) of its marker; an unmatched one towards the split(s) of its nearest ground-truth marker.
 Splits: ``hard`` = markers the tuned blob baseline misses or places farther than r (its own one-to-one
-matching), ``easy`` = the rest, ``contact`` = markers in contact per the ground truth, ``all``.
+matching), ``easy`` = the rest, ``contact`` = markers in contact per the ground truth, ``border`` = markers
+whose centre lies within one pitch of the image border, ``all``.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ class Counts:
         return {"precision": p, "recall": r, "loss_px2": loss, "T": self.T, "PT": self.PT, "PF": self.PF}
 
 
-SPLITS = ("all", "easy", "hard", "contact")
+SPLITS = ("all", "easy", "hard", "contact", "border")
 
 
 @dataclass
@@ -82,12 +83,14 @@ class Evaluator:
     counts: dict = field(default_factory=lambda: {s: Counts() for s in SPLITS})
     radii: list = field(default_factory=list)
 
-    def add_image(self, pred: np.ndarray, gt: np.ndarray, hard: np.ndarray, contact: np.ndarray, radius: float):
-        """pred (n, >=2) original px; gt (g, 2); hard/contact (g,) bool masks."""
+    def add_image(self, pred: np.ndarray, gt: np.ndarray, hard: np.ndarray, contact: np.ndarray, radius: float,
+                  size: tuple[int, int]):
+        """pred (n, >=2) original px; gt (g, 2); hard/contact (g,) bool masks; size (width, height) px."""
         pred = np.asarray(pred, np.float64).reshape(-1, np.asarray(pred).shape[-1] if np.size(pred) else 2)[:, :2]
         gt = np.asarray(gt, np.float64).reshape(-1, 2)
         self.radii.append(radius)
-        masks = {"all": np.ones(len(gt), bool), "easy": ~hard, "hard": hard, "contact": contact}
+        masks = {"all": np.ones(len(gt), bool), "easy": ~hard, "hard": hard, "contact": contact,
+                 "border": border_mask(gt, size, radius)}
         pi, gi, d = match(pred, gt, radius)
         matched = np.zeros(len(pred), bool)
         matched[pi] = True
@@ -113,6 +116,15 @@ class Evaluator:
             out["radius_px"] = {"median": float(np.median(self.radii)), "min": float(np.min(self.radii)),
                                 "max": float(np.max(self.radii))}
         return out
+
+
+def border_mask(gt: np.ndarray, size: tuple[int, int], radius: float) -> np.ndarray:
+    """GT markers within one pitch (radius / RADIUS_FRAC) of the border of a (width, height) image, which
+    spans -0.5..width-0.5 (pixel-centre convention)."""
+    gt = np.asarray(gt, np.float64).reshape(-1, 2)
+    w, h = size
+    edge = np.minimum(np.minimum(gt[:, 0] + 0.5, gt[:, 1] + 0.5), np.minimum(w - 0.5 - gt[:, 0], h - 0.5 - gt[:, 1]))
+    return edge < radius / RADIUS_FRAC
 
 
 def hard_mask(blob_pts: np.ndarray, gt: np.ndarray, radius: float) -> np.ndarray:

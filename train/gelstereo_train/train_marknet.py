@@ -178,7 +178,8 @@ def train(args, log=print) -> Path:
                     fuse_kernel=args.fuse_kernel)
     init, init_record = getattr(args, "init", None), None
     cfg = AugConfig(crop=(args.crop, args.crop), input_size=(args.input_size, args.input_size),
-                    canonical=args.canonical, p_contact=args.p_contact)
+                    canonical=args.canonical, p_contact=args.p_contact,
+                    p_edge=args.p_edge)
     contact = [s.points_px[s.in_contact] for s in samples]
     if init is not None and Path(init).suffix == ".onnx":
         calib = [make_batch(images, points, pitches, args.batch, cfg, rng, contact)[0] for _ in range(8)]
@@ -352,6 +353,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--p-contact", type=float, default=0.0,
                    help="share of crops centred near a marker in contact (images with contact only; the shipped "
                    "models: 0, i.e. anywhere)")
+    p.add_argument("--p-edge", type=float, default=0.0,
+                   help="share of crops laid across an image edge, the outside filled with the image's median "
+                   "colour as the auto layout's margin at inference (dots cut by the border; shipped models: 0)")
     add_device_args(p)
     p.add_argument("--teacher", type=Path, default=None,
                    help="Marknet checkpoint whose outputs the student learns too (distillation; e.g. "

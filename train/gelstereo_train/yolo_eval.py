@@ -83,9 +83,10 @@ def evaluate(samples, runner: YoloRunner, thresholds, nms_iou: float, batch: int
             r = radius_for(gt)
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
-            ev_blob.add_image(bl, gt, hard, s.in_contact, r)
+            size = (img.shape[1], img.shape[0])
+            ev_blob.add_image(bl, gt, hard, s.in_contact, r, size)
             for t in thresholds:
-                ev[t].add_image(runner.markers(raw, img, YoloPost(t, nms_iou)), gt, hard, s.in_contact, r)
+                ev[t].add_image(runner.markers(raw, img, YoloPost(t, nms_iou)), gt, hard, s.in_contact, r, size)
         if (i // batch) % 25 == 0:
             log(f"evaluated {i + len(chunk)}/{len(samples)} images ({time.time() - t0:.0f} s)")
     out = {"thresholds": {}, "blob": ev_blob.summary(), "images": len(samples), "nms_iou": nms_iou}

@@ -140,3 +140,40 @@ def test_labels_sit_on_the_dots_of_crops_reduced_by_area():
     errs = _label_errors(img, pts, pitch, _reduced_config(), rng, 3.5)
     assert len(errs) > 40
     assert np.median(errs) < 0.1 and np.max(errs) < 0.25
+
+
+def _flat_band(flat_lines):
+    """How many lines from the start are flat."""
+    return int(np.argmin(flat_lines)) if not flat_lines.all() else len(flat_lines)
+
+
+def test_edge_crops_overhang_an_edge_filled_with_the_median_colour_as_at_inference():
+    """p_edge = 1: every crop overhangs an image edge by at most half a pitch plus one input multiple
+    (the auto layout's margin); the outside is the image's median colour, flat; the labels are the
+    image's markers inside the crop and still sit on their dots."""
+    from gelstereo_train.augment import EDGE_MULTIPLE_PX
+
+    rng = np.random.default_rng(11)
+    pitch = 20.0
+    pts, _, _ = grid_points(200, 260, pitch, 9, 12)
+    img = render_dots(200, 260, pts, 5.0, rng)
+    median = np.median(img[::4, ::4].reshape(-1, 3).astype(np.float64), axis=0)
+    crop = 96
+    cfg = AugConfig(crop=(crop, crop), input_size=(160, 160), p_canonical=0.0, rotate_deg=0.0, flip=False,
+                    aspect=(1.0, 1.0), pitch_in_px=(14.0, 24.0), p_edge=1.0)
+    overhung = 0
+    for _ in range(40):
+        x, labels = sample_crops([img], [pts], np.array([pitch]), np.array([0]), cfg, rng)
+        rgb = x[0].numpy() * 255.0
+        flat = np.all(np.abs(rgb - median[:, None, None]) < 0.6, axis=0)
+        # the outside: whole flat columns or rows at the crop's sides, no wider than the margin
+        margin = max(_flat_band(flat.all(axis=0)), _flat_band(flat.all(axis=0)[::-1]),
+                     _flat_band(flat.all(axis=1)), _flat_band(flat.all(axis=1)[::-1]))
+        assert margin <= 0.5 * 24.0 + EDGE_MULTIPLE_PX + 1
+        overhung += margin > 0
+        for u, v in labels[0]:
+            assert 0 <= u < crop and 0 <= v < crop
+    assert overhung >= 30
+    errs = _label_errors(img, pts, pitch, cfg, rng, 6.5)
+    assert len(errs) > 20 and np.median(errs) < 0.1 and np.max(errs) < 0.25
+

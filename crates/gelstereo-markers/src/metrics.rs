@@ -8,8 +8,10 @@
 //!   (px^2 of the original image) of the correct predictions.
 //! - Splits: `hard` = ground-truth markers the tuned blob baseline misses or places farther than r (i.e.
 //!   that the same matching leaves unmatched for the blob detections); `easy` = the rest; `contact` =
-//!   markers whose ground truth says in_contact (they are also easy or hard). An unmatched prediction
-//!   counts as PF towards the split(s) of its nearest visible ground-truth marker.
+//!   markers whose ground truth says in_contact (they are also easy or hard); `border` = markers whose
+//!   centre lies within one pitch of the image's border (where dots are cut by it and a margin
+//!   replaces the rest of the image). An unmatched prediction counts as PF towards the split(s) of its
+//!   nearest visible ground-truth marker.
 //! - `all` adds up every marker and prediction (a prediction in an image without visible markers counts
 //!   only there).
 
@@ -131,7 +133,7 @@ impl SplitCounts {
 }
 
 /// The split names, in table order.
-pub const SPLITS: [&str; 4] = ["easy", "hard", "contact", "all"];
+pub const SPLITS: [&str; 5] = ["easy", "hard", "contact", "border", "all"];
 
 /// Counts of every split for one method.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
@@ -142,6 +144,8 @@ pub struct SplitTable {
     pub hard: SplitCounts,
     /// Markers in contact (ground truth).
     pub contact: SplitCounts,
+    /// Markers within one pitch of the image border.
+    pub border: SplitCounts,
     /// Everything.
     pub all: SplitCounts,
 }
@@ -153,6 +157,7 @@ impl SplitTable {
             "easy" => Some(&self.easy),
             "hard" => Some(&self.hard),
             "contact" => Some(&self.contact),
+            "border" => Some(&self.border),
             "all" => Some(&self.all),
             _ => None,
         }
@@ -163,6 +168,7 @@ impl SplitTable {
         self.easy.add(&other.easy);
         self.hard.add(&other.hard);
         self.contact.add(&other.contact);
+        self.border.add(&other.border);
         self.all.add(&other.all);
     }
 }
@@ -178,30 +184,58 @@ pub fn hard_markers(blob: &[Detection], gt: &[GroundTruth], radius_px: f64) -> R
         .collect())
 }
 
-/// Scores one view's `predictions` against its visible ground truth; `hard` is [`hard_markers`]'s
-/// output for the same view.
-pub fn score_view(
-    predictions: &[Detection],
-    gt: &[GroundTruth],
-    hard: &[bool],
-    radius_px: f64,
-) -> Result<SplitTable> {
-    if hard.len() != gt.len() {
-        return Err(Error::Metrics(format!(
-            "hard mask has {} entries for {} ground-truth markers",
-            hard.len(),
-            gt.len()
-        )));
+/// Which ground-truth markers of a `width x height` view lie within one pitch (`radius_px /`
+/// [`RADIUS_PITCH_FRACTION`]) of its border; the image spans -0.5..width-0.5 (pixel-centre convention).
+pub fn border_markers(gt: &[GroundTruth], width: u32, height: u32, radius_px: f64) -> Vec<bool> {
+    let pitch = radius_px / RADIUS_PITCH_FRACTION;
+    let (w, h) = (f64::from(width), f64::from(height));
+    gt.iter()
+        .map(|g| {
+            let p = g.position;
+            (p.x + 0.5).min(p.y + 0.5).min(w - 0.5 - p.x).min(h - 0.5 - p.y) < pitch
+        })
+        .collect()
+}
+
+/// The splits of one view's ground-truth markers that the ground truth alone does not give: which
+/// are hard ([`hard_markers`]), which lie near the border ([`border_markers`]), and the match radius.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewSplits {
+    /// Per ground-truth marker: missed by the blob baseline.
+    pub hard: Vec<bool>,
+    /// Per ground-truth marker: within one pitch of the image border.
+    pub border: Vec<bool>,
+    /// r, px.
+    pub radius_px: f64,
+}
+
+/// Scores one view's `predictions` against its visible ground truth, split by `splits` (of the
+/// same view).
+pub fn score_view(predictions: &[Detection], gt: &[GroundTruth], splits: &ViewSplits) -> Result<SplitTable> {
+    let ViewSplits {
+        hard,
+        border,
+        radius_px,
+    } = splits;
+    for (name, mask) in [("hard", hard), ("border", border)] {
+        if mask.len() != gt.len() {
+            return Err(Error::Metrics(format!(
+                "{name} mask has {} entries for {} ground-truth markers",
+                mask.len(),
+                gt.len()
+            )));
+        }
     }
+    let radius_px = *radius_px;
     let pred: Vec<Point2> = predictions.iter().map(|d| d.position).collect();
     let gts: Vec<Point2> = gt.iter().map(|g| g.position).collect();
     let m = match_one_to_one(&pred, &gts, radius_px)?;
     let mut t = SplitTable::default();
-    let splits_of = |j: usize| -> [bool; 3] { [!hard[j], hard[j], gt[j].in_contact] };
+    let splits_of = |j: usize| -> [bool; 4] { [!hard[j], hard[j], gt[j].in_contact, border[j]] };
     for j in 0..gt.len() {
         for (on, s) in splits_of(j)
             .into_iter()
-            .zip([&mut t.easy, &mut t.hard, &mut t.contact])
+            .zip([&mut t.easy, &mut t.hard, &mut t.contact, &mut t.border])
         {
             if on {
                 s.markers += 1;
@@ -238,9 +272,10 @@ pub fn score_view(
         };
         count(&mut t.all);
         if let Some(j) = j {
-            for (on, s) in splits_of(j)
-                .into_iter()
-                .zip([&mut t.easy, &mut t.hard, &mut t.contact])
+            for (on, s) in
+                splits_of(j)
+                    .into_iter()
+                    .zip([&mut t.easy, &mut t.hard, &mut t.contact, &mut t.border])
             {
                 if on {
                     count(s);
@@ -306,7 +341,12 @@ mod tests {
         // Predictions: 1 px off marker 0, 2 px off marker 3, a duplicate near marker 3, one far off
         // near marker 1.
         let preds = [det(1.0, 0.0), det(30.0, 2.0), det(29.0, -1.8), det(14.0, 0.0)];
-        let t = score_view(&preds, &gts, &hard, r).unwrap();
+        let splits = ViewSplits {
+            hard,
+            border: vec![false; 4],
+            radius_px: r,
+        };
+        let t = score_view(&preds, &gts, &splits).unwrap();
         assert_eq!(
             t.easy,
             SplitCounts {
@@ -326,5 +366,36 @@ mod tests {
         assert_eq!(t.hard.recall(), Some(0.5));
         assert_eq!(t.easy.loss_px2(), Some(1.0));
         assert_eq!(SplitCounts::default().precision(), None);
+        assert_eq!(t.border, SplitCounts::default());
+    }
+
+    #[test]
+    fn border_markers_lie_within_one_pitch_of_an_edge_and_phantoms_there_count_against_them() {
+        // A pitch-10 row across a 45 x 60 image: x = 5, 15, 25, 35 at y = 30. The image spans
+        // -0.5..44.5, so 5 (5.5 from the left edge) and 35 (9.5 from the right) are near the border and
+        // 15 and 25 (15.5 and 19.5 away) are not; y = 30 is 30.5 from the top.
+        let gts = [
+            gt(5.0, 30.0, false),
+            gt(15.0, 30.0, false),
+            gt(25.0, 30.0, false),
+            gt(35.0, 30.0, false),
+        ];
+        let r = radius_from_ground_truth(&gts).unwrap();
+        let border = border_markers(&gts, 45, 60, r);
+        assert_eq!(border, [true, false, false, true]);
+        // Found: 5 (pulled 2 px onto the edge, still within r), 15, 25; a phantom on the right edge
+        // nearest 35, and 35 itself missed.
+        let preds = [det(3.0, 30.0), det(15.0, 30.0), det(25.0, 30.0), det(44.0, 30.0)];
+        let splits = ViewSplits {
+            hard: vec![false; 4],
+            border,
+            radius_px: r,
+        };
+        let t = score_view(&preds, &gts, &splits).unwrap();
+        assert_eq!((t.border.markers, t.border.correct, t.border.wrong), (2, 1, 1));
+        assert_eq!(t.border.loss_px2(), Some(4.0));
+        assert_eq!((t.all.markers, t.all.correct, t.all.wrong), (4, 3, 1));
+        // An image too small for any marker to be a pitch away from every edge: all are near it.
+        assert!(border_markers(&gts, 20, 20, r).iter().all(|&b| b));
     }
 }

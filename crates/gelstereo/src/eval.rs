@@ -7,11 +7,11 @@ use std::path::{Path, PathBuf};
 
 use gelstereo_core::StereoPair;
 use gelstereo_io::images;
-use gelstereo_markers::metrics::{self, GroundTruth, SPLITS, SplitTable};
+use gelstereo_markers::metrics::{self, GroundTruth, SPLITS, SplitTable, ViewSplits};
 use gelstereo_markers::{BlobLocalizer, BlobParams, Localizer, LocalizerConfig, Method};
 use gelstereo_matching::eval::GroundTruth as RecordingTruth;
 use gelstereo_sim::DatasetManifest;
-use opencv::core::Mat;
+use opencv::core::{Mat, MatTraitConst};
 use serde_json::{Value, json};
 
 use crate::{Error, Result};
@@ -227,8 +227,8 @@ fn score_frame(
         images::read_image(&frame.paths.left)?,
         images::read_image(&frame.paths.right)?,
     );
-    let left = hard_split(&pair.left, &frame.truth.left, hard_blob, tally)?;
-    let right = hard_split(&pair.right, &frame.truth.right, hard_blob, tally)?;
+    let left = view_splits(&pair.left, &frame.truth.left, hard_blob, tally)?;
+    let right = view_splits(&pair.right, &frame.truth.right, hard_blob, tally)?;
     for (loc, table) in localizers.iter_mut().zip(tally.tables.iter_mut()) {
         let found = loc.detect_stereo(&pair).map_err(|e| {
             Error::from(e).context(format!("{} on {}", loc.name(), frame.paths.left.display()))
@@ -237,8 +237,8 @@ fn score_frame(
             (&found.left, &frame.truth.left, &left),
             (&found.right, &frame.truth.right, &right),
         ] {
-            if let Some((hard, r)) = split {
-                table.add(&metrics::score_view(dets, gt, hard, *r)?);
+            if let Some(splits) = split {
+                table.add(&metrics::score_view(dets, gt, splits)?);
             }
         }
     }
@@ -246,21 +246,28 @@ fn score_frame(
     Ok(())
 }
 
-/// A view's hard markers and match radius, px; `None` for a view with fewer than two visible markers.
-fn hard_split(
+/// A view's hard and border markers and match radius; `None` for a view with fewer than two visible
+/// markers.
+fn view_splits(
     view: &Mat,
     gt: &[GroundTruth],
     hard_blob: &mut BlobLocalizer,
     tally: &mut Tally,
-) -> Result<Option<(Vec<bool>, f64)>> {
-    let Some(r) = metrics::radius_from_ground_truth(gt) else {
+) -> Result<Option<ViewSplits>> {
+    let Some(radius_px) = metrics::radius_from_ground_truth(gt) else {
         return Ok(None);
     };
     let blob = hard_blob.detect(view)?;
-    let hard = metrics::hard_markers(&blob, gt, r)?;
-    tally.radii_px.push(r);
+    let hard = metrics::hard_markers(&blob, gt, radius_px)?;
+    let (width, height) = (view.cols().max(0) as u32, view.rows().max(0) as u32);
+    let border = metrics::border_markers(gt, width, height, radius_px);
+    tally.radii_px.push(radius_px);
     tally.views += 1;
-    Ok(Some((hard, r)))
+    Ok(Some(ViewSplits {
+        hard,
+        border,
+        radius_px,
+    }))
 }
 
 fn pct(v: Option<f64>) -> String {
@@ -293,7 +300,7 @@ fn table(job: &LocalizationEval, experiments: usize, tally: &mut Tally) -> Table
     );
     let _ = writeln!(
         text,
-        "match radius r = {} x GT pitch: median {r_med:.2} px (range {r_min:.2}-{r_max:.2}); loss in px^2; hard = missed by blob ({}){}",
+        "match radius r = {} x GT pitch: median {r_med:.2} px (range {r_min:.2}-{r_max:.2}); loss in px^2; hard = missed by blob ({}); border = within one pitch of the image border{}",
         metrics::RADIUS_PITCH_FRACTION,
         job.hard_blob.1,
         job.sensor
