@@ -126,9 +126,9 @@ def _lay_across_edge(cen, half, size, pitch_px, crop, rng):
     if not axes:
         return
     chosen = [k for k in axes if rng.random() < 0.5] or [axes[rng.integers(len(axes))]]
+    pitch = pitch_px if math.isfinite(pitch_px) else 0.0
     for k in chosen:
         src_per_crop_px = 2.0 * half[k] / crop[k]
-        pitch = pitch_px if math.isfinite(pitch_px) else 0.0
         overhang = rng.uniform(0.0, 0.5 * pitch + EDGE_MULTIPLE_PX * src_per_crop_px)
         cen[k] = half[k] - overhang if rng.random() < 0.5 else size[k] - half[k] + overhang
 
@@ -181,7 +181,8 @@ def sample_crops(images, points, pitches, idx, cfg: AugConfig, rng: np.random.Ge
         )
         grid = F.affine_grid(theta[None], [1, 3, ch, cw], align_corners=False)
         out[b] = F.grid_sample(sub[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
-        if cfg.p_edge > 0:
+        # Only a crop whose bounding box leaves the image can have an outside.
+        if cfg.p_edge > 0 and (np.any(cen - half < 0) or np.any(cen + half > (w_img, h_img))):
             _fill_outside(out[b], grid[0], (x0, y0, ws, hs), (w_img, h_img), img)
         if ignore_out is not None:
             mask = None if ignore is None else ignore[i]

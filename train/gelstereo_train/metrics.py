@@ -118,13 +118,17 @@ class Evaluator:
         return out
 
 
-def border_mask(gt: np.ndarray, size: tuple[int, int], radius: float) -> np.ndarray:
-    """GT markers within one pitch (radius / RADIUS_FRAC) of the border of a (width, height) image, which
-    spans -0.5..width-0.5 (pixel-centre convention)."""
-    gt = np.asarray(gt, np.float64).reshape(-1, 2)
+def edge_distances(points: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(n, 4) distances of points to the left, top, right and bottom edges of a (width, height) image,
+    which spans -0.5..width-0.5 (pixel-centre convention)."""
+    p = np.asarray(points, np.float64).reshape(-1, 2)
     w, h = size
-    edge = np.minimum(np.minimum(gt[:, 0] + 0.5, gt[:, 1] + 0.5), np.minimum(w - 0.5 - gt[:, 0], h - 0.5 - gt[:, 1]))
-    return edge < radius / RADIUS_FRAC
+    return np.stack([p[:, 0] + 0.5, p[:, 1] + 0.5, w - 0.5 - p[:, 0], h - 0.5 - p[:, 1]], 1)
+
+
+def border_mask(gt: np.ndarray, size: tuple[int, int], radius: float) -> np.ndarray:
+    """GT markers within one pitch (radius / RADIUS_FRAC) of the border of a (width, height) image."""
+    return edge_distances(gt, size).min(axis=1) < radius / RADIUS_FRAC
 
 
 def hard_mask(blob_pts: np.ndarray, gt: np.ndarray, radius: float) -> np.ndarray:

@@ -21,8 +21,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gelstereo_train.data import median_nn_distance  # noqa: E402
+from gelstereo_train.metrics import RADIUS_FRAC, edge_distances  # noqa: E402
+
 BANDS = ((0.0, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 1.0))  # distance from the border, pitches
-OUTWARD = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # left, top, right, bottom
+OUTWARD = np.array([[-1.0, 0.0], [0.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # the order of edge_distances
 
 
 def read_points(path: Path, frame_of, xy_of, keep=lambda r: True) -> dict[int, np.ndarray]:
@@ -34,18 +38,11 @@ def read_points(path: Path, frame_of, xy_of, keep=lambda r: True) -> dict[int, n
     return {k: np.asarray(v, np.float64) for k, v in out.items()}
 
 
-def edge_distance(p: np.ndarray, w: int, h: int) -> np.ndarray:
-    """(n, 4) distances to the left, top, right and bottom edges (the image spans -0.5..w-0.5)."""
-    return np.stack([p[:, 0] + 0.5, p[:, 1] + 0.5, w - 0.5 - p[:, 0], h - 0.5 - p[:, 1]], 1)
-
-
 def score_image(gt: np.ndarray, det: np.ndarray, w: int, h: int):
     """Rows (distance / pitch, found, outward offset px) for the border markers; phantom distances / pitch."""
-    nn = np.sqrt(((gt[:, None] - gt[None]) ** 2).sum(-1))
-    np.fill_diagonal(nn, np.inf)
-    pitch = float(np.median(nn.min(1)))
-    r = 0.25 * pitch
-    edges = edge_distance(gt, w, h)
+    pitch = median_nn_distance(gt)
+    r = RADIUS_FRAC * pitch
+    edges = edge_distances(gt, (w, h))
     rows = []
     for i in np.where(edges.min(1) < pitch)[0]:
         d = np.sqrt(((det - gt[i]) ** 2).sum(1)) if len(det) else np.zeros(0)
@@ -56,7 +53,7 @@ def score_image(gt: np.ndarray, det: np.ndarray, w: int, h: int):
     phantoms = []
     if len(det):
         far = np.sqrt(((det[:, None] - gt[None]) ** 2).sum(-1)).min(1) > r
-        near = edge_distance(det, w, h).min(1)
+        near = edge_distances(det, (w, h)).min(1)
         phantoms = list(near[far & (near < pitch)] / pitch)
     return rows, phantoms
 
