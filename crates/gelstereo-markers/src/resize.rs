@@ -515,13 +515,13 @@ mod simd {
                     } else {
                         t.first
                     };
-                    for c in 0..planes {
+                    for (c, lanes) in index.iter_mut().enumerate().take(planes) {
                         let at = |x: usize| channels * (x - start) + c;
                         if at(second) >= WIDE_SPAN {
                             return None;
                         }
-                        index[c][4 * j] = at(t.first) as u8;
-                        index[c][4 * j + 2] = at(second) as u8;
+                        lanes[4 * j] = at(t.first) as u8;
+                        lanes[4 * j + 2] = at(second) as u8;
                     }
                     weights[2 * j] = t.w0;
                     weights[2 * j + 1] = t.w1;
