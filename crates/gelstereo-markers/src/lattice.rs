@@ -137,34 +137,68 @@ impl Patches {
 /// `min_angle_deg` of each other, do not occur on a lattice; past it new ones are still compared).
 const MAX_DIRECTIONS: usize = 16;
 
+/// Whether two lines are at least an angle apart (modulo pi), from their direction vectors alone:
+/// the acute angle t between lines along u and v has cos t = |u.v| / (|u| |v|), so t >= min_angle
+/// exactly where (u.v)^2 <= cos^2(min_angle) |u|^2 |v|^2. Why: an arctangent per line was the
+/// dearest step of the lattice check; the Python twin compares the angles themselves, which decides
+/// alike up to rounding.
+#[derive(Clone, Copy)]
+struct MinAngle {
+    cos2: f64,
+    /// `min_angle_deg` <= 0: any two lines are apart; above 90: none are.
+    always: Option<bool>,
+}
+
+impl MinAngle {
+    fn new(min_angle_deg: f64) -> Self {
+        let always = if min_angle_deg <= 0.0 {
+            Some(true)
+        } else if min_angle_deg > 90.0 || min_angle_deg.is_nan() {
+            Some(false)
+        } else {
+            None
+        };
+        Self {
+            cos2: min_angle_deg.to_radians().cos().powi(2),
+            always,
+        }
+    }
+
+    fn apart(&self, u: [f64; 2], v: [f64; 2]) -> bool {
+        if let Some(a) = self.always {
+            return a;
+        }
+        let dot = u[0] * v[0] + u[1] * v[1];
+        dot * dot <= self.cos2 * (u[0] * u[0] + u[1] * u[1]) * (v[0] * v[0] + v[1] * v[1])
+    }
+}
+
 /// The directions of the lines through one point, until two of them are far enough apart.
 #[derive(Clone, Copy)]
 struct Lines {
-    angles: [f64; MAX_DIRECTIONS],
+    directions: [[f64; 2]; MAX_DIRECTIONS],
     count: usize,
     two: bool,
 }
 
 impl Lines {
     const NONE: Self = Self {
-        angles: [0.0; MAX_DIRECTIONS],
+        directions: [[0.0; 2]; MAX_DIRECTIONS],
         count: 0,
         two: false,
     };
 
-    /// Adds a line of direction `angle` (radians in [0, pi)): two lines once any pair of directions
-    /// differs by at least `min_angle` (modulo pi).
-    fn add(&mut self, angle: f64, min_angle: f64) {
+    /// Adds a line along `direction` (either sense): two lines once any pair of directions is
+    /// `min_angle` apart.
+    fn add(&mut self, direction: [f64; 2], min_angle: &MinAngle) {
         if self.two {
             return;
         }
-        let pi = std::f64::consts::PI;
-        self.two = self.angles[..self.count].iter().any(|a| {
-            let d = (angle - a).abs();
-            d.min(pi - d) >= min_angle
-        });
+        self.two = self.directions[..self.count]
+            .iter()
+            .any(|d| min_angle.apart(*d, direction));
         if self.count < MAX_DIRECTIONS {
-            self.angles[self.count] = angle;
+            self.directions[self.count] = direction;
             self.count += 1;
         }
     }
@@ -289,7 +323,7 @@ fn finish_fit(
 fn lined_members(points: &[Point2], hood: &Neighbourhood, check: &LatticeCheck) -> Vec<bool> {
     let Neighbourhood { nn, median_nn, grid } = hood;
     let (n, median_nn) = (points.len(), *median_nn);
-    let min_angle = check.min_angle_deg.to_radians();
+    let min_angle = MinAngle::new(check.min_angle_deg);
     // The lines through each point, and the pairs each line joins.
     let mut lines = vec![Lines::NONE; n];
     let mut bonds: Vec<(usize, usize)> = Vec::new();
@@ -322,13 +356,8 @@ fn lined_members(points: &[Point2], hood: &Neighbourhood, check: &LatticeCheck) 
                 }
                 let (dx, dy) = (points[k].x - ox, points[k].y - oy);
                 if dx * dx + dy * dy <= limit2 {
-                    // The direction only matters to a point not yet on two lines (most are, once
-                    // their neighbours were visited), and the arctangent is the dearest step here.
-                    if [i, j, k].iter().any(|&q| !lines[q].two) {
-                        let angle = vy.atan2(vx).rem_euclid(std::f64::consts::PI);
-                        for q in [i, j, k] {
-                            lines[q].add(angle, min_angle);
-                        }
+                    for q in [i, j, k] {
+                        lines[q].add([vx, vy], &min_angle);
                     }
                     bonds.extend([(i, j), (i, k)]);
                 }
@@ -500,7 +529,7 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
     }
     let mut near: Vec<Point2> = Vec::new();
     members.for_each_within(p, SITE_REACH * pitch, |j, _| near.push(members.points()[j]));
-    let min_angle = check.min_angle_deg.to_radians();
+    let min_angle = MinAngle::new(check.min_angle_deg);
     let tol2 = check.tolerance_frac * check.tolerance_frac;
     let dist2 = |u: Point2, x: f64, y: f64| (u.x - x).powi(2) + (u.y - y).powi(2);
     let (mut middle, mut any) = (Lines::NONE, Lines::NONE);
@@ -518,10 +547,10 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
             let is_end = dist2(r, 2.0 * q.x - p.x, 2.0 * q.y - p.y) <= tol2 * pq2
                 || dist2(q, 2.0 * r.x - p.x, 2.0 * r.y - p.y) <= tol2 * pr2;
             if is_middle || is_end {
-                let angle = (r.y - q.y).atan2(r.x - q.x).rem_euclid(std::f64::consts::PI);
-                any.add(angle, min_angle);
+                let direction = [r.x - q.x, r.y - q.y];
+                any.add(direction, &min_angle);
                 if is_middle {
-                    middle.add(angle, min_angle);
+                    middle.add(direction, &min_angle);
                 }
             }
         }

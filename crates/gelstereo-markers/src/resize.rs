@@ -12,7 +12,8 @@
 //!
 //! Why: OpenCV's resize, its border copy and a separate conversion pass cost 0.55 ms per 640 x 480
 //! view, a sixth of the fast model's whole pipeline; one pass over the output rows with planar
-//! intermediate rows costs about a third of that. Bit for bit: the same fixed-point arithmetic as
+//! intermediate rows costs about a third of that with SSE kernels, and less with AVX-512 ones that
+//! read the interleaved row directly (no split into channel rows). Bit for bit: the same fixed-point arithmetic as
 //! OpenCV 4's `cv::hal::resize` for 8-bit images (`resizeGeneric_` with `HResizeLinear<uchar, int,
 //! short>` and `VResizeLinear<uchar, int, short>`, whose scalar and SIMD paths agree):
 //!
