@@ -38,8 +38,11 @@ use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
 pub use contract::{AutoFit, MarknetContract, MreContract};
-pub use marknet::{InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout, probe_layout};
+pub use marknet::{
+    InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout, network_input, probe_layout,
+};
 pub use postprocess::PostProcess;
+pub use resize::{Kernels, ResizeScratch};
 
 /// Errors of the marker localizers. Each names the file, the field or the image property concerned and
 /// what was expected.

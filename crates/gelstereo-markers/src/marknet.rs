@@ -503,6 +503,40 @@ pub(crate) fn write_layout(
     Ok(())
 }
 
+/// The network input of `image` under `layout`, as Marknet feeds its network: the image resized
+/// (OpenCV's `INTER_LINEAR` bit for bit, area averaging first below 0.34 x), the rest of the input
+/// filled with its median colour, planar RGB f32 in [0, 1] (3 x input pixels) in `plane`. `scratch`
+/// is kept between calls and chooses the kernels ([`ResizeScratch::with_kernels`]); every kernel set
+/// gives the same bits. For looking at what the network sees and for timing the kernels
+/// (`gelstereo bench`).
+pub fn network_input(
+    image: &Mat,
+    layout: &InputLayout,
+    scratch: &mut ResizeScratch,
+    plane: &mut Vec<f32>,
+) -> Result<()> {
+    check_image(image)?;
+    let l = layout;
+    let fits = |offset: u32, scaled: u32, input: u32| {
+        scaled >= 1
+            && input <= MAX_INPUT_SIDE_PX
+            && offset.checked_add(scaled).is_some_and(|end| end <= input)
+    };
+    if !fits(l.offset_x, l.scaled_width, l.input_width) || !fits(l.offset_y, l.scaled_height, l.input_height)
+    {
+        return Err(Error::Image {
+            property: "layout",
+            expected: format!(
+                "a resized image of at least 1 x 1 px inside a network input of at most {MAX_INPUT_SIDE_PX} px a side"
+            ),
+            found: format!("{l:?}"),
+        });
+    }
+    plane.clear();
+    plane.resize(3 * l.input_width as usize * l.input_height as usize, 0.0);
+    write_layout(image, layout, None, scratch, plane)
+}
+
 /// Checks `image` and writes it into `plane` under `layout` ([`write_layout`]); `stretch_to`: the
 /// network input a whole-image stretch must keep the aspect ratio of ([`check_aspect`]).
 ///
@@ -1439,6 +1473,7 @@ impl Localizer for Marknet {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::Kernels;
     use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Scalar};
     use opencv::prelude::*;
 
@@ -1475,6 +1510,41 @@ mod tests {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// `network_input` gives the same bits with every kernel set and refuses a layout whose resized
+    /// image does not fit its input, naming the layout.
+    #[test]
+    fn the_network_input_is_the_same_with_every_kernel_set_and_a_bad_layout_is_refused() -> Result<()> {
+        let mut m =
+            Mat::new_rows_cols_with_default(480, 640, CV_8UC3, Scalar::all(0.0)).map_err(cv_err("test"))?;
+        for (i, v) in m.data_bytes_mut().map_err(cv_err("test"))?.iter_mut().enumerate() {
+            *v = (i * 31 % 253) as u8;
+        }
+        let layout = InputLayout {
+            input_width: 416,
+            input_height: 320,
+            scaled_width: 406,
+            scaled_height: 304,
+            offset_x: 5,
+            offset_y: 8,
+        };
+        let mut inputs = Vec::new();
+        for kernels in [Kernels::Avx512, Kernels::Sse, Kernels::Scalar] {
+            let mut plane = Vec::new();
+            network_input(&m, &layout, &mut ResizeScratch::with_kernels(kernels), &mut plane)?;
+            assert_eq!(plane.len(), 3 * 416 * 320);
+            inputs.push(plane.iter().map(|v| v.to_bits()).collect::<Vec<u32>>());
+        }
+        assert!(inputs.windows(2).all(|w| w[0] == w[1]));
+        let too_wide = InputLayout {
+            offset_x: 20,
+            ..layout
+        };
+        let err = network_input(&m, &too_wide, &mut ResizeScratch::default(), &mut Vec::new())
+            .expect_err("a resized image past the input's edge");
+        assert!(err.to_string().contains("image layout"), "{err}");
         Ok(())
     }
 }

@@ -112,11 +112,11 @@ fn median_of(histogram: &[u32; 256]) -> f32 {
     0.0
 }
 
-/// What [`resize_into_planar`] keeps between calls: the taps of the latest sizes, the source row
-/// split into channel rows, and two rows resized horizontally (planar, `h >> 4` as i16: the only
-/// form the vertical pass reads).
+/// What the preprocessing keeps between calls ([`crate::marknet::network_input`]): the taps of the
+/// latest sizes, the source row split into channel rows, and two rows resized horizontally (planar,
+/// `h >> 4` as i16: the only form the vertical pass reads), and which kernels it may use.
 #[derive(Debug)]
-pub(crate) struct ResizeScratch {
+pub struct ResizeScratch {
     /// Source width, height and channels, resized width and height the taps were made for.
     sizes: (usize, usize, usize, usize, usize),
     columns: Vec<Tap>,
@@ -141,15 +141,23 @@ pub(crate) struct ResizeScratch {
 }
 
 impl Default for ResizeScratch {
-    /// Scratch that uses the CPU's SIMD kernels (SSE2 / SSSE3 on x86-64) where it has them.
+    /// Scratch that uses the widest kernels the CPU has.
     fn default() -> Self {
+        Self::with_kernels(Kernels::Avx512)
+    }
+}
+
+impl ResizeScratch {
+    /// Scratch that uses at most `kernels` (narrower ones where the CPU lacks them); every kernel set
+    /// gives the same bits.
+    pub fn with_kernels(kernels: Kernels) -> Self {
         Self {
             sizes: (0, 0, 0, 0, 0),
             columns: Vec::new(),
             rows: Vec::new(),
             blocks: None,
             wide: None,
-            kernels: Kernels::Avx512,
+            kernels,
             split: Vec::new(),
             held: [None, None],
             buffers: [Vec::new(), Vec::new()],
@@ -300,17 +308,36 @@ pub(crate) fn resize_into_planar(
     }
 }
 
-/// The kernels [`resize_into_planar`] may use, narrowest first (each where the CPU has it; the
-/// wider ones fall back to the narrower).
+/// The kernels the preprocessing may use, narrowest first (each where the CPU has it; the wider ones
+/// fall back to the narrower). All give the same bits: OpenCV's `INTER_LINEAR`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub(crate) enum Kernels {
-    /// Only the tests ask for the scalar kernels alone, to check them on any CPU.
-    #[cfg_attr(not(test), allow(dead_code))]
+pub enum Kernels {
+    /// Plain Rust.
     Scalar,
     /// SSE2 and SSSE3: 8 columns at a time from channel rows split out of the interleaved row.
     Sse,
     /// AVX-512 (F, BW, VBMI): 16 columns at a time straight from the interleaved row.
     Avx512,
+}
+
+impl Kernels {
+    /// Whether this CPU has these kernels (else narrower ones run in their place).
+    pub fn available(self) -> bool {
+        match self {
+            Kernels::Scalar => true,
+            Kernels::Sse => simd::has_ssse3(),
+            Kernels::Avx512 => simd::has_avx512_vbmi(),
+        }
+    }
+
+    /// The name `gelstereo bench` prints.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Kernels::Scalar => "scalar",
+            Kernels::Sse => "SSE",
+            Kernels::Avx512 => "AVX-512",
+        }
+    }
 }
 
 /// Length multiple of the horizontally resized channel rows: whole blocks of the widest kernel.
@@ -460,9 +487,14 @@ mod simd {
         }
     }
 
+    /// Whether the CPU has SSSE3 (the byte shuffle of the SSE kernels).
+    pub(super) fn has_ssse3() -> bool {
+        std::arch::is_x86_feature_detected!("ssse3")
+    }
+
     /// Whether the CPU has the AVX-512 parts the wide kernels use (byte permutes across two
     /// registers: VBMI).
-    fn has_avx512_vbmi() -> bool {
+    pub(super) fn has_avx512_vbmi() -> bool {
         std::arch::is_x86_feature_detected!("avx512f")
             && std::arch::is_x86_feature_detected!("avx512bw")
             && std::arch::is_x86_feature_detected!("avx512vbmi")
@@ -751,6 +783,14 @@ mod simd {
         }
     }
 
+    pub(super) fn has_ssse3() -> bool {
+        false
+    }
+
+    pub(super) fn has_avx512_vbmi() -> bool {
+        false
+    }
+
     #[derive(Debug)]
     pub(super) enum WideBlocks {}
 
@@ -870,10 +910,7 @@ mod tests {
             (33, 31, layout(40, 40, 12, 10, 14, 15)),
         ];
         for kernels in [Kernels::Avx512, Kernels::Sse, Kernels::Scalar] {
-            let mut scratch = ResizeScratch {
-                kernels,
-                ..ResizeScratch::default()
-            };
+            let mut scratch = ResizeScratch::with_kernels(kernels);
             for (k, &(w, h, l)) in cases.iter().enumerate() {
                 for (typ, channels) in [(CV_8UC3, 3), (CV_8UC1, 1), (CV_8UC4, 4)] {
                     let img = noise(w, h, typ, 17 + k as u64);
@@ -951,10 +988,7 @@ mod tests {
             },
         ];
         for kernels in [Kernels::Avx512, Kernels::Sse, Kernels::Scalar] {
-            let mut scratch = ResizeScratch {
-                kernels,
-                ..ResizeScratch::default()
-            };
+            let mut scratch = ResizeScratch::with_kernels(kernels);
             for (typ, channels) in [(CV_8UC3, 3), (CV_8UC1, 1), (CV_8UC4, 4)] {
                 // Noise over a vertical ramp: the median of a few rows is not the whole image's.
                 let mut img = noise(640, 480, typ, 5);

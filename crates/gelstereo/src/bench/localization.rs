@@ -2,8 +2,9 @@
 //! by side in one process (the runs of the methods are interleaved, so machine load hits all alike),
 //! with the ratio to the blob baseline. Each method has one localizer per camera (left views go to
 //! one, right views to the other, pairs to the left one as a batch), so the views of one recording
-//! reach each localizer as a stream would. Criterion benches of the same code are in
-//! `crates/gelstereo-markers/benches`.
+//! reach each localizer as a stream would. With Marknet among the methods, Marknet's preprocessing of
+//! one view is also timed with each SIMD kernel set the CPU has, side by side. Criterion benches of
+//! the same code are in `crates/gelstereo-markers/benches`.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -11,7 +12,10 @@ use std::time::Instant;
 
 use gelstereo_core::StereoPair;
 use gelstereo_io::images::{self, StereoRecording};
-use gelstereo_markers::{Localizer, LocalizerConfig, Method, create_localizer};
+use gelstereo_markers::{
+    InputLayout, Kernels, Localizer, LocalizerConfig, Marknet, Method, ResizeScratch, create_localizer,
+    network_input,
+};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
 
@@ -273,9 +277,24 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
         "x vs blob = blob median / method median (> 1: faster than the blob baseline); CPU = process CPU time \
          of all threads per call (median), which other processes' load hardly changes"
     );
+    let preprocessing = if methods
+        .iter()
+        .any(|m| matches!(m, Method::Marknet | Method::MarknetMre))
+    {
+        preprocessing_kernels(views[0], &config, b.runs, b.warmup)?
+    } else {
+        Vec::new()
+    };
+    if let Some(line) = preprocessing_line(&preprocessing, views[0]) {
+        let _ = writeln!(text, "{line}");
+    }
     let json = json!({
         "pairs": pairs.len(),
         "image_sizes": sizes,
+        "preprocessing_ms": preprocessing
+            .iter()
+            .map(|(k, layout, ms)| json!({"kernels": k.as_str(), "input": [layout.input_width, layout.input_height], "median": ms}))
+            .collect::<Vec<_>>(),
         "runs": b.runs,
         "warmup": b.warmup,
         "cores": cores,
@@ -285,6 +304,66 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
         "results": rows,
     });
     Ok(Report { text, json })
+}
+
+/// Per kernel set this CPU has, widest first: the median ms of Marknet's preprocessing of `view`
+/// into its whole network input (the layout the model gives the view's size after one pass), the
+/// kernel sets interleaved run by run on the calling thread.
+fn preprocessing_kernels(
+    view: &Mat,
+    config: &LocalizerConfig,
+    runs: usize,
+    warmup: usize,
+) -> Result<Vec<(Kernels, InputLayout, f64)>> {
+    let mut marknet = Marknet::load(&config.marknet_path, &config.session)?;
+    let size = gelstereo_markers::check_image(view)?;
+    marknet.detect(view)?;
+    let layout = marknet.next_layout(size);
+    let kernels: Vec<Kernels> = [Kernels::Avx512, Kernels::Sse, Kernels::Scalar]
+        .into_iter()
+        .filter(|k| k.available())
+        .collect();
+    let mut scratch: Vec<ResizeScratch> = kernels.iter().map(|k| ResizeScratch::with_kernels(*k)).collect();
+    let mut times = vec![Vec::with_capacity(runs); kernels.len()];
+    let mut plane = Vec::new();
+    for run in 0..warmup + runs {
+        for (scratch, times) in scratch.iter_mut().zip(&mut times) {
+            let t = Instant::now();
+            network_input(view, &layout, scratch, &mut plane)?;
+            if run >= warmup {
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+    }
+    Ok(kernels
+        .into_iter()
+        .zip(times.iter_mut())
+        .map(|(k, t)| (k, layout, stats(t).0))
+        .collect())
+}
+
+/// The report's line on [`preprocessing_kernels`]: each kernel set's median and its ratio to the
+/// narrowest SIMD set's.
+fn preprocessing_line(found: &[(Kernels, InputLayout, f64)], view: &Mat) -> Option<String> {
+    let (_, layout, _) = found.first()?;
+    let sse = found.iter().find(|(k, ..)| *k == Kernels::Sse).map(|f| f.2);
+    let each: Vec<String> = found
+        .iter()
+        .map(|(k, _, ms)| match sse {
+            Some(base) if *k != Kernels::Sse => {
+                format!("{} {ms:.3} ms ({:.2}x SSE's time)", k.as_str(), ms / base)
+            }
+            _ => format!("{} {ms:.3} ms", k.as_str()),
+        })
+        .collect();
+    Some(format!(
+        "Marknet's preprocessing of one {}x{} view into its whole network input ({}x{}: resize, median-colour margin, planar f32), one thread, kernel sets interleaved, medians: {}",
+        view.cols(),
+        view.rows(),
+        layout.input_width,
+        layout.input_height,
+        each.join(", ")
+    ))
 }
 
 #[cfg(test)]
