@@ -515,7 +515,7 @@ pub fn network_input(
     scratch: &mut ResizeScratch,
     plane: &mut Vec<f32>,
 ) -> Result<()> {
-    check_image(image)?;
+    // The image itself is checked by `write_layout`.
     let l = layout;
     let fits = |offset: u32, scaled: u32, input: u32| {
         scaled >= 1

@@ -434,7 +434,7 @@ mod simd {
     impl Blocks {
         /// `None` without SSSE3, or when 8 consecutive columns span more than 15 source pixels.
         pub(super) fn new(columns: &[Tap]) -> Option<Self> {
-            if !std::arch::is_x86_feature_detected!("ssse3") || columns.is_empty() {
+            if !has_ssse3() || columns.is_empty() {
                 return None;
             }
             let mut b = Self {
@@ -505,8 +505,8 @@ mod simd {
     const WIDE_SPAN: usize = 128;
 
     /// The output columns in blocks of 16 for AVX-512 VBMI: each block's two taps per column picked
-    /// by byte permutes straight out of the interleaved row (two channels per permute), so the row
-    /// is never split into channels. Why: on a 640 x 480 BGR view the split and the SSSE3 kernel
+    /// by byte permutes straight out of the interleaved row (one permute per channel, two channels
+    /// per store), so the row is never split into channels. Why: on a 640 x 480 BGR view the split and the SSSE3 kernel
     /// were two thirds of the preprocessing.
     #[derive(Debug)]
     pub(super) struct WideBlocks {
@@ -634,7 +634,7 @@ mod simd {
     /// BGR row into three channel rows (`split`: B, G, R, each `padded_width` long), 16 pixels per
     /// step with SSSE3 shuffles; false (nothing done) without SSSE3 or when not allowed.
     pub(super) fn split_bgr(src: &[u8], split: &mut [u8], padded_width: usize, kernels: Kernels) -> bool {
-        if kernels < Kernels::Sse || !std::arch::is_x86_feature_detected!("ssse3") {
+        if kernels < Kernels::Sse || !has_ssse3() {
             return false;
         }
         // SAFETY: SSSE3 is present (checked above).

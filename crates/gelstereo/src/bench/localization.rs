@@ -281,20 +281,20 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
         .iter()
         .any(|m| matches!(m, Method::Marknet | Method::MarknetMre))
     {
-        preprocessing_kernels(views[0], &config, b.runs, b.warmup)?
+        Some(preprocessing_kernels(views[0], &config, b.runs, b.warmup)?)
     } else {
-        Vec::new()
+        None
     };
-    if let Some(line) = preprocessing_line(&preprocessing, views[0]) {
-        let _ = writeln!(text, "{line}");
+    if let Some((layout, medians)) = &preprocessing {
+        let _ = writeln!(text, "{}", preprocessing_line(layout, medians, views[0]));
     }
     let json = json!({
         "pairs": pairs.len(),
         "image_sizes": sizes,
-        "preprocessing_ms": preprocessing
-            .iter()
-            .map(|(k, layout, ms)| json!({"kernels": k.as_str(), "input": [layout.input_width, layout.input_height], "median": ms}))
-            .collect::<Vec<_>>(),
+        "preprocessing": preprocessing.map(|(layout, medians)| json!({
+            "input": [layout.input_width, layout.input_height],
+            "median_ms": medians.iter().map(|(k, ms)| json!({"kernels": k.as_str(), "median": ms})).collect::<Vec<_>>(),
+        })),
         "runs": b.runs,
         "warmup": b.warmup,
         "cores": cores,
@@ -306,15 +306,15 @@ pub fn run(b: &LocalizationBench) -> Result<Report> {
     Ok(Report { text, json })
 }
 
-/// Per kernel set this CPU has, widest first: the median ms of Marknet's preprocessing of `view`
-/// into its whole network input (the layout the model gives the view's size after one pass), the
+/// The layout the model gives `view`'s size after one pass and, per kernel set this CPU has (widest
+/// first), the median ms of Marknet's preprocessing of `view` into that whole network input, the
 /// kernel sets interleaved run by run on the calling thread.
 fn preprocessing_kernels(
     view: &Mat,
     config: &LocalizerConfig,
     runs: usize,
     warmup: usize,
-) -> Result<Vec<(Kernels, InputLayout, f64)>> {
+) -> Result<(InputLayout, Vec<(Kernels, f64)>)> {
     let mut marknet = Marknet::load(&config.marknet_path, &config.session)?;
     let size = gelstereo_markers::check_image(view)?;
     marknet.detect(view)?;
@@ -335,35 +335,35 @@ fn preprocessing_kernels(
             }
         }
     }
-    Ok(kernels
+    let medians = kernels
         .into_iter()
         .zip(times.iter_mut())
-        .map(|(k, t)| (k, layout, stats(t).0))
-        .collect())
+        .map(|(k, t)| (k, stats(t).0))
+        .collect();
+    Ok((layout, medians))
 }
 
 /// The report's line on [`preprocessing_kernels`]: each kernel set's median and its ratio to the
 /// narrowest SIMD set's.
-fn preprocessing_line(found: &[(Kernels, InputLayout, f64)], view: &Mat) -> Option<String> {
-    let (_, layout, _) = found.first()?;
-    let sse = found.iter().find(|(k, ..)| *k == Kernels::Sse).map(|f| f.2);
-    let each: Vec<String> = found
+fn preprocessing_line(layout: &InputLayout, medians: &[(Kernels, f64)], view: &Mat) -> String {
+    let sse = medians.iter().find(|(k, _)| *k == Kernels::Sse).map(|f| f.1);
+    let each: Vec<String> = medians
         .iter()
-        .map(|(k, _, ms)| match sse {
+        .map(|(k, ms)| match sse {
             Some(base) if *k != Kernels::Sse => {
                 format!("{} {ms:.3} ms ({:.2}x SSE's time)", k.as_str(), ms / base)
             }
             _ => format!("{} {ms:.3} ms", k.as_str()),
         })
         .collect();
-    Some(format!(
+    format!(
         "Marknet's preprocessing of one {}x{} view into its whole network input ({}x{}: resize, median-colour margin, planar f32), one thread, kernel sets interleaved, medians: {}",
         view.cols(),
         view.rows(),
         layout.input_width,
         layout.input_height,
         each.join(", ")
-    ))
+    )
 }
 
 #[cfg(test)]
