@@ -51,6 +51,8 @@ use gelstereo_core::spatial::Buckets;
 use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, Point2, TieredDetections};
 
+use crate::postprocess::{median_finite, nearest_neighbour_distances};
+
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LatticeCheck {
@@ -213,8 +215,22 @@ impl Lines {
 /// (their union); otherwise the one with the most members is.
 pub fn fit_lattice(found: &[Detection], check: &LatticeCheck, input_per_px: f64) -> LatticeFit {
     let points: Vec<Point2> = found.iter().map(|d| d.position).collect();
+    let nn = nearest_neighbour_distances(&points);
+    fit_lattice_with_distances(found, nn, check, input_per_px)
+}
+
+/// [`fit_lattice`] given each detection's nearest-neighbour distance among `found`
+/// ([`nearest_neighbour_distances`] of their positions), which the pitch estimate has already
+/// measured on most frames.
+pub(crate) fn fit_lattice_with_distances(
+    found: &[Detection],
+    nn: Vec<f64>,
+    check: &LatticeCheck,
+    input_per_px: f64,
+) -> LatticeFit {
+    let points: Vec<Point2> = found.iter().map(|d| d.position).collect();
     let n = points.len();
-    let Some(hood) = Neighbourhood::of(&points, check) else {
+    let Some(hood) = Neighbourhood::of(&points, nn, check) else {
         return LatticeFit {
             member: vec![false; n],
             on_lattice: vec![false; n],
@@ -265,16 +281,13 @@ struct Neighbourhood {
 }
 
 impl Neighbourhood {
-    /// `None` with fewer than three points or no finite distance.
-    fn of(points: &[Point2], check: &LatticeCheck) -> Option<Self> {
+    /// `nn`: each point's nearest-neighbour distance. `None` with fewer than three points or no
+    /// finite distance.
+    fn of(points: &[Point2], nn: Vec<f64>, check: &LatticeCheck) -> Option<Self> {
         if points.len() < 3 {
             return None;
         }
-        let nearest_grid = Buckets::with_one_point_per_cell(points);
-        let nn: Vec<f64> = (0..points.len())
-            .map(|i| nearest_grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
-            .collect();
-        let median_nn = median(&mut nn.iter().copied().filter(|d| d.is_finite()).collect::<Vec<_>>())?;
+        let median_nn = median_finite(&nn)?;
         let grid = Buckets::new(points, check.reach_frac * median_nn);
         Some(Self { nn, median_nn, grid })
     }

@@ -259,12 +259,15 @@ pub fn check_stereo_sizes(pair: &StereoPair<Mat>) -> Result<ImageSize> {
 
 /// Sorts detections by y, then x (deterministic output order).
 pub fn sort_detections(detections: &mut [Detection]) {
-    detections.sort_by(|a, b| {
-        a.position
-            .y
-            .total_cmp(&b.position.y)
-            .then(a.position.x.total_cmp(&b.position.x))
-    });
+    detections.sort_by(detection_order);
+}
+
+/// The order of [`sort_detections`]: by y, then x.
+pub(crate) fn detection_order(a: &Detection, b: &Detection) -> std::cmp::Ordering {
+    a.position
+        .y
+        .total_cmp(&b.position.y)
+        .then(a.position.x.total_cmp(&b.position.x))
 }
 
 /// The localization methods of the paper's Table I that gelstereo implements.

@@ -20,8 +20,12 @@ use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::lattice::{LatticeFit, fit_lattice, keep_fitted_lattice};
-use crate::postprocess::{DecodeGeometry, Selection, decode, deduplicate, estimate_pitch_px};
+use crate::lattice::{
+    LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
+};
+use crate::postprocess::{
+    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
+};
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
@@ -250,6 +254,8 @@ pub fn input_per_px(size: ImageSize, layout: &InputLayout) -> f64 {
 struct Pass {
     /// Candidates with c > the pass's threshold, in the image's pixels, flat order.
     candidates: Vec<Detection>,
+    /// Post-processing step 3's output for them: de-duplicated, by descending confidence.
+    kept: Vec<Detection>,
     /// Post-processing step 2's pitch of the candidates (de-duplication, MRE features).
     pitch_px: Option<f64>,
     /// How many confident candidates support `layout_pitch_px`: with the lattice check, the lattice
@@ -273,6 +279,46 @@ struct FittedSet {
 }
 
 impl FittedSet {
+    /// The lattice fit of `kept_confident`, the de-duplicated candidates with c > `conf_keep`, sorted
+    /// by y then x as the final accepted markers are (so that their check can reuse the fit).
+    /// `confident_nn`: the nearest-neighbour distances of `candidates`' confident ones (in their
+    /// order), when de-duplication dropped none of them: the same points, whose distances the pitch
+    /// estimate measured; kept candidates lie pairwise apart, so both orders sort alike.
+    fn of_confident(
+        candidates: &[Detection],
+        kept_confident: &[Detection],
+        confident_nn: Option<Vec<f64>>,
+        conf_keep: f32,
+        check: &LatticeCheck,
+        input_per_px: f64,
+    ) -> Self {
+        let (detections, fit) = match confident_nn {
+            Some(nn) => {
+                let mut with_nn: Vec<(Detection, f64)> = candidates
+                    .iter()
+                    .filter(|d| d.confidence > conf_keep)
+                    .copied()
+                    .zip(nn)
+                    .collect();
+                with_nn.sort_by(|a, b| crate::detection_order(&a.0, &b.0));
+                let (detections, nn): (Vec<Detection>, Vec<f64>) = with_nn.into_iter().unzip();
+                let fit = fit_lattice_with_distances(&detections, nn, check, input_per_px);
+                (detections, fit)
+            }
+            None => {
+                let mut detections = kept_confident.to_vec();
+                crate::sort_detections(&mut detections);
+                let fit = fit_lattice(&detections, check, input_per_px);
+                (detections, fit)
+            }
+        };
+        Self {
+            detections,
+            input_per_px,
+            fit,
+        }
+    }
+
     /// The fit, if it was made of exactly `accepted` at `input_per_px`.
     fn fit_of(self, accepted: &[Detection], input_per_px: f64) -> Option<LatticeFit> {
         (self.detections == accepted && self.input_per_px == input_per_px).then_some(self.fit)
@@ -282,38 +328,36 @@ impl FittedSet {
 impl Pass {
     /// The candidates of an image of `size` run under `layout`, summarised for the layout decision.
     fn new(candidates: Vec<Detection>, post: &PostProcess, size: ImageSize, layout: &InputLayout) -> Self {
-        let pitch_px = estimate_pitch_px(&candidates, post.conf_keep);
-        let mut confident: Vec<Detection> = candidates
-            .iter()
-            .filter(|d| d.confidence > post.conf_keep)
-            .copied()
-            .collect();
+        let (pitch_px, confident_nn) = pitch_of_confident(&candidates, post.conf_keep);
+        let radius_px = dedup_radius_px(pitch_px, post);
+        let mut kept = candidates.clone();
+        deduplicate(&mut kept, radius_px);
+        // Step 3 visits in descending confidence and keeps that order: the confident ones lead.
+        let confident = kept.partition_point(|d| d.confidence > post.conf_keep);
         let (support, layout_pitch_px, fitted) = match &post.lattice {
-            None => (confident.len(), pitch_px, None),
+            None => (confident_nn.len(), pitch_px, None),
             Some(check) => {
-                deduplicate(
-                    &mut confident,
-                    pitch_px.map_or(0.0, |p| post.dedup_radius_frac * p),
-                );
-                // In the order of the final accepted markers, so that their check can reuse the fit.
-                crate::sort_detections(&mut confident);
                 let scale = input_per_px(size, layout);
-                let fit = fit_lattice(&confident, check, scale);
-                let (support, pitch) = if fit.is_lattice {
-                    (fit.members, fit.pitch_px)
+                let reuse_nn = (radius_px > 0.0 && confident == confident_nn.len()).then_some(confident_nn);
+                let fitted = FittedSet::of_confident(
+                    &candidates,
+                    &kept[..confident],
+                    reuse_nn,
+                    post.conf_keep,
+                    check,
+                    scale,
+                );
+                let (support, pitch) = if fitted.fit.is_lattice {
+                    (fitted.fit.members, fitted.fit.pitch_px)
                 } else {
                     (0, None)
-                };
-                let fitted = FittedSet {
-                    detections: confident,
-                    input_per_px: scale,
-                    fit,
                 };
                 (support, pitch, Some(fitted))
             }
         };
         Self {
             candidates,
+            kept,
             pitch_px,
             support,
             layout_pitch_px,
@@ -1373,7 +1417,7 @@ impl Marknet {
             .collect();
         let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
             map_images(self.parallel, candidates, |(pass, _)| {
-                let selection = Selection::with_pitch(pass.candidates, pass.pitch_px, &post, with_mre);
+                let selection = Selection::of_deduplicated(pass.kept, pass.pitch_px, &post, with_mre);
                 (selection, pass.fitted)
             })
             .into_iter()

@@ -142,30 +142,58 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
     out
 }
 
-/// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
-pub fn median_nearest_neighbour_px(points: &[Point2]) -> Option<f64> {
+/// Each point's distance to its nearest other point, px (infinite for a point alone).
+pub fn nearest_neighbour_distances(points: &[Point2]) -> Vec<f64> {
     if points.len() < 2 {
-        return None;
+        return vec![f64::INFINITY; points.len()];
     }
     let grid = Buckets::with_one_point_per_cell(points);
-    let mut nn: Vec<f64> = (0..points.len())
-        .filter_map(|i| grid.nearest_other_px(i))
-        .collect();
-    median(&mut nn)
+    (0..points.len())
+        .map(|i| grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
+        .collect()
+}
+
+/// The median of the finite `distances`; `None` without any.
+pub fn median_finite(distances: &[f64]) -> Option<f64> {
+    median(
+        &mut distances
+            .iter()
+            .copied()
+            .filter(|d| d.is_finite())
+            .collect::<Vec<_>>(),
+    )
+}
+
+/// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
+pub fn median_nearest_neighbour_px(points: &[Point2]) -> Option<f64> {
+    median_finite(&nearest_neighbour_distances(points))
 }
 
 /// The marker pitch estimate of step 2: median nearest-neighbour distance between candidates with
 /// c > `conf_keep`, or between all `candidates` when fewer than two are that confident.
 pub fn estimate_pitch_px(candidates: &[Detection], conf_keep: f32) -> Option<f64> {
+    pitch_of_confident(candidates, conf_keep).0
+}
+
+/// [`estimate_pitch_px`], and the nearest-neighbour distance of each candidate with c > `conf_keep`
+/// among those (in their order in `candidates`), which the lattice check needs again.
+pub fn pitch_of_confident(candidates: &[Detection], conf_keep: f32) -> (Option<f64>, Vec<f64>) {
     let confident: Vec<Point2> = candidates
         .iter()
         .filter(|d| d.confidence > conf_keep)
         .map(|d| d.position)
         .collect();
-    median_nearest_neighbour_px(&confident).or_else(|| {
+    let nn = nearest_neighbour_distances(&confident);
+    let pitch = median_finite(&nn).or_else(|| {
         let all: Vec<Point2> = candidates.iter().map(|d| d.position).collect();
         median_nearest_neighbour_px(&all)
-    })
+    });
+    (pitch, nn)
+}
+
+/// Step 3's radius for the pitch of step 2, px (0 without a pitch: nothing is dropped).
+pub fn dedup_radius_px(pitch_px: Option<f64>, params: &PostProcess) -> f64 {
+    pitch_px.map_or(0.0, |p| params.dedup_radius_frac * p)
 }
 
 /// Step 3: sorts `candidates` by descending confidence (stable) and drops each one closer than
@@ -288,10 +316,18 @@ impl Selection {
         params: &PostProcess,
         with_mre: bool,
     ) -> Self {
-        deduplicate(
-            &mut candidates,
-            pitch_px.map_or(0.0, |p| params.dedup_radius_frac * p),
-        );
+        deduplicate(&mut candidates, dedup_radius_px(pitch_px, params));
+        Self::of_deduplicated(candidates, pitch_px, params, with_mre)
+    }
+
+    /// [`with_pitch`](Self::with_pitch) with step 3 already done: `candidates` are
+    /// [`deduplicate`]'s output for `pitch_px`.
+    pub fn of_deduplicated(
+        candidates: Vec<Detection>,
+        pitch_px: Option<f64>,
+        params: &PostProcess,
+        with_mre: bool,
+    ) -> Self {
         let kept = candidates.len();
         if !with_mre {
             let (accepted, below) = candidates
