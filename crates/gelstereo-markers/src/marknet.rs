@@ -1521,6 +1521,73 @@ mod tests {
     use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Scalar};
     use opencv::prelude::*;
 
+    /// A jittered 14 x 11 lattice (pitch 20 px) of confident candidates in a scrambled order, with
+    /// doubtful ones between its dots, a row of 8 confident ones 45 px apart below it, and
+    /// `duplicates` confident near-copies of its dots.
+    fn lattice_candidates(duplicates: usize) -> Vec<Detection> {
+        let jitter = |k: usize| ((k * 7919 + 13) % 1000) as f64 / 1000.0 - 0.5;
+        let mut out = Vec::new();
+        for k in 0..154 {
+            let site = (k * 37) % 154;
+            let (col, row) = ((site % 14) as f64, (site / 14) as f64);
+            let (x, y) = (30.0 + 20.0 * col + jitter(k), 30.0 + 20.0 * row + jitter(k + 500));
+            let c = 0.45 + 0.5 * (jitter(k + 900) + 0.5) as f32;
+            let at = |x: f64, y: f64, confidence: f32| Detection {
+                position: gelstereo_core::Point2::new(x, y),
+                confidence,
+            };
+            out.push(at(x, y, c));
+            if k % 3 == 0 {
+                out.push(at(x + 10.0, y + 10.0, 0.25));
+            }
+            if k < duplicates {
+                out.push(at(x + 1.0, y - 1.0, c - 0.01));
+            }
+            // Confident finds off the lattice, far apart: their distances must stay theirs.
+            if k < 8 {
+                out.push(at(30.0 + 45.0 * k as f64, 310.0, 0.9));
+            }
+        }
+        out
+    }
+
+    /// The pass de-duplicates all candidates once and reuses the pitch estimate's nearest-neighbour
+    /// distances for the lattice check when no confident candidate was dropped: among the confident
+    /// ones it keeps exactly what de-duplicating them alone keeps, and its fit is the one
+    /// `fit_lattice` makes of them, with and without dropped duplicates.
+    #[test]
+    fn one_deduplication_and_reused_distances_leave_the_fit_as_it_was() {
+        let post = PostProcess::default();
+        let check = post.lattice.expect("the default has the lattice check");
+        let size = ImageSize {
+            width: 340,
+            height: 340,
+        };
+        for duplicates in [0, 5] {
+            let candidates = lattice_candidates(duplicates);
+            let pass = Pass::new(candidates.clone(), &post, size, &InputLayout::stretch(340, 340));
+            let radius = dedup_radius_px(pass.pitch_px, &post);
+            let mut alone: Vec<Detection> = candidates
+                .iter()
+                .filter(|d| d.confidence > post.conf_keep)
+                .copied()
+                .collect();
+            deduplicate(&mut alone, radius);
+            assert_eq!(alone.len(), 162, "{duplicates} duplicates");
+            assert_eq!(&pass.kept[..alone.len()], &alone[..]);
+            assert!(
+                pass.kept[alone.len()..]
+                    .iter()
+                    .all(|d| d.confidence <= post.conf_keep)
+            );
+            crate::sort_detections(&mut alone);
+            let fitted = pass.fitted.expect("the lattice check runs");
+            assert_eq!(fitted.detections, alone);
+            assert_eq!(fitted.fit, fit_lattice(&alone, &check, 1.0));
+            assert!(fitted.fit.is_lattice && (150..=154).contains(&fitted.fit.members));
+        }
+    }
+
     /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
     /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped) when the image is the
     /// input's size.
