@@ -613,15 +613,18 @@ mod simd {
                     );
                     _mm512_srai_epi32::<4>(_mm512_madd_epi16(taps, w))
                 };
-                // Channels in pairs (the last one, if odd, with itself), one pack per pair.
+                // Channels in pairs (the last one, if odd, with itself, computed and stored once),
+                // one pack per pair.
                 for c in (0..self.planes).step_by(2) {
                     let next = (c + 1).min(self.planes - 1);
-                    let (first, second) = (channel(c), channel(next));
+                    let first = channel(c);
+                    let second = if next == c { first } else { channel(next) };
                     let both = _mm512_permutexvar_epi64(unlace, _mm512_packs_epi32(first, second));
-                    for (k, half) in [
+                    let halves = [
                         (c, _mm512_castsi512_si256(both)),
                         (next, _mm512_extracti64x4_epi64::<1>(both)),
-                    ] {
+                    ];
+                    for (k, half) in halves.into_iter().take(if next == c { 1 } else { 2 }) {
                         let d = &mut out[k * row_len + 16 * b..k * row_len + 16 * b + 16];
                         // SAFETY: `d` holds 16 i16 = 32 bytes (checked by the slice above).
                         unsafe { _mm256_storeu_si256(d.as_mut_ptr().cast(), half) };
