@@ -349,7 +349,9 @@ fn lined_members(points: &[Point2], hood: &Neighbourhood, check: &LatticeCheck) 
                 near.push((d2, j));
             }
         });
-        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        // By distance, then index: a total order, so an unstable sort gives the one result; squared
+        // distances are never negative, so their bits order as the values do.
+        near.sort_unstable_by_key(|&(d2, j)| (d2.to_bits(), j));
         near.truncate(check.max_neighbours);
         for (a, &(d2_ij, j)) in near.iter().enumerate() {
             let (vx, vy) = (points[j].x - p.x, points[j].y - p.y);
