@@ -109,6 +109,38 @@ fn pipeline_bench_measures_the_whole_input_beside_the_window() {
     );
 }
 
+/// `--repeats N`: the throughput mode runs N times; its figures are the medians of the runs, each
+/// run listed in the JSON report and the range on the text line. `--repeats 0` is refused.
+#[test]
+fn pipeline_bench_repeats_the_throughput_mode_and_reports_medians() {
+    let (text, report) = pipeline_bench(&[
+        "--pipeline",
+        "--method",
+        "blob",
+        "--workers",
+        "2",
+        "--repeats",
+        "3",
+    ]);
+    let runs = report["throughput"]["repeats"].as_array().unwrap();
+    assert_eq!(runs.len(), 3);
+    let mut fps: Vec<f64> = runs.iter().map(|r| r["frames_per_s"].as_f64().unwrap()).collect();
+    fps.sort_by(f64::total_cmp);
+    assert_eq!(report["throughput"]["frames_per_s"].as_f64().unwrap(), fps[1]);
+    if let Some(cpu) = report["throughput"]["cpu_ms_per_frame"].as_f64() {
+        let mut each: Vec<f64> = runs
+            .iter()
+            .map(|r| r["cpu_ms_per_frame"].as_f64().unwrap())
+            .collect();
+        each.sort_by(f64::total_cmp);
+        assert_eq!(cpu, each[1]);
+    }
+    assert!(text.contains(", the median of 3 runs ("), "{text}");
+    let out = common::gelstereo(&["bench", "--pipeline", "--repeats", "0", "data/sample/press-slide"]);
+    let text = common::text(&out);
+    assert!(!out.status.success() && text.contains("--repeats"), "{text}");
+}
+
 #[test]
 fn pipeline_bench_names_a_missing_recording() {
     let out = common::gelstereo(&["bench", "--pipeline", "/nonexistent/recording"]);

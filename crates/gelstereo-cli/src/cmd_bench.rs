@@ -64,6 +64,11 @@ pub struct Args {
     /// `gelstereo track`'s default mode (0: one per core; at most 256).
     #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
     workers: usize,
+    /// Pipeline benchmark: run the throughput mode this many times, each with fresh workers, and
+    /// report the median CPU per frame and frames/s with their range (a shared machine's speed moves
+    /// from one run to the next).
+    #[arg(long, default_value_t = 1, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
+    repeats: u16,
     #[command(flatten)]
     localizer: LocalizerArgs,
     /// Stereo recordings (folders with left/ and right/) or images (consecutive images form pairs);
@@ -97,6 +102,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             runs: args.runs,
             warmup: args.warmup,
             workers: args.workers,
+            repeats: usize::from(args.repeats),
         })?;
         return write_report(&report, args.out.as_deref());
     }

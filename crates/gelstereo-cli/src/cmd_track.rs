@@ -316,6 +316,7 @@ fn bench(args: &Args) -> anyhow::Result<()> {
         runs: args.bench_frames,
         warmup: 20,
         workers: 0,
+        repeats: 1,
     })?;
     print!("{}", report.text);
     Ok(())

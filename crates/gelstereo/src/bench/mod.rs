@@ -2,7 +2,8 @@
 //! themselves (no copy of their logic):
 //! - [`pipeline`]: per-stage medians and p90 in latency mode (one frame at a time, frames decoded
 //!   into memory first), the whole pipeline per stereo frame with its CPU time, and the throughput
-//!   mode (frames localized in parallel on worker threads, feeding the pipeline's tracker in order);
+//!   mode (frames localized in parallel on worker threads, feeding the pipeline's tracker in order;
+//!   repeated with fresh workers as asked, its medians and range);
 //! - [`end_to_end`]: `gelstereo track` from disk with its default outputs, repeated, the median
 //!   run's frames/s and CPU time per frame.
 
@@ -15,6 +16,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Barrier, mpsc};
 use std::time::Instant;
 
+use gelstereo_core::stats::median;
 use gelstereo_core::{StereoPair, TieredDetections};
 use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_markers::{Method, create_localizer};
@@ -49,6 +51,9 @@ pub struct PipelineBench {
     pub warmup: usize,
     /// Worker threads of the throughput mode (0: one per core).
     pub workers: usize,
+    /// Runs of the throughput mode, each with fresh workers: its figures are their medians (on a
+    /// shared machine one run's CPU per frame moves by more than a change worth measuring).
+    pub repeats: usize,
 }
 
 /// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
@@ -389,10 +394,41 @@ fn throughput(
     })
 }
 
+/// The medians of the throughput mode's runs: frames/s, and CPU ms per frame where measured.
+fn median_run(runs: &[(f64, Option<f64>)]) -> (f64, Option<f64>) {
+    let mut fps: Vec<f64> = runs.iter().map(|r| r.0).collect();
+    let mut cpu: Vec<f64> = runs.iter().filter_map(|r| r.1).collect();
+    (median(&mut fps).unwrap_or(0.0), median(&mut cpu))
+}
+
+/// ", the median of N runs (CPU a-b ms per frame, c-d frames/s)" for more than one run, else "".
+fn spread_of_runs(runs: &[(f64, Option<f64>)]) -> String {
+    if runs.len() < 2 {
+        return String::new();
+    }
+    let range = |v: &mut dyn Iterator<Item = f64>| {
+        v.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), x| {
+            (lo.min(x), hi.max(x))
+        })
+    };
+    let (fps_lo, fps_hi) = range(&mut runs.iter().map(|r| r.0));
+    let cpu = match range(&mut runs.iter().filter_map(|r| r.1)) {
+        (lo, hi) if lo <= hi => format!("CPU {lo:.2}-{hi:.2} ms per frame, "),
+        _ => String::new(),
+    };
+    format!(
+        ", the median of {} runs ({cpu}{fps_lo:.1}-{fps_hi:.1} frames/s)",
+        runs.len()
+    )
+}
+
 /// The pipeline benchmark (see the module docs).
 pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     if b.runs < 1 {
         return Err(Error::Invalid("--runs must be at least 1".into()));
+    }
+    if b.repeats < 1 {
+        return Err(Error::Invalid("--repeats must be at least 1".into()));
     }
     let input = b.recording.as_path();
     let rec = open_recording(input)?;
@@ -468,7 +504,8 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         let fps = bench.runs as f64 / elapsed_s.max(1e-9);
         Ok((fps, cpu_ns.map(|c| c as f64 * 1e-6 / bench.runs as f64)))
     };
-    let (fps, cpu_per_frame_tp) = throughput_of(b)?;
+    let repeats: Vec<(f64, Option<f64>)> = (0..b.repeats).map(|_| throughput_of(b)).collect::<Result<_>>()?;
+    let (fps, cpu_per_frame_tp) = median_run(&repeats);
     // Marknet on a window around the lattice: the same mode on the whole input, right after.
     let windowed =
         matches!(method, Method::Marknet | Method::MarknetMre) && b.config.localizer.lattice_window;
@@ -548,14 +585,15 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     );
     let _ = writeln!(
         text,
-        "throughput mode: {fps:.1} stereo frames/s over {} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame",
+        "throughput mode: {fps:.1} stereo frames/s over {} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame{}",
         b.runs,
         if ort {
             ", one ONNX Runtime intra-op thread each"
         } else {
             ""
         },
-        ms(cpu_per_frame_tp)
+        ms(cpu_per_frame_tp),
+        spread_of_runs(&repeats)
     );
     if let Some((whole_fps, whole_cpu)) = whole_input {
         let _ = writeln!(
@@ -600,6 +638,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
             "frames": b.runs,
             "frames_per_s": fps,
             "cpu_ms_per_frame": cpu_per_frame_tp,
+            "repeats": repeats.iter().map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})).collect::<Vec<_>>(),
             "whole_input": whole_input.map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})),
         },
         "tracking_stages_from": "StereoSession::track stage marks",
