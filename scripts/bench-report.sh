@@ -60,8 +60,8 @@ section "Localization: latency per view and per stereo pair" \
   "gelstereo bench --runs $RUNS --warmup 10 --pairs 8 $REC" \
   "$BIN" bench --runs "$RUNS" --warmup 10 --pairs 8 "$REC"
 section "Pipeline: latency and throughput mode" \
-  "gelstereo bench --pipeline --runs $RUNS --warmup 10 $REC" \
-  "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 "$REC"
+  "gelstereo bench --pipeline --runs $RUNS --warmup 10 --repeats 5 $REC" \
+  "$BIN" bench --pipeline --runs "$RUNS" --warmup 10 --repeats 5 "$REC"
 
 track_end_to_end() {
   local start end
