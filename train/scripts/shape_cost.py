@@ -1,0 +1,66 @@
+"""CPU time of Marknet shapes with random weights, side by side: what a shape would cost before it is trained.
+
+    cd train && ../.venv/bin/python scripts/shape_cost.py s4:8:3 s4-bare:8:1 s4-bare:10:1 [--height 288 --width 320]
+
+Each SHAPE is STEM:WIDTH:FUSE_KERNEL (`train_marknet --stem --width --fuse-kernel`; stride 8, m = 5).
+Every shape is exported to ONNX (opset 17, dynamic height and width, as `gelstereo_train.export`) and
+timed on one stereo pair (batch 2) of a random input at one intra-op thread, as the localizer's
+throughput workers run it: process CPU time per run, the shapes in turn within each round so that a
+shared machine's swings fall on all alike, median over the rounds; printed per round and overall.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gelstereo_train.model import Marknet  # noqa: E402
+from network_cost import interleaved_cpu_ms, session  # noqa: E402
+
+
+def parse_shape(text: str) -> dict:
+    stem, width, fuse = text.split(":")
+    return {"stem": stem, "width": int(width), "fuse_kernel": int(fuse)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("shapes", nargs="+", help="STEM:WIDTH:FUSE_KERNEL, e.g. s4-bare:8:1")
+    p.add_argument("--height", type=int, default=288)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--runs", type=int, default=40, help="runs of 5 per shape and round")
+    args = p.parse_args(argv)
+    torch.manual_seed(0)
+    x = np.random.default_rng(0).random((2, 3, args.height, args.width), dtype=np.float32)
+    print(f"one stereo pair, 2 x 3 x {args.height} x {args.width}, one thread, CPU ms per run")
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = []
+        for i, shape in enumerate(args.shapes):
+            model = Marknet(stride=8, candidates=5, **parse_shape(shape)).eval()
+            path = Path(tmp) / f"shape{i}.onnx"
+            torch.onnx.export(model, torch.from_numpy(x), str(path), input_names=["image"], output_names=["raw"],
+                              opset_version=17, dynamo=False,
+                              dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"}})
+            params = sum(q.numel() for q in model.parameters())
+            print(f"{shape}: {params} parameters")
+            paths.append(path)
+        rounds = []
+        for r in range(args.rounds):
+            ms = interleaved_cpu_ms([session(q, 1) for q in paths], x, args.runs)
+            rounds.append(ms)
+            print(f"round {r + 1}: " + ", ".join(f"{s} {v:.2f}" for s, v in zip(args.shapes, ms)))
+        median = np.median(np.array(rounds), axis=0)
+        print("median: " + ", ".join(f"{s} {v:.2f} ({v / median[0]:.2f}x the first)" for s, v in zip(args.shapes, median)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
