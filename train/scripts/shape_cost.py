@@ -3,7 +3,7 @@
     cd train && ../.venv/bin/python scripts/shape_cost.py s4:8:3 s4-bare:8:1 s4-bare:10:1 [--height 288 --width 320]
 
 Each SHAPE is STEM:WIDTH:FUSE_KERNEL (`train_marknet --stem --width --fuse-kernel`; stride 8, m = 5).
-Every shape is exported to ONNX (opset 17, dynamic height and width, as `gelstereo_train.export`) and
+Every shape is exported to ONNX by `gelstereo_train.export` (dynamic height and width, as shipped) and
 timed on one stereo pair (batch 2) of a random input at one intra-op thread, as the localizer's
 throughput workers run it: process CPU time per run, the shapes in turn within each round so that a
 shared machine's swings fall on all alike, median over the rounds; printed per round and overall.
@@ -21,6 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from gelstereo_train.export import export_marknet  # noqa: E402
 from gelstereo_train.model import Marknet  # noqa: E402
 from network_cost import interleaved_cpu_ms, session  # noqa: E402
 
@@ -46,9 +47,7 @@ def main(argv=None) -> int:
         for i, shape in enumerate(args.shapes):
             model = Marknet(stride=8, candidates=5, **parse_shape(shape)).eval()
             path = Path(tmp) / f"shape{i}.onnx"
-            torch.onnx.export(model, torch.from_numpy(x), str(path), input_names=["image"], output_names=["raw"],
-                              opset_version=17, dynamo=False,
-                              dynamic_axes={"image": {0: "batch", 2: "height", 3: "width"}})
+            export_marknet(model, path, (args.height, args.width), {})
             params = sum(q.numel() for q in model.parameters())
             print(f"{shape}: {params} parameters")
             paths.append(path)
