@@ -506,8 +506,8 @@ mod simd {
 
     /// The output columns in blocks of 16 for AVX-512 VBMI: each block's two taps per column picked
     /// by byte permutes straight out of the interleaved row (one permute per channel, two channels
-    /// per store), so the row is never split into channels. Why: on a 640 x 480 BGR view the split and the SSSE3 kernel
-    /// were two thirds of the preprocessing.
+    /// per pack), so the row is never split into channels. Why: on a 640 x 480 BGR view the split and
+    /// the SSSE3 kernel were two thirds of the preprocessing.
     #[derive(Debug)]
     pub(super) struct WideBlocks {
         /// Byte offset of each block's first source column in the row.
