@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import io
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -218,8 +220,8 @@ def _gaussian_blur(x: torch.Tensor, sigmas: np.ndarray) -> torch.Tensor:
     """Per-sample separable Gaussian blur (grouped convolution)."""
     b, c, h, w = x.shape
     r = int(math.ceil(2.5 * max(float(sigmas.max()), 0.4)))
-    t = torch.arange(-r, r + 1, dtype=torch.float32)
-    s = torch.from_numpy(np.maximum(sigmas, 1e-3)).float().view(b, 1)
+    t = torch.arange(-r, r + 1, dtype=torch.float32, device=x.device)
+    s = torch.from_numpy(np.maximum(sigmas, 1e-3)).float().to(x.device).view(b, 1)
     k = torch.exp(-0.5 * (t[None] / s) ** 2)
     k = k / k.sum(1, keepdim=True)
     k = k.repeat_interleave(c, dim=0)  # (b*c, 2r+1)
@@ -231,26 +233,40 @@ def _gaussian_blur(x: torch.Tensor, sigmas: np.ndarray) -> torch.Tensor:
 
 
 def _jpeg(img: torch.Tensor, quality: int) -> torch.Tensor:
-    arr = (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).numpy()
+    """A JPEG round trip of one (3, H, W) crop in [0, 1] through libjpeg (PIL), on the crop's device."""
+    arr = (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(1, 2, 0).cpu().numpy()
     buf = io.BytesIO()
     Image.fromarray(arr).save(buf, format="JPEG", quality=int(quality))
     buf.seek(0)
     with Image.open(buf) as im:
         back = np.asarray(im.convert("RGB"))
-    return torch.from_numpy(back.copy()).permute(2, 0, 1).float() / 255.0
+    return torch.from_numpy(back.copy()).permute(2, 0, 1).to(img.device).float() / 255.0
+
+
+_JPEG_POOL: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _jpeg_pool() -> ThreadPoolExecutor:
+    """This process's JPEG threads. A forked batch maker inherits its parent's pool without the
+    threads, so the pool is keyed by the process id."""
+    global _JPEG_POOL
+    if _JPEG_POOL is None or _JPEG_POOL[0] != os.getpid():
+        _JPEG_POOL = (os.getpid(), ThreadPoolExecutor(max_workers=4, thread_name_prefix="jpeg"))
+    return _JPEG_POOL[1]
 
 
 def photometric(x: torch.Tensor, cfg: AugConfig, rng: np.random.Generator) -> torch.Tensor:
     """Apply the photometric augmentations to a (B, 3, H, W) batch in [0, 1] (each op only on the
-    samples drawn for it)."""
+    samples drawn for it), on the batch's device: the parameters come from ``rng`` wherever it runs."""
     b, _, h, w = x.shape
+    dev = x.device
     aug = rng.random(b) >= cfg.p_clean
 
     def pick(p):
-        return torch.from_numpy(np.nonzero(aug & (rng.random(b) < p))[0])
+        return torch.from_numpy(np.nonzero(aug & (rng.random(b) < p))[0]).to(dev)
 
     def u(lo, hi, n, c=1):
-        return torch.from_numpy(rng.uniform(lo, hi, (n, c, 1, 1))).float()
+        return torch.from_numpy(rng.uniform(lo, hi, (n, c, 1, 1))).float().to(dev)
 
     i = pick(cfg.p_gain)
     if len(i):
@@ -262,13 +278,13 @@ def photometric(x: torch.Tensor, cfg: AugConfig, rng: np.random.Generator) -> to
         x[i] = (xi - mean) * u(0.5, 1.5, len(i)) + mean + u(-0.2, 0.2, len(i))
     i = pick(cfg.p_shading)
     if len(i):
-        field = torch.from_numpy(rng.normal(0.0, 1.0, (len(i), 3, 3, 3))).float()
+        field = torch.from_numpy(rng.normal(0.0, 1.0, (len(i), 3, 3, 3))).float().to(dev)
         field = F.interpolate(field, size=(h, w), mode="bilinear", align_corners=True)
         x[i] = x[i] + u(0.03, 0.25, len(i)) * field
     x.clamp_(0, 1)
     i = pick(cfg.p_gamma)
     if len(i):
-        gam = torch.from_numpy(np.exp(rng.uniform(np.log(0.6), np.log(1.6), (len(i), 1, 1, 1)))).float()
+        gam = torch.from_numpy(np.exp(rng.uniform(np.log(0.6), np.log(1.6), (len(i), 1, 1, 1)))).float().to(dev)
         x[i] = x[i].clamp_min(1e-4) ** gam
     i = pick(cfg.p_grey)
     if len(i):
@@ -281,10 +297,13 @@ def photometric(x: torch.Tensor, cfg: AugConfig, rng: np.random.Generator) -> to
         x[i] = _gaussian_blur(x[i], rng.uniform(*cfg.blur_sigma, len(i)))
     i = pick(cfg.p_noise)
     if len(i):
-        x[i] = x[i] + torch.randn(len(i), 3, h, w) * u(*cfg.noise_std, len(i))
+        x[i] = x[i] + torch.randn(len(i), 3, h, w, device=dev) * u(*cfg.noise_std, len(i))
     x.clamp_(0, 1)
-    for k in pick(cfg.p_jpeg).tolist():
-        x[k] = _jpeg(x[k], rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1))
+    chosen = pick(cfg.p_jpeg).tolist()
+    qualities = [rng.integers(cfg.jpeg_quality[0], cfg.jpeg_quality[1] + 1) for _ in chosen]
+    if chosen:
+        # libjpeg releases the GIL: a few threads keep a trainer augmenting on its GPU from waiting here.
+        x[chosen] = torch.stack(list(_jpeg_pool().map(_jpeg, x[chosen].cpu(), qualities))).to(dev)
     # Real images are 8-bit: quantise like the inference input.
     return torch.round(x * 255.0) / 255.0
 
@@ -295,6 +314,25 @@ def make_batch(images, points, pitches, batch: int, cfg: AugConfig, rng: np.rand
     idx = rng.integers(0, len(images), batch)
     x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus)
     return photometric(x, cfg, rng), labels
+
+
+def make_crops(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator, focus=None):
+    """The geometric half of ``make_batch``: (B, 3, ch, cw) uint8 crops, quantised as an 8-bit resize
+    at inference is, and their labels. A trainer whose batch workers are the bottleneck makes these
+    there and applies ``photometric`` on its GPU (``--augment-on device``): the photometric half is
+    one half to two thirds of a crop's CPU time."""
+    idx = rng.integers(0, len(images), batch)
+    x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus)
+    return torch.round(x * 255.0).to(torch.uint8), labels
+
+
+def make_crops_with_ignore(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator,
+                           focus=None, ignore=None):
+    """``make_crops`` plus each crop's ignore mask, as ``make_batch_with_ignore``."""
+    idx = rng.integers(0, len(images), batch)
+    masks: list = []
+    x, labels = sample_crops(images, points, pitches, idx, cfg, rng, focus, ignore, masks)
+    return torch.round(x * 255.0).to(torch.uint8), labels, torch.stack(masks)
 
 
 def make_batch_with_ignore(images, points, pitches, batch: int, cfg: AugConfig, rng: np.random.Generator,

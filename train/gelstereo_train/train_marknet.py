@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .augment import AugConfig, make_batch, make_batch_with_ignore
+from .augment import AugConfig, make_batch, make_batch_with_ignore, make_crops, make_crops_with_ignore, photometric
 from .batches import add_device_args, batch_stream, describe, pick_device
 from .data import dataset_tag, experiment_families, list_samples, median_nn_distance
 from .loss import build_targets, distillation_loss, ignore_cells, marknet_loss
@@ -207,15 +207,25 @@ def train(args, log=print) -> Path:
     warm = 200
     t0 = time.time()
     step = 0
-    hist = []
+    hist, drops = [], []
     last_log = t0
     last_save = t0
-    if ignore is None:
-        def make(r):
-            return make_batch(images, points, pitches, args.batch, cfg, r, contact)
-    else:
-        def make(r):
-            return make_batch_with_ignore(images, points, pitches, args.batch, cfg, r, contact, ignore)
+    on_device = getattr(args, "augment_on", "workers") == "device"
+    if on_device:
+        log(f"photometric augmentation on {describe(device)}, crops made by the batch makers")
+    grid = (args.crop // stride, args.crop // stride)
+
+    def make(r):
+        # The targets are made with the crops, by the batch makers: the training process only feeds the device.
+        if ignore is None:
+            x, labels = (make_crops if on_device else make_batch)(images, points, pitches, args.batch, cfg, r, contact)
+            rest = ()
+        else:
+            x, labels, masks = (make_crops_with_ignore if on_device else make_batch_with_ignore)(
+                images, points, pitches, args.batch, cfg, r, contact, ignore)
+            rest = (masks,)
+        return (x, *build_targets(labels, *grid, stride, args.candidates), *rest)
+
     batches = batch_stream(make, rng, args.workers, args.seed, pin_memory=device.type == "cuda")
     model.train()
     while True:
@@ -231,11 +241,16 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
-        x, labels, *crop_ignore = next(batches)
+        x, tgt, mask, dropped, *crop_ignore = next(batches)
         cells = ignore_cells(crop_ignore[0].to(device), stride) if crop_ignore else None
-        x = x.to(device, non_blocking=True).contiguous(memory_format=torch.channels_last)
+        x = x.to(device, non_blocking=True)
+        if on_device:  # uint8 crops: the photometric half here, from this process's stream
+            x = photometric(x.float() / 255.0, cfg, rng)
+        x = x.contiguous(memory_format=torch.channels_last)
         raw = model(x)
-        tgt, mask, dropped = build_targets(labels, raw.shape[1], raw.shape[2], stride, args.candidates)
+        if raw.shape[1:3] != grid:
+            raise SystemExit(f"--crop {args.crop}: the network's output grid is {tuple(raw.shape[1:3])}, "
+                             f"not {grid} (the crop must be a multiple of 32)")
         tgt, mask = tgt.to(device, non_blocking=True), mask.to(device, non_blocking=True)
         loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta, cells)
         if teacher is not None:
@@ -246,14 +261,16 @@ def train(args, log=print) -> Path:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
-        hist.append((loss.item(), lc.item(), lp.item(), md.item(), dropped))
+        # Kept on the device, read at each log: a read per step would make the host wait for every step.
+        hist.append(torch.stack([loss.detach(), lc.detach(), lp.detach(), md.detach()]))
+        drops.append(dropped)
         step += 1
         now = time.time()
         if now - last_log > args.log_every_s or step == 1:
-            h = np.asarray(hist[-50:])
+            h = torch.stack(hist[-50:]).cpu().numpy()
             log(f"step {step} t {now - t0:.0f}s lr {lr:.2e} loss {h[:, 0].mean():.4f} "
                 f"conf {h[:, 1].mean():.4f} dist {h[:, 2].mean():.4f} mean_d {h[:, 3].mean():.3f}px "
-                f"dropped {int(h[:, 4].sum())} ({step * args.batch / (now - t0):.0f} img/s)")
+                f"dropped {sum(drops[-50:])} ({step * args.batch / (now - t0):.0f} img/s)")
             last_log = now
         if args.save_every_min and now - last_save > 60.0 * args.save_every_min:
             save_checkpoint(Path(args.out), model.to(memory_format=torch.contiguous_format),
@@ -284,7 +301,7 @@ def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, pa
         "steps": step,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
         "aug": dataclasses.asdict(cfg),
-        "final_loss": float(np.mean([h[0] for h in hist[-100:]])) if hist else None,
+        "final_loss": float(torch.stack(hist[-100:])[:, 0].mean()) if hist else None,
         "init": init_record,
         "device": device,
         "partial": partial,
@@ -357,6 +374,10 @@ def parser() -> argparse.ArgumentParser:
                    help="share of crops laid across an image edge, the outside filled with the image's median "
                    "colour as the auto layout's margin at inference (dots cut by the border; shipped models: 0)")
     add_device_args(p)
+    p.add_argument("--augment-on", choices=("workers", "device"), default="workers",
+                   help="where the photometric augmentation runs: in the batch makers with the crops (a seeded "
+                   "CPU run's batches), or on the training device, the batch makers making uint8 crops only "
+                   "(a third to a half of a crop's CPU time in the batch makers)")
     p.add_argument("--teacher", type=Path, default=None,
                    help="Marknet checkpoint whose outputs the student learns too (distillation; e.g. "
                    "checkpoints/default/marknet.pt for a cheaper --stem warm-started with --init from it)")

@@ -177,3 +177,27 @@ def test_edge_crops_overhang_an_edge_filled_with_the_median_colour_as_at_inferen
     errs = _label_errors(img, pts, pitch, cfg, rng, 6.5)
     assert len(errs) > 20 and np.median(errs) < 0.1 and np.max(errs) < 0.25
 
+
+
+def test_crops_then_photometric_are_the_batch_of_make_batch_up_to_8_bit_crops(tiny_root):
+    """``--augment-on device`` splits ``make_batch`` in two: uint8 crops made by the batch makers,
+    then ``photometric`` on the trainer's device from the trainer's stream. Fed one stream in that
+    order, the two halves draw what ``make_batch`` draws: same labels, and pixels that differ by
+    the crops' 8-bit quantisation carried through the augmentations (gains up to 1.4, contrast up
+    to 1.5, gamma), never by a different draw."""
+    from gelstereo_train.augment import make_crops
+    from gelstereo_train.data import list_samples, median_nn_distance
+
+    s = list_samples(tiny_root, "train")
+    imgs = [a.load() for a in s]
+    pts = [a.points_px for a in s]
+    pitches = np.array([median_nn_distance(p) for p in pts])
+    cfg = AugConfig(crop=(64, 64), p_clean=0.0, p_jpeg=0.0, p_noise=0.0)
+    whole, whole_labels = make_batch(imgs, pts, pitches, 6, cfg, np.random.default_rng(4))
+    rng = np.random.default_rng(4)
+    crops, labels = make_crops(imgs, pts, pitches, 6, cfg, rng)
+    assert crops.dtype == torch.uint8 and crops.shape == (6, 3, 64, 64)
+    split = photometric(crops.float() / 255.0, cfg, rng)
+    assert all(np.array_equal(a, b) for a, b in zip(labels, whole_labels))
+    diff = (split - whole).abs()
+    assert float(diff.mean()) < 1.0 / 255 and float(diff.max()) <= 6.0 / 255
