@@ -209,6 +209,9 @@ def train(args, log=print) -> Path:
     step = 0
     hist, drops = [], []
     last_log = t0
+    # Time spent waiting for the batch makers, in all and since the last log line: near 100 % the
+    # batches are the limit, near 0 the training device (or this process's own work) is.
+    waited, waited_at_log, step_at_log = 0.0, 0.0, 0
     last_save = t0
     on_device = getattr(args, "augment_on", "workers") == "device"
     if on_device:
@@ -241,7 +244,9 @@ def train(args, log=print) -> Path:
         lr = args.lr * min(1.0, (step + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
         for g in opt.param_groups:
             g["lr"] = lr
+        asked = time.time()
         x, tgt, mask, dropped, *crop_ignore = next(batches)
+        waited += time.time() - asked
         cells = ignore_cells(crop_ignore[0].to(device), stride) if crop_ignore else None
         x = x.to(device, non_blocking=True)
         if on_device:  # uint8 crops: the photometric half here, from this process's stream
@@ -270,12 +275,14 @@ def train(args, log=print) -> Path:
             h = torch.stack(hist[-50:]).cpu().numpy()
             log(f"step {step} t {now - t0:.0f}s lr {lr:.2e} loss {h[:, 0].mean():.4f} "
                 f"conf {h[:, 1].mean():.4f} dist {h[:, 2].mean():.4f} mean_d {h[:, 3].mean():.3f}px "
-                f"dropped {sum(drops[-50:])} ({step * args.batch / (now - t0):.0f} img/s)")
-            last_log = now
+                f"dropped {sum(drops[-50:])} ({step * args.batch / (now - t0):.0f} img/s; since the last line "
+                f"{(step - step_at_log) * args.batch / max(now - last_log, 1e-9):.0f} img/s, "
+                f"{100 * (waited - waited_at_log) / max(now - last_log, 1e-9):.0f} % waiting for batches)")
+            last_log, waited_at_log, step_at_log = now, waited, step
         if args.save_every_min and now - last_save > 60.0 * args.save_every_min:
             save_checkpoint(Path(args.out), model.to(memory_format=torch.contiguous_format),
                             run_meta(args, cfg, images, hist, step, now - t0, init_record, partial=True,
-                                     device=describe(device)))
+                                     device=describe(device), batch_wait_s=waited))
             model = model.to(memory_format=torch.channels_last)
             model.train()
             log(f"checkpoint {args.out} at step {step}")
@@ -283,13 +290,13 @@ def train(args, log=print) -> Path:
     train_s = time.time() - t0
     model = model.to(memory_format=torch.contiguous_format)
     save_checkpoint(Path(args.out), model, run_meta(args, cfg, images, hist, step, train_s, init_record,
-                                                     device=describe(device)))
+                                                     device=describe(device), batch_wait_s=waited))
     log(f"saved {args.out} after {step} steps, {train_s:.0f} s")
     return Path(args.out)
 
 
 def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, partial: bool = False,
-             device: str = "cpu") -> dict:
+             device: str = "cpu", batch_wait_s: float | None = None) -> dict:
     """The checkpoint's metadata: dataset, input size, training record (`partial` while running)."""
     return {
         "dataset": dataset_tag(args.data, len(images)),
@@ -305,6 +312,8 @@ def run_meta(args, cfg, images, hist, step: int, train_s: float, init_record, pa
         "init": init_record,
         "device": device,
         "partial": partial,
+        # the share of the training time spent waiting for the batch makers
+        "batch_wait_fraction": None if batch_wait_s is None else round(batch_wait_s / max(train_s, 1e-9), 3),
     }
 
 

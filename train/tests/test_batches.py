@@ -69,6 +69,8 @@ def test_a_run_with_photometric_augmentation_on_the_device_trains_and_records_it
     meta = torch.load(ck, map_location="cpu", weights_only=False)["meta"]
     assert meta["steps"] == 3 and meta["args"]["augment_on"] == "device"
     assert np.isfinite(meta["final_loss"])
+    # where the run's time went: the share spent waiting for the batch makers
+    assert 0.0 <= meta["batch_wait_fraction"] <= 1.0
 
 
 def test_forked_batch_makers_compress_jpeg_after_the_parent_did(tiny_root):
