@@ -26,6 +26,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .data import nearest_neighbour_distances
+
 MISSING_DISTANCE = 4.0
 NEIGHBOURS = 10
 
@@ -260,7 +262,7 @@ def pitch_px(cands: np.ndarray, conf_keep: float) -> float:
         sel = cands
     if len(sel) < 2:
         return float("nan")
-    return float(np.median(_pairwise(sel[:, :2]).min(axis=1)))
+    return float(np.median(nearest_neighbour_distances(sel[:, :2])))
 
 
 def dedup(cands: np.ndarray, radius_px: float) -> np.ndarray:
@@ -357,16 +359,6 @@ def run_marknet(model, rgb_images: list[np.ndarray], input_hw: tuple[int, int], 
     return out
 
 
-def _nearest_other(p: np.ndarray) -> np.ndarray:
-    """Distance from each point to its nearest other point (inf when alone); chunked brute force."""
-    out = np.full(len(p), np.inf)
-    for s in range(0, len(p), 512):
-        d = np.sqrt(((p[s:s + 512, None, :] - p[None, :, :]) ** 2).sum(-1))
-        d[np.arange(d.shape[0]), np.arange(s, s + d.shape[0])] = np.inf
-        out[s:s + 512] = d.min(axis=1)
-    return out
-
-
 class _Patches:
     """A union-find forest whose roots are the smallest index of their set (Rust: ``lattice::Patches``)."""
 
@@ -392,7 +384,7 @@ def lattice_members(points: np.ndarray, check: LatticeCheck = LatticeCheck()) ->
     member = np.zeros(n, dtype=bool)
     if n < 3:
         return member
-    nn = _nearest_other(p)
+    nn = nearest_neighbour_distances(p)
     median_nn = float(np.median(nn))
     angles: list[list[float]] = [[] for _ in range(n)]
     bonds = []
@@ -459,7 +451,7 @@ def spaced_members(points: np.ndarray, sure: np.ndarray, check: LatticeCheck = L
     ``nn``: the points' nearest-neighbour distances, when the caller has them."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     n = len(p)
-    nn = _nearest_other(p) if nn is None else nn
+    nn = nearest_neighbour_distances(p) if nn is None else nn
     if n < 3 or not np.isfinite(nn).any():
         return np.zeros(n, dtype=bool)
     median_nn = float(np.median(nn[np.isfinite(nn)]))
@@ -507,7 +499,7 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, co
     in 5 of the sure points (confidence >= ``adjacent_min_confidence``) out, those of ``spaced_members``:
     both lattices at one pitch are one (their union), else the larger is."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    nn = _nearest_other(p)
+    nn = nearest_neighbour_distances(p)
     lined_member = lattice_members(p, check)
     sure = np.ones(len(p), dtype=bool) if conf is None else np.asarray(conf) >= check.adjacent_min_confidence
     left_out = int((sure & ~lined_member).sum())
