@@ -22,13 +22,18 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gelstereo_train.export import export_marknet  # noqa: E402
-from gelstereo_train.model import Marknet  # noqa: E402
+from gelstereo_train.model import FUSE_KERNELS, STEMS, Marknet  # noqa: E402
 from network_cost import interleaved_cpu_ms, session  # noqa: E402
 
 
 def parse_shape(text: str) -> dict:
-    stem, width, fuse = text.split(":")
-    return {"stem": stem, "width": int(width), "fuse_kernel": int(fuse)}
+    """STEM:WIDTH:FUSE_KERNEL as Marknet's arguments; ValueError naming what was expected."""
+    parts = text.split(":")
+    if (len(parts) != 3 or parts[0] not in STEMS or not parts[1].isdigit() or int(parts[1]) < 1
+            or not parts[2].isdigit() or int(parts[2]) not in FUSE_KERNELS):
+        raise ValueError(f"shape {text!r}: expected STEM:WIDTH:FUSE_KERNEL, STEM one of {', '.join(STEMS)}, "
+                         f"WIDTH a positive integer, FUSE_KERNEL one of {FUSE_KERNELS} (e.g. s4-bare:8:1)")
+    return {"stem": parts[0], "width": int(parts[1]), "fuse_kernel": int(parts[2])}
 
 
 def main(argv=None) -> int:
@@ -39,13 +44,17 @@ def main(argv=None) -> int:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--runs", type=int, default=40, help="runs of 5 per shape and round")
     args = p.parse_args(argv)
+    try:
+        shapes = [parse_shape(t) for t in args.shapes]
+    except ValueError as e:
+        p.error(str(e))
     torch.manual_seed(0)
     x = np.random.default_rng(0).random((2, 3, args.height, args.width), dtype=np.float32)
     print(f"one stereo pair, 2 x 3 x {args.height} x {args.width}, one thread, CPU ms per run")
     with tempfile.TemporaryDirectory() as tmp:
         paths = []
-        for i, shape in enumerate(args.shapes):
-            model = Marknet(stride=8, candidates=5, **parse_shape(shape)).eval()
+        for i, (shape, arch) in enumerate(zip(args.shapes, shapes)):
+            model = Marknet(stride=8, candidates=5, **arch).eval()
             path = Path(tmp) / f"shape{i}.onnx"
             export_marknet(model, path, (args.height, args.width), {})
             params = sum(q.numel() for q in model.parameters())
