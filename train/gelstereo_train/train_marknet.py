@@ -147,6 +147,9 @@ def load_teacher(path: Path | None, student: Marknet, log=print) -> Marknet | No
 
 
 def train(args, log=print) -> Path:
+    if args.crop < 32 or args.crop % 32:
+        # the batch makers lay out the targets for an output grid of crop / stride cells
+        raise SystemExit(f"--crop {args.crop}: expected a positive multiple of 32 (network px)")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -253,9 +256,6 @@ def train(args, log=print) -> Path:
             x = photometric(x.float() / 255.0, cfg, rng)
         x = x.contiguous(memory_format=torch.channels_last)
         raw = model(x)
-        if raw.shape[1:3] != grid:
-            raise SystemExit(f"--crop {args.crop}: the network's output grid is {tuple(raw.shape[1:3])}, "
-                             f"not {grid} (the crop must be a multiple of 32)")
         tgt, mask = tgt.to(device, non_blocking=True), mask.to(device, non_blocking=True)
         loss, lc, lp, md = marknet_loss(raw, tgt, mask, stride, args.alpha, args.beta, cells)
         if teacher is not None:

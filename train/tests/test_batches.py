@@ -99,3 +99,10 @@ print("batch", tuple(x.shape))
                           cwd=str(Path(__file__).resolve().parents[1]))
     assert done.returncode == 0, done.stderr
     assert "batch (2, 3, 64, 64)" in done.stdout
+
+
+def test_a_crop_that_is_no_multiple_of_32_is_refused_before_any_work(tmp_path):
+    args = train_marknet.parser().parse_args(
+        ["--data", str(tmp_path / "absent"), "--out", str(tmp_path / "m.pt"), "--crop", "100"])
+    with pytest.raises(SystemExit, match="--crop 100: expected a positive multiple of 32"):
+        train_marknet.train(args, log=lambda *_: None)
