@@ -93,6 +93,36 @@ def load_checkpoint(path: Path | str) -> tuple[Marknet, dict]:
     return model.eval(), ck["meta"]
 
 
+def average_checkpoints(paths: list[Path]) -> tuple[Marknet, dict]:
+    """The element-wise mean of the weights of checkpoints of one architecture (a "soup": two
+    fine-tunes from one start often land between their strengths). Integer buffers (BatchNorm's step
+    counts) are the first checkpoint's. The meta names each source with its training record."""
+    if len(paths) < 2:
+        raise SystemExit("average_checkpoints: give at least two checkpoints")
+    cks = []
+    for path in paths:
+        if not Path(path).is_file():
+            raise SystemExit(f"{path}: no such checkpoint file")
+        cks.append(torch.load(path, map_location="cpu", weights_only=False))
+    arch = cks[0]["arch"]
+    for path, ck in zip(paths[1:], cks[1:]):
+        if ck["arch"] != arch:
+            raise SystemExit(f"{path}: architecture {ck['arch']} differs from {paths[0]}'s {arch}; "
+                             "only checkpoints of one architecture can be averaged")
+    first = cks[0]["model"]
+    mean = {k: (torch.stack([ck["model"][k] for ck in cks]).mean(dim=0) if v.is_floating_point() else v)
+            for k, v in first.items()}
+    model = Marknet(**arch)
+    model.load_state_dict(mean)
+    sources = [{k: ck["meta"].get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(p)}
+               for p, ck in zip(paths, cks)]
+    # What export reads (input size, the crops' layout) is the first checkpoint's: same architecture.
+    meta = {k: cks[0]["meta"][k] for k in ("input_height", "input_width", "aug") if k in cks[0]["meta"]}
+    datasets = dict.fromkeys(str(ck["meta"].get("dataset")) for ck in cks)
+    return model.eval(), meta | {"dataset": " + ".join(datasets), "average_of": sources,
+                                 "trained": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
+
+
 def load_init(model: Marknet, path: Path) -> dict:
     """Copies a checkpoint's weights into `model`. The architecture must be the one asked for, or one
     that holds every weight of it with the same name and shape (an "s4" checkpoint warm-starts an

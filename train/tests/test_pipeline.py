@@ -285,3 +285,36 @@ def test_quantized_marknet_keeps_the_contract_and_the_float_ends(trained, tiny_r
     a, b = fs.run(["raw"], {"image": x})[0], qs.run(["raw"], {"image": x})[0]
     assert a.shape == b.shape and np.isfinite(b).all()
     assert np.abs(a - b).mean() < 0.1 * np.abs(a).mean() + 1e-3
+
+
+def test_averaged_checkpoints_hold_the_mean_weights_and_export(tmp_path):
+    meta = {"input_height": 128, "input_width": 128, "dataset": "tiny", "trained": "t", "steps": 3,
+            "aug": {"canonical": "auto"}}
+    paths = []
+    for seed in (1, 2):
+        torch.manual_seed(seed)
+        m = Marknet(stride=8, candidates=2, width=4)
+        paths.append(tmp_path / f"m{seed}.pt")
+        train_marknet.save_checkpoint(paths[-1], m, meta)
+    soup, soup_meta = train_marknet.average_checkpoints(paths)
+    a, _ = train_marknet.load_checkpoint(paths[0])
+    b, _ = train_marknet.load_checkpoint(paths[1])
+    for k, v in soup.state_dict().items():
+        if v.is_floating_point():
+            assert torch.allclose(v, (a.state_dict()[k] + b.state_dict()[k]) / 2), k
+    assert [s["path"] for s in soup_meta["average_of"]] == [str(p) for p in paths]
+    out = tmp_path / "soup.pt"
+    train_marknet.save_checkpoint(out, soup, soup_meta)
+    assert export.main(["--marknet", str(out), "--out-dir", str(tmp_path / "exp")]) == 0
+    assert (tmp_path / "exp" / "marknet.onnx").is_file()
+
+
+def test_checkpoints_of_other_architectures_are_not_averaged(tmp_path):
+    meta = {"input_height": 128, "input_width": 128}
+    paths = [tmp_path / "narrow.pt", tmp_path / "wide.pt"]
+    train_marknet.save_checkpoint(paths[0], Marknet(stride=8, candidates=2, width=4), meta)
+    train_marknet.save_checkpoint(paths[1], Marknet(stride=8, candidates=2, width=8), meta)
+    with pytest.raises(SystemExit, match="wide.pt: architecture .* differs"):
+        train_marknet.average_checkpoints(paths)
+    with pytest.raises(SystemExit, match="no such checkpoint"):
+        train_marknet.average_checkpoints([paths[0], tmp_path / "missing.pt"])
