@@ -103,7 +103,11 @@ def average_checkpoints(paths: list[Path]) -> tuple[Marknet, dict]:
     for path in paths:
         if not Path(path).is_file():
             raise SystemExit(f"{path}: no such checkpoint file")
-        cks.append(torch.load(path, map_location="cpu", weights_only=False))
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        if not (isinstance(ck, dict) and {"arch", "model", "meta"} <= ck.keys()):
+            raise SystemExit(f"{path}: not a Marknet checkpoint of train_marknet (expected its arch, model "
+                             "and meta)")
+        cks.append(ck)
     arch = cks[0]["arch"]
     for path, ck in zip(paths[1:], cks[1:]):
         if ck["arch"] != arch:

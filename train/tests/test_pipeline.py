@@ -318,3 +318,6 @@ def test_checkpoints_of_other_architectures_are_not_averaged(tmp_path):
         train_marknet.average_checkpoints(paths)
     with pytest.raises(SystemExit, match="no such checkpoint"):
         train_marknet.average_checkpoints([paths[0], tmp_path / "missing.pt"])
+    torch.save({"weights": 1}, tmp_path / "other.pt")
+    with pytest.raises(SystemExit, match="other.pt: not a Marknet checkpoint"):
+        train_marknet.average_checkpoints([paths[0], tmp_path / "other.pt"])

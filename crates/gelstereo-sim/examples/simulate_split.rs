@@ -7,7 +7,7 @@
 //! ```
 //! writes what `gelstereo simulate --out OUT --experiments EXPERIMENTS --frames-per-experiment FRAMES
 //! --seed SEED --randomization RANDOMIZATION [--split SPLIT]` writes with the reference sensor, byte
-//! for byte.
+//! for byte. OUT must not exist or be empty (there is no `--force`).
 
 use std::path::PathBuf;
 use std::process::ExitCode;
