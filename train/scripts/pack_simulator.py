@@ -122,6 +122,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="archive to write (.tar.xz)")
     args = p.parse_args(argv)
+    missing = [t for t in ("cargo", "readelf", "nm", "ldd", "strip", "gcc") if shutil.which(t) is None]
+    if missing:
+        raise SystemExit(f"pack_simulator needs {', '.join(missing)} on PATH (binutils, gcc, cargo)")
     subprocess.run(["cargo", "build", "--release", "-q", "-p", "gelstereo-sim", "--example", EXAMPLE],
                    check=True, cwd=REPO)
     built = REPO / "target" / "release" / "examples" / EXAMPLE
