@@ -118,8 +118,7 @@ def average_checkpoints(paths: list[Path]) -> tuple[Marknet, dict]:
             for k, v in first.items()}
     model = Marknet(**arch)
     model.load_state_dict(mean)
-    sources = [{k: ck["meta"].get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(p)}
-               for p, ck in zip(paths, cks)]
+    sources = [training_record(ck["meta"], p) for p, ck in zip(paths, cks)]
     # What export reads (input size, the crops' layout) is the first checkpoint's: same architecture.
     meta = {k: cks[0]["meta"][k] for k in ("input_height", "input_width", "aug") if k in cks[0]["meta"]}
     datasets = dict.fromkeys(str(ck["meta"].get("dataset")) for ck in cks)
@@ -145,9 +144,14 @@ def load_init(model: Marknet, path: Path) -> dict:
                          "--fuse-kernel)")
     left_out = sorted(k for k in theirs if k not in mine)
     model.load_state_dict({k: theirs[k] for k in mine})
-    meta = ck.get("meta", {})
-    record = {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
+    record = training_record(ck.get("meta", {}), path)
     return record | ({"left_out": left_out} if left_out else {})
+
+
+def training_record(meta: dict, path: Path | str) -> dict:
+    """What a checkpoint built on another records of it: when, how long and from what it was trained,
+    and where it was read from."""
+    return {k: meta.get(k) for k in ("trained", "steps", "train_seconds", "init")} | {"path": str(path)}
 
 
 def narrowed_kernels(theirs: dict, mine: dict) -> dict:
