@@ -62,10 +62,9 @@ def dynamic_symbols(path: Path, defined: bool) -> set[str]:
     return names
 
 
-def closure(binary: Path) -> tuple[dict[str, Path], set[str]]:
+def closure(binary: Path, paths: dict[str, str]) -> tuple[dict[str, Path], set[str]]:
     """The libraries to carry (name -> path) and the names of those to stub, walking NEEDED entries
-    from `binary` and not into the C library or the stubbed ones."""
-    paths = resolved(binary)
+    from `binary` and not into the C library or the stubbed ones; `paths`: `resolved(binary)`."""
     carry: dict[str, Path] = {}
     stubs: set[str] = set()
     todo = needed(binary)
@@ -83,10 +82,11 @@ def closure(binary: Path) -> tuple[dict[str, Path], set[str]]:
     return carry, stubs
 
 
-def write_stubs(carry: dict[str, Path], binary: Path, stubs: set[str], lib: Path, work: Path) -> int:
-    """One stub library per stubbed name, defining every symbol the carried files take from them."""
-    system = resolved(binary)
-    defined = set().union(*(dynamic_symbols(Path(system[n]), True) for n in SYSTEM if n in system))
+def write_stubs(carry: dict[str, Path], binary: Path, paths: dict[str, str], stubs: set[str], lib: Path,
+                work: Path) -> int:
+    """One stub library per stubbed name, defining every symbol the carried files take from them;
+    `paths`: `resolved(binary)`, where the C library's parts are."""
+    defined = set().union(*(dynamic_symbols(Path(paths[n]), True) for n in SYSTEM if n in paths))
     defined |= set().union(*(dynamic_symbols(p, True) for p in carry.values()))
     wanted = dynamic_symbols(binary, False).union(*(dynamic_symbols(p, False) for p in carry.values()))
     missing = sorted(wanted - defined)
@@ -134,10 +134,11 @@ def main(argv=None) -> int:
         (pack / "lib").mkdir(parents=True)
         shutil.copy(built, pack / EXAMPLE)
         run("strip", str(pack / EXAMPLE))
-        carry, stubs = closure(built)
+        paths = resolved(built)
+        carry, stubs = closure(built, paths)
         for name, path in carry.items():
             shutil.copy(path, pack / "lib" / name)
-        stubbed_symbols = write_stubs(carry, built, stubs, pack / "lib", work)
+        stubbed_symbols = write_stubs(carry, built, paths, stubs, pack / "lib", work)
         check(pack, built, work)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         part = args.out.with_name(args.out.name + ".part")
