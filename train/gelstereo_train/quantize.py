@@ -43,6 +43,19 @@ def calibration_inputs(model: onnx.ModelProto, data: Path, images: int, split: s
     return out
 
 
+def cropped_to_common_size(inputs: list[np.ndarray]) -> list[np.ndarray]:
+    """`inputs` cut about their centres to the smallest height and width among them (multiples of the
+    input multiple, as every layout is). ONNX Runtime's histogram calibrators (percentile, entropy)
+    stack each tensor's values over all inputs and need them of one shape; MinMax does not."""
+    h = min(x.shape[2] for x in inputs)
+    w = min(x.shape[3] for x in inputs)
+    out = []
+    for x in inputs:
+        top, left = (x.shape[2] - h) // 2, (x.shape[3] - w) // 2
+        out.append(np.ascontiguousarray(x[:, :, top:top + h, left:left + w]))
+    return out
+
+
 class _Reader:
     """onnxruntime.quantization CalibrationDataReader over a list of inputs."""
 
@@ -53,18 +66,35 @@ class _Reader:
         x = next(self.inputs, None)
         return None if x is None else {"image": x}
 
-    def rewind(self):  # pragma: no cover - not used by the MinMax calibrator
+    def rewind(self):  # pragma: no cover - the calibrators used here read the inputs once
         pass
 
 
 FLOAT_PARTS = ("stem", "head")
+
+# Every part `--keep-float` knows: the recipe's two and two more measured in the model card.
+PARTS = ("stem", "head", "s4", "decoder")
+
+# Node-name prefixes of the parts that are whole modules of `gelstereo_train.model.Marknet`: `s4` the
+# stride-4 stage (the stem's convolution and the residual block after it), `decoder` the top-down path
+# (the lateral reductions, upsampling, concatenations and fusing convolutions).
+PART_PREFIXES = {"s4": ("/s4/",), "decoder": ("/reduce/", "/fuse1/", "/fuse2/", "/Resize", "/Concat")}
+
+
+def check_parts(parts: tuple[str, ...]) -> None:
+    """Raises ValueError naming any part `float_nodes` does not know."""
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise ValueError(f"--keep-float: unknown part(s) {', '.join(unknown)}; expected some of {', '.join(PARTS)}")
 
 
 def float_nodes(model: onnx.ModelProto, parts: tuple[str, ...]) -> list[str]:
     """Names of the nodes left in float. `stem`: the first convolution (it reads the 3-channel input;
     in int8 it is slower than in float, and it would need the input quantized first) and the
     activation after it. `head`: the 1x1 detection head and the reshape and transpose after it (int8
-    logits move the decoded positions by ~0.3 px: one uint8 step of the logit range is ~0.1 in logit)."""
+    logits move the decoded positions by ~0.3 px: one uint8 step of the logit range is ~0.1 in logit).
+    `s4` and `decoder`: the nodes of those modules (`PART_PREFIXES`)."""
+    check_parts(parts)
     graph_input = model.graph.input[0].name
     out = []
     if "stem" in parts:
@@ -74,17 +104,23 @@ def float_nodes(model: onnx.ModelProto, parts: tuple[str, ...]) -> list[str]:
     if "head" in parts:
         out += [n.name for n in model.graph.node
                 if n.name.startswith("/head/") or n.op_type in ("Reshape", "Transpose")]
-    return out
+    prefixes = tuple(x for part in parts for x in PART_PREFIXES.get(part, ()))
+    if prefixes:
+        out += [n.name for n in model.graph.node if n.name.startswith(prefixes)]
+    return list(dict.fromkeys(out))
 
 
 def quantize(model_path: Path, data: Path, out: Path, fmt: str = "qdq", images: int = 96,
-             method: str = "minmax", keep_float: tuple[str, ...] = FLOAT_PARTS) -> dict:
+             method: str = "percentile", keep_float: tuple[str, ...] = FLOAT_PARTS) -> dict:
     """Writes the quantized model to `out`; returns the metadata it added."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    check_parts(keep_float)
     model = onnx.load(str(model_path))
     inputs = calibration_inputs(model, data, images)
+    if method != "minmax":
+        inputs = cropped_to_common_size(inputs)
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(model_path), str(pre), skip_symbolic_shape=True)
@@ -120,13 +156,19 @@ def main(argv=None) -> int:
     p.add_argument("--data", type=Path, required=True, help="simulated dataset (gelstereo simulate)")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--format", choices=("qdq", "qoperator"), default="qdq")
-    p.add_argument("--method", choices=("minmax", "percentile", "entropy"), default="minmax")
+    p.add_argument("--method", choices=("minmax", "percentile", "entropy"), default="percentile",
+                   help="activation ranges: percentile (default: the 99.999th, ONNX Runtime's default) "
+                        "placed markers closer to float than minmax")
     p.add_argument("--images", type=int, default=96, help="calibration inputs from the train split")
     p.add_argument("--keep-float", default=",".join(FLOAT_PARTS),
-                   help="parts left in float, comma-separated from: stem, head (empty: none)")
+                   help="parts left in float, comma-separated from: " + ", ".join(PARTS) + " (empty: none)")
     args = p.parse_args(argv)
-    added = quantize(args.model, args.data, args.out, args.format, args.images, args.method,
-                     tuple(x for x in args.keep_float.split(",") if x))
+    keep_float = tuple(x for x in args.keep_float.split(",") if x)
+    try:
+        check_parts(keep_float)
+    except ValueError as e:
+        p.error(str(e))
+    added = quantize(args.model, args.data, args.out, args.format, args.images, args.method, keep_float)
     print(f"wrote {args.out}: {added['quantized']}")
     return 0
 

@@ -28,6 +28,7 @@ from .data import dataset_tag, experiment_families, list_samples, median_nn_dist
 from .loss import build_targets, distillation_loss, ignore_cells, marknet_loss
 from .model import FUSE_KERNELS, STEMS, STRIDE_FOR_GRID_416, Marknet, count_flops
 from .onnx_init import load_onnx_weights
+from .qat import ActivationRounding
 
 
 def decoded(samples, threads: int):
@@ -240,6 +241,9 @@ def train(args, log=print) -> Path:
     model = model.to(device, memory_format=torch.channels_last)
     if teacher is not None:
         teacher = teacher.to(device, memory_format=torch.channels_last)
+    if getattr(args, "qat", False):
+        rounding = ActivationRounding(model).to(device)
+        log(f"quantization-aware: {len(rounding)} activations rounded to uint8 as the int8 build rounds them")
     opt = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     if cfg.p_contact > 0:
         log(f"{sum(len(c) > 0 for c in contact)} of {len(samples)} images show contact markers; "
@@ -431,6 +435,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation loss")
     p.add_argument("--alpha", type=float, default=1.0, help="weight of the confidence BCE")
     p.add_argument("--beta", type=float, default=1.0, help="weight of the Euclidean distance")
+    p.add_argument("--qat", action="store_true",
+                   help="quantization-aware: train with the activations rounded to uint8 as the int8 build "
+                   "(gelstereo_train.quantize) rounds them; the checkpoint stays a float network")
     return p
 
 

@@ -6,7 +6,7 @@
 Per model: fp32 at 1 and 2 intra-op threads (graph optimisation "all", as `gelstereo-markers` sets it, no
 spinning), per image at batch 2 and 4, and with `--int8 DATA_ROOT` the static int8 builds of
 `gelstereo_train.quantize` calibrated on that dataset's train split: its recipe (stem and detection head
-left in float) and everything quantized, per image at batch 2 (a stereo pair) and one thread, with their
+left in float), the recipe with the decoder (top-down path) in float too, and everything quantized, per image at batch 2 (a stereo pair) and one thread, with their
 ratio to fp32's CPU time measured interleaved with it; `--profile` lists the 8
 costliest nodes (share of kernel time, one thread). Random input of the reference sensor's auto layout
 (416 x 320).
@@ -83,6 +83,10 @@ def costliest_nodes(path: Path, x: np.ndarray, runs: int, out_dir: Path, top: in
     return [(what[k][0], what[k][1], 100.0 * v / total) for k, v in spent.most_common(top)]
 
 
+# The parts each int8 build leaves in float (`gelstereo_train.quantize.PARTS`), one table column each.
+INT8_BUILDS = (("stem", "head"), ("stem", "head", "decoder"), ())
+
+
 def quantised(path: Path, data_root: Path, out_dir: Path, keep_float: tuple[str, ...]) -> Path:
     """`path` quantized by `gelstereo_train.quantize` (the model card's int8 recipe), `keep_float` parts
     left in float."""
@@ -104,17 +108,18 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     x1 = rng.random((1, 3, args.height, args.width), dtype=np.float32)
     print(f"onnxruntime {ort.__version__}, input {args.width} x {args.height}, median of {args.runs} runs, ms per image")
-    print("| model | fp32, 1 thread | fp32, 2 threads | batch 2 | batch 4 | int8, stem and head fp32 | int8, all |")
-    print("|---|---|---|---|---|---|---|")
+    print("| model | fp32, 1 thread | fp32, 2 threads | batch 2 | batch 4 | int8, stem and head fp32 "
+          "| int8, stem, head and decoder fp32 | int8, all |")
+    print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.models:
             row = [median_ms(session(path, 1), x1, args.runs), median_ms(session(path, 2), x1, args.runs)]
             for n in (2, 4):
                 xn = np.repeat(x1, n, axis=0)
                 row.append(median_ms(session(path, 1), xn, args.runs // 2) / n)
-            int8 = ["-", "-"]
+            int8 = ["-"] * len(INT8_BUILDS)
             if args.int8 is not None:
-                builds = [quantised(path, args.int8, Path(tmp), keep) for keep in (("stem", "head"), ())]
+                builds = [quantised(path, args.int8, Path(tmp), keep) for keep in INT8_BUILDS]
                 x2 = np.repeat(x1, 2, axis=0)
                 fp32, *quantized = interleaved_cpu_ms([session(m, 1) for m in [path, *builds]], x2, args.runs // 5)
                 int8 = [f"{ms / 2:.2f} ({ms / fp32:.2f}x)" for ms in quantized]

@@ -271,7 +271,7 @@ def test_quantized_marknet_keeps_the_contract_and_the_float_ends(trained, tiny_r
     f, q = onnx.load(str(src)), onnx.load(str(out))
     fprops = {p.key: p.value for p in f.metadata_props}
     qprops = {p.key: p.value for p in q.metadata_props}
-    assert qprops.pop("quantized").startswith("int8 static per-channel qdq minmax, 4 train-split inputs")
+    assert qprops.pop("quantized").startswith("int8 static per-channel qdq percentile, 4 train-split inputs")
     assert qprops == fprops
     ops = [n.op_type for n in q.graph.node]
     assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
@@ -285,6 +285,40 @@ def test_quantized_marknet_keeps_the_contract_and_the_float_ends(trained, tiny_r
     a, b = fs.run(["raw"], {"image": x})[0], qs.run(["raw"], {"image": x})[0]
     assert a.shape == b.shape and np.isfinite(b).all()
     assert np.abs(a - b).mean() < 0.1 * np.abs(a).mean() + 1e-3
+
+
+def test_quantized_marknet_leaves_the_named_parts_in_float_and_refuses_unknown_ones(trained, tiny_root, tmp_path):
+    from gelstereo_train import quantize
+
+    _, _, onnx_dir = trained
+    src = onnx_dir / "marknet.onnx"
+    out = tmp_path / "marknet-int8.onnx"
+    args = ["--model", str(src), "--data", str(tiny_root), "--out", str(out), "--images", "4"]
+    assert quantize.main(args + ["--keep-float", "stem,head,decoder", "--method", "percentile"]) == 0
+    q = onnx.load(str(out))
+    assert {p.key: p.value for p in q.metadata_props}["quantized"].endswith("float: stem, head, decoder")
+    # Float convolutions read float tensors straight from another float node, never a DequantizeLinear.
+    made = {o: n.op_type for n in q.graph.node for o in n.output}
+    decoder = [n for n in q.graph.node if n.op_type == "Conv" and n.name.startswith(("/fuse1/", "/fuse2/"))]
+    backbone = [n for n in q.graph.node if n.op_type == "Conv" and n.name.startswith(("/s8/", "/s16/"))]
+    assert decoder and backbone
+    assert all(made.get(n.input[1]) != "DequantizeLinear" for n in decoder)
+    assert all(made.get(n.input[1]) == "DequantizeLinear" for n in backbone)
+    refused = tmp_path / "refused.onnx"
+    with pytest.raises(SystemExit) as e:
+        quantize.main(["--model", str(src), "--data", str(tiny_root), "--out", str(refused), "--keep-float", "stem,neck"])
+    assert e.value.code == 2 and not refused.exists()
+
+
+def test_histogram_calibration_crops_inputs_of_several_layouts_to_one_size():
+    from gelstereo_train.quantize import cropped_to_common_size
+
+    a = np.arange(2 * 3 * 64 * 96, dtype=np.float32).reshape(2, 3, 64, 96)[:1]
+    b = np.zeros((1, 3, 96, 64), dtype=np.float32)
+    ca, cb = cropped_to_common_size([a, b])
+    assert ca.shape == cb.shape == (1, 3, 64, 64)
+    # Cut about the centre: a's columns 16..79.
+    assert np.array_equal(ca, a[:, :, :, 16:80]) and ca.flags["C_CONTIGUOUS"]
 
 
 def test_averaged_checkpoints_hold_the_mean_weights_and_export(tmp_path):
