@@ -4,8 +4,9 @@ and zero point per tensor), so that its weights learn to place markers through t
 
 Rounding the weights alone (int8 per output channel) moves the localization loss of the shipped model by
 less than 2 %; rounding the activations is what costs it (docs: the model card's int8 section). So only
-the activations are fake-quantized: the output of every convolution block (convolution, BatchNorm,
-LeakyReLU) and of every residual addition, which are the tensors the int8 build stores as uint8. The
+the activations are fake-quantized, where the int8 build stores a tensor as uint8: every convolution's
+output before its LeakyReLU (BatchNorm folded in, as exported) and after it, every residual sum and
+every concatenation of the top-down path. The
 observers follow each tensor's range by a moving average, and the rounding passes gradients straight
 through (PyTorch's `FakeQuantize`). The hooks hold no weights of the model: checkpoints and exports are
 those of the float network, which `gelstereo_train.quantize` then builds into int8.
@@ -33,18 +34,31 @@ def activation_fake_quant() -> FakeQuantize:
 
 
 class ActivationRounding:
-    """Fake-quantizes the outputs of `model`'s convolution blocks and residual blocks through forward
-    hooks; `remove()` takes them off again. The quantizers live here, not in the model, so its state
-    dict is unchanged."""
+    """Fake-quantizes `model`'s activations through hooks: the outputs of the BatchNorm and of the
+    whole of each convolution block, of each residual block, and the input of each top-down step's
+    first fusing block (the concatenation). `remove()` takes them off again. The quantizers live
+    here, not in the model, so its state dict is unchanged."""
 
     def __init__(self, model: nn.Module):
         self.quantizers = nn.ModuleList()
         self.handles = []
         for m in model.modules():
+            if is_conv_block(m):
+                self.round_output(m[1])
             if is_conv_block(m) or isinstance(m, Residual):
-                fq = activation_fake_quant()
-                self.quantizers.append(fq)
-                self.handles.append(m.register_forward_hook(lambda _m, _inp, out, fq=fq: fq(out)))
+                self.round_output(m)
+            if isinstance(m, nn.ModuleDict) and "fuse1" in m:
+                fq = self.quantizer()
+                self.handles.append(m["fuse1"].register_forward_pre_hook(lambda _m, inp, fq=fq: (fq(inp[0]),)))
+
+    def quantizer(self) -> FakeQuantize:
+        fq = activation_fake_quant()
+        self.quantizers.append(fq)
+        return fq
+
+    def round_output(self, m: nn.Module) -> None:
+        fq = self.quantizer()
+        self.handles.append(m.register_forward_hook(lambda _m, _inp, out, fq=fq: fq(out)))
 
     def to(self, device) -> "ActivationRounding":
         self.quantizers.to(device)

@@ -14,9 +14,10 @@ def test_rounding_puts_every_block_output_on_a_uint8_grid_and_comes_off_again():
     keys = set(m.state_dict())
     x = torch.rand(2, 3, 64, 64)
     rounding = ActivationRounding(m)
-    # The stride-4 stem and the three downsampling blocks (4), the residual block after each (its two
-    # blocks and its sum: 4 x 3), the top-down path's reduction and two fusing blocks per step (2 x 3).
-    assert len(rounding) == 22
+    # 18 convolution blocks (the stride-4 stem and the three downsampling blocks, the two in each of
+    # the four residual blocks, the top-down path's reduction and two fusing blocks per step), each
+    # before and after its LeakyReLU; the four residual sums; the two concatenations.
+    assert len(rounding) == 2 * 18 + 4 + 2
     seen = []
     hook = m.s8[0].register_forward_hook(lambda _m, _i, out: seen.append(out.detach()))
     m(x)
