@@ -1,0 +1,48 @@
+"""`scripts/independent_render.py`: the independent renderer's output is a dataset `gelstereo eval`
+reads, and its truth says where each dot was drawn."""
+
+import csv
+import importlib.util
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "independent_render.py"
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("independent_render", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_renderer_writes_the_simulators_layout_with_visible_flags_from_the_centres(tmp_path):
+    render = load()
+    assert render.main(["--out", str(tmp_path / "a"), "--experiments", "2", "--seed", "3"]) == 0
+    manifest = json.loads((tmp_path / "a" / "dataset.json").read_text())
+    assert manifest["counts"]["test"] == {"experiments": 2, "frames": 2 * render.FRAMES}
+    for e in manifest["experiments"]:
+        exp = tmp_path / "a" / e["path"]
+        rows = list(csv.DictReader(open(exp / "markers.csv")))
+        assert list(rows[0]) == render.COLUMNS
+        w, h = e["image_width"], e["image_height"]
+        for r in rows:
+            inside = 0 <= float(r["x_left"]) <= w - 1 and 0 <= float(r["y_left"]) <= h - 1
+            assert int(r["visible_left"]) == int(inside)
+        # The rest frame has no contact; a dot drawn at a visible centre is darker (or lighter) there
+        # than the gel half a pitch away.
+        assert all(r["in_contact"] == "0" for r in rows if r["frame"] == "0")
+        image = cv2.imread(str(exp / "left" / "000000.png"), cv2.IMREAD_GRAYSCALE)
+        assert image.shape == (h, w)
+        dots = [(float(r["x_left"]), float(r["y_left"])) for r in rows if r["frame"] == "0" and r["visible_left"] == "1"]
+        p = e["pitch_px"]
+        contrast = [abs(int(image[int(y), int(x)]) - int(image[int(y), min(int(x + p / 2), w - 1)])) for x, y in dots
+                    if x + p / 2 < w - 1]
+        assert np.median(contrast) > 40
+    again = tmp_path / "b"
+    render.main(["--out", str(again), "--experiments", "2", "--seed", "3"])
+    first = (tmp_path / "a" / "test" / "exp_0001" / "markers.csv").read_text()
+    assert (again / "test" / "exp_0001" / "markers.csv").read_text() == first
