@@ -219,11 +219,11 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             r = radius_for(gt)
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
-            det = postprocess(dec, post, mre_fn, input_per_px((img.shape[1], img.shape[0]), used))
+            size = (img.shape[1], img.shape[0])
+            det = postprocess(dec, post, mre_fn, input_per_px(size, used), size)
             lay = runner.layout(img, median_nn_distance(gt))
             in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range
-            size = (img.shape[1], img.shape[0])
             for e in (ev, ev_in) if in_range else (ev,):
                 e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r, size)
                 if mre_fn is not None:

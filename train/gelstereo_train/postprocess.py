@@ -307,11 +307,30 @@ class Detections:
     mre_scores: np.ndarray  # their scores (NaN when no MRE given)
 
 
-def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None) -> Detections:
+# A marker reported closer than this share of the pitch to the image's outermost pixel centres is not
+# reported: its visible part is less than half a dot, its centre outside the image (Rust:
+# `postprocess::EDGE_MARGIN_PITCH`).
+EDGE_MARGIN_PITCH = 0.02
+
+
+def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float) -> np.ndarray:
+    """The rows (x, y, ...) of ``markers`` at least ``EDGE_MARGIN_PITCH`` x ``pitch`` inside the outermost
+    pixel centres of an image of ``image_wh``; all of them without a pitch (Rust: ``drop_past_the_edge``)."""
+    if not np.isfinite(pitch) or pitch <= 0 or not len(markers):
+        return markers
+    w, h = image_wh
+    x, y = markers[:, 0], markers[:, 1]
+    edge = np.minimum(np.minimum(x, y), np.minimum(w - 1 - x, h - 1 - y))
+    return markers[edge >= EDGE_MARGIN_PITCH * pitch]
+
+
+def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None,
+                image_wh: tuple[int, int] | None = None) -> Detections:
     """Steps 2-6 of the module doc on decoded (x_orig, y_orig, c) rows in flat order.
     ``mre_fn`` maps an (n, 11) float32 array to (n,) probabilities; None = Marknet only.
     With ``cfg.lattice`` and ``input_per_px`` (the layout's input px per original px), both outputs
-    keep only their lattice members (``keep_the_lattice``), as ``gelstereo-markers`` does."""
+    keep only their lattice members (``keep_the_lattice``), as ``gelstereo-markers`` does, and with
+    ``image_wh`` too only the markers inside the edge margin (``inside_the_edge``)."""
     cands = decoded[decoded[:, 2] > cfg.conf_low]
     pitch = pitch_px(cands, cfg.conf_keep)
     kept = cands[dedup(cands, cfg.dedup_radius_frac * pitch)]
@@ -331,6 +350,9 @@ def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px:
         marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px,
                                    unsure=kept[kept[:, 2] <= cfg.conf_marknet_only])
         marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px, unsure=kept[~accept])
+        if image_wh is not None:
+            marknet = inside_the_edge(marknet, image_wh, pitch)
+            marknet_mre = inside_the_edge(marknet_mre, image_wh, pitch)
     return Detections(kept, pitch, marknet, marknet_mre, low, feats, scores)
 
 

@@ -177,3 +177,14 @@ def test_large_reductions_average_areas_and_mild_ones_stay_bilinear():
     t = torch.from_numpy(rgb).permute(2, 0, 1).float()[None] / 255.0
     bilinear = F.interpolate(t, size=(150, 200), mode="bilinear", align_corners=False, antialias=False)[0]
     assert torch.allclose(x, bilinear, atol=1e-6)
+
+
+def test_markers_reported_at_the_very_edge_are_dropped_as_in_rust():
+    from gelstereo_train.postprocess import inside_the_edge
+
+    # Pitch 25 px: the margin is 0.5 px (the Rust test's points).
+    near = np.array([[0.3, 100.0, 1.0], [150.0, -0.2, 1.0], [318.6, 50.0, 1.0], [60.0, 238.7, 1.0]])
+    far = np.array([[0.6, 100.0, 1.0], [150.0, 0.5, 1.0], [318.4, 50.0, 1.0], [60.0, 238.4, 1.0]])
+    kept = inside_the_edge(np.vstack([near, far]), (320, 240), 25.0)
+    assert np.array_equal(kept, far)
+    assert np.array_equal(inside_the_edge(near, (320, 240), float("nan")), near)

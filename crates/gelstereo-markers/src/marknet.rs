@@ -24,7 +24,7 @@ use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
 use crate::postprocess::{
-    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
+    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, drop_past_the_edge, pitch_of_confident,
 };
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
@@ -1403,18 +1403,16 @@ impl Marknet {
         let with_mre = self.mre.is_some();
         let post = self.post;
         let candidates = self.candidates_with_pitch(images, learnt, post.conf_low)?;
-        // Input px per original px of each image's final layout, for the lattice check.
-        let scales: Vec<f64> = candidates
+        // Per image: its size, the input px per original px of its final layout (for the lattice
+        // check) and its candidates' pitch (for the edge margin).
+        let frames = candidates
             .iter()
             .zip(images)
-            .map(|((_, layout), image)| {
-                let size = ImageSize {
-                    width: image.cols().max(0) as u32,
-                    height: image.rows().max(0) as u32,
-                };
-                input_per_px(size, layout)
+            .map(|((pass, layout), image)| {
+                let size = check_image(image)?;
+                Ok((size, input_per_px(size, layout), pass.pitch_px))
             })
-            .collect();
+            .collect::<Result<Vec<(ImageSize, f64, Option<f64>)>>>()?;
         let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
             map_images(self.parallel, candidates, |(pass, _)| {
                 let selection = Selection::of_deduplicated(pass.kept, pass.pitch_px, &post, with_mre);
@@ -1422,22 +1420,27 @@ impl Marknet {
             })
             .into_iter()
             .unzip();
-        let on_lattice = |found: TieredDetections, scale: f64, fitted: Option<FittedSet>| match &post.lattice
-        {
-            Some(check) => {
-                let fit = fitted
-                    .and_then(|f| f.fit_of(&found.accepted, scale))
-                    .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
-                keep_fitted_lattice(found, fit, check)
-            }
-            None => found,
+        let finish = |found: TieredDetections,
+                      fitted: Option<FittedSet>,
+                      (size, scale, pitch): (ImageSize, f64, Option<f64>)| {
+            // The lattice check and the edge margin, both beyond the model contract's steps.
+            let Some(check) = &post.lattice else {
+                return found;
+            };
+            let fit = fitted
+                .and_then(|f| f.fit_of(&found.accepted, scale))
+                .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
+            let mut found = keep_fitted_lattice(found, fit, check);
+            drop_past_the_edge(&mut found.accepted, size, pitch);
+            drop_past_the_edge(&mut found.second_tier, size, pitch);
+            found
         };
         let Some(mre) = self.mre.as_mut() else {
             return Ok(selections
                 .into_iter()
-                .zip(scales)
                 .zip(fitted)
-                .map(|((s, scale), fitted)| on_lattice(s.finish_tiered(&[], post.accept), scale, fitted))
+                .zip(frames)
+                .map(|((s, fitted), frame)| finish(s.finish_tiered(&[], post.accept), fitted, frame))
                 .collect());
         };
         let features: Vec<[f32; MRE_FEATURES]> = selections
@@ -1448,13 +1451,13 @@ impl Marknet {
         let mut offset = 0;
         Ok(selections
             .into_iter()
-            .zip(scales)
             .zip(fitted)
-            .map(|((s, scale), fitted)| {
+            .zip(frames)
+            .map(|((s, fitted), frame)| {
                 let n = s.pending.len();
                 let mine = scores.get(offset..offset + n).unwrap_or(&[]);
                 offset += n;
-                on_lattice(s.finish_tiered(mine, post.accept), scale, fitted)
+                finish(s.finish_tiered(mine, post.accept), fitted, frame)
             })
             .collect())
     }
