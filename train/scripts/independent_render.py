@@ -13,7 +13,9 @@ What it draws, per experiment (one sensor look, a rest frame and three frames of
   each squeezed along the radial direction); `in_contact` marks the dots under the indenter and in
   that band;
 - a tint over the contact, dust specks off the lattice, blur, noise and JPEG.
-Dots are anti-aliased ellipses drawn at 1/16 px; the truth is each dot's centre. A dot counts as
+`--sensor reference` keeps the contacts and looks but lays out the reference sensor instead: a
+23 x 23 lattice of dark dots at a 16-18 px pitch inside a 640 x 480 view. Dots are anti-aliased
+ellipses drawn at 1/16 px; the truth is each dot's centre. A dot counts as
 visible when its centre lies inside the image. The two views are two draws of the same scene with
 their own lattice phase. `markers.csv` lists every dot of the lattice, those outside the view with
 visible 0 (where a detection near the border came from). The output is `gelstereo simulate`'s test-split layout (`markers.csv` with
@@ -32,16 +34,23 @@ import cv2
 import numpy as np
 
 SHIFT = 4  # OpenCV drawing: coordinates in 1/16 px
+REFERENCE_GRID = (23, 23)  # `--sensor reference`: the reference sensor's lattice
 FRAMES = 4  # rest, then three steps of the contact
 COLUMNS = ["frame", "row", "col", "x_left", "y_left", "x_right", "y_right", "X_mm", "Y_mm", "Z_mm",
            "dX_mm", "dY_mm", "dZ_mm", "status", "visible_left", "visible_right", "in_contact"]
 
 
-def lattice(rng, w: int, h: int, hexagonal: bool) -> tuple[np.ndarray, np.ndarray, float]:
-    """Rest centres (n, 2), their (row, col) and the pitch: a lattice slightly larger than the view."""
-    pitch = float(rng.uniform(0.03, 0.06) * min(w, h))
-    rows = int(math.ceil(h / (pitch * (math.sqrt(3) / 2 if hexagonal else 1.0)))) + 1
-    cols = int(math.ceil(w / pitch)) + 1
+def lattice(rng, w: int, h: int, hexagonal: bool, grid: tuple[int, int] | None = None
+            ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Rest centres (n, 2), their (row, col) and the pitch: a lattice slightly larger than the view, or
+    `grid` (rows, columns) at a pitch of 16-18 px, inside it."""
+    if grid is None:
+        pitch = float(rng.uniform(0.03, 0.06) * min(w, h))
+        rows = int(math.ceil(h / (pitch * (math.sqrt(3) / 2 if hexagonal else 1.0)))) + 1
+        cols = int(math.ceil(w / pitch)) + 1
+    else:
+        pitch = float(rng.uniform(16.0, 18.0))
+        rows, cols = grid
     angle = math.radians(rng.uniform(-3, 3))
     origin = np.array([w / 2, h / 2]) + rng.uniform(-0.5, 0.5, 2) * pitch
     pts, idx = [], []
@@ -117,8 +126,11 @@ def draw_view(rng, look: dict, centres: np.ndarray, squeeze: np.ndarray, contact
     return cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
 
 
-def random_look(rng, pitch: float) -> dict:
-    light_dots = rng.random() < 0.25
+def random_look(rng, pitch: float, light_dots: bool | None = None) -> dict:
+    """Colours, dot size, shading, dust, blur, noise and JPEG quality; `light_dots` None: light dots on a
+    dark gel a quarter of the time."""
+    if light_dots is None:
+        light_dots = bool(rng.random() < 0.25)
     gel = rng.uniform(150, 225, 3) if not light_dots else rng.uniform(30, 90, 3)
     dot = rng.uniform(20, 70, 3) if not light_dots else rng.uniform(190, 250, 3)
     return {
@@ -132,16 +144,17 @@ def random_look(rng, pitch: float) -> dict:
     }
 
 
-def write_experiment(rng, root: Path, name: str) -> dict:
-    size = (640, 480) if rng.random() < 0.7 else (1280, 720)
-    hexagonal = bool(rng.random() < 0.3)
-    rest, idx, pitch = lattice(rng, *size, hexagonal)
+def write_experiment(rng, root: Path, name: str, sensor: str) -> dict:
+    reference = sensor == "reference"
+    size = (640, 480) if reference or rng.random() < 0.7 else (1280, 720)
+    hexagonal = not reference and bool(rng.random() < 0.3)
+    rest, idx, pitch = lattice(rng, *size, hexagonal, REFERENCE_GRID if reference else None)
     kind = str(rng.choice(["sphere", "flat", "box"]))
     contact = {"kind": kind, "centre": np.array(size) / 2 + rng.uniform(-0.15, 0.15, 2) * np.array(size),
                "radius": float(rng.uniform(2.5, 5.0) * pitch), "depth": float(rng.uniform(0.3, 0.8)),
                "squeeze": float(rng.uniform(0.35, 0.7)),
                "slide": rng.uniform(-0.6, 0.6, 2) * pitch}
-    look = random_look(rng, pitch)
+    look = random_look(rng, pitch, light_dots=False if reference else None)
     offsets = [np.zeros(2), rng.uniform(-0.5, 0.5, 2) * pitch]  # the right view: another lattice phase
     exp = root / "test" / name
     rows = []
@@ -167,7 +180,7 @@ def write_experiment(rng, root: Path, name: str) -> dict:
     return {"name": name, "path": f"test/{name}", "frames": FRAMES, "image_width": size[0],
             "image_height": size[1], "lattice": "hexagonal" if hexagonal else "square", "indenter": kind,
             "pitch_px": round(pitch, 2), "light_dots": look["light_dots"], "split": "test",
-            "sensor": "independent-render"}
+            "sensor": f"independent-render-{sensor}"}
 
 
 def main(argv=None) -> int:
@@ -175,11 +188,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--experiments", type=int, default=24)
     p.add_argument("--seed", type=int, default=5)
+    p.add_argument("--sensor", choices=("wide", "reference"), default="wide",
+                   help="wide: the lattices and looks above; reference: the reference sensor's layout, a "
+                   "23 x 23 lattice of dark dots at a 16-18 px pitch inside a 640 x 480 view")
     args = p.parse_args(argv)
     if args.experiments < 1:
         p.error("--experiments: expected at least 1")
     rng = np.random.default_rng(args.seed)
-    experiments = [write_experiment(rng, args.out, f"exp_{i:04d}") for i in range(args.experiments)]
+    experiments = [write_experiment(rng, args.out, f"exp_{i:04d}", args.sensor) for i in range(args.experiments)]
     manifest = {"counts": {"test": {"experiments": len(experiments), "frames": FRAMES * len(experiments)}},
                 "experiments": experiments, "generator": "train/scripts/independent_render.py", "seed": args.seed}
     (args.out / "dataset.json").write_text(json.dumps(manifest, indent=2))

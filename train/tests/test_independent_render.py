@@ -46,3 +46,14 @@ def test_the_renderer_writes_the_simulators_layout_with_visible_flags_from_the_c
     render.main(["--out", str(again), "--experiments", "2", "--seed", "3"])
     first = (tmp_path / "a" / "test" / "exp_0001" / "markers.csv").read_text()
     assert (again / "test" / "exp_0001" / "markers.csv").read_text() == first
+
+
+def test_the_reference_layout_is_a_23_by_23_lattice_inside_the_view(tmp_path):
+    render = load()
+    assert render.main(["--out", str(tmp_path), "--experiments", "1", "--seed", "2", "--sensor", "reference"]) == 0
+    e = json.loads((tmp_path / "dataset.json").read_text())["experiments"][0]
+    assert (e["image_width"], e["image_height"], e["lattice"]) == (640, 480, "square") and not e["light_dots"]
+    rest = [r for r in csv.DictReader(open(tmp_path / e["path"] / "markers.csv")) if r["frame"] == "0"]
+    assert len(rest) == 23 * 23
+    assert all(r["visible_left"] == "1" and r["visible_right"] == "1" for r in rest)
+    assert 16.0 <= e["pitch_px"] <= 18.0
