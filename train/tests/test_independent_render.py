@@ -57,3 +57,18 @@ def test_the_reference_layout_is_a_23_by_23_lattice_inside_the_view(tmp_path):
     assert len(rest) == 23 * 23
     assert all(r["visible_left"] == "1" and r["visible_right"] == "1" for r in rest)
     assert 16.0 <= e["pitch_px"] <= 18.0
+
+
+def test_the_squeeze_report_measures_contact_frames_in_pitches(tmp_path):
+    render = load()
+    render.main(["--out", str(tmp_path), "--experiments", "1", "--seed", "2", "--sensor", "reference"])
+    spec = importlib.util.spec_from_file_location("squeeze_report", SCRIPT.parent / "squeeze_report.py")
+    report = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(report)
+    d = report.squeeze(tmp_path, 1)
+    rows = list(csv.DictReader(open(tmp_path / "test" / "exp_0000" / "markers.csv")))
+    contact_frames = {r["frame"] for r in rows if r["in_contact"] == "1"}
+    # Every visible marker of each contact frame (the rest frame has none), in pitches: most at about one.
+    assert "0" not in contact_frames and contact_frames
+    assert len(d) == sum(1 for r in rows if r["frame"] in contact_frames and r["visible_left"] == "1")
+    assert 0.9 < np.median(d) < 1.1 and d.min() > 0
