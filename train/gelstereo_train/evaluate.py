@@ -222,7 +222,7 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             size = (img.shape[1], img.shape[0])
             det = postprocess(dec, post, mre_fn, input_per_px(size, used), size)
             lay = runner.layout(img, median_nn_distance(gt))
-            in_range = pitch_at_input_px(gt, (img.shape[1], img.shape[0]), (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
+            in_range = pitch_at_input_px(gt, size, (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range
             for e in (ev, ev_in) if in_range else (ev,):
                 e["marknet"].add_image(det.marknet, gt, hard, s.in_contact, r, size)

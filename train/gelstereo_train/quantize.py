@@ -93,8 +93,7 @@ def float_nodes(model: onnx.ModelProto, parts: tuple[str, ...]) -> list[str]:
     in int8 it is slower than in float, and it would need the input quantized first) and the
     activation after it. `head`: the 1x1 detection head and the reshape and transpose after it (int8
     logits move the decoded positions by ~0.3 px: one uint8 step of the logit range is ~0.1 in logit).
-    `s4` and `decoder`: the nodes of those modules (`PART_PREFIXES`)."""
-    check_parts(parts)
+    `s4` and `decoder`: the nodes of those modules (`PART_PREFIXES`). `quantize` checks the parts."""
     graph_input = model.graph.input[0].name
     out = []
     if "stem" in parts:

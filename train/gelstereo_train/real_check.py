@@ -45,8 +45,9 @@ def read_frames(video: Path, first: int, last: int) -> list[np.ndarray]:
 def check(frames, runner, mre_fn, expect: int, post: PostConfig | None = None) -> dict:
     post = post or PostConfig()
     decoded = runner(frames)
-    dets = [postprocess(d, post, mre_fn, input_per_px((f.shape[1], f.shape[0]), lay), (f.shape[1], f.shape[0]))
-            for d, f, lay in zip(decoded, frames, runner.layouts)]
+    sizes = [(f.shape[1], f.shape[0]) for f in frames]
+    dets = [postprocess(d, post, mre_fn, input_per_px(size, lay), size)
+            for d, size, lay in zip(decoded, sizes, runner.layouts)]
     blob = BlobDetector()
     ref = dets[0].marknet_mre[:, :2]
     pitch = dets[0].pitch_px

@@ -6,8 +6,8 @@ for an honest second opinion on the localizer (docs/localization.md, "An indepen
 
 What it draws, per experiment (one sensor look, a rest frame and three frames of one contact):
 - a square or hexagonal lattice of dots (dark on a light gel, or light on a dark one), slightly rotated,
-  at 640 x 480 or 1280 x 720, its pitch chosen so that the lattice covers most of the view and runs
-  past some borders;
+  at 640 x 480 or 1280 x 720, with a pitch of 3-6 % of the shorter side, slightly larger than the view
+  so that it runs past every border;
 - one contact: a sphere (dots pushed outwards and shifted by a slide), or a flat punch or a box whose
   rim squeezes the dots around it into a narrow band (pile-ups of touching and overlapping dots,
   each squeezed along the radial direction); `in_contact` marks the dots under the indenter and in
@@ -16,7 +16,7 @@ What it draws, per experiment (one sensor look, a rest frame and three frames of
 `--sensor reference` keeps the contacts and looks but lays out the reference sensor instead: a
 23 x 23 lattice of dark dots at a 16-18 px pitch inside a 640 x 480 view. Dots are anti-aliased
 ellipses drawn at 1/16 px; the truth is each dot's centre. A dot counts as
-visible when its centre lies inside the image. The two views are two draws of the same scene with
+visible when its centre lies within the outermost pixel centres. The two views are two draws of the same scene with
 their own lattice phase. `markers.csv` lists every dot of the lattice, those outside the view with
 visible 0 (where a detection near the border came from). The output is `gelstereo simulate`'s test-split layout (`markers.csv` with
 `visible_left`, `visible_right`, `in_contact`), so `gelstereo eval --dataset` scores it.

@@ -12,17 +12,14 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-
-def nearest_distances(points: np.ndarray) -> np.ndarray:
-    """Each point's distance to its nearest other point (all pairs: a few hundred markers per view)."""
-    d = np.sqrt(((points[:, None, :] - points[None, :, :]) ** 2).sum(-1))
-    np.fill_diagonal(d, np.inf)
-    return d.min(axis=1)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from gelstereo_train.data import median_nn_distance, nearest_neighbour_distances  # noqa: E402
 
 
 def squeeze(root: Path, frame_step: int) -> np.ndarray:
@@ -37,11 +34,11 @@ def squeeze(root: Path, frame_step: int) -> np.ndarray:
                     frames[int(r["frame"])].append((float(r["x_left"]), float(r["y_left"]), r["in_contact"] == "1"))
         if len(frames.get(0, [])) < 2:
             continue
-        pitch = float(np.median(nearest_distances(np.array(frames[0])[:, :2])))
+        pitch = median_nn_distance(np.array(frames[0])[:, :2])
         for f in sorted(frames)[::frame_step]:
             view = np.array(frames[f])
             if len(view) >= 2 and view[:, 2].any():
-                out.append(nearest_distances(view[:, :2]) / pitch)
+                out.append(nearest_neighbour_distances(view[:, :2]) / pitch)
     return np.concatenate(out) if out else np.zeros(0)
 
 

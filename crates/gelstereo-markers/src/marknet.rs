@@ -1405,14 +1405,17 @@ impl Marknet {
         let candidates = self.candidates_with_pitch(images, learnt, post.conf_low)?;
         // Per image: its size, the input px per original px of its final layout (for the lattice
         // check) and its candidates' pitch (for the edge margin).
-        let frames = candidates
+        let frames: Vec<(ImageSize, f64, Option<f64>)> = candidates
             .iter()
             .zip(images)
             .map(|((pass, layout), image)| {
-                let size = check_image(image)?;
-                Ok((size, input_per_px(size, layout), pass.pitch_px))
+                let size = ImageSize {
+                    width: image.cols().max(0) as u32,
+                    height: image.rows().max(0) as u32,
+                };
+                (size, input_per_px(size, layout), pass.pitch_px)
             })
-            .collect::<Result<Vec<(ImageSize, f64, Option<f64>)>>>()?;
+            .collect();
         let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
             map_images(self.parallel, candidates, |(pass, _)| {
                 let selection = Selection::of_deduplicated(pass.kept, pass.pitch_px, &post, with_mre);
