@@ -33,7 +33,9 @@ pub struct Args {
     /// 30 % of the experiments on random sensor variants: other grids, resolutions, pitches; 10 % on
     /// GelSight-Mini-like sensors), wide (the sensors users have: pitch 8-100 px, images up to
     /// 1920x1080, hexagonal and irregular lattices, round and trapezoidal membranes in a housing,
-    /// hue-only markers, scan lines, banding, moire, Newton rings, fingerprints, glints).
+    /// hue-only markers, scan lines, banding, moire, Newton rings, fingerprints, glints), rims
+    /// (wide's sensors and looks under flat punches, hexagons and boxes pressed into a gel that
+    /// spreads more, whose rims squeeze the dots around them into touching dashes).
     #[arg(long, default_value = "full")]
     randomization: String,
     /// Write only this split's experiments (train, val or test): the same files as in the whole

@@ -52,6 +52,11 @@ pub enum Randomization {
     /// Newton rings, glints on the dots). `full` is kept as it was so that its datasets stay
     /// reproducible byte for byte.
     Wide,
+    /// `wide`'s sensors and looks under flat-faced indenters only (flat punch, hexagon, box),
+    /// pressed up to 1.5 x deeper into a gel that spreads 0.6-1.4 mm per unit slope per mm of
+    /// thickness: the rims squeeze the dots around them into touching and overlapping dashes, as
+    /// often as real flat contacts do (docs/sim.md).
+    Rims,
 }
 
 impl std::str::FromStr for Split {
@@ -78,10 +83,11 @@ impl std::str::FromStr for Randomization {
             "appearance" => Ok(Self::Appearance),
             "full" => Ok(Self::Full),
             "wide" => Ok(Self::Wide),
+            "rims" => Ok(Self::Rims),
             _ => Err(Error::Parameter {
                 name: "randomization",
                 value: s.to_owned(),
-                expected: "off, appearance, full or wide".into(),
+                expected: "off, appearance, full, wide or rims".into(),
             }),
         }
     }
@@ -242,6 +248,11 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                     _ => (config.sensor.clone(), Appearance::random(&mut rng)),
                 },
                 Randomization::Wide => wide_look(&config.sensor, &mut rng),
+                Randomization::Rims => {
+                    let (mut sensor, appearance) = wide_look(&config.sensor, &mut rng);
+                    sensor.gel.spreading = rng.random_range(RIM_SPREADING);
+                    (sensor, appearance)
+                }
             };
             let ref_width = 22.0 * 0.8;
             let width = f64::from(sensor.grid.rows.min(sensor.grid.cols) - 1) * sensor.grid.pitch_mm;
@@ -250,17 +261,24 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
             let scale = (width / ref_width)
                 .max(sensor.gel.grid_spacing_mm / 0.4)
                 .clamp(0.3, 3.0);
-            let shape = SHAPES[(index as usize + shape_offset) % SHAPES.len()];
+            let shape = if config.randomization == Randomization::Rims {
+                RIM_SHAPES[(index as usize + shape_offset) % RIM_SHAPES.len()]
+            } else {
+                SHAPES[(index as usize + shape_offset) % SHAPES.len()]
+            };
             let indenter = Indenter::random(shape, scale, &mut rng).unwrap_or(Indenter::Sphere {
                 radius_mm: 4.0 * scale,
             });
-            let script = Script::random(
+            let mut script = Script::random(
                 indenter,
                 config.frames_per_experiment,
                 0.3 * width,
                 scale,
                 &mut rng,
             );
+            if config.randomization == Randomization::Rims {
+                script.max_depth_mm *= rng.random_range(1.0..RIM_DEPTH_FACTOR);
+            }
             let mut experiment = Experiment {
                 index,
                 split: split[index as usize],
@@ -270,7 +288,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 script,
                 families: Vec::new(),
             };
-            if config.randomization == Randomization::Wide {
+            if matches!(config.randomization, Randomization::Wide | Randomization::Rims) {
                 let pitch_px = experiment.sensor.build()?.pitch_px();
                 experiment.families = families(&experiment, pitch_px);
             }
@@ -278,6 +296,14 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
         })
         .collect()
 }
+
+/// The flat-faced indenters of the `rims` randomisation: their rims squeeze the gel hardest.
+const RIM_SHAPES: [&str; 3] = ["flat_cylinder", "hexagon", "prism"];
+/// How much the `rims` randomisation's gels spread (mm per unit slope per mm of thickness):
+/// enough to squeeze the dots next to a rim to 0.3-0.7 of their width, as real flat contacts do.
+const RIM_SPREADING: std::ops::Range<f64> = 0.6..1.4;
+/// Press depths of the `rims` randomisation: up to this many times the shape's usual range.
+const RIM_DEPTH_FACTOR: f64 = 1.5;
 
 /// Sensor and look of one experiment of the `wide` randomisation.
 fn wide_look(base: &SensorSpec, rng: &mut ChaCha8Rng) -> (SensorSpec, Appearance) {

@@ -211,3 +211,62 @@ fn one_split_is_the_same_files_as_in_the_whole_dataset() {
             .contains("train, val or test")
     );
 }
+
+/// `--randomization rims`: flat-faced indenters only, on gels that spread more, whose rims squeeze
+/// neighbouring dots below 0.6 pitch apart (the pile-ups real flat contacts make) without ever
+/// folding the gel over itself (material points stay apart).
+#[test]
+fn rims_squeeze_the_lattice_without_folding_it() {
+    use gelstereo_sim::indenter::Indenter;
+    let mut cfg = DatasetConfig::new(24, 8, 71);
+    cfg.randomization = Randomization::Rims;
+    let exps = plan(&cfg).unwrap();
+    for e in &exps {
+        assert!(
+            matches!(
+                e.script.indenter,
+                Indenter::FlatCylinder { .. } | Indenter::Hexagon { .. } | Indenter::Prism { .. }
+            ),
+            "{}: {:?}",
+            e.name(),
+            e.script.indenter
+        );
+        assert!(
+            (0.6..1.4).contains(&e.sensor.gel.spreading),
+            "{}",
+            e.sensor.gel.spreading
+        );
+        assert!(!e.families.is_empty());
+    }
+    let (mut closest, mut squeezed) = (f64::INFINITY, 0usize);
+    for e in exps
+        .iter()
+        .filter(|e| e.sensor.cameras.image_width <= 640)
+        .take(6)
+    {
+        let sim = Simulator::new(e.clone()).unwrap();
+        let pitch = sim.sensor.pitch_px();
+        let pressed = (e.script.press_end * f64::from(e.script.frames)).ceil() as u32;
+        let f = sim.frame(pressed.min(7)).unwrap();
+        let pts: Vec<[f64; 2]> = f
+            .markers
+            .iter()
+            .filter_map(|m| m.px[0].map(|p| [p.x, p.y]))
+            .collect();
+        for (i, a) in pts.iter().enumerate() {
+            let nn = pts
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| j != i)
+                .map(|(_, b)| (a[0] - b[0]).hypot(a[1] - b[1]))
+                .fold(f64::INFINITY, f64::min);
+            closest = closest.min(nn / pitch);
+            squeezed += usize::from(nn < 0.6 * pitch);
+        }
+    }
+    assert!(squeezed > 0, "no marker squeezed below 0.6 pitch");
+    assert!(
+        closest > 0.2,
+        "markers {closest} pitch apart: the gel folded over itself"
+    );
+}
