@@ -229,6 +229,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
         };
     }
     let shape_offset = rng.random_range(0..SHAPES.len());
+    let rims = config.randomization == Randomization::Rims;
     (0..n)
         .map(|index| {
             let seed = mix(config.seed, u64::from(index) + 1);
@@ -261,11 +262,8 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
             let scale = (width / ref_width)
                 .max(sensor.gel.grid_spacing_mm / 0.4)
                 .clamp(0.3, 3.0);
-            let shape = if config.randomization == Randomization::Rims {
-                RIM_SHAPES[(index as usize + shape_offset) % RIM_SHAPES.len()]
-            } else {
-                SHAPES[(index as usize + shape_offset) % SHAPES.len()]
-            };
+            let shapes: &[&str] = if rims { &RIM_SHAPES } else { &SHAPES };
+            let shape = shapes[(index as usize + shape_offset) % shapes.len()];
             let indenter = Indenter::random(shape, scale, &mut rng).unwrap_or(Indenter::Sphere {
                 radius_mm: 4.0 * scale,
             });
@@ -276,7 +274,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 scale,
                 &mut rng,
             );
-            if config.randomization == Randomization::Rims {
+            if rims {
                 script.max_depth_mm *= rng.random_range(1.0..RIM_DEPTH_FACTOR);
             }
             let mut experiment = Experiment {

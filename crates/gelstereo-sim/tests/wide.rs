@@ -217,6 +217,7 @@ fn one_split_is_the_same_files_as_in_the_whole_dataset() {
 /// folding the gel over itself (material points stay apart).
 #[test]
 fn rims_squeeze_the_lattice_without_folding_it() {
+    use gelstereo_core::spatial::Buckets;
     use gelstereo_sim::indenter::Indenter;
     let mut cfg = DatasetConfig::new(24, 8, 71);
     cfg.randomization = Randomization::Rims;
@@ -248,18 +249,9 @@ fn rims_squeeze_the_lattice_without_folding_it() {
         let pitch = sim.sensor.pitch_px();
         let pressed = (e.script.press_end * f64::from(e.script.frames)).ceil() as u32;
         let f = sim.frame(pressed.min(7)).unwrap();
-        let pts: Vec<[f64; 2]> = f
-            .markers
-            .iter()
-            .filter_map(|m| m.px[0].map(|p| [p.x, p.y]))
-            .collect();
-        for (i, a) in pts.iter().enumerate() {
-            let nn = pts
-                .iter()
-                .enumerate()
-                .filter(|&(j, _)| j != i)
-                .map(|(_, b)| (a[0] - b[0]).hypot(a[1] - b[1]))
-                .fold(f64::INFINITY, f64::min);
+        let pts: Vec<_> = f.markers.iter().filter_map(|m| m.px[0]).collect();
+        let buckets = Buckets::with_one_point_per_cell(&pts);
+        for nn in (0..pts.len()).filter_map(|i| buckets.nearest_other_px(i)) {
             closest = closest.min(nn / pitch);
             squeezed += usize::from(nn < 0.6 * pitch);
         }
