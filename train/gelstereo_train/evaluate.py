@@ -47,6 +47,10 @@ from .postprocess import (
     preprocess_layout,
     probe_layout,
     relayout_needed,
+    layout_at_scale,
+    close_look_zoom,
+    merge_close_look,
+    squeezed_region,
 )
 
 
@@ -60,7 +64,8 @@ class MarknetRunner:
     lattice a fine probe at ``FINE_PROBE_SCALE`` x and a coarse one at ``COARSE_PROBE_SCALE`` x under the
     same rule; then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a pass at that scale, repeated (at most ``MAX_RELAYOUTS`` passes) while
-    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does).
+    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does); with the
+    lattice check, a closer look where the candidates lie squeezed (``look_closer``).
     Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
     def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
@@ -159,7 +164,25 @@ class MarknetRunner:
             lay = better
             dec = self.run_layout(img, lay)
             n_first, p_first = support(dec, lay)
+        if self.post.lattice is not None:
+            dec = self.look_closer(img, dec, lay)
         return dec, lay
+
+    def look_closer(self, img: np.ndarray, dec: np.ndarray, lay: Layout) -> np.ndarray:
+        """The decoded candidates after a closer look where they lie squeezed (Rust:
+        ``Marknet::look_closer``): the network run again at a larger scale, its candidates replacing the
+        first pass's inside the region. The whole zoomed input runs here, the window around the region
+        in Rust, which finds the same there."""
+        wh = (img.shape[1], img.shape[0])
+        cands = dec[dec[:, 2] > self.post.conf_low]
+        p = pitch_px(cands, self.post.conf_keep)
+        kept = cands[dedup(cands, self.post.dedup_radius_frac * p)]
+        region = squeezed_region(kept, p, wh)
+        zoom = close_look_zoom(p * input_per_px(wh, lay)) if region is not None else None
+        if zoom is None:
+            return dec
+        zoomed = layout_at_scale(wh[0], wh[1], p, zoom * input_per_px(wh, lay), self.fit)
+        return merge_close_look(dec, self.run_layout(img, zoomed), region)
 
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
         if self.fit is not None:

@@ -114,10 +114,10 @@ def fit_layout(w: int, h: int, pitch_px: float | None, fit: FitConfig = FitConfi
     s = min(nw / (w + p), nh / (h + p))
     if p > 0 and not lo <= p * s <= hi:
         s = fit.pitch_target_px / p
-    return _layout_at_scale(w, h, p, s, fit)
+    return layout_at_scale(w, h, p, s, fit)
 
 
-def _layout_at_scale(w: int, h: int, p: float, s: float, fit: FitConfig) -> Layout:
+def layout_at_scale(w: int, h: int, p: float, s: float, fit: FitConfig) -> Layout:
     """The layout of a w x h image at scale s with a margin of p px, capped at fit.max_side."""
     s = min(s, fit.max_side / (w + p), fit.max_side / (h + p))
     iw = _ceil_to(s * (w + p), fit.multiple)
@@ -140,6 +140,54 @@ PROBE_MIN_GAIN = 2.0  # times the first pass's confident candidates the probe mu
 PROBE_MIN_COVER = 0.5  # share of the first pass's covered area (confident x pitch^2) the probe must cover
 
 
+# A closer look where the lattice is squeezed (Rust: ``gelstereo_markers::close_look``).
+SQUEEZED_NN_PITCH = 0.8  # a candidate whose nearest other candidate is closer than this x pitch is squeezed
+SQUEEZED_MAX_CONFIDENCE = 0.9  # ... when the network is less sure of it than this (a sure pair is resolved)
+CLOSE_LOOK_ZOOM = 1.5  # scale of the close look relative to the first pass's
+CLOSE_LOOK_MAX_INPUT_PITCH_PX = 20.0  # ... capped so that the pitch at the input stays below this
+CLOSE_LOOK_MIN_ZOOM = 1.2  # a smaller zoom is not worth a pass
+CLOSE_LOOK_MAX_SHARE = 0.5  # a larger region of squeezed candidates is an irregular lattice, not a squeeze
+CLOSE_LOOK_MARGIN_PITCH = 1.5  # margin around the squeezed candidates, pitches
+
+
+def squeezed_region(kept: np.ndarray, pitch: float, image_wh: tuple[int, int]):
+    """(x0, y0, x1, y1) around the squeezed rows of ``kept`` (de-duplicated candidates x, y, c; squeezed: a
+    neighbour closer than SQUEEZED_NN_PITCH x pitch, c < SQUEEZED_MAX_CONFIDENCE) with the
+    margin, clipped to the image; None without a pitch, a squeezed candidate, or where the region is
+    larger than CLOSE_LOOK_MAX_SHARE of the image (Rust: ``close_look::squeezed_region``)."""
+    if not np.isfinite(pitch) or pitch <= 0 or len(kept) < 2:
+        return None
+    squeezed = kept[(nearest_neighbour_distances(kept[:, :2]) < SQUEEZED_NN_PITCH * pitch)
+                    & (kept[:, 2] < SQUEEZED_MAX_CONFIDENCE), :2]
+    if not len(squeezed):
+        return None
+    w, h = image_wh
+    m = CLOSE_LOOK_MARGIN_PITCH * pitch
+    (x0, y0), (x1, y1) = squeezed.min(0) - m, squeezed.max(0) + m
+    x0, y0, x1, y1 = max(x0, -0.5), max(y0, -0.5), min(x1, w - 0.5), min(y1, h - 0.5)
+    if max(x1 - x0, 0) * max(y1 - y0, 0) > CLOSE_LOOK_MAX_SHARE * w * h:
+        return None
+    return x0, y0, x1, y1
+
+
+def close_look_zoom(pitch_at_input: float) -> float | None:
+    """The close look's zoom for a first pass whose pitch at the input is ``pitch_at_input`` px (Rust:
+    ``close_look::close_look_zoom``)."""
+    zoom = min(CLOSE_LOOK_ZOOM, CLOSE_LOOK_MAX_INPUT_PITCH_PX / pitch_at_input)
+    return zoom if zoom >= CLOSE_LOOK_MIN_ZOOM else None
+
+
+def merge_close_look(first: np.ndarray, closer: np.ndarray, region) -> np.ndarray:
+    """The first pass's decoded rows outside ``region``, then the close look's inside it (Rust:
+    ``close_look::merge``)."""
+    x0, y0, x1, y1 = region
+
+    def inside(a):
+        return (a[:, 0] >= x0) & (a[:, 0] <= x1) & (a[:, 1] >= y0) & (a[:, 1] <= y1)
+
+    return np.concatenate([first[~inside(first)], closer[inside(closer)]])
+
+
 def probe_layout(w: int, h: int, fit: FitConfig, scale: float = PROBE_SCALE) -> Layout:
     """The probe of the "auto" fit: isotropic, PROBE_SCALE x the nominal fit's scale, no margin (capped at
     fit.max_side). A sensor whose pitch falls below the network's range at the nominal fit shows only a
@@ -147,7 +195,7 @@ def probe_layout(w: int, h: int, fit: FitConfig, scale: float = PROBE_SCALE) -> 
     pitch alone never asks for the larger scale. ``scale``: FINE_PROBE_SCALE for the fine probe, COARSE_PROBE_SCALE for the coarse one.
     Mirrors ``probe_layout`` / ``probe_layout_at`` in gelstereo-markers."""
     nh, nw = fit.nominal_hw
-    return _layout_at_scale(w, h, 0.0, scale * min(nw / w, nh / h), fit)
+    return layout_at_scale(w, h, 0.0, scale * min(nw / w, nh / h), fit)
 
 
 def relayout_needed(used: Layout, wanted: Layout) -> bool:

@@ -4,13 +4,18 @@ import torch
 
 from gelstereo_train.model import Marknet, decode
 from gelstereo_train.postprocess import (
+    CLOSE_LOOK_MARGIN_PITCH,
+    CLOSE_LOOK_ZOOM,
     MISSING_DISTANCE,
     PostConfig,
+    close_look_zoom,
     decode_to_original,
     dedup,
+    merge_close_look,
     mre_features,
     postprocess,
     preprocess,
+    squeezed_region,
 )
 
 
@@ -188,3 +193,35 @@ def test_markers_reported_at_the_very_edge_are_dropped_as_in_rust():
     kept = inside_the_edge(np.vstack([near, far]), (320, 240), 25.0)
     assert np.array_equal(kept, far)
     assert np.array_equal(inside_the_edge(near, (320, 240), float("nan")), near)
+
+
+def _lattice(pitch: float, conf: float = 0.6) -> np.ndarray:
+    return np.array([[30.0 + (k % 20) * pitch, 30.0 + (k // 20) * pitch, conf] for k in range(300)])
+
+
+def test_close_look_region_around_unsure_squeezed_candidates_as_in_rust():
+    """Rust: close_look::tests (squeezed_dots_give_their_box_with_the_margin_inside_the_image)."""
+    pitch = 20.0
+    assert squeezed_region(_lattice(pitch), pitch, (640, 480)) is None
+    pressed = _lattice(pitch)
+    pressed[126, 0] -= 0.5 * pitch  # half a pitch from dot 125 (130, 150)
+    m = CLOSE_LOOK_MARGIN_PITCH * pitch
+    assert squeezed_region(pressed, pitch, (640, 480)) == pytest.approx((130 - m, 150 - m, 140 + m, 150 + m))
+    sure = pressed.copy()
+    sure[[125, 126], 2] = 0.95
+    assert squeezed_region(sure, pitch, (640, 480)) is None
+    # the same squeeze in an image the lattice fills: more than half of it is no squeeze
+    pairs = _lattice(pitch)
+    for k in (0, 18, 280, 298):
+        pairs[k + 1, 0] = pairs[k, 0] + 0.5 * pitch
+    assert squeezed_region(pairs, pitch, (440, 340)) is None
+
+
+def test_close_look_zoom_stays_in_the_networks_range_and_merge_replaces_inside_only():
+    assert close_look_zoom(12.0) == CLOSE_LOOK_ZOOM
+    assert close_look_zoom(16.0) == pytest.approx(20.0 / 16.0)
+    assert close_look_zoom(18.0) is None
+    first = np.array([[50.0, 50, 0.9], [150, 150, 0.5], [250, 150, 0.9]])
+    closer = np.array([[140.0, 150, 0.8], [160, 150, 0.8], [260, 150, 0.9]])
+    merged = merge_close_look(first, closer, (100.0, 100.0, 200.0, 200.0))
+    assert merged[:, 0].tolist() == [50.0, 250.0, 140.0, 160.0]

@@ -50,6 +50,12 @@ pub struct LocalizerArgs {
     /// hundredths of a pixel (docs/localization.md, "Window around the lattice").
     #[arg(long)]
     pub whole_input: bool,
+    /// Do not look again where the lattice is squeezed. By default, where the first pass's
+    /// candidates lie closer together than 0.8 pitch (dots pushed into each other at an indenter's
+    /// rim), Marknet runs once more on a window around them at 1.5 x the scale and its finds replace
+    /// the first pass's there (docs/localization.md, "A closer look at squeezed dots").
+    #[arg(long)]
+    pub no_close_look: bool,
 }
 
 impl LocalizerArgs {
@@ -85,6 +91,7 @@ impl LocalizerArgs {
             fit: self.fit,
             remember_pitch: true,
             lattice_window: !self.whole_input,
+            close_look: !self.no_close_look,
         })
     }
 

@@ -19,6 +19,7 @@
 //! - Detections come out sorted by y, then x, so results are deterministic.
 
 pub mod blob;
+pub mod close_look;
 pub mod contract;
 pub mod lattice;
 pub mod marknet;
@@ -349,13 +350,16 @@ pub struct LocalizerConfig {
     /// Whether Marknet, with the pitch remembered, runs a stream's later frames on a window of its
     /// input around the lattice the first frame showed ([`Marknet::set_lattice_window`]).
     pub lattice_window: bool,
+    /// Whether Marknet looks again, at a larger scale, where the lattice is squeezed
+    /// ([`Marknet::set_close_look`]).
+    pub close_look: bool,
 }
 
 impl Default for LocalizerConfig {
     /// The shipped models (`data/models` of [`project_home`]), the tuned blob parameters of
     /// `data/blob_params.json` ([`BlobParams::tuned`]), ONNX Runtime's defaults, the model's own
-    /// input layout, the pitch remembered per image size (one sensor per stream) and a stream's
-    /// frames run on a window around its lattice.
+    /// input layout, the pitch remembered per image size (one sensor per stream), a stream's
+    /// frames run on a window around its lattice, and a closer look where the lattice is squeezed.
     fn default() -> Self {
         let models = project_home().join("data/models");
         Self {
@@ -366,6 +370,7 @@ impl Default for LocalizerConfig {
             fit: InputFit::Auto,
             remember_pitch: true,
             lattice_window: true,
+            close_look: true,
         }
     }
 }
@@ -400,6 +405,7 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
             net.set_fit(config.fit);
             net.set_pitch_memory(config.remember_pitch);
             net.set_lattice_window(config.lattice_window);
+            net.set_close_look(config.close_look);
             Box::new(net)
         }
         Method::MarknetMre => {
@@ -408,6 +414,7 @@ pub fn create_localizer(method: Method, config: &LocalizerConfig) -> Result<Box<
             net.set_fit(config.fit);
             net.set_pitch_memory(config.remember_pitch);
             net.set_lattice_window(config.lattice_window);
+            net.set_close_look(config.close_look);
             Box::new(net)
         }
     })

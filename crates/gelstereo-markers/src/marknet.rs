@@ -18,6 +18,7 @@ use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
+use crate::close_look::{close_look_input, close_look_zoom, merge, squeezed_region};
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::lattice::{
@@ -712,6 +713,8 @@ pub struct Marknet {
     /// ([`crate::window`]).
     window_memory: HashMap<(ImageSize, usize), Option<LatticeWindow>>,
     lattice_window: bool,
+    /// Whether squeezed parts of the lattice get a closer look ([`crate::close_look`]).
+    close_look: bool,
     /// Scratch of each batch slot's preprocessing.
     resize: Vec<ResizeScratch>,
     /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
@@ -759,6 +762,7 @@ impl Marknet {
             remember_pitch: true,
             window_memory: HashMap::new(),
             lattice_window: true,
+            close_look: true,
             resize: Vec::new(),
             parallel: false,
             input: Vec::new(),
@@ -822,6 +826,13 @@ impl Marknet {
         }
     }
 
+    /// Whether the network looks again, at a larger scale, where the first pass's candidates lie
+    /// squeezed together ([`crate::close_look`]; default: yes). It needs the "auto" fit and the
+    /// lattice check (it is beyond the model contract's steps, as they are).
+    pub fn set_close_look(&mut self, on: bool) {
+        self.close_look = on;
+    }
+
     /// The window view `slot` (index in the batch: 0 = left, 1 = right) of images of `size` runs
     /// on, if it has one.
     pub fn lattice_window(&self, size: ImageSize, slot: usize) -> Option<LatticeWindow> {
@@ -845,6 +856,7 @@ impl Marknet {
         net.pitch_memory = self.pitch_memory.clone();
         net.lattice_window = self.lattice_window;
         net.window_memory = self.window_memory.clone();
+        net.close_look = self.close_look;
         Ok(net)
     }
 
@@ -1053,8 +1065,36 @@ impl Marknet {
         layouts: &[InputLayout],
         min_confidence: f32,
     ) -> Result<Vec<Pass>> {
-        let mut found = vec![Pass::default(); images.len()];
         let post = self.post;
+        self.decode_each(images, windows, sizes, layouts, min_confidence, |i, dets| {
+            Pass::new(dets, &post, sizes[i], &layouts[i])
+        })
+    }
+
+    /// [`decode_pass`](Self::decode_pass)'s candidates alone, each image's in flat order.
+    fn decode_candidates(
+        &mut self,
+        images: &[&Mat],
+        windows: &[Option<Window>],
+        sizes: &[ImageSize],
+        layouts: &[InputLayout],
+        min_confidence: f32,
+    ) -> Result<Vec<Vec<Detection>>> {
+        self.decode_each(images, windows, sizes, layouts, min_confidence, |_, dets| dets)
+    }
+
+    /// [`decode_pass`](Self::decode_pass) with `finish` (index into `images`, its candidates) making
+    /// each image's result.
+    fn decode_each<T: Default + Send>(
+        &mut self,
+        images: &[&Mat],
+        windows: &[Option<Window>],
+        sizes: &[ImageSize],
+        layouts: &[InputLayout],
+        min_confidence: f32,
+        finish: impl Fn(usize, Vec<Detection>) -> T + Sync + Send,
+    ) -> Result<Vec<T>> {
+        let mut found: Vec<T> = (0..images.len()).map(|_| T::default()).collect();
         let mut pending: Vec<usize> = (0..images.len()).collect();
         let dims = |i: usize| input_dims(&layouts[i], windows[i].as_ref());
         while let Some(&lead) = pending.first() {
@@ -1082,7 +1122,7 @@ impl Marknet {
                     let (w, h) = (f64::from(sizes[i].width) - 0.5, f64::from(sizes[i].height) - 0.5);
                     dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
                 }
-                (i, Pass::new(dets, &post, sizes[i], &layouts[i]))
+                (i, finish(i, dets))
             });
             for (i, d) in decoded {
                 found[i] = d;
@@ -1181,7 +1221,54 @@ impl Marknet {
                 break;
             }
         }
+        if self.close_look && self.post.lattice.is_some() {
+            self.look_closer(images, &sizes, &layouts, &mut found, fit.multiple, min_confidence)?;
+        }
         Ok(found.into_iter().zip(layouts).collect())
+    }
+
+    /// Runs the network once more where an image's pass in `found` shows squeezed candidates, on a
+    /// window of its input at a larger scale ([`crate::close_look`]), and makes its pass of the
+    /// merged candidates, still under its layout in `layouts` (whose scale the lattice check uses).
+    fn look_closer(
+        &mut self,
+        images: &[&Mat],
+        sizes: &[ImageSize],
+        layouts: &[InputLayout],
+        found: &mut [Pass],
+        multiple: u32,
+        min_confidence: f32,
+    ) -> Result<()> {
+        let mut looks = Vec::new();
+        for (i, pass) in found.iter().enumerate() {
+            let (Some(region), Some(pitch)) = (
+                squeezed_region(&pass.kept, pass.pitch_px, sizes[i]),
+                pass.pitch_px,
+            ) else {
+                continue;
+            };
+            let Some(zoom) = close_look_zoom(sizes[i], &layouts[i], pitch) else {
+                continue;
+            };
+            let (zoomed, window) = close_look_input(sizes[i], &layouts[i], &region, pitch, zoom, multiple);
+            if window.width > 0 && window.height > 0 {
+                looks.push((i, region, zoomed, window));
+            }
+        }
+        if looks.is_empty() {
+            return Ok(());
+        }
+        let picked: Vec<&Mat> = looks.iter().map(|l| images[l.0]).collect();
+        let picked_sizes: Vec<ImageSize> = looks.iter().map(|l| sizes[l.0]).collect();
+        let zoomed: Vec<InputLayout> = looks.iter().map(|l| l.2).collect();
+        let windows: Vec<Option<Window>> = looks.iter().map(|l| Some(l.3)).collect();
+        let closer = self.decode_candidates(&picked, &windows, &picked_sizes, &zoomed, min_confidence)?;
+        let post = self.post;
+        for ((i, region, _, _), closer) in looks.into_iter().zip(closer) {
+            let first = std::mem::take(&mut found[i].candidates);
+            found[i] = Pass::new(merge(first, closer, &region), &post, sizes[i], &layouts[i]);
+        }
+        Ok(())
     }
 
     /// The images of `todo` to run again and their new layouts (set in `layouts`): those whose pass

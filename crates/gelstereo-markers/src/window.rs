@@ -112,7 +112,6 @@ pub fn window_around(
     if markers.len() < WINDOW_MIN_MARKERS || pitch_px.is_nan() || pitch_px <= 0.0 {
         return None;
     }
-    let (sx, sy) = input_scale(size, layout);
     let span = |along: fn(&Detection) -> f64| {
         markers
             .iter()
@@ -121,27 +120,49 @@ pub fn window_around(
                 (lo.min(v), hi.max(v))
             })
     };
-    let m = f64::from(multiple.max(1));
-    let axis = |(lo, hi): (f64, f64), offset: u32, s: f64, input: u32| -> (u32, u32) {
-        let margin = WINDOW_MARGIN_PITCH * pitch_px * s;
-        let to_input = |v: f64| f64::from(offset) + (v + 0.5) * s;
-        let first = ((to_input(lo) - margin) / m).floor().max(0.0) * m;
-        let last = (((to_input(hi) + margin) / m).ceil() * m).min(f64::from(input));
-        (first as u32, (last - first).max(0.0) as u32)
-    };
-    let (x, width) = axis(span(|d| d.position.x), layout.offset_x, sx, layout.input_width);
-    let (y, height) = axis(span(|d| d.position.y), layout.offset_y, sy, layout.input_height);
-    let share = (f64::from(width) * f64::from(height))
+    let window = window_of_span(
+        span(|d| d.position.x),
+        span(|d| d.position.y),
+        WINDOW_MARGIN_PITCH * pitch_px,
+        size,
+        layout,
+        multiple,
+    );
+    let share = (f64::from(window.width) * f64::from(window.height))
         / (f64::from(layout.input_width) * f64::from(layout.input_height)).max(1.0);
-    if width == 0 || height == 0 || share > WINDOW_MAX_INPUT_SHARE {
+    if window.width == 0 || window.height == 0 || share > WINDOW_MAX_INPUT_SHARE {
         return None;
     }
     Some(LatticeWindow {
-        window: Window { x, y, width, height },
+        window,
         layout: *layout,
         pitch_px,
         markers: markers.len(),
     })
+}
+
+/// The window of `layout` (the whole input of an image of `size`) around the original pixels
+/// `xs` x `ys` (first and last, pixel-centre convention) with `margin_px` original px of margin,
+/// rounded out to multiples of `multiple` and kept in the input.
+pub(crate) fn window_of_span(
+    xs: (f64, f64),
+    ys: (f64, f64),
+    margin_px: f64,
+    size: ImageSize,
+    layout: &InputLayout,
+    multiple: u32,
+) -> Window {
+    let (sx, sy) = input_scale(size, layout);
+    let m = f64::from(multiple.max(1));
+    let axis = |(lo, hi): (f64, f64), offset: u32, s: f64, input: u32| -> (u32, u32) {
+        let to_input = |v: f64| f64::from(offset) + (v + 0.5) * s;
+        let first = ((to_input(lo) - margin_px * s) / m).floor().max(0.0) * m;
+        let last = (((to_input(hi) + margin_px * s) / m).ceil() * m).min(f64::from(input));
+        (first as u32, (last - first).max(0.0) as u32)
+    };
+    let (x, width) = axis(xs, layout.offset_x, sx, layout.input_width);
+    let (y, height) = axis(ys, layout.offset_y, sy, layout.input_height);
+    Window { x, y, width, height }
 }
 
 #[cfg(test)]

@@ -477,7 +477,8 @@ fn a_hexagonal_lattice_in_a_circular_membrane_is_found_and_its_housing_is_not() 
 /// GelSight-Mini-like: 320 x 240, an 8 x 10 grid of dark dots at a 29 px pitch on a shaded gel: all
 /// 80 found within 1.5 px. The same grid with four pairs of dots squeezed until they touch (a pile-up at
 /// an indenter's rim, which pushes them and their neighbours off the lattice lines): every marker the
-/// network finds there without the lattice check (within 0.25 pitch of a dot) is still reported with it.
+/// network finds there without the lattice check (within 0.25 pitch of a dot) is still reported with it,
+/// and the closer look at the squeezed pairs finds at least as many.
 #[test]
 fn a_mini_grid_and_its_touching_pairs_are_found() {
     let mut net = shipped();
@@ -496,23 +497,33 @@ fn a_mini_grid_and_its_touching_pairs_are_found() {
         dots[b].0 -= 9.0; // 11 px apart: two 11 px dots touching
     }
     let img = render(320, 240, [150.0, 170.0, 120.0], [35.0, 35.0, 40.0], 5.5, &dots);
-    let with_check = net.detect(&img).unwrap();
+    // The lattice check alone (no closer look, which the check turns on) against no check at all.
+    let mut first_pass = shipped();
+    first_pass.set_close_look(false);
+    let with_check = first_pass.detect(&img).unwrap();
     let mut unchecked = shipped();
     unchecked.set_postprocess(PostProcess {
         lattice: None,
         ..*unchecked.postprocess()
     });
     let without_check = unchecked.detect(&img).unwrap();
-    let mut true_finds = 0;
+    let found_by = |finds: &[Detection], p: (f64, f64)| nearest(finds, p) <= 0.25 * 29.0;
     for d in &without_check {
         let q = (d.position.x, d.position.y);
-        if dots.iter().any(|p| (p.0 - q.0).hypot(p.1 - q.1) <= 0.25 * 29.0) {
-            true_finds += 1;
+        if dots.iter().any(|&p| found_by(std::slice::from_ref(d), p)) {
             assert!(
                 with_check.contains(d),
                 "{q:?} found without the lattice check, lost with it"
             );
         }
     }
-    assert!(true_finds >= 72, "{true_finds} of 80 squeezed dots found at all");
+    let true_finds = |finds: &[Detection]| dots.iter().filter(|&&p| found_by(finds, p)).count();
+    let checked = true_finds(&with_check);
+    assert!(checked >= 72, "{checked} of 80 squeezed dots found");
+    // The closer look at the squeezed pairs loses none of them.
+    let looked = true_finds(&net.detect(&img).unwrap());
+    assert!(
+        looked >= checked,
+        "{looked} of 80 with the closer look, {checked} without"
+    );
 }

@@ -104,6 +104,7 @@ fn self_test(models: &Path) -> Result<String, String> {
         fit: gelstereo_markers::InputFit::Auto,
         remember_pitch: false,
         lattice_window: false,
+        close_look: true,
     };
     let mut localizer = gelstereo_markers::create_localizer(gelstereo_markers::Method::MarknetMre, &config)
         .map_err(|e| format!("{e:#}"))?;
