@@ -1071,18 +1071,6 @@ impl Marknet {
         })
     }
 
-    /// [`decode_pass`](Self::decode_pass)'s candidates alone, each image's in flat order.
-    fn decode_candidates(
-        &mut self,
-        images: &[&Mat],
-        windows: &[Option<Window>],
-        sizes: &[ImageSize],
-        layouts: &[InputLayout],
-        min_confidence: f32,
-    ) -> Result<Vec<Vec<Detection>>> {
-        self.decode_each(images, windows, sizes, layouts, min_confidence, |_, dets| dets)
-    }
-
     /// [`decode_pass`](Self::decode_pass) with `finish` (index into `images`, its candidates) making
     /// each image's result.
     fn decode_each<T: Default + Send>(
@@ -1262,7 +1250,14 @@ impl Marknet {
         let picked_sizes: Vec<ImageSize> = looks.iter().map(|l| sizes[l.0]).collect();
         let zoomed: Vec<InputLayout> = looks.iter().map(|l| l.2).collect();
         let windows: Vec<Option<Window>> = looks.iter().map(|l| Some(l.3)).collect();
-        let closer = self.decode_candidates(&picked, &windows, &picked_sizes, &zoomed, min_confidence)?;
+        let closer = self.decode_each(
+            &picked,
+            &windows,
+            &picked_sizes,
+            &zoomed,
+            min_confidence,
+            |_, dets| dets,
+        )?;
         let post = self.post;
         for ((i, region, _, _), closer) in looks.into_iter().zip(closer) {
             let first = std::mem::take(&mut found[i].candidates);
