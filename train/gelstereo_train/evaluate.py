@@ -65,15 +65,18 @@ class MarknetRunner:
     same rule; then, when the pitch measured on the kept one asks for a scale more than
     ``RELAYOUT_SCALE_CHANGE`` away, a pass at that scale, repeated (at most ``MAX_RELAYOUTS`` passes) while
     the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does); with the
-    lattice check, a closer look where the candidates lie squeezed (``look_closer``).
+    lattice check, a closer look where the candidates lie squeezed (``look_closer``; ``close_look=False``:
+    none, ``gelstereo eval --no-close-look``).
     Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
 
-    def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto"):
+    def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto",
+                 close_look: bool = True):
         if fit not in ("auto", "stretch"):
             raise ValueError(f"fit must be 'auto' or 'stretch', got {fit!r}")
         path = Path(path)
         self.path = path
         self.post = post or PostConfig()
+        self.close_look = close_look
         if path.suffix == ".onnx":
             self.sess = ort_session(path, threads)
             meta = self.sess.get_modelmeta().custom_metadata_map
@@ -164,7 +167,7 @@ class MarknetRunner:
             lay = better
             dec = self.run_layout(img, lay)
             n_first, p_first = support(dec, lay)
-        if self.post.lattice is not None:
+        if self.close_look and self.post.lattice is not None:
             dec = self.look_closer(img, dec, lay)
         return dec, lay
 
