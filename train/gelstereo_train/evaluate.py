@@ -77,6 +77,8 @@ class MarknetRunner:
         self.path = path
         self.post = post or PostConfig()
         self.close_look = close_look
+        self.looked_region = None  # the region the latest fitted() image's closer look re-examined
+        self.looked: list = []  # per image of the latest call, that region or None
         if path.suffix == ".onnx":
             self.sess = ort_session(path, threads)
             meta = self.sess.get_modelmeta().custom_metadata_map
@@ -167,15 +169,16 @@ class MarknetRunner:
             lay = better
             dec = self.run_layout(img, lay)
             n_first, p_first = support(dec, lay)
+        self.looked_region = None
         if self.close_look and self.post.lattice is not None:
-            dec = self.look_closer(img, dec, lay)
+            dec, self.looked_region = self.look_closer(img, dec, lay)
         return dec, lay
 
-    def look_closer(self, img: np.ndarray, dec: np.ndarray, lay: Layout) -> np.ndarray:
+    def look_closer(self, img: np.ndarray, dec: np.ndarray, lay: Layout):
         """The decoded candidates after a closer look where they lie squeezed (Rust:
         ``Marknet::look_closer``): the network run again at a larger scale, its candidates replacing the
-        first pass's inside the region. The whole zoomed input runs here, the window around the region
-        in Rust, which finds the same there."""
+        first pass's inside the region; and the region (None without a look). The whole zoomed input runs
+        here, the window around the region in Rust, which finds the same there."""
         wh = (img.shape[1], img.shape[0])
         cands = dec[dec[:, 2] > self.post.conf_low]
         p = pitch_px(cands, self.post.conf_keep)
@@ -183,17 +186,21 @@ class MarknetRunner:
         region = squeezed_region(kept, p, wh)
         zoom = close_look_zoom(p * input_per_px(wh, lay)) if region is not None else None
         if zoom is None:
-            return dec
+            return dec, None
         zoomed = layout_at_scale(wh[0], wh[1], p, zoom * input_per_px(wh, lay), self.fit)
-        return merge_close_look(dec, self.run_layout(img, zoomed), region)
+        return merge_close_look(dec, self.run_layout(img, zoomed), region), region
 
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
         if self.fit is not None:
-            fitted = [self.fitted(im) for im in images]
+            fitted, self.looked = [], []
+            for im in images:
+                fitted.append(self.fitted(im))
+                self.looked.append(self.looked_region)
             self.layouts = [lay for _, lay in fitted]
             return [dec for dec, _ in fitted]
         ih, iw = self.input_hw
         self.layouts = [Layout(iw, ih, iw, ih, 0, 0) for _ in images]
+        self.looked = [None for _ in images]
         out = []
         for i in range(0, len(images), batch):
             chunk = images[i : i + batch]
@@ -240,13 +247,13 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
         t = time.time()
         decoded = runner(imgs, batch=batch)
         t_net += time.time() - t
-        for s, img, dec, used in zip(chunk, imgs, decoded, runner.layouts):
+        for s, img, dec, used, looked in zip(chunk, imgs, decoded, runner.layouts, runner.looked):
             gt = s.points_px
             r = radius_for(gt)
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
             size = (img.shape[1], img.shape[0])
-            det = postprocess(dec, post, mre_fn, input_per_px(size, used), size)
+            det = postprocess(dec, post, mre_fn, input_per_px(size, used), size, looked)
             lay = runner.layout(img, median_nn_distance(gt))
             in_range = pitch_at_input_px(gt, size, (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range

@@ -52,6 +52,7 @@ class LatticeCheck:
     min_input_pitch_px: float = 8.0  # smallest lattice spacing at the network input
     adjacent_members: int = 3  # members within reach_frac x pitch that put a non-member on the lattice
     adjacent_min_confidence: float = 0.9  # confidence such a non-member needs to be kept
+    looked_min_confidence: float = 0.4  # the same inside the region a closer look re-examined
 
 
 @dataclass
@@ -373,12 +374,14 @@ def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float
 
 
 def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None,
-                image_wh: tuple[int, int] | None = None) -> Detections:
+                image_wh: tuple[int, int] | None = None, looked=None) -> Detections:
     """Steps 2-6 of the module doc on decoded (x_orig, y_orig, c) rows in flat order.
     ``mre_fn`` maps an (n, 11) float32 array to (n,) probabilities; None = Marknet only.
     With ``cfg.lattice`` and ``input_per_px`` (the layout's input px per original px), both outputs
     keep only their lattice members (``keep_the_lattice``), as ``gelstereo-markers`` does, and with
-    ``image_wh`` too only the markers inside the edge margin (``inside_the_edge``)."""
+    ``image_wh`` too only the markers inside the edge margin (``inside_the_edge``). ``looked``: the region
+    (x0, y0, x1, y1) a closer look re-examined (``MarknetRunner.looked``), where the lattice check keeps
+    markers on the lattice from ``looked_min_confidence``."""
     cands = decoded[decoded[:, 2] > cfg.conf_low]
     pitch = pitch_px(cands, cfg.conf_keep)
     kept = cands[dedup(cands, cfg.dedup_radius_frac * pitch)]
@@ -396,8 +399,9 @@ def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px:
     marknet_mre = kept[accept]
     if cfg.lattice is not None and input_per_px is not None:
         marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px,
-                                   unsure=kept[kept[:, 2] <= cfg.conf_marknet_only])
-        marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px, unsure=kept[~accept])
+                                   unsure=kept[kept[:, 2] <= cfg.conf_marknet_only], looked=looked)
+        marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px, unsure=kept[~accept],
+                                       looked=looked)
         if image_wh is not None:
             marknet = inside_the_edge(marknet, image_wh, pitch)
             marknet_mre = inside_the_edge(marknet_mre, image_wh, pitch)
@@ -621,15 +625,21 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
 
 
 def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float,
-                     unsure: np.ndarray | None = None) -> np.ndarray:
+                     unsure: np.ndarray | None = None, looked=None) -> np.ndarray:
     """The rows (x, y, c) of ``markers`` that are lattice members, or on the lattice with a confidence of at
     least ``adjacent_min_confidence`` (none without a lattice), plus the rows of ``unsure`` (the second
     tier) and the refused ``markers`` that sit at an empty lattice site, most confident first; all of
-    ``markers`` when ``check`` is None (Rust: ``lattice::keep_the_lattice``)."""
+    ``markers`` when ``check`` is None; inside ``looked`` (x0, y0, x1, y1) the bound is
+    ``looked_min_confidence`` (Rust: ``lattice::keep_fitted_lattice``)."""
     if check is None:
         return markers
     member, on, pitch, ok = lattice_fit(markers[:, :2], check, input_per_px, markers[:, 2])
-    keep = member | (on & (markers[:, 2] >= check.adjacent_min_confidence))
+    bound = np.full(len(markers), check.adjacent_min_confidence)
+    if looked is not None:
+        x0, y0, x1, y1 = looked
+        x, y = markers[:, 0], markers[:, 1]
+        bound[(x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)] = check.looked_min_confidence
+    keep = member | (on & (markers[:, 2] >= bound))
     if not ok:
         return markers[:0]
     kept = markers[keep]

@@ -7,10 +7,12 @@ from gelstereo_train.postprocess import (
     CLOSE_LOOK_MARGIN_PITCH,
     CLOSE_LOOK_ZOOM,
     MISSING_DISTANCE,
+    LatticeCheck,
     PostConfig,
     close_look_zoom,
     decode_to_original,
     dedup,
+    keep_the_lattice,
     merge_close_look,
     mre_features,
     postprocess,
@@ -225,3 +227,20 @@ def test_close_look_zoom_stays_in_the_networks_range_and_merge_replaces_inside_o
     closer = np.array([[140.0, 150, 0.8], [160, 150, 0.8], [260, 150, 0.9]])
     merged = merge_close_look(first, closer, (100.0, 100.0, 200.0, 200.0))
     assert merged[:, 0].tolist() == [50.0, 250.0, 140.0, 160.0]
+
+
+def test_unsure_squeezed_markers_are_kept_inside_a_looked_region_only():
+    """Rust: lattice::tests::unsure_squeezed_markers_are_kept_inside_a_looked_region_only."""
+    pts = np.array([[c * 20.0, r * 20.0, 0.99] for r in range(8) for c in range(10)])
+    a, b = 3 * 10 + 4, 3 * 10 + 5
+    pts[a, :3] = [85.0, 63.0, 0.6]
+    pts[b, :3] = [95.0, 57.0, 0.6]
+
+    def kept(looked):
+        out = keep_the_lattice(pts, LatticeCheck(), 1.0, looked=looked)
+        return {tuple(r[:2]) for r in out}
+
+    squeezed = {(85.0, 63.0), (95.0, 57.0)}
+    assert not squeezed & kept(None)
+    assert squeezed <= kept((60.0, 40.0, 120.0, 80.0))
+    assert not squeezed & kept((140.0, 100.0, 180.0, 140.0))

@@ -51,6 +51,7 @@ use gelstereo_core::spatial::Buckets;
 use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, Point2, TieredDetections};
 
+use crate::close_look::Region;
 use crate::postprocess::{median_finite, nearest_neighbour_distances};
 
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
@@ -81,6 +82,10 @@ pub struct LatticeCheck {
     pub adjacent_members: usize,
     /// Confidence a detection on the lattice but no member needs to be kept.
     pub adjacent_min_confidence: f32,
+    /// The same inside a region the closer look re-examined ([`crate::close_look`]): there the
+    /// network saw the squeezed dots at a larger scale, and such a region lies inside the lattice,
+    /// away from any membrane rim.
+    pub looked_min_confidence: f32,
 }
 
 impl Default for LatticeCheck {
@@ -96,6 +101,7 @@ impl Default for LatticeCheck {
             min_input_pitch_px: 8.0,
             adjacent_members: 3,
             adjacent_min_confidence: 0.9,
+            looked_min_confidence: 0.4,
         }
     }
 }
@@ -583,23 +589,30 @@ pub fn keep_the_lattice(
     input_per_px: f64,
 ) -> TieredDetections {
     let fit = fit_lattice(&found.accepted, check, input_per_px);
-    keep_fitted_lattice(found, fit, check)
+    keep_fitted_lattice(found, fit, check, None)
 }
 
 /// [`keep_the_lattice`] with `fit`, the [`fit_lattice`] of `found.accepted` already made (a localizer
-/// that fitted the same markers to choose its input layout reuses that fit).
+/// that fitted the same markers to choose its input layout reuses that fit), and inside `looked` (the
+/// region a closer look re-examined) [`LatticeCheck::looked_min_confidence`] for the markers on the
+/// lattice.
 pub(crate) fn keep_fitted_lattice(
     found: TieredDetections,
     fit: LatticeFit,
     check: &LatticeCheck,
+    looked: Option<&Region>,
 ) -> TieredDetections {
+    let needs = |d: &Detection| match looked {
+        Some(r) if r.contains(d) => check.looked_min_confidence,
+        _ => check.adjacent_min_confidence,
+    };
     let (mut accepted, mut second_tier): (Vec<Detection>, Vec<Detection>) = (Vec::new(), found.second_tier);
     let mut member_points = Vec::new();
     for ((d, on), member) in found.accepted.into_iter().zip(fit.on_lattice).zip(fit.member) {
         if member {
             member_points.push(d.position);
         }
-        if fit.is_lattice && (member || (on && d.confidence >= check.adjacent_min_confidence)) {
+        if fit.is_lattice && (member || (on && d.confidence >= needs(&d))) {
             accepted.push(d);
         } else {
             second_tier.push(d);
@@ -811,6 +824,52 @@ mod tests {
             fit.on_lattice
         );
         assert!(fit.on_lattice[lattice..].iter().all(|m| !*m));
+    }
+
+    /// A squeezed pair the network is unsure of (pushed off its lines, so on the lattice but no
+    /// member) is kept inside a region the closer look re-examined, and only there.
+    #[test]
+    fn unsure_squeezed_markers_are_kept_inside_a_looked_region_only() {
+        let mut pts = square(10, 8, 20.0);
+        let (a, b) = (3 * 10 + 4, 3 * 10 + 5);
+        pts[a].x += 5.0;
+        pts[a].y += 3.0;
+        pts[b].x -= 5.0;
+        pts[b].y -= 3.0;
+        let mut found = sure(&pts);
+        found[a].confidence = 0.6;
+        found[b].confidence = 0.6;
+        let check = LatticeCheck::default();
+        let fit = fit_lattice(&found, &check, 1.0);
+        assert!(fit.on_lattice[a] && fit.on_lattice[b] && !fit.member[a] && !fit.member[b]);
+        let tiers = || TieredDetections {
+            accepted: found.clone(),
+            second_tier: Vec::new(),
+        };
+        let kept = |d: &Detection, t: &TieredDetections| t.accepted.contains(d);
+        let plain = keep_fitted_lattice(tiers(), fit_lattice(&found, &check, 1.0), &check, None);
+        assert!(!kept(&found[a], &plain) && !kept(&found[b], &plain));
+        let around = Region {
+            x0: 60.0,
+            y0: 40.0,
+            x1: 120.0,
+            y1: 80.0,
+        };
+        let looked = keep_fitted_lattice(tiers(), fit_lattice(&found, &check, 1.0), &check, Some(&around));
+        assert!(kept(&found[a], &looked) && kept(&found[b], &looked));
+        let elsewhere = Region {
+            x0: 140.0,
+            y0: 100.0,
+            x1: 180.0,
+            y1: 140.0,
+        };
+        let far = keep_fitted_lattice(
+            tiers(),
+            fit_lattice(&found, &check, 1.0),
+            &check,
+            Some(&elsewhere),
+        );
+        assert!(!kept(&found[a], &far) && !kept(&found[b], &far));
     }
 
     #[test]

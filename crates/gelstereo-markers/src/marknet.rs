@@ -18,7 +18,7 @@ use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
-use crate::close_look::{close_look_input, close_look_zoom, merge, squeezed_region};
+use crate::close_look::{Region, close_look_input, close_look_zoom, merge, squeezed_region};
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::lattice::{
@@ -269,6 +269,20 @@ struct Pass {
     /// lattice fit, which the final lattice check reuses when its accepted markers are exactly these
     /// (the MRE accepted none of the rest), as it does on most frames.
     fitted: Option<FittedSet>,
+    /// The region a closer look re-examined ([`crate::close_look`]), if any.
+    looked: Option<Region>,
+}
+
+/// What the lattice check and the edge margin need of an image besides its markers.
+#[derive(Debug, Clone, Copy)]
+struct Frame {
+    size: ImageSize,
+    /// Input px per original px of the final layout.
+    input_per_px: f64,
+    /// The candidates' pitch (post-processing step 2).
+    pitch_px: Option<f64>,
+    /// The region a closer look re-examined.
+    looked: Option<Region>,
 }
 
 /// Detections and their lattice fit at one input scale.
@@ -363,6 +377,7 @@ impl Pass {
             support,
             layout_pitch_px,
             fitted,
+            looked: None,
         }
     }
 
@@ -1262,6 +1277,7 @@ impl Marknet {
         for ((i, region, _, _), closer) in looks.into_iter().zip(closer) {
             let first = std::mem::take(&mut found[i].candidates);
             found[i] = Pass::new(merge(first, closer, &region), &post, sizes[i], &layouts[i]);
+            found[i].looked = Some(region);
         }
         Ok(())
     }
@@ -1487,7 +1503,7 @@ impl Marknet {
         let candidates = self.candidates_with_pitch(images, learnt, post.conf_low)?;
         // Per image: its size, the input px per original px of its final layout (for the lattice
         // check) and its candidates' pitch (for the edge margin).
-        let frames: Vec<(ImageSize, f64, Option<f64>)> = candidates
+        let frames: Vec<Frame> = candidates
             .iter()
             .zip(images)
             .map(|((pass, layout), image)| {
@@ -1495,7 +1511,12 @@ impl Marknet {
                     width: image.cols().max(0) as u32,
                     height: image.rows().max(0) as u32,
                 };
-                (size, input_per_px(size, layout), pass.pitch_px)
+                Frame {
+                    size,
+                    input_per_px: input_per_px(size, layout),
+                    pitch_px: pass.pitch_px,
+                    looked: pass.looked,
+                }
             })
             .collect();
         let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
@@ -1505,19 +1526,18 @@ impl Marknet {
             })
             .into_iter()
             .unzip();
-        let finish = |found: TieredDetections,
-                      fitted: Option<FittedSet>,
-                      (size, scale, pitch): (ImageSize, f64, Option<f64>)| {
+        let finish = |found: TieredDetections, fitted: Option<FittedSet>, frame: Frame| {
             // The lattice check and the edge margin, both beyond the model contract's steps.
             let Some(check) = &post.lattice else {
                 return found;
             };
+            let scale = frame.input_per_px;
             let fit = fitted
                 .and_then(|f| f.fit_of(&found.accepted, scale))
                 .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
-            let mut found = keep_fitted_lattice(found, fit, check);
-            drop_past_the_edge(&mut found.accepted, size, pitch);
-            drop_past_the_edge(&mut found.second_tier, size, pitch);
+            let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref());
+            drop_past_the_edge(&mut found.accepted, frame.size, frame.pitch_px);
+            drop_past_the_edge(&mut found.second_tier, frame.size, frame.pitch_px);
             found
         };
         let Some(mre) = self.mre.as_mut() else {
