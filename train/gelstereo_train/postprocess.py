@@ -178,15 +178,18 @@ def close_look_zoom(pitch_at_input: float) -> float | None:
     return zoom if zoom >= CLOSE_LOOK_MIN_ZOOM else None
 
 
+def in_region(rows: np.ndarray, region) -> np.ndarray:
+    """Which rows (x, y, ...) lie inside ``region`` (x0, y0, x1, y1), edges included (Rust:
+    ``Region::contains``)."""
+    x0, y0, x1, y1 = region
+    x, y = rows[:, 0], rows[:, 1]
+    return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+
+
 def merge_close_look(first: np.ndarray, closer: np.ndarray, region) -> np.ndarray:
     """The first pass's decoded rows outside ``region``, then the close look's inside it (Rust:
     ``close_look::merge``)."""
-    x0, y0, x1, y1 = region
-
-    def inside(a):
-        return (a[:, 0] >= x0) & (a[:, 0] <= x1) & (a[:, 1] >= y0) & (a[:, 1] <= y1)
-
-    return np.concatenate([first[~inside(first)], closer[inside(closer)]])
+    return np.concatenate([first[~in_region(first, region)], closer[in_region(closer, region)]])
 
 
 def probe_layout(w: int, h: int, fit: FitConfig, scale: float = PROBE_SCALE) -> Layout:
@@ -636,9 +639,7 @@ def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_
     member, on, pitch, ok = lattice_fit(markers[:, :2], check, input_per_px, markers[:, 2])
     bound = np.full(len(markers), check.adjacent_min_confidence)
     if looked is not None:
-        x0, y0, x1, y1 = looked
-        x, y = markers[:, 0], markers[:, 1]
-        bound[(x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)] = check.looked_min_confidence
+        bound[in_region(markers, looked)] = check.looked_min_confidence
     keep = member | (on & (markers[:, 2] >= bound))
     if not ok:
         return markers[:0]

@@ -1242,29 +1242,41 @@ impl Marknet {
         multiple: u32,
         min_confidence: f32,
     ) -> Result<()> {
+        struct Look {
+            image: usize,
+            region: Region,
+            zoomed: InputLayout,
+            window: Window,
+        }
         let mut looks = Vec::new();
-        for (i, pass) in found.iter().enumerate() {
+        for (image, pass) in found.iter().enumerate() {
             let (Some(region), Some(pitch)) = (
-                squeezed_region(&pass.kept, pass.pitch_px, sizes[i]),
+                squeezed_region(&pass.kept, pass.pitch_px, sizes[image]),
                 pass.pitch_px,
             ) else {
                 continue;
             };
-            let Some(zoom) = close_look_zoom(sizes[i], &layouts[i], pitch) else {
+            let Some(zoom) = close_look_zoom(sizes[image], &layouts[image], pitch) else {
                 continue;
             };
-            let (zoomed, window) = close_look_input(sizes[i], &layouts[i], &region, pitch, zoom, multiple);
+            let (zoomed, window) =
+                close_look_input(sizes[image], &layouts[image], &region, pitch, zoom, multiple);
             if window.width > 0 && window.height > 0 {
-                looks.push((i, region, zoomed, window));
+                looks.push(Look {
+                    image,
+                    region,
+                    zoomed,
+                    window,
+                });
             }
         }
         if looks.is_empty() {
             return Ok(());
         }
-        let picked: Vec<&Mat> = looks.iter().map(|l| images[l.0]).collect();
-        let picked_sizes: Vec<ImageSize> = looks.iter().map(|l| sizes[l.0]).collect();
-        let zoomed: Vec<InputLayout> = looks.iter().map(|l| l.2).collect();
-        let windows: Vec<Option<Window>> = looks.iter().map(|l| Some(l.3)).collect();
+        let picked: Vec<&Mat> = looks.iter().map(|l| images[l.image]).collect();
+        let picked_sizes: Vec<ImageSize> = looks.iter().map(|l| sizes[l.image]).collect();
+        let zoomed: Vec<InputLayout> = looks.iter().map(|l| l.zoomed).collect();
+        let windows: Vec<Option<Window>> = looks.iter().map(|l| Some(l.window)).collect();
         let closer = self.decode_each(
             &picked,
             &windows,
@@ -1274,10 +1286,11 @@ impl Marknet {
             |_, dets| dets,
         )?;
         let post = self.post;
-        for ((i, region, _, _), closer) in looks.into_iter().zip(closer) {
+        for (look, closer) in looks.into_iter().zip(closer) {
+            let i = look.image;
             let first = std::mem::take(&mut found[i].candidates);
-            found[i] = Pass::new(merge(first, closer, &region), &post, sizes[i], &layouts[i]);
-            found[i].looked = Some(region);
+            found[i] = Pass::new(merge(first, closer, &look.region), &post, sizes[i], &layouts[i]);
+            found[i].looked = Some(look.region);
         }
         Ok(())
     }
