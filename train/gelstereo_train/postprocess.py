@@ -362,18 +362,59 @@ class Detections:
 # A marker reported closer than this share of the pitch to the image's outermost pixel centres is not
 # reported: its visible part is less than half a dot, its centre outside the image (Rust:
 # `postprocess::EDGE_MARGIN_PITCH`).
-EDGE_MARGIN_PITCH = 0.02
+EDGE_MARGIN_PITCH = 0.02  # without a lattice line inwards, a marker reported nearer the edge goes (Rust: edge.rs)
+IMAGE_SPAN_PX = 0.5  # the image reaches this far beyond its outermost pixel centres (Rust: IMAGE_SPAN_PX)
+NEAR_EDGE_PITCH = 0.5  # markers reported within this of an edge are checked against it
+EDGE_STEP_PITCH = (0.6, 1.5)  # the first step of a line inwards, in pitches
+EDGE_LINE_TOLERANCE = 0.3  # the second step's distance from equal spacing, in first steps
+MIN_INWARD_COSINE = 0.5  # a line's first step against the edge's inward normal
 
 
-def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float) -> np.ndarray:
-    """The rows (x, y, ...) of ``markers`` at least ``EDGE_MARGIN_PITCH`` x ``pitch`` inside the outermost
-    pixel centres of an image of ``image_wh``; all of them without a pitch (Rust: ``drop_past_the_edge``)."""
+def _extrapolated_inside(p: np.ndarray, normal: np.ndarray, offset: float, lattice: np.ndarray,
+                         pitch: float) -> float | None:
+    """How far inside the side (normal, offset) the line inwards from ``p`` most nearly along the normal
+    puts its centre: ``2 p1 - p2`` for lattice points one and two steps away (Rust: ``extrapolated_inside_px``)."""
+    v = lattice - p
+    step = np.hypot(v[:, 0], v[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine = (v @ normal) / step
+    ok = (step >= EDGE_STEP_PITCH[0] * pitch) & (step <= EDGE_STEP_PITCH[1] * pitch) & (cosine >= MIN_INWARD_COSINE)
+    best = None
+    for j in np.nonzero(ok)[0][np.argsort(-cosine[ok], kind="stable")]:
+        want = 2 * lattice[j] - p
+        e = np.hypot(*(lattice - want).T)
+        k = int(e.argmin())
+        if e[k] <= EDGE_LINE_TOLERANCE * step[j]:
+            best = float((2 * lattice[j] - lattice[k]) @ normal - offset)
+            break
+    return best
+
+
+def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float,
+                    lattice: np.ndarray | None = None) -> np.ndarray:
+    """The rows (x, y, ...) of ``markers`` whose centre lies inside an image of ``image_wh``: near an edge,
+    the line of ``lattice`` (default: the markers) inwards puts it no further than ``IMAGE_SPAN_PX``
+    beyond the outermost pixel centres, or without such a line the marker is reported at least
+    ``EDGE_MARGIN_PITCH`` x ``pitch`` inside them; all of them without a pitch
+    (Rust: ``gelstereo_markers::edge::drop_past_the_edge``)."""
     if not np.isfinite(pitch) or pitch <= 0 or not len(markers):
         return markers
     w, h = image_wh
-    x, y = markers[:, 0], markers[:, 1]
-    edge = np.minimum(np.minimum(x, y), np.minimum(w - 1 - x, h - 1 - y))
-    return markers[edge >= EDGE_MARGIN_PITCH * pitch]
+    sides = [(np.array([1.0, 0.0]), 0.0), (np.array([-1.0, 0.0]), -(w - 1.0)),
+             (np.array([0.0, 1.0]), 0.0), (np.array([0.0, -1.0]), -(h - 1.0))]
+    pts = markers[:, :2].astype(np.float64)
+    lat = pts if lattice is None else lattice[:, :2].astype(np.float64)
+    keep = np.ones(len(markers), bool)
+    for i, p in enumerate(pts):
+        for normal, offset in sides:
+            inside = float(p @ normal - offset)
+            if inside >= NEAR_EDGE_PITCH * pitch:
+                continue
+            centre = _extrapolated_inside(p, normal, offset, lat, pitch)
+            if (inside < EDGE_MARGIN_PITCH * pitch) if centre is None else (centre < -IMAGE_SPAN_PX):
+                keep[i] = False
+                break
+    return markers[keep]
 
 
 def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None,

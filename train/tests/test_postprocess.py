@@ -197,6 +197,27 @@ def test_markers_reported_at_the_very_edge_are_dropped_as_in_rust():
     assert np.array_equal(inside_the_edge(near, (320, 240), float("nan")), near)
 
 
+def test_a_cut_dot_goes_where_the_lattice_puts_its_centre_outside_as_in_rust():
+    from gelstereo_train.postprocess import inside_the_edge
+
+    def lattice(x0, y0):  # 12 x 9 at pitch 25 (the Rust test's)
+        return np.array([[x0 + 25.0 * c, y0 + 25.0 * r, 1.0] for r in range(9) for c in range(12)])
+
+    # Its row puts the dot reported 2 px inside the left edge 1.5 px beyond the pixel centres: it goes;
+    # 0.3 px beyond them (inside the image's half pixel) or on them: it stays.
+    for x0, stays in ((23.5, False), (24.7, True), (25.0, True)):
+        inner = lattice(x0, 12.0)
+        found = np.vstack([inner, [[2.0, 112.0, 1.0]]])
+        assert len(inside_the_edge(found, (320, 240), 25.0)) == len(inner) + stays
+    # Right and bottom: centres 0.3 px inside stay though reported within the margin; 2 px outside go.
+    inner = lattice(18.7, 13.7)
+    found = np.vstack([inner, [[318.9, 113.7, 1.0], [118.7, 238.9, 1.0]]])
+    assert len(inside_the_edge(found, (320, 240), 25.0)) == len(inner) + 2
+    inner = lattice(21.0, 16.0)
+    found = np.vstack([inner, [[318.5, 116.0, 1.0], [121.0, 238.5, 1.0]]])
+    assert np.array_equal(inside_the_edge(found, (320, 240), 25.0), inner)
+
+
 def _lattice(pitch: float, conf: float = 0.6) -> np.ndarray:
     return np.array([[30.0 + (k % 20) * pitch, 30.0 + (k // 20) * pitch, conf] for k in range(300)])
 

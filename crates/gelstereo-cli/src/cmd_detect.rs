@@ -126,6 +126,12 @@ pub struct Args {
     /// Treat videos as side-by-side stereo (left half, right half).
     #[arg(long)]
     side_by_side: bool,
+    /// Mirror this many pixels around each image border before localizing, so markers cut by the
+    /// border with their centre up to half this outside the image are reported too (as `track
+    /// --pad-border`; their centres are then biased towards the border). Without it no marker whose
+    /// centre lies outside the image is reported.
+    #[arg(long, default_value_t = 0, value_name = "PX", value_parser = clap::value_parser!(i32).range(0..=256))]
+    pad_border: i32,
     #[command(flatten)]
     localizer: LocalizerArgs,
     /// Image files, folders of images, stereo recordings (folders with left/ and right/) or video files.
@@ -241,6 +247,33 @@ fn stem(p: &Path) -> String {
         .unwrap_or_else(|| "image".to_owned())
 }
 
+/// The markers of one view, its border mirrored `pad` px first when `pad > 0`.
+fn detect_view(
+    localizer: &mut (dyn Localizer + Send),
+    image: &Mat,
+    pad: i32,
+) -> anyhow::Result<Vec<Detection>> {
+    if pad == 0 {
+        return Ok(localizer.detect(image)?);
+    }
+    Ok(gelstereo::detect_padded(localizer, image, pad)?.accepted)
+}
+
+/// The markers of both views: as one batch, or view by view with their borders mirrored.
+fn detect_pair(
+    localizer: &mut (dyn Localizer + Send),
+    pair: &StereoPair<Mat>,
+    pad: i32,
+) -> anyhow::Result<StereoPair<Vec<Detection>>> {
+    if pad == 0 {
+        return Ok(localizer.detect_stereo(pair)?);
+    }
+    Ok(StereoPair::new(
+        detect_view(localizer, &pair.left, pad)?,
+        detect_view(localizer, &pair.right, pad)?,
+    ))
+}
+
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = expand(&args.inputs)?;
     let mut localizer = args.localizer.localizer(args.method)?;
@@ -262,8 +295,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         match source {
             Source::Image(path) => {
                 let image = images::read_image(path)?;
-                let found = localizer
-                    .detect(&image)
+                let found = detect_view(localizer.as_mut(), &image, args.pad_border)
                     .with_context(|| format!("{}", path.display()))?;
                 sink.emit(&path.display().to_string(), &stem(path), &image, &found)?;
             }
@@ -273,8 +305,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         break;
                     };
                     let pair = pair?;
-                    let found = localizer
-                        .detect_stereo(&pair)
+                    let found = detect_pair(localizer.as_mut(), &pair, args.pad_border)
                         .with_context(|| format!("{} (stereo frame {i})", paths.left.display()))?;
                     for (side, path, image, dets) in [
                         ("left", &paths.left, &pair.left, &found.left),
@@ -296,7 +327,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let context = || format!("{name} (frame {index})");
                     if args.side_by_side {
                         let pair: StereoPair<Mat> = video::split_side_by_side(&frame, path)?;
-                        let found = localizer.detect_stereo(&pair).with_context(context)?;
+                        let found =
+                            detect_pair(localizer.as_mut(), &pair, args.pad_border).with_context(context)?;
                         sink.emit(
                             &format!("{name}:left"),
                             &format!("{}_{index:06}_left", stem(path)),
@@ -310,7 +342,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                             &found.right,
                         )?;
                     } else {
-                        let found = localizer.detect(&frame).with_context(context)?;
+                        let found =
+                            detect_view(localizer.as_mut(), &frame, args.pad_border).with_context(context)?;
                         sink.emit(&name, &format!("{}_{index:06}", stem(path)), &frame, &found)?;
                     }
                 }

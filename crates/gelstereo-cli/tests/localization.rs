@@ -303,3 +303,69 @@ fn bench_reports_the_ratio_to_blob() {
     assert_eq!(v["results"][0]["markers_per_image"], 35.0);
     fails_with(&["bench", "--methods", "blob"], &["no images to benchmark"]);
 }
+
+/// A 320 x 240 gel whose lattice (pitch 29 px, dots of radius 5.5) has its top row centred 2 px above
+/// the outermost pixel row, as a GelSight Mini's corners: the shipped model sees a sliver of each of those
+/// dots. `detect` reports none of them (their centres lie outside the image); with `--pad-border 8`
+/// it reports them, within 2.5 px of their centres (the mirror makes each a whole dot on the edge), and
+/// the rows below are found either way.
+#[test]
+fn detect_reports_dots_centred_past_the_border_only_with_a_padded_border() {
+    let (pitch, y0) = (29.0, -2.0);
+    let centres: Vec<(f64, f64)> = (0..9)
+        .flat_map(|r| (0..11).map(move |c| (12.0 + pitch * f64::from(c), y0 + pitch * f64::from(r))))
+        .filter(|&(x, y)| x < 319.0 && y < 239.0)
+        .collect();
+    let mut img =
+        Mat::new_rows_cols_with_default(240, 320, CV_8UC3, Scalar::new(190.0, 180.0, 170.0, 0.0)).unwrap();
+    for &(x, y) in &centres {
+        // Drawn at 1/16 px, as the dots of the borders test.
+        let at = Point::new((x * 16.0).round() as i32, (y * 16.0).round() as i32);
+        imgproc::circle(&mut img, at, 88, Scalar::all(45.0), -1, imgproc::LINE_AA, 4).unwrap();
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("gel.png");
+    write(&path, &img);
+    let found = |extra: &[&str]| -> Vec<(f64, f64)> {
+        let mut args = vec!["detect", "--threads", "1"];
+        args.extend_from_slice(extra);
+        let p = path.to_str().unwrap();
+        args.push(p);
+        let out = gelstereo(&args);
+        assert!(out.status.success(), "{}", text(&out));
+        String::from_utf8_lossy(&out.stdout)
+            .lines()
+            .skip(1)
+            .map(|l| {
+                let f: Vec<&str> = l.split(',').collect();
+                (f[1].parse().unwrap(), f[2].parse().unwrap())
+            })
+            .collect()
+    };
+    let near = |found: &[(f64, f64)], c: (f64, f64), tol: f64| {
+        found.iter().any(|p| (p.0 - c.0).hypot(p.1 - c.1) <= tol)
+    };
+    let (top, below): (Vec<_>, Vec<_>) = centres.iter().partition(|c| c.1 < 0.0);
+    let plain = found(&[]);
+    let padded = found(&["--pad-border", "8"]);
+    for c in &top {
+        assert!(
+            !near(&plain, *c, 0.25 * pitch),
+            "top-row dot {c:?} reported: {plain:?}"
+        );
+        assert!(
+            near(&padded, *c, 2.5),
+            "top-row dot {c:?} not found with --pad-border: {padded:?}"
+        );
+    }
+    for c in below.iter().filter(|c| c.0 > 6.0 && c.1 < 233.0) {
+        assert!(
+            near(&plain, *c, 1.5) && near(&padded, *c, 1.5),
+            "dot {c:?} missed"
+        );
+    }
+    fails_with(
+        &["detect", "--pad-border", "1000", path.to_str().unwrap()],
+        &["--pad-border", "0..=256"],
+    );
+}

@@ -21,6 +21,7 @@
 pub mod blob;
 pub mod close_look;
 pub mod contract;
+pub mod edge;
 pub mod lattice;
 pub mod marknet;
 pub mod metrics;

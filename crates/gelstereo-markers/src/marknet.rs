@@ -21,11 +21,12 @@ use rayon::iter::{IntoParallelIterator, ParallelIterator};
 use crate::close_look::{Region, close_look_input, close_look_zoom, merge, squeezed_region};
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
+use crate::edge::drop_past_the_edge;
 use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
 use crate::postprocess::{
-    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, drop_past_the_edge, pitch_of_confident,
+    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
 };
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
@@ -1549,8 +1550,9 @@ impl Marknet {
                 .and_then(|f| f.fit_of(&found.accepted, scale))
                 .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
             let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref());
-            drop_past_the_edge(&mut found.accepted, frame.size, frame.pitch_px);
-            drop_past_the_edge(&mut found.second_tier, frame.size, frame.pitch_px);
+            let lattice = found.accepted.clone();
+            drop_past_the_edge(&mut found.accepted, &lattice, frame.size, frame.pitch_px);
+            drop_past_the_edge(&mut found.second_tier, &lattice, frame.size, frame.pitch_px);
             found
         };
         let Some(mre) = self.mre.as_mut() else {

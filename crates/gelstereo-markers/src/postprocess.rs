@@ -15,7 +15,7 @@
 
 use gelstereo_core::spatial::Buckets;
 use gelstereo_core::stats::median;
-use gelstereo_core::{Detection, ImageSize, Point2, TieredDetections};
+use gelstereo_core::{Detection, Point2, TieredDetections};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
 use crate::contract::{MRE_FEATURES, MRE_NEIGHBOURS};
@@ -189,30 +189,6 @@ pub fn pitch_of_confident(candidates: &[Detection], conf_keep: f32) -> (Option<f
         median_nearest_neighbour_px(&all)
     });
     (pitch, nn)
-}
-
-/// A marker reported closer than this share of the pitch to the outermost pixel centres of its image
-/// is not reported. The network places a dot cut by the image border at the middle of its visible
-/// part, so a dot reported that near the edge shows less than half of itself and has, far more often
-/// than not, its centre outside the image, where no marker may lie. On the independent renderer
-/// (docs/localization.md, "An independent renderer") it drops 663 such dots for 137 whose centre lay
-/// just inside; on the v1 test split 26 for 9.
-pub const EDGE_MARGIN_PITCH: f64 = 0.02;
-
-/// Keeps the detections of an image of `size` (px) that lie at least [`EDGE_MARGIN_PITCH`] x
-/// `pitch_px` inside its outermost pixel centres; all of them without a pitch.
-pub fn drop_past_the_edge(detections: &mut Vec<Detection>, size: ImageSize, pitch_px: Option<f64>) {
-    let Some(margin) = pitch_px
-        .filter(|p| p.is_finite() && *p > 0.0)
-        .map(|p| EDGE_MARGIN_PITCH * p)
-    else {
-        return;
-    };
-    let (last_x, last_y) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
-    detections.retain(|d| {
-        let (x, y) = (d.position.x, d.position.y);
-        x.min(y).min(last_x - x).min(last_y - y) >= margin
-    });
 }
 
 /// Step 3's radius for the pitch of step 2, px (0 without a pitch: nothing is dropped).
@@ -467,35 +443,6 @@ mod tests {
             position: Point2::new(x, y),
             confidence: c,
         }
-    }
-
-    /// Markers reported within 0.02 pitch of the outermost pixel centres go, on every side; those
-    /// further in stay, and without a pitch nothing is dropped.
-    #[test]
-    fn markers_reported_at_the_very_edge_are_dropped() {
-        let size = ImageSize {
-            width: 320,
-            height: 240,
-        };
-        // Pitch 25 px: the margin is 0.5 px.
-        let near = [
-            det(0.3, 100.0, 1.0),
-            det(150.0, -0.2, 1.0),
-            det(319.0 - 0.4, 50.0, 1.0),
-            det(60.0, 238.7, 1.0),
-        ];
-        let far = [
-            det(0.6, 100.0, 1.0),
-            det(150.0, 0.5, 1.0),
-            det(318.4, 50.0, 1.0),
-            det(60.0, 238.4, 1.0),
-        ];
-        let mut all: Vec<Detection> = near.iter().chain(&far).copied().collect();
-        drop_past_the_edge(&mut all, size, Some(25.0));
-        assert_eq!(all, far);
-        let mut kept: Vec<Detection> = near.to_vec();
-        drop_past_the_edge(&mut kept, size, None);
-        assert_eq!(kept, near);
     }
 
     /// Hand-computed decoding: a 2x3 grid, m = 2, stride 8, original image twice the input size.

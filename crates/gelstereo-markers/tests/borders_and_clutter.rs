@@ -91,13 +91,14 @@ fn nearest(found: &[Detection], p: (f64, f64)) -> f64 {
 /// Dots cut by all four borders (the grid offset puts nodes just outside and just inside every edge)
 /// and whole dots a few px from each edge. Every whole dot (centre at least a radius inside) is found
 /// within 1.5 px (0.05 pitch), every cut one whose centre lies at least 2 px inside within 3 px (0.1
-/// pitch); none whose centre lies more than 0.15 pitch (4.4 px) outside is reported; nothing else is
-/// reported.
+/// pitch); none whose centre lies more than 1 px (0.035 pitch) outside the image is reported, though
+/// the network reports such a dot at its visible part, inside the image (the lattice puts its centre
+/// outside: `gelstereo_markers::edge`); nothing else is reported.
 #[test]
 fn dots_at_every_border_are_found_where_they_are_and_cut_ones_are_not_invented() {
     let mut net = shipped();
     let (w, h, pitch, radius) = (320.0, 240.0, 29.0, 5.5);
-    for origin in [(-3.0, -4.0), (6.0, 5.0), (1.5, 2.0), (10.0, -1.0)] {
+    for origin in [(-3.0, -4.0), (6.0, 5.0), (1.5, 2.0), (10.0, -1.0), (-2.0, -2.5)] {
         let dots = grid(w, h, pitch, origin, radius);
         let img = render(320, 240, [180.0, 190.0, 200.0], [40.0, 40.0, 45.0], radius, &dots);
         let found = net.detect(&img).unwrap();
@@ -126,7 +127,7 @@ fn dots_at_every_border_are_found_where_they_are_and_cut_ones_are_not_invented()
                 "origin {origin:?}: {q:?} is no dot ({err:.1} px)"
             );
             assert!(
-                inside(truth, w, h, -0.15 * pitch),
+                inside(truth, w, h, -1.0),
                 "origin {origin:?}: the dot at {truth:?} lies outside the image, reported at {q:?}"
             );
         }

@@ -52,6 +52,7 @@ pub mod truth;
 pub use config::{PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python};
 pub use error::{Error, Result};
 pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
+pub use start::detect_padded;
 
 pub use gelstereo_core as core;
 pub use gelstereo_geometry as geometry;

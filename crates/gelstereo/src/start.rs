@@ -39,12 +39,8 @@ pub(crate) fn start_whole(
 }
 
 /// Localizes `image` (with the localizer's second tier), first mirroring `pad` pixels around its
-/// border when `pad > 0`.
-pub(crate) fn detect_padded(
-    loc: &mut (dyn Localizer + Send),
-    image: &Mat,
-    pad: i32,
-) -> Result<TieredDetections> {
+/// border when `pad > 0`: markers whose centre lies up to half the pad outside the image are kept.
+pub fn detect_padded(loc: &mut (dyn Localizer + Send), image: &Mat, pad: i32) -> Result<TieredDetections> {
     if pad <= 0 {
         return Ok(loc.detect_tiered(image)?);
     }
