@@ -417,6 +417,83 @@ def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float
     return markers[keep]
 
 
+BLOB_LEVELS = (0.3, 0.5, 0.7)  # grey levels between the dots' median and the gel's (Rust: squeezed_blobs::LEVELS)
+BLOB_MIN_CONTRAST = 12.0  # grey levels between dots and gel below which no blob is trusted
+BLOB_AREA_PITCH2 = (0.02, 0.6)  # a blob's area in pitches squared
+BLOB_MIN_INERTIA_RATIO = 0.1  # a dash squeezed to 0.35 of its width passes
+BLOB_MIN_CONVEXITY = 0.85  # two merged dashes do not
+BLOB_AWAY_PITCH = 0.4  # from every marker
+BLOB_INSIDE_MARKERS = 3  # markers within BLOB_INSIDE_REACH_PITCH, around it with no gap over SURROUNDED_GAP_DEG
+BLOB_INSIDE_REACH_PITCH = 1.6
+BLOB_SQUEEZED_AMONG = 4  # one of its this many nearest markers is squeezed
+BLOB_EDGE_PITCH = 0.5  # from the outermost pixel centres
+BLOB_CONFIDENCE = 0.5
+BLOB_SEARCH_PITCH = 1.5  # radius of the neighbourhood of a squeezed marker searched
+
+
+def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.ndarray:
+    """(k, 3) markers (x, y, BLOB_CONFIDENCE) the network missed between the squeezed rows of ``markers``
+    (x, y, ...; squeezed: a neighbour closer than SQUEEZED_NN_PITCH x pitch), found as blobs of the RGB
+    or grey ``image`` by OpenCV's SimpleBlobDetector at BLOB_LEVELS, away from every marker, surrounded by
+    them, beside a squeezed one and away from the border (Rust: ``gelstereo_markers::squeezed_blobs``)."""
+    import cv2
+
+    none = np.zeros((0, 3))
+    if not np.isfinite(pitch) or pitch <= 0 or len(markers) < 2:
+        return none
+    pts = markers[:, :2].astype(np.float64)
+    squeezed = nearest_neighbour_distances(pts) < SQUEEZED_NN_PITCH * pitch
+    if not squeezed.any():
+        return none
+    h, w = image.shape[:2]
+    m = CLOSE_LOOK_MARGIN_PITCH * pitch
+    (x0, y0), (x1, y1) = pts[squeezed].min(0) - m, pts[squeezed].max(0) + m
+    x0, y0, x1, y1 = max(x0, 0.0), max(y0, 0.0), min(x1, w - 1.0), min(y1, h - 1.0)
+    if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > CLOSE_LOOK_MAX_SHARE * w * h:
+        return none
+    ix0, iy0 = int(math.floor(x0)), int(math.floor(y0))
+    roi = image[iy0:int(math.ceil(y1)) + 1, ix0:int(math.ceil(x1)) + 1]
+    grey = roi.copy() if roi.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(roi), cv2.COLOR_RGB2GRAY)
+    inside = pts[(pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
+    ix = np.floor(inside + 0.5).astype(int) - [ix0, iy0]
+    dot, gel = float(np.median(grey[ix[:, 1], ix[:, 0]])) if len(ix) else 0.0, float(np.median(grey))
+    # Only the squeezed markers' neighbourhoods are searched: the rest is painted the gel's grey.
+    searched = np.zeros(grey.shape, np.uint8)
+    # Rounding half away from zero, as Rust's f64::round.
+    for q in np.floor(pts[squeezed] + 0.5).astype(int) - [ix0, iy0]:
+        cv2.circle(searched, (int(q[0]), int(q[1])), int(math.floor(BLOB_SEARCH_PITCH * pitch + 0.5)), 255, -1)
+    grey[searched == 0] = int(math.floor(gel + 0.5))
+    lo, hi = min(dot, gel), max(dot, gel)
+    span = hi - lo
+    if span < BLOB_MIN_CONTRAST:
+        return none
+    p = cv2.SimpleBlobDetector_Params()
+    p.thresholdStep = (BLOB_LEVELS[1] - BLOB_LEVELS[0]) * span
+    p.minThreshold, p.maxThreshold = lo + BLOB_LEVELS[0] * span, lo + BLOB_LEVELS[2] * span + 0.5
+    p.minRepeatability, p.minDistBetweenBlobs = 2, 0.25 * pitch
+    p.filterByColor, p.blobColor = True, 0 if dot < gel else 255
+    p.filterByArea, p.minArea, p.maxArea = True, BLOB_AREA_PITCH2[0] * pitch ** 2, BLOB_AREA_PITCH2[1] * pitch ** 2
+    p.filterByCircularity = False
+    p.filterByInertia, p.minInertiaRatio = True, BLOB_MIN_INERTIA_RATIO
+    p.filterByConvexity, p.minConvexity = True, BLOB_MIN_CONVEXITY
+    kps = cv2.SimpleBlobDetector_create(p).detect(grey)
+    found = []
+    for k in kps:
+        b = np.array([k.pt[0] + ix0, k.pt[1] + iy0])
+        if min(b[0], b[1], w - 1 - b[0], h - 1 - b[1]) < BLOB_EDGE_PITCH * pitch:
+            continue
+        d = np.hypot(*(pts - b).T)
+        near = np.nonzero(d < BLOB_INSIDE_REACH_PITCH * pitch)[0]
+        near = near[np.argsort(d[near], kind="stable")]
+        if not len(near) or d[near[0]] <= BLOB_AWAY_PITCH * pitch or len(near) < BLOB_INSIDE_MARKERS:
+            continue
+        angles = np.sort(np.arctan2(pts[near, 1] - b[1], pts[near, 0] - b[0]))
+        gap = max(np.diff(angles).max(initial=0.0), 2 * math.pi - (angles[-1] - angles[0]))
+        if gap <= math.radians(SURROUNDED_GAP_DEG) and squeezed[near[:BLOB_SQUEEZED_AMONG]].any():
+            found.append((b[0], b[1], BLOB_CONFIDENCE))
+    return np.array(found).reshape(-1, 3)
+
+
 def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px: float | None = None,
                 image_wh: tuple[int, int] | None = None, looked=None) -> Detections:
     """Steps 2-6 of the module doc on decoded (x_orig, y_orig, c) rows in flat order.

@@ -265,3 +265,27 @@ def test_unsure_squeezed_markers_are_kept_inside_a_looked_region_only():
     assert not squeezed & kept(None)
     assert squeezed <= kept((60.0, 40.0, 120.0, 80.0))
     assert not squeezed & kept((140.0, 100.0, 180.0, 140.0))
+
+
+def test_a_missed_dash_beside_a_squeezed_marker_is_found_as_in_rust():
+    import cv2
+
+    from gelstereo_train.postprocess import BLOB_CONFIDENCE, squeezed_blobs
+
+    img = np.full((240, 320, 3), (210, 205, 200), np.uint8)
+    truth = []
+    for r in range(11):
+        for c in range(15):
+            x, y = 20 + 20 * c, 20 + 20 * r
+            if y in (120, 140) and x in (140, 160):  # squeezed into vertical dashes 10 px apart
+                x = 145 if x == 140 else 155
+                cv2.ellipse(img, (x, y), (2, 5), 0, 0, 360, (40, 40, 40), -1, cv2.LINE_AA)
+            else:
+                cv2.circle(img, (x, y), 4, (40, 40, 40), -1, cv2.LINE_AA)
+            truth.append((x, y, 1.0))
+    truth = np.array(truth, float)
+    found = truth[~((truth[:, 0] == 155) & (truth[:, 1] == 140))]
+    added = squeezed_blobs(img, found, 20.0)
+    assert len(added) == 1 and np.hypot(added[0, 0] - 155, added[0, 1] - 140) < 0.5, added
+    assert added[0, 2] == BLOB_CONFIDENCE
+    assert len(squeezed_blobs(img, truth, 20.0)) == 0

@@ -53,7 +53,8 @@ pub struct LocalizerArgs {
     /// Do not look again where the lattice is squeezed. By default, where the first pass's
     /// candidates lie closer together than 0.8 pitch (dots pushed into each other at an indenter's
     /// rim), Marknet runs once more on a window around them at 1.5 x the scale and its finds replace
-    /// the first pass's there (docs/localization.md, "A closer look at squeezed dots").
+    /// the first pass's there, and dots between squeezed markers that it still misses are found as
+    /// blobs (docs/localization.md, "A closer look at squeezed dots", "Blobs between squeezed markers").
     #[arg(long)]
     pub no_close_look: bool,
 }

@@ -429,7 +429,7 @@ const SPACED_REACH: f64 = 2.0;
 /// Largest angle between the directions to consecutive neighbours of a point inside a lattice,
 /// degrees: the six to eight neighbours of an inner dot surround it with gaps under 90, where the
 /// neighbours of a point strewn at random do so only 4 % of the time.
-const SURROUNDED_GAP_DEG: f64 = 120.0;
+pub(crate) const SURROUNDED_GAP_DEG: f64 = 120.0;
 
 /// Members by spacing: points whose nearest neighbour lies within [`SPACED_NN`] of the median, in
 /// patches of at least [`LatticeCheck::min_patch`], at least half of them `sure`, held together by
@@ -487,7 +487,7 @@ fn spaced_members(points: &[Point2], sure: &[bool], hood: &Neighbourhood, check:
 }
 
 /// The largest angle between consecutive `angles` (radians, any order) around the circle.
-fn largest_gap(angles: &mut [f64]) -> f64 {
+pub(crate) fn largest_gap(angles: &mut [f64]) -> f64 {
     angles.sort_by(f64::total_cmp);
     let wrap = angles
         .first()

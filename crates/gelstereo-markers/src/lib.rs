@@ -30,6 +30,7 @@ pub mod postprocess;
 mod resize;
 pub mod runtime;
 pub mod self_test;
+pub mod squeezed_blobs;
 pub mod window;
 pub mod yolo;
 
@@ -351,8 +352,8 @@ pub struct LocalizerConfig {
     /// Whether Marknet, with the pitch remembered, runs a stream's later frames on a window of its
     /// input around the lattice the first frame showed ([`Marknet::set_lattice_window`]).
     pub lattice_window: bool,
-    /// Whether Marknet looks again, at a larger scale, where the lattice is squeezed
-    /// ([`Marknet::set_close_look`]).
+    /// Whether Marknet looks again, at a larger scale, where the lattice is squeezed, and searches
+    /// for blobs between the squeezed markers ([`Marknet::set_close_look`]).
     pub close_look: bool,
 }
 

@@ -29,6 +29,7 @@ use crate::postprocess::{
     DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
 };
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
+use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
     CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
@@ -843,7 +844,8 @@ impl Marknet {
     }
 
     /// Whether the network looks again, at a larger scale, where the first pass's candidates lie
-    /// squeezed together ([`crate::close_look`]; default: yes). It needs the "auto" fit and the
+    /// squeezed together ([`crate::close_look`]), and blobs between the squeezed markers it still
+    /// missed join them ([`crate::squeezed_blobs`]; default: yes). It needs the "auto" fit and the
     /// lattice check (it is beyond the model contract's steps, as they are).
     pub fn set_close_look(&mut self, on: bool) {
         self.close_look = on;
@@ -1555,31 +1557,51 @@ impl Marknet {
             drop_past_the_edge(&mut found.second_tier, &lattice, frame.size, frame.pitch_px);
             found
         };
-        let Some(mre) = self.mre.as_mut() else {
-            return Ok(selections
+        let pitches: Vec<Option<f64>> = frames.iter().map(|f| f.pitch_px).collect();
+        let found: Vec<TieredDetections> = match self.mre.as_mut() {
+            None => selections
                 .into_iter()
                 .zip(fitted)
                 .zip(frames)
                 .map(|((s, fitted), frame)| finish(s.finish_tiered(&[], post.accept), fitted, frame))
-                .collect());
+                .collect(),
+            Some(mre) => {
+                let features: Vec<[f32; MRE_FEATURES]> = selections
+                    .iter()
+                    .flat_map(|s| s.features.iter().copied())
+                    .collect();
+                let scores = mre.score(&features)?;
+                let mut offset = 0;
+                selections
+                    .into_iter()
+                    .zip(fitted)
+                    .zip(frames)
+                    .map(|((s, fitted), frame)| {
+                        let n = s.pending.len();
+                        let mine = scores.get(offset..offset + n).unwrap_or(&[]);
+                        offset += n;
+                        finish(s.finish_tiered(mine, post.accept), fitted, frame)
+                    })
+                    .collect()
+            }
         };
-        let features: Vec<[f32; MRE_FEATURES]> = selections
-            .iter()
-            .flat_map(|s| s.features.iter().copied())
-            .collect();
-        let scores = mre.score(&features)?;
-        let mut offset = 0;
-        Ok(selections
+        // Markers between squeezed ones that the network missed: part of the closer look.
+        if !self.close_look || post.lattice.is_none() {
+            return Ok(found);
+        }
+        found
             .into_iter()
-            .zip(fitted)
-            .zip(frames)
-            .map(|((s, fitted), frame)| {
-                let n = s.pending.len();
-                let mine = scores.get(offset..offset + n).unwrap_or(&[]);
-                offset += n;
-                finish(s.finish_tiered(mine, post.accept), fitted, frame)
+            .zip(images)
+            .zip(pitches)
+            .map(|((mut found, image), pitch)| {
+                let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
+                if !blobs.is_empty() {
+                    found.accepted.extend(blobs);
+                    crate::sort_detections(&mut found.accepted);
+                }
+                Ok(found)
             })
-            .collect())
+            .collect()
     }
 }
 
