@@ -42,7 +42,7 @@ pub const MIN_INERTIA_RATIO: f32 = 0.1;
 pub const MIN_CONVEXITY: f32 = 0.85;
 
 /// A blob lies at least this share of the pitch from every marker.
-pub const AWAY_FROM_MARKERS_PITCH: f64 = 0.4;
+pub const AWAY_FROM_MARKERS_PITCH: f64 = 0.3;
 
 /// A blob has at least this many markers within [`INSIDE_REACH_PITCH`] x pitch.
 pub const INSIDE_MARKERS: usize = 3;
