@@ -160,11 +160,18 @@ def squeezed_region(kept: np.ndarray, pitch: float, image_wh: tuple[int, int]):
         return None
     squeezed = kept[(nearest_neighbour_distances(kept[:, :2]) < SQUEEZED_NN_PITCH * pitch)
                     & (kept[:, 2] < SQUEEZED_MAX_CONFIDENCE), :2]
-    if not len(squeezed):
+    return region_around(squeezed, pitch, image_wh)
+
+
+def region_around(points: np.ndarray, pitch: float, image_wh: tuple[int, int]):
+    """(x0, y0, x1, y1): the box around ``points`` grown by CLOSE_LOOK_MARGIN_PITCH x pitch, clipped to the
+    image span; None without points or where it covers more than CLOSE_LOOK_MAX_SHARE of the image
+    (Rust: ``close_look::region_around``)."""
+    if not len(points):
         return None
     w, h = image_wh
     m = CLOSE_LOOK_MARGIN_PITCH * pitch
-    (x0, y0), (x1, y1) = squeezed.min(0) - m, squeezed.max(0) + m
+    (x0, y0), (x1, y1) = points.min(0) - m, points.max(0) + m
     x0, y0, x1, y1 = max(x0, -0.5), max(y0, -0.5), min(x1, w - 0.5), min(y1, h - 0.5)
     if max(x1 - x0, 0) * max(y1 - y0, 0) > CLOSE_LOOK_MAX_SHARE * w * h:
         return None
@@ -446,16 +453,18 @@ def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.n
     if not squeezed.any():
         return none
     h, w = image.shape[:2]
-    m = CLOSE_LOOK_MARGIN_PITCH * pitch
-    (x0, y0), (x1, y1) = pts[squeezed].min(0) - m, pts[squeezed].max(0) + m
-    x0, y0, x1, y1 = max(x0, 0.0), max(y0, 0.0), min(x1, w - 1.0), min(y1, h - 1.0)
-    if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > CLOSE_LOOK_MAX_SHARE * w * h:
+    region = region_around(pts[squeezed], pitch, (w, h))
+    if region is None:
         return none
-    ix0, iy0 = int(math.floor(x0)), int(math.floor(y0))
-    roi = image[iy0:int(math.ceil(y1)) + 1, ix0:int(math.ceil(x1)) + 1]
+    x0, y0, x1, y1 = region
+    ix0, iy0 = int(math.floor(max(x0, 0.0))), int(math.floor(max(y0, 0.0)))
+    ix1, iy1 = min(int(math.ceil(x1)), w - 1), min(int(math.ceil(y1)), h - 1)
+    if ix1 <= ix0 or iy1 <= iy0:
+        return none
+    roi = image[iy0:iy1 + 1, ix0:ix1 + 1]
     grey = roi.copy() if roi.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(roi), cv2.COLOR_RGB2GRAY)
     inside = pts[(pts[:, 0] >= x0) & (pts[:, 0] <= x1) & (pts[:, 1] >= y0) & (pts[:, 1] <= y1)]
-    ix = np.floor(inside + 0.5).astype(int) - [ix0, iy0]
+    ix = np.clip(np.floor(inside + 0.5).astype(int) - [ix0, iy0], 0, [grey.shape[1] - 1, grey.shape[0] - 1])
     dot, gel = float(np.median(grey[ix[:, 1], ix[:, 0]])) if len(ix) else 0.0, float(np.median(grey))
     # Only the squeezed markers' neighbourhoods are searched: the rest is painted the gel's grey.
     searched = np.zeros(grey.shape, np.uint8)

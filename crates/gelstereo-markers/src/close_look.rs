@@ -13,7 +13,7 @@
 //! dots") the markers in contact found go from 88.9 to 95.9 % and the false ones among them from
 //! 1.3 to 0.06 %; frames without contact show no squeezed candidates, so they never pay for it.
 
-use gelstereo_core::{Detection, ImageSize};
+use gelstereo_core::{Detection, ImageSize, Point2};
 
 use crate::marknet::{InputLayout, input_per_px, layout_at_scale};
 use crate::postprocess::nearest_neighbour_distances;
@@ -97,8 +97,19 @@ pub fn squeezed_region(kept: &[Detection], pitch_px: Option<f64>, size: ImageSiz
         .zip(kept)
         .filter(|(nn, d)| *nn < SQUEEZED_NN_PITCH * pitch && d.confidence < SQUEEZED_MAX_CONFIDENCE)
         .map(|(_, d)| d.position);
+    region_around(squeezed, pitch, size)
+}
+
+/// The bounding box of `points` grown by [`CLOSE_LOOK_MARGIN_PITCH`] x `pitch` and clipped to the
+/// image span of `size`; `None` without points or where it covers more than [`CLOSE_LOOK_MAX_SHARE`]
+/// of the image (squeezed points that spread so far are an irregular lattice, not a squeeze).
+pub(crate) fn region_around(
+    points: impl IntoIterator<Item = Point2>,
+    pitch: f64,
+    size: ImageSize,
+) -> Option<Region> {
     let mut found: Option<Region> = None;
-    for p in squeezed {
+    for p in points {
         let r = found.get_or_insert(Region {
             x0: p.x,
             y0: p.y,

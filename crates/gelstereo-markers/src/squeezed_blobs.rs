@@ -19,7 +19,7 @@ use opencv::features2d::{SimpleBlobDetector, SimpleBlobDetector_Params};
 use opencv::imgproc;
 use opencv::prelude::Feature2DTrait;
 
-use crate::close_look::{CLOSE_LOOK_MARGIN_PITCH, CLOSE_LOOK_MAX_SHARE, Region, SQUEEZED_NN_PITCH};
+use crate::close_look::{SQUEEZED_NN_PITCH, region_around};
 use crate::lattice::{SURROUNDED_GAP_DEG, largest_gap};
 use crate::postprocess::nearest_neighbour_distances;
 use crate::{Result, cv_err};
@@ -62,34 +62,6 @@ pub const BLOB_CONFIDENCE: f32 = 0.5;
 /// Radius of the neighbourhood of a squeezed marker that is searched, as a share of the pitch: the
 /// rest of the region is painted the gel's grey, which saves the detector most of its contours.
 pub const SEARCH_PITCH: f64 = 1.5;
-
-/// The part of an image of `size` around the squeezed markers (`squeezed[i]`), grown by
-/// [`CLOSE_LOOK_MARGIN_PITCH`] and clipped; `None` without squeezed markers or where it would cover
-/// more than [`CLOSE_LOOK_MAX_SHARE`] of the image (an irregular lattice, not a squeeze).
-fn region_around(points: &[Point2], squeezed: &[bool], pitch: f64, size: ImageSize) -> Option<Region> {
-    let mut it = points.iter().zip(squeezed).filter(|(_, s)| **s).map(|(p, _)| *p);
-    let first = it.next()?;
-    let mut r = Region {
-        x0: first.x,
-        y0: first.y,
-        x1: first.x,
-        y1: first.y,
-    };
-    for p in it {
-        r.x0 = r.x0.min(p.x);
-        r.y0 = r.y0.min(p.y);
-        r.x1 = r.x1.max(p.x);
-        r.y1 = r.y1.max(p.y);
-    }
-    let margin = CLOSE_LOOK_MARGIN_PITCH * pitch;
-    let r = Region {
-        x0: (r.x0 - margin).max(0.0),
-        y0: (r.y0 - margin).max(0.0),
-        x1: (r.x1 + margin).min(f64::from(size.width) - 1.0),
-        y1: (r.y1 + margin).min(f64::from(size.height) - 1.0),
-    };
-    (r.share_of(size) <= CLOSE_LOOK_MAX_SHARE && r.x1 > r.x0 && r.y1 > r.y0).then_some(r)
-}
 
 /// The median of `values`, the mean of the middle two for an even count (0 for none), by a histogram.
 fn median(values: impl Iterator<Item = u8>) -> f32 {
@@ -253,20 +225,26 @@ pub fn blobs_between_squeezed(
         width: image.cols().max(0) as u32,
         height: image.rows().max(0) as u32,
     };
-    let Some(region) = region_around(&points, &squeezed, pitch, size) else {
+    let around = points.iter().zip(&squeezed).filter(|(_, s)| **s).map(|(p, _)| *p);
+    let Some(region) = region_around(around, pitch, size) else {
         return Ok(Vec::new());
     };
-    // Whole pixels covering the region (finite, clipped to the image above).
-    let (x0, y0) = (region.x0.floor() as i32, region.y0.floor() as i32);
-    let rect = Rect::new(
-        x0,
-        y0,
-        region.x1.ceil() as i32 - x0 + 1,
-        region.y1.ceil() as i32 - y0 + 1,
+    // The whole pixels covering the region (finite, within the image span above).
+    let (x0, y0) = (
+        region.x0.max(0.0).floor() as i32,
+        region.y0.max(0.0).floor() as i32,
     );
+    let x1 = (region.x1.ceil() as i32).min(size.width as i32 - 1);
+    let y1 = (region.y1.ceil() as i32).min(size.height as i32 - 1);
+    if x1 <= x0 || y1 <= y0 {
+        return Ok(Vec::new());
+    }
+    let rect = Rect::new(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
     let grey = grey_roi(image, rect)?;
     let bytes = grey.data_bytes().map_err(cv_err("reading the squeezed region"))?;
     let width = grey.cols().max(1) as usize;
+    let height = grey.rows().max(1) as usize;
+    // The grey under each marker inside the region (its nearest pixel, within the rectangle).
     let at_markers = points
         .iter()
         .filter(|p| {
@@ -276,10 +254,8 @@ pub fn blobs_between_squeezed(
             })
         })
         .filter_map(|p| {
-            let (x, y) = (
-                (p.x.round() as i32 - x0) as usize,
-                (p.y.round() as i32 - y0) as usize,
-            );
+            let x = usize::try_from(p.x.round() as i32 - x0).ok()?.min(width - 1);
+            let y = usize::try_from(p.y.round() as i32 - y0).ok()?.min(height - 1);
             bytes.get(y * width + x).copied()
         });
     let (dot, gel) = (median(at_markers), median(bytes.iter().copied()));
