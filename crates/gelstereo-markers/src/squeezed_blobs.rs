@@ -11,6 +11,7 @@
 //! lattice, beside a squeezed marker and away from the image border (a cut dot is the edge check's). A dot that differs from the gel in hue alone
 //! makes no grey blob and gains nothing.
 
+use gelstereo_core::spatial::Buckets;
 use gelstereo_core::{Detection, ImageSize, Point2};
 use opencv::core::{
     CV_8UC1, KeyPointTraitConst, Mat, MatTraitConst, MatTraitConstManual, Point, Rect, Scalar, Vector,
@@ -185,15 +186,16 @@ fn detector_for(dot: f32, gel: f32, pitch: f64) -> Result<Option<opencv::core::P
 /// no gap between their directions wider than [`SURROUNDED_GAP_DEG`]: a blob past the lattice's
 /// edge, where housing, a groove's shadow or a membrane's rim lie, has markers on one side only),
 /// beside a squeezed marker.
-fn missed_marker(p: Point2, points: &[Point2], squeezed: &[bool], pitch: f64) -> bool {
+fn missed_marker(p: Point2, markers: &Buckets, squeezed: &[bool], pitch: f64) -> bool {
     let reach = INSIDE_REACH_PITCH * pitch;
-    let mut within: Vec<(f64, usize)> = points
-        .iter()
-        .enumerate()
-        .map(|(i, q)| ((q.x - p.x).hypot(q.y - p.y), i))
-        .filter(|(d, _)| *d < reach)
-        .collect();
-    within.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let points = markers.points();
+    let mut within: Vec<(f64, usize)> = Vec::new();
+    markers.for_each_within(p, reach, |i, d2| {
+        if d2 < reach * reach {
+            within.push((d2.sqrt(), i));
+        }
+    });
+    within.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let mut angles: Vec<f64> = within
         .iter()
         .map(|(_, i)| (points[*i].y - p.y).atan2(points[*i].x - p.x))
@@ -269,6 +271,7 @@ pub fn blobs_between_squeezed(
         .map_err(cv_err("SimpleBlobDetector::detect"))?;
     let (last_x, last_y) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
     let edge = EDGE_PITCH * pitch;
+    let grid = Buckets::new(&points, pitch);
     Ok(keypoints
         .iter()
         .map(|k| {
@@ -278,7 +281,7 @@ pub fn blobs_between_squeezed(
             )
         })
         .filter(|p| p.x.min(p.y).min(last_x - p.x).min(last_y - p.y) >= edge)
-        .filter(|p| missed_marker(*p, &points, &squeezed, pitch))
+        .filter(|p| missed_marker(*p, &grid, &squeezed, pitch))
         .map(|position| Detection {
             position,
             confidence: BLOB_CONFIDENCE,
