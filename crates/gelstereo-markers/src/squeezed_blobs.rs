@@ -20,7 +20,7 @@ use opencv::features2d::{SimpleBlobDetector, SimpleBlobDetector_Params};
 use opencv::imgproc;
 use opencv::prelude::Feature2DTrait;
 
-use crate::close_look::{SQUEEZED_NN_PITCH, region_around};
+use crate::close_look::{Region, SQUEEZED_NN_PITCH, region_around};
 use crate::lattice::{SURROUNDED_GAP_DEG, largest_gap};
 use crate::postprocess::nearest_neighbour_distances;
 use crate::{Result, cv_err};
@@ -108,6 +108,48 @@ fn grey_roi(image: &Mat, rect: Rect) -> Result<Mat> {
         }
     }
     Ok(grey)
+}
+
+/// The whole pixels covering `region` (finite, within the image span of `size`); `None` for a
+/// region thinner than two pixels.
+fn pixels_covering(region: &Region, size: ImageSize) -> Option<Rect> {
+    let (x0, y0) = (
+        region.x0.max(0.0).floor() as i32,
+        region.y0.max(0.0).floor() as i32,
+    );
+    let x1 = (region.x1.ceil() as i32).min(size.width as i32 - 1);
+    let y1 = (region.y1.ceil() as i32).min(size.height as i32 - 1);
+    (x1 > x0 && y1 > y0).then(|| Rect::new(x0, y0, x1 - x0 + 1, y1 - y0 + 1))
+}
+
+/// The median grey under the markers inside `region` (each at its nearest pixel of `grey`, the part
+/// of the image whose top-left pixel is `origin`) and the median grey of all of `grey`.
+fn dot_and_gel_grey(
+    grey: &Mat,
+    points: &[Point2],
+    region: &Region,
+    origin: (i32, i32),
+) -> Result<(f32, f32)> {
+    let bytes = grey.data_bytes().map_err(cv_err("reading the squeezed region"))?;
+    let (width, height) = (grey.cols().max(1) as usize, grey.rows().max(1) as usize);
+    let at_markers = points
+        .iter()
+        .filter(|p| {
+            region.contains(&Detection {
+                position: **p,
+                confidence: 1.0,
+            })
+        })
+        .filter_map(|p| {
+            let x = usize::try_from(p.x.round() as i32 - origin.0)
+                .ok()?
+                .min(width - 1);
+            let y = usize::try_from(p.y.round() as i32 - origin.1)
+                .ok()?
+                .min(height - 1);
+            bytes.get(y * width + x).copied()
+        });
+    Ok((median(at_markers), median(bytes.iter().copied())))
 }
 
 /// `grey` (the region whose top-left pixel is `origin` in the image) within [`SEARCH_PITCH`] x
@@ -231,40 +273,16 @@ pub fn blobs_between_squeezed(
     let Some(region) = region_around(around, pitch, size) else {
         return Ok(Vec::new());
     };
-    // The whole pixels covering the region (finite, within the image span above).
-    let (x0, y0) = (
-        region.x0.max(0.0).floor() as i32,
-        region.y0.max(0.0).floor() as i32,
-    );
-    let x1 = (region.x1.ceil() as i32).min(size.width as i32 - 1);
-    let y1 = (region.y1.ceil() as i32).min(size.height as i32 - 1);
-    if x1 <= x0 || y1 <= y0 {
+    let Some(rect) = pixels_covering(&region, size) else {
         return Ok(Vec::new());
-    }
-    let rect = Rect::new(x0, y0, x1 - x0 + 1, y1 - y0 + 1);
+    };
     let grey = grey_roi(image, rect)?;
-    let bytes = grey.data_bytes().map_err(cv_err("reading the squeezed region"))?;
-    let width = grey.cols().max(1) as usize;
-    let height = grey.rows().max(1) as usize;
-    // The grey under each marker inside the region (its nearest pixel, within the rectangle).
-    let at_markers = points
-        .iter()
-        .filter(|p| {
-            region.contains(&Detection {
-                position: **p,
-                confidence: 1.0,
-            })
-        })
-        .filter_map(|p| {
-            let x = usize::try_from(p.x.round() as i32 - x0).ok()?.min(width - 1);
-            let y = usize::try_from(p.y.round() as i32 - y0).ok()?.min(height - 1);
-            bytes.get(y * width + x).copied()
-        });
-    let (dot, gel) = (median(at_markers), median(bytes.iter().copied()));
-    let searched = squeezed_neighbourhoods(&grey, &points, &squeezed, (x0, y0), gel, pitch)?;
+    let (dot, gel) = dot_and_gel_grey(&grey, &points, &region, (rect.x, rect.y))?;
     let Some(mut detector) = detector_for(dot, gel, pitch)? else {
         return Ok(Vec::new());
     };
+    let (x0, y0) = (rect.x, rect.y);
+    let searched = squeezed_neighbourhoods(&grey, &points, &squeezed, (x0, y0), gel, pitch)?;
     let mut keypoints = Vector::new();
     detector
         .detect(&searched, &mut keypoints, &opencv::core::no_array())
