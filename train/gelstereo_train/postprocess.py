@@ -397,10 +397,9 @@ def _extrapolated_inside(p: np.ndarray, normal: np.ndarray, offset: float, latti
     return best
 
 
-def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float,
-                    lattice: np.ndarray | None = None) -> np.ndarray:
+def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float) -> np.ndarray:
     """The rows (x, y, ...) of ``markers`` whose centre lies inside an image of ``image_wh``: near an edge,
-    the line of ``lattice`` (default: the markers) inwards puts it no further than ``IMAGE_SPAN_PX``
+    the line of the markers inwards puts it no further than ``IMAGE_SPAN_PX``
     beyond the outermost pixel centres, or without such a line the marker is reported at least
     ``EDGE_MARGIN_PITCH`` x ``pitch`` inside them; all of them without a pitch
     (Rust: ``gelstereo_markers::edge::drop_past_the_edge``)."""
@@ -410,14 +409,13 @@ def inside_the_edge(markers: np.ndarray, image_wh: tuple[int, int], pitch: float
     sides = [(np.array([1.0, 0.0]), 0.0), (np.array([-1.0, 0.0]), -(w - 1.0)),
              (np.array([0.0, 1.0]), 0.0), (np.array([0.0, -1.0]), -(h - 1.0))]
     pts = markers[:, :2].astype(np.float64)
-    lat = pts if lattice is None else lattice[:, :2].astype(np.float64)
     keep = np.ones(len(markers), bool)
     for i, p in enumerate(pts):
         for normal, offset in sides:
             inside = float(p @ normal - offset)
             if inside >= NEAR_EDGE_PITCH * pitch:
                 continue
-            centre = _extrapolated_inside(p, normal, offset, lat, pitch)
+            centre = _extrapolated_inside(p, normal, offset, pts, pitch)
             if (inside < EDGE_MARGIN_PITCH * pitch) if centre is None else (centre < -IMAGE_SPAN_PX):
                 keep[i] = False
                 break

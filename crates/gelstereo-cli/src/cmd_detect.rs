@@ -254,9 +254,6 @@ fn detect_view(
     image: &Mat,
     pad: i32,
 ) -> anyhow::Result<Vec<Detection>> {
-    if pad == 0 {
-        return Ok(localizer.detect(image)?);
-    }
     Ok(gelstereo::detect_padded(localizer, image, pad)?.accepted)
 }
 

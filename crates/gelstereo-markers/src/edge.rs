@@ -17,7 +17,7 @@
 //! to the margin rule: it goes when it is reported closer than [`EDGE_MARGIN_PITCH`] to the edge.
 
 use gelstereo_core::spatial::Buckets;
-use gelstereo_core::{Detection, ImageSize, Point2};
+use gelstereo_core::{Detection, ImageSize, Point2, TieredDetections};
 
 /// A marker reported closer than this share of the pitch to the outermost pixel centres of its image,
 /// with no lattice line inwards to check it by, is not reported: such a dot shows less than half of
@@ -126,26 +126,28 @@ fn stays(p: Point2, sides: &[Side; 4], lattice: &Buckets, pitch_px: f64) -> bool
     })
 }
 
-/// Keeps the detections of an image of `size` (px) whose centre lies inside it, judged by the lines
-/// of `lattice` (the markers the image's lattice check kept, `pitch_px` apart) and, where no line
-/// reaches a detection, by the edge margin; all of them without a pitch.
-pub fn drop_past_the_edge(
-    detections: &mut Vec<Detection>,
-    lattice: &[Detection],
-    size: ImageSize,
-    pitch_px: Option<f64>,
-) {
+/// Keeps the markers of an image of `size` (px), accepted and second tier, whose centre lies inside
+/// it, judged by the lines of the accepted markers (`pitch_px` apart) and, where no line reaches a
+/// marker, by the edge margin; all of them without a pitch.
+pub fn drop_past_the_edge(found: &mut TieredDetections, size: ImageSize, pitch_px: Option<f64>) {
     let Some(pitch) = pitch_px.filter(|p| p.is_finite() && *p > 0.0) else {
         return;
     };
     let sides = Side::all(size);
-    let near_edge = |p: Point2| sides.iter().any(|s| s.inside_px(p) < NEAR_EDGE_PITCH * pitch);
-    if !detections.iter().any(|d| near_edge(d.position)) {
+    let near_edge = |d: &Detection| {
+        sides
+            .iter()
+            .any(|s| s.inside_px(d.position) < NEAR_EDGE_PITCH * pitch)
+    };
+    if !found.accepted.iter().chain(&found.second_tier).any(near_edge) {
         return;
     }
-    let points: Vec<Point2> = lattice.iter().map(|d| d.position).collect();
+    let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
     let grid = Buckets::new(&points, pitch);
-    detections.retain(|d| stays(d.position, &sides, &grid, pitch));
+    found.accepted.retain(|d| stays(d.position, &sides, &grid, pitch));
+    found
+        .second_tier
+        .retain(|d| stays(d.position, &sides, &grid, pitch));
 }
 
 #[cfg(test)]
@@ -171,11 +173,14 @@ mod tests {
             .collect()
     }
 
-    /// Runs the check with the detections themselves as the lattice, as the localizer does.
-    fn checked(mut found: Vec<Detection>) -> Vec<Detection> {
-        let lattice = found.clone();
-        drop_past_the_edge(&mut found, &lattice, SIZE, Some(25.0));
-        found
+    /// Runs the check on `accepted` (no second tier), which are their own lattice.
+    fn checked(accepted: Vec<Detection>) -> Vec<Detection> {
+        let mut found = TieredDetections {
+            accepted,
+            second_tier: Vec::new(),
+        };
+        drop_past_the_edge(&mut found, SIZE, Some(25.0));
+        found.accepted
     }
 
     /// A cut dot reported 2 px inside the left edge goes when its row's lattice puts its centre 1.5 px
@@ -188,7 +193,24 @@ mod tests {
             let mut found = inner.clone();
             found.push(det(2.0, 112.0));
             let kept = checked(found.clone());
-            assert_eq!(kept, if stays { found } else { inner }, "first column at {x0}");
+            assert_eq!(
+                kept,
+                if stays { found } else { inner.clone() },
+                "first column at {x0}"
+            );
+
+            // The same dot in the second tier is judged by the accepted markers' lines.
+            let mut tiered = TieredDetections {
+                accepted: inner.clone(),
+                second_tier: vec![det(2.0, 112.0)],
+            };
+            drop_past_the_edge(&mut tiered, SIZE, Some(25.0));
+            assert_eq!(tiered.accepted, inner);
+            assert_eq!(
+                tiered.second_tier.len(),
+                usize::from(stays),
+                "first column at {x0}"
+            );
         }
     }
 
@@ -214,11 +236,10 @@ mod tests {
     /// Without a line inwards (a lone detection) the margin decides: 0.5 px at pitch 25.
     #[test]
     fn without_a_line_the_margin_decides() {
-        let mut found = vec![det(0.3, 100.0), det(0.6, 150.0), det(150.0, -0.2)];
-        drop_past_the_edge(&mut found, &[], SIZE, Some(25.0));
+        let found = checked(vec![det(0.3, 100.0), det(0.6, 150.0), det(150.0, -0.2)]);
         assert_eq!(found, vec![det(0.6, 150.0)]);
-        let mut kept = vec![det(0.3, 100.0)];
-        drop_past_the_edge(&mut kept, &[], SIZE, None);
-        assert_eq!(kept, vec![det(0.3, 100.0)]);
+        let mut kept: TieredDetections = vec![det(0.3, 100.0)].into();
+        drop_past_the_edge(&mut kept, SIZE, None);
+        assert_eq!(kept.accepted, vec![det(0.3, 100.0)]);
     }
 }

@@ -1552,9 +1552,7 @@ impl Marknet {
                 .and_then(|f| f.fit_of(&found.accepted, scale))
                 .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
             let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref());
-            let lattice = found.accepted.clone();
-            drop_past_the_edge(&mut found.accepted, &lattice, frame.size, frame.pitch_px);
-            drop_past_the_edge(&mut found.second_tier, &lattice, frame.size, frame.pitch_px);
+            drop_past_the_edge(&mut found, frame.size, frame.pitch_px);
             found
         };
         let pitches: Vec<Option<f64>> = frames.iter().map(|f| f.pitch_px).collect();
