@@ -464,8 +464,12 @@ impl Simulator {
         let lattice_half = 0.5
             * f64::from(self.sensor.spec.grid.cols.max(self.sensor.spec.grid.rows) - 1)
             * self.sensor.spec.grid.pitch_mm;
-        let previous = if exp.appearance.motion_blur > 0.0 && frame > 0 {
-            let before = exp.script.pose_at(f64::from(frame) - exp.appearance.motion_blur);
+        // The exposure is centred on the frame's time, so a moving marker's truth is the middle of
+        // its smear: the one place an image shows it at, whichever way it moved.
+        let exposure_start = if exp.appearance.motion_blur > 0.0 && frame > 0 {
+            let before = exp
+                .script
+                .pose_at(f64::from(frame) - 0.5 * exp.appearance.motion_blur);
             let def0 = deform(&self.sensor.spec.gel, &self.layer, &exp.script, &before);
             Some(marker_truth(&self.sensor, &self.optics, &def0))
         } else {
@@ -494,7 +498,7 @@ impl Simulator {
                 dot_radius_mm: radius,
                 lattice_half_mm: lattice_half,
                 seed: mix(seed, view as u64),
-                previous: previous.as_deref(),
+                exposure_start: exposure_start.as_deref(),
                 ridges,
                 membrane: self.sensor.spec.membrane,
             })

@@ -344,8 +344,9 @@ pub struct ViewJob<'a> {
     pub lattice_half_mm: f64,
     /// Seed of this frame and view (noise).
     pub seed: u64,
-    /// Marker ground truth at the start of the exposure (motion blur), if any.
-    pub previous: Option<&'a [MarkerTruth]>,
+    /// Marker ground truth at the start of the exposure (motion blur), if any; the exposure is
+    /// centred on the frame's time.
+    pub exposure_start: Option<&'a [MarkerTruth]>,
     /// Skin ridges to draw in the contact (fingertips).
     pub ridges: Option<Ridges>,
     /// The membrane's outline when the gel does not fill the view (housing outside it).
@@ -500,15 +501,21 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
             let vig = 1.0 - app.vignette * (0.5 * (dx * dx + dy * dy)) as f32;
             let col = app.marker_color.map(|v| v * vig);
             let alpha = app.marker_alpha * fade;
-            // Motion blur: the marker smears from where it was when the exposure began.
-            let start = job.previous.and_then(|p| p.get(k)).and_then(|p| p.px[job.view]);
+            // Motion blur: the marker smears from where it was when the exposure began to as far
+            // past its position at the frame's time (the middle of the exposure; the motion taken
+            // as steady over it), so the smear's middle is its truth.
+            let start = job
+                .exposure_start
+                .and_then(|p| p.get(k))
+                .and_then(|p| p.px[job.view]);
             match start {
-                Some(s) if s.distance(c) > 0.3 => {
-                    let steps = (s.distance(c).ceil() as usize).clamp(2, 8);
+                Some(s) if 2.0 * s.distance(c) > 0.3 => {
+                    let end = Point2::new(2.0 * c.x - s.x, 2.0 * c.y - s.y);
+                    let steps = ((2.0 * s.distance(c)).ceil() as usize).clamp(2, 8);
                     let a = 1.0 - (1.0 - alpha).powf(1.0 / steps as f32);
                     for i in 0..steps {
                         let f = (i as f64 + 0.5) / steps as f64;
-                        let p = Point2::new(s.x + (c.x - s.x) * f, s.y + (c.y - s.y) * f);
+                        let p = Point2::new(s.x + (end.x - s.x) * f, s.y + (end.y - s.y) * f);
                         splat(buf, w, h, p, &(j * r), col, a, app.edge_softness_px);
                     }
                 }

@@ -11,7 +11,8 @@ use gelstereo_core::CsvTable;
 use gelstereo_sim::dataset::{DatasetConfig, Randomization, write_dataset};
 use opencv::calib3d;
 use opencv::core::{
-    FileNodeTraitConst, FileStorage, FileStorageTraitConst, Mat, MatTraitConst, Point2d, Point3d, Vector,
+    FileNodeTraitConst, FileStorage, FileStorageTraitConst, Mat, MatTraitConst, MatTraitConstManual, Point2d,
+    Point3d, Vector,
 };
 
 struct Calib {
@@ -217,4 +218,108 @@ fn output_folder_rules() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("dataset.json"), "{e}");
+}
+
+/// The grey levels of a BGR image.
+fn grey_levels(image: &Mat) -> (i32, Vec<u8>) {
+    let mut grey = Mat::default();
+    opencv::imgproc::cvt_color_def(image, &mut grey, opencv::imgproc::COLOR_BGR2GRAY).unwrap();
+    (grey.cols(), grey.data_bytes().unwrap().to_vec())
+}
+
+/// The centre of the darkness a dot adds to the gel around `at`: the pixels within `radius` px
+/// weighted by how much darker than `gel` (the same frame without markers) they are.
+fn dark_centre(image: &(i32, Vec<u8>), gel: &(i32, Vec<u8>), at: (f64, f64), radius: f64) -> (f64, f64) {
+    let w = image.0;
+    let (mut sx, mut sy, mut sw) = (0.0, 0.0, 0.0);
+    for y in (at.1 - radius).floor() as i32..=(at.1 + radius).ceil() as i32 {
+        for x in (at.0 - radius).floor() as i32..=(at.0 + radius).ceil() as i32 {
+            let Some(k) = usize::try_from(y * w + x).ok().filter(|_| x >= 0 && x < w) else {
+                continue;
+            };
+            let (Some(v), Some(g)) = (image.1.get(k), gel.1.get(k)) else {
+                continue;
+            };
+            if (f64::from(x) - at.0).hypot(f64::from(y) - at.1) <= radius {
+                let weight = (f64::from(*g) - f64::from(*v)).max(0.0);
+                (sx, sy, sw) = (
+                    sx + weight * f64::from(x),
+                    sy + weight * f64::from(y),
+                    sw + weight,
+                );
+            }
+        }
+    }
+    (sx / sw, sy / sw)
+}
+
+/// Motion blur is centred on the frame's time: a marker moving during the exposure smears across its
+/// truth, so the smear's middle (what an image shows) is where the truth puts it. Markers that smear
+/// over 2-5 px in a slide: the smear's centre, measured as the sharp dot's is, lies within 0.1 px of
+/// the sharp dot's centre (an exposure ending at the frame's time put it up to 1.6 px away, half the
+/// smear).
+#[test]
+fn a_smeared_marker_is_centred_on_its_truth() {
+    use gelstereo_sim::{Appearance, Indenter, MotionKind, Script, Simulator};
+    let mut experiment = gelstereo_sim::dataset::plan(&DatasetConfig::new(1, 21, 5))
+        .unwrap()
+        .remove(0);
+    experiment.script = Script {
+        indenter: Indenter::Sphere { radius_mm: 6.0 },
+        kind: MotionKind::PressSlide,
+        centre_mm: [0.0, 0.0],
+        angle_deg: 0.0,
+        max_depth_mm: 1.0,
+        slide_mm: [2.5, 0.0],
+        twist_deg: 0.0,
+        frames: 21,
+        press_end: 0.3,
+        shear_end: 0.9,
+        release: false,
+    };
+    let mut look = Appearance::reference();
+    (look.noise, look.jpeg_quality, look.dust, look.motion_blur) = (0.0, None, Vec::new(), 1.0);
+    experiment.appearance = look.clone();
+    let blurred = Simulator::new(experiment.clone()).unwrap().frame(12).unwrap();
+    experiment.appearance = Appearance {
+        motion_blur: 0.0,
+        ..look
+    };
+    let still = Simulator::new(experiment.clone()).unwrap();
+    let sharp = still.frame(12).unwrap();
+    let (before, after) = (still.frame(11).unwrap(), still.frame(13).unwrap());
+    experiment.appearance.marker_alpha = 0.0;
+    let gel = grey_levels(&Simulator::new(experiment).unwrap().frame(12).unwrap().images[0]);
+    let (blurred_grey, sharp_grey) = (grey_levels(&blurred.images[0]), grey_levels(&sharp.images[0]));
+    let (w, h) = (
+        f64::from(sharp.images[0].cols()),
+        f64::from(sharp.images[0].rows()),
+    );
+    let mut offsets = Vec::new();
+    for (((m, s), b), a) in blurred
+        .markers
+        .iter()
+        .zip(&sharp.markers)
+        .zip(&before.markers)
+        .zip(&after.markers)
+    {
+        let (Some(p), Some(q), Some(pb), Some(pa)) = (m.px[0], s.px[0], b.px[0], a.px[0]) else {
+            continue;
+        };
+        assert!(p.distance(q) < 1e-9, "the truth does not depend on the exposure");
+        // The smear's length: a frame interval's motion, half of that from frame 11 to 13.
+        let smear = 0.5 * pa.distance(pb);
+        if !m.printed || !(2.0..=5.0).contains(&smear) || p.x.min(p.y).min(w - p.x).min(h - p.y) < 12.0 {
+            continue;
+        }
+        let moved = dark_centre(&blurred_grey, &gel, (p.x, p.y), 9.0);
+        let centre = dark_centre(&sharp_grey, &gel, (p.x, p.y), 9.0);
+        offsets.push((moved.0 - centre.0).hypot(moved.1 - centre.1));
+    }
+    assert!(offsets.len() >= 20, "{} markers smear over 2-5 px", offsets.len());
+    let worst = offsets.iter().copied().fold(0.0, f64::max);
+    assert!(
+        worst < 0.1,
+        "smear centres up to {worst:.2} px off the sharp dots' centres"
+    );
 }
