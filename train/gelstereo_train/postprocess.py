@@ -527,9 +527,10 @@ def postprocess(decoded: np.ndarray, cfg: PostConfig, mre_fn=None, input_per_px:
     marknet_mre = kept[accept]
     if cfg.lattice is not None and input_per_px is not None:
         marknet = keep_the_lattice(marknet, cfg.lattice, input_per_px,
-                                   unsure=kept[kept[:, 2] <= cfg.conf_marknet_only], looked=looked)
+                                   unsure=kept[kept[:, 2] <= cfg.conf_marknet_only], looked=looked,
+                                   image_wh=image_wh)
         marknet_mre = keep_the_lattice(marknet_mre, cfg.lattice, input_per_px, unsure=kept[~accept],
-                                       looked=looked)
+                                       looked=looked, image_wh=image_wh)
         if image_wh is not None:
             marknet = inside_the_edge(marknet, image_wh, pitch)
             marknet_mre = inside_the_edge(marknet_mre, image_wh, pitch)
@@ -724,15 +725,29 @@ SITE_STEP = (0.75, 1.33)  # spacing of the lines that place an empty site, in pi
 SITE_REACH = 2.2  # members searched around an empty site, in pitches (Rust: SITE_REACH)
 
 
+def outside_the_image(p: np.ndarray, image_wh: tuple[int, int]) -> bool:
+    """Whether ``p`` lies more than ``IMAGE_SPAN_PX`` beyond the outermost pixel centres of an image of
+    ``image_wh`` (Rust: ``edge::outside_the_image``)."""
+    w, h = image_wh
+    return bool(min(p[0], p[1], w - 1.0 - p[0], h - 1.0 - p[1]) < -IMAGE_SPAN_PX)
+
+
 def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pitch: float,
-                      check: LatticeCheck) -> bool:
+                      check: LatticeCheck, image_wh: tuple[int, int] | None = None) -> bool:
     """Rust: ``lattice::at_an_empty_site``: no taken site within half a pitch, and on equally spaced
-    lines of three with members in two directions, the middle of at least one."""
+    lines of three with members in two directions, the middle of at least one, or, in an image of
+    ``image_wh``, the end of one whose next site beyond ``p`` lies outside the image."""
     if len(taken) and np.hypot(taken[:, 0] - p[0], taken[:, 1] - p[1]).min() <= 0.5 * pitch:
         return False
     near = members[np.hypot(members[:, 0] - p[0], members[:, 1] - p[1]) <= SITE_REACH * pitch]
     tol2 = check.tolerance_frac ** 2
     any_angles, middle_angles = [], []
+    cut = False
+
+    def beyond(near_pt: np.ndarray) -> bool:
+        """The site one step beyond ``p`` from its neighbour ``near_pt`` lies outside the image."""
+        return image_wh is not None and outside_the_image(2 * p - near_pt, image_wh)
+
     for a in range(len(near)):
         q = near[a]
         for r in near[a + 1:]:
@@ -740,7 +755,10 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
             if not SITE_STEP[0] <= math.sqrt(min(pq2, pr2)) / pitch <= SITE_STEP[1]:
                 continue
             is_middle = ((2 * p - q - r) ** 2).sum() <= tol2 * pq2
-            is_end = ((2 * q - p - r) ** 2).sum() <= tol2 * pq2 or ((2 * r - p - q) ** 2).sum() <= tol2 * pr2
+            end_beside_q = ((2 * q - p - r) ** 2).sum() <= tol2 * pq2
+            end_beside_r = ((2 * r - p - q) ** 2).sum() <= tol2 * pr2
+            cut = cut or (end_beside_q and beyond(q)) or (end_beside_r and beyond(r))
+            is_end = end_beside_q or end_beside_r
             if is_middle or is_end:
                 angle = math.atan2(r[1] - q[1], r[0] - q[0]) % math.pi
                 any_angles.append(angle)
@@ -749,15 +767,17 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
     a = np.array(any_angles)
     d = np.abs(a[:, None] - a[None, :])
     two = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= math.radians(check.min_angle_deg)).any())
-    return bool(middle_angles) and two
+    return (bool(middle_angles) or cut) and two
 
 
 def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float,
-                     unsure: np.ndarray | None = None, looked=None) -> np.ndarray:
+                     unsure: np.ndarray | None = None, looked=None,
+                     image_wh: tuple[int, int] | None = None) -> np.ndarray:
     """The rows (x, y, c) of ``markers`` that are lattice members, or on the lattice with a confidence of at
     least ``adjacent_min_confidence`` (none without a lattice), plus the rows of ``unsure`` (the second
     tier) and the refused ``markers`` that sit at an empty lattice site, most confident first; all of
-    ``markers`` when ``check`` is None; inside ``looked`` (x0, y0, x1, y1) the bound is
+    ``markers`` when ``check`` is None; with ``image_wh``, a site the image's border cuts the lattice at
+    counts as empty too (``_at_an_empty_site``); inside ``looked`` (x0, y0, x1, y1) the bound is
     ``looked_min_confidence`` (Rust: ``lattice::keep_fitted_lattice``)."""
     if check is None:
         return markers
@@ -775,7 +795,7 @@ def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_
         taken = kept[:, :2]
         moved = []
         for row in pool[np.argsort(-pool[:, 2], kind="stable")]:
-            if _at_an_empty_site(row[:2], members, taken, pitch, check):
+            if _at_an_empty_site(row[:2], members, taken, pitch, check, image_wh):
                 moved.append(row)
                 taken = np.vstack([taken, row[None, :2]])
         if moved:

@@ -148,6 +148,25 @@ def test_the_lattice_check_moves_up_unsure_candidates_at_empty_sites_and_drops_t
     assert member[:120].all() and not member[120:].any()
 
 
+def test_unsure_dots_the_image_border_cuts_the_lattice_at_join_and_those_past_its_end_do_not():
+    """The Python twin of the Rust test of the same name: unsure dots of the top row (the corner and two
+    side by side), each the end of its lines, join when the next site up lies outside the image; unsure
+    finds one pitch past the lattice's last row and column, inside the image, do not."""
+    from gelstereo_train.postprocess import LatticeCheck, keep_the_lattice
+
+    grid = [(6 + 20.0 * c, 6 + 20.0 * r) for r in range(8) for c in range(10)]
+    missed = {(6.0, 6.0), (66.0, 6.0), (86.0, 6.0)}
+    found = np.array([p for p in grid if p not in missed])
+    rows = np.column_stack([found, np.full(len(found), 0.99)])
+    unsure = np.array([[x + 0.5, y - 0.5, 0.3] for x, y in sorted(missed)])
+    assert len(keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=unsure, image_wh=(200, 170))) == 80
+    assert len(keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=unsure)) == len(found)
+    every = np.column_stack([np.array(grid), np.full(len(grid), 0.99)])
+    past = np.array([[6 + 20.0 * c, 166.0, 0.3] for c in range(10)]
+                    + [[206.0, 6 + 20.0 * r, 0.3] for r in range(1, 7)])
+    assert len(keep_the_lattice(every, LatticeCheck(), 1.0, unsure=past, image_wh=(260, 200))) == 80
+
+
 def test_an_irregular_lattice_the_network_is_sure_of_is_kept_and_doubtful_spacing_is_not():
     """The Python twin of the Rust test: hand-placed dots (a 12 x 10 lattice of pitch 20, each moved up
     to a quarter pitch per axis) are a lattice by their spacing when the network is sure of them; the

@@ -80,6 +80,14 @@ impl Side {
     }
 }
 
+/// Whether `p` lies outside the image span of `size` (more than [`IMAGE_SPAN_PX`] beyond its outermost
+/// pixel centres).
+pub(crate) fn outside_the_image(p: Point2, size: ImageSize) -> bool {
+    Side::all(size)
+        .iter()
+        .any(|side| side.inside_px(p) < -IMAGE_SPAN_PX)
+}
+
 /// How far inside `side` (px; negative outside) the line inwards from `p` most nearly along the
 /// side's normal puts `p`'s centre: `2 p1 - p2` for lattice points `p1` one step and `p2` two steps
 /// from `p`. `None` without such a line.

@@ -29,6 +29,10 @@
 //! little of, a dot in a pile-up). Being the middle of a line keeps a rim or housing find just past
 //! the lattice's edge out (it could only be the end of lines); the lines must have the lattice's own
 //! spacing (0.75-1.33 pitch), or the centre of a square cell would be the middle of its diagonals.
+//! Where the image's border cuts the lattice, the end of a line whose next site beyond the candidate
+//! lies outside the image counts as the middle does: the lattice goes on past the border, it does not
+//! end there (a faint dot of the top row, next to another the network was unsure of, on the GelSlim
+//! frames).
 //!
 //! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
 //! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
@@ -49,9 +53,10 @@
 
 use gelstereo_core::spatial::Buckets;
 use gelstereo_core::stats::median;
-use gelstereo_core::{Detection, Point2, TieredDetections};
+use gelstereo_core::{Detection, ImageSize, Point2, TieredDetections};
 
 use crate::close_look::Region;
+use crate::edge::outside_the_image;
 use crate::postprocess::{median_finite, nearest_neighbour_distances};
 
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
@@ -543,8 +548,16 @@ impl Taken {
 
 /// Whether `p` sits at an empty lattice site of the `members` (see the module documentation):
 /// no accepted marker within half a `pitch`, and on equally spaced lines of three with members in two
-/// directions, the middle of at least one.
-fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, check: &LatticeCheck) -> bool {
+/// directions, the middle of at least one, or, in an image of `size`, the end of one whose next site
+/// beyond `p` lies outside the image (the image's border cuts the lattice there; it does not end).
+fn at_an_empty_site(
+    p: Point2,
+    members: &Buckets,
+    taken: &Taken,
+    pitch: f64,
+    check: &LatticeCheck,
+    size: Option<ImageSize>,
+) -> bool {
     if taken.within(p, 0.5 * pitch) {
         return false;
     }
@@ -554,6 +567,11 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
     let tol2 = check.tolerance_frac * check.tolerance_frac;
     let dist2 = |u: Point2, x: f64, y: f64| (u.x - x).powi(2) + (u.y - y).powi(2);
     let (mut middle, mut any) = (Lines::NONE, Lines::NONE);
+    let mut cut_by_the_border = false;
+    // The site one step beyond `p` from its neighbour `near` on a line lies outside the image.
+    let beyond_the_border = |near: Point2| {
+        size.is_some_and(|s| outside_the_image(Point2::new(2.0 * p.x - near.x, 2.0 * p.y - near.y), s))
+    };
     for (a, &q) in near.iter().enumerate() {
         for &r in &near[a + 1..] {
             let (pq2, pr2) = (dist2(p, q.x, q.y), dist2(p, r.x, r.y));
@@ -565,8 +583,11 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
             }
             // p in the middle of q and r, or p at the end of the line q, r (either way round).
             let is_middle = dist2(r, 2.0 * p.x - q.x, 2.0 * p.y - q.y) <= tol2 * pq2;
-            let is_end = dist2(r, 2.0 * q.x - p.x, 2.0 * q.y - p.y) <= tol2 * pq2
-                || dist2(q, 2.0 * r.x - p.x, 2.0 * r.y - p.y) <= tol2 * pr2;
+            let end_beside_q = dist2(r, 2.0 * q.x - p.x, 2.0 * q.y - p.y) <= tol2 * pq2;
+            let end_beside_r = dist2(q, 2.0 * r.x - p.x, 2.0 * r.y - p.y) <= tol2 * pr2;
+            cut_by_the_border |=
+                (end_beside_q && beyond_the_border(q)) || (end_beside_r && beyond_the_border(r));
+            let is_end = end_beside_q || end_beside_r;
             if is_middle || is_end {
                 let direction = [r.x - q.x, r.y - q.y];
                 any.add(direction, &min_angle);
@@ -576,7 +597,7 @@ fn at_an_empty_site(p: Point2, members: &Buckets, taken: &Taken, pitch: f64, che
             }
         }
     }
-    middle.count > 0 && any.two
+    (middle.count > 0 || cut_by_the_border) && any.two
 }
 
 /// `found` with its accepted markers moved to the second tier unless they are members, or on the
@@ -589,7 +610,7 @@ pub fn keep_the_lattice(
     input_per_px: f64,
 ) -> TieredDetections {
     let fit = fit_lattice(&found.accepted, check, input_per_px);
-    keep_fitted_lattice(found, fit, check, None)
+    keep_fitted_lattice(found, fit, check, None, None)
 }
 
 /// [`keep_the_lattice`] with `fit`, the [`fit_lattice`] of `found.accepted` already made (a localizer
@@ -601,6 +622,7 @@ pub(crate) fn keep_fitted_lattice(
     fit: LatticeFit,
     check: &LatticeCheck,
     looked: Option<&Region>,
+    size: Option<ImageSize>,
 ) -> TieredDetections {
     let needs = |d: &Detection| match looked {
         Some(r) if r.contains(d) => check.looked_min_confidence,
@@ -627,7 +649,7 @@ pub(crate) fn keep_fitted_lattice(
         };
         let mut unsure = Vec::new();
         for d in second_tier {
-            if at_an_empty_site(d.position, &members, &taken, pitch, check) {
+            if at_an_empty_site(d.position, &members, &taken, pitch, check, size) {
                 taken.moved_up.push(d.position);
                 accepted.push(d);
             } else {
@@ -747,6 +769,63 @@ mod tests {
     }
 
     #[test]
+    fn unsure_dots_the_image_border_cuts_the_lattice_at_join_and_those_past_its_end_do_not() {
+        // A 10 x 8 lattice (pitch 20) whose top row lies 6 px below the top of a 200 x 170 image; the
+        // network was unsure of three of its dots: the corner and two side by side (columns 0, 3, 4).
+        // Each ends a column whose next site up lies outside the image, and a row: not the middle of
+        // any line. One pitch past the bottom row (y = 166, inside the image) and one past the right
+        // column (x = 206, in a wider image) the lattice ends, with nothing there: unsure finds
+        // there stay unsure.
+        let lattice = |x0: f64| -> Vec<Point2> {
+            (0..8)
+                .flat_map(|r| (0..10).map(move |c| Point2::new(x0 + c as f64 * 20.0, 6.0 + r as f64 * 20.0)))
+                .collect()
+        };
+        let all = lattice(6.0);
+        let missed = [
+            Point2::new(6.0, 6.0),
+            Point2::new(66.0, 6.0),
+            Point2::new(86.0, 6.0),
+        ];
+        let found: Vec<Point2> = all.iter().copied().filter(|p| !missed.contains(p)).collect();
+        let unsure: Vec<(Point2, f32)> = missed
+            .iter()
+            .map(|&p| (Point2::new(p.x + 0.5, p.y - 0.5), 0.3))
+            .collect();
+        let size = ImageSize {
+            width: 200,
+            height: 170,
+        };
+        let check = LatticeCheck::default();
+        let tiered = tiers(&found, &unsure);
+        let fit = fit_lattice(&tiered.accepted, &check, 1.0);
+        let out = keep_fitted_lattice(tiered.clone(), fit.clone(), &check, None, Some(size));
+        assert_eq!(out.accepted.len(), all.len(), "the three unsure dots join");
+        assert!(out.second_tier.is_empty());
+        // Without the image (no border known) only the middle-of-a-line rule applies: none joins.
+        let blind = keep_fitted_lattice(tiered, fit, &check, None, None);
+        assert_eq!(blind.accepted.len(), found.len());
+        // Past the lattice's end inside the image: a row below the last and a column right of the
+        // last, in an image wide enough that the site beyond the column lies inside it.
+        let past: Vec<(Point2, f32)> = (0..10)
+            .map(|c| (Point2::new(6.0 + c as f64 * 20.0, 166.0), 0.3))
+            .chain((1..7).map(|r| (Point2::new(206.0, 6.0 + r as f64 * 20.0), 0.3)))
+            .collect();
+        let wide = ImageSize {
+            width: 260,
+            height: 200,
+        };
+        let found = tiers(&all, &past);
+        let fit = fit_lattice(&found.accepted, &check, 1.0);
+        let out = keep_fitted_lattice(found, fit, &check, None, Some(wide));
+        assert_eq!(
+            out.accepted.len(),
+            all.len(),
+            "nothing past the lattice's end joins"
+        );
+    }
+
+    #[test]
     fn a_hexagonal_lattice_is_a_lattice() {
         let pts: Vec<Point2> = (0..12)
             .flat_map(|r| {
@@ -847,7 +926,7 @@ mod tests {
             second_tier: Vec::new(),
         };
         let kept = |d: &Detection, t: &TieredDetections| t.accepted.contains(d);
-        let plain = keep_fitted_lattice(tiers(), fit_lattice(&found, &check, 1.0), &check, None);
+        let plain = keep_fitted_lattice(tiers(), fit_lattice(&found, &check, 1.0), &check, None, None);
         assert!(!kept(&found[a], &plain) && !kept(&found[b], &plain));
         let around = Region {
             x0: 60.0,
@@ -855,7 +934,13 @@ mod tests {
             x1: 120.0,
             y1: 80.0,
         };
-        let looked = keep_fitted_lattice(tiers(), fit_lattice(&found, &check, 1.0), &check, Some(&around));
+        let looked = keep_fitted_lattice(
+            tiers(),
+            fit_lattice(&found, &check, 1.0),
+            &check,
+            Some(&around),
+            None,
+        );
         assert!(kept(&found[a], &looked) && kept(&found[b], &looked));
         let elsewhere = Region {
             x0: 140.0,
@@ -868,6 +953,7 @@ mod tests {
             fit_lattice(&found, &check, 1.0),
             &check,
             Some(&elsewhere),
+            None,
         );
         assert!(!kept(&found[a], &far) && !kept(&found[b], &far));
     }

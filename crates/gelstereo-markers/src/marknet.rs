@@ -1551,7 +1551,7 @@ impl Marknet {
             let fit = fitted
                 .and_then(|f| f.fit_of(&found.accepted, scale))
                 .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
-            let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref());
+            let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref(), Some(frame.size));
             drop_past_the_edge(&mut found, frame.size, frame.pitch_px);
             found
         };
