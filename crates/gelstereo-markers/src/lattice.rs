@@ -616,7 +616,8 @@ pub fn keep_the_lattice(
 /// [`keep_the_lattice`] with `fit`, the [`fit_lattice`] of `found.accepted` already made (a localizer
 /// that fitted the same markers to choose its input layout reuses that fit), and inside `looked` (the
 /// region a closer look re-examined) [`LatticeCheck::looked_min_confidence`] for the markers on the
-/// lattice.
+/// lattice; with the image's `size`, empty sites where its border cuts the lattice count too (see
+/// the module documentation).
 pub(crate) fn keep_fitted_lattice(
     found: TieredDetections,
     fit: LatticeFit,
