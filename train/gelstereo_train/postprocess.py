@@ -436,6 +436,27 @@ BLOB_CONFIDENCE = 0.5
 BLOB_SEARCH_PITCH = 1.5  # radius of the neighbourhood of a squeezed marker searched
 
 
+def _blob_detector(dot: float, gel: float, pitch: float):
+    """OpenCV's SimpleBlobDetector for dots of median grey ``dot`` on a gel of ``gel``, ``pitch`` px apart, at
+    BLOB_LEVELS between them; None below BLOB_MIN_CONTRAST (Rust: ``squeezed_blobs::detector_for``)."""
+    import cv2
+
+    lo, hi = min(dot, gel), max(dot, gel)
+    span = hi - lo
+    if span < BLOB_MIN_CONTRAST:
+        return None
+    p = cv2.SimpleBlobDetector_Params()
+    p.thresholdStep = (BLOB_LEVELS[1] - BLOB_LEVELS[0]) * span
+    p.minThreshold, p.maxThreshold = lo + BLOB_LEVELS[0] * span, lo + BLOB_LEVELS[2] * span + 0.5
+    p.minRepeatability, p.minDistBetweenBlobs = 2, 0.25 * pitch
+    p.filterByColor, p.blobColor = True, 0 if dot < gel else 255
+    p.filterByArea, p.minArea, p.maxArea = True, BLOB_AREA_PITCH2[0] * pitch ** 2, BLOB_AREA_PITCH2[1] * pitch ** 2
+    p.filterByCircularity = False
+    p.filterByInertia, p.minInertiaRatio = True, BLOB_MIN_INERTIA_RATIO
+    p.filterByConvexity, p.minConvexity = True, BLOB_MIN_CONVEXITY
+    return cv2.SimpleBlobDetector_create(p)
+
+
 def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.ndarray:
     """(k, 3) markers (x, y, BLOB_CONFIDENCE) the network missed between the squeezed rows of ``markers``
     (x, y, ...; squeezed: a neighbour closer than SQUEEZED_NN_PITCH x pitch), found as blobs of the RGB
@@ -470,20 +491,10 @@ def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.n
     for q in np.floor(pts[squeezed] + 0.5).astype(int) - [ix0, iy0]:
         cv2.circle(searched, (int(q[0]), int(q[1])), int(math.floor(BLOB_SEARCH_PITCH * pitch + 0.5)), 255, -1)
     grey[searched == 0] = int(math.floor(gel + 0.5))
-    lo, hi = min(dot, gel), max(dot, gel)
-    span = hi - lo
-    if span < BLOB_MIN_CONTRAST:
+    detector = _blob_detector(dot, gel, pitch)
+    if detector is None:
         return none
-    p = cv2.SimpleBlobDetector_Params()
-    p.thresholdStep = (BLOB_LEVELS[1] - BLOB_LEVELS[0]) * span
-    p.minThreshold, p.maxThreshold = lo + BLOB_LEVELS[0] * span, lo + BLOB_LEVELS[2] * span + 0.5
-    p.minRepeatability, p.minDistBetweenBlobs = 2, 0.25 * pitch
-    p.filterByColor, p.blobColor = True, 0 if dot < gel else 255
-    p.filterByArea, p.minArea, p.maxArea = True, BLOB_AREA_PITCH2[0] * pitch ** 2, BLOB_AREA_PITCH2[1] * pitch ** 2
-    p.filterByCircularity = False
-    p.filterByInertia, p.minInertiaRatio = True, BLOB_MIN_INERTIA_RATIO
-    p.filterByConvexity, p.minConvexity = True, BLOB_MIN_CONVEXITY
-    kps = cv2.SimpleBlobDetector_create(p).detect(grey)
+    kps = detector.detect(grey)
     found = []
     for k in kps:
         b = np.array([k.pt[0] + ix0, k.pt[1] + iy0])
@@ -498,6 +509,81 @@ def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.n
         gap = max(np.diff(angles).max(initial=0.0), 2 * math.pi - (angles[-1] - angles[0]))
         if gap <= math.radians(SURROUNDED_GAP_DEG) and squeezed[near[:BLOB_SQUEEZED_AMONG]].any():
             found.append((b[0], b[1], BLOB_CONFIDENCE))
+    return np.array(found).reshape(-1, 3)
+
+
+SITE_LINE_STEP = (0.75, 1.33)  # spacing of the lines that predict a site, in pitches (Rust: site_blobs)
+SITE_LINE_TOLERANCE = 0.2  # a line's third point within this share of its spacing (Rust: LINE_TOLERANCE)
+SITE_EMPTY_PITCH = 0.5  # no marker this close: the site is empty (Rust: EMPTY_PITCH)
+SITE_INSIDE_PITCH = 0.15  # sites searched this far inside the outermost pixel centres (Rust: INSIDE_PITCH)
+SITE_REACH_PITCH = 0.3  # a blob within this of its site and as far from every marker (Rust: SITE_REACH_PITCH)
+SITE_SEARCH_HALF_PITCH = 0.7  # half the side of the square searched (Rust: SEARCH_HALF_PITCH)
+SITE_DOT_SAMPLES = 6  # neighbouring markers whose grey gives the dots' grey (Rust: DOT_SAMPLES)
+
+
+def _empty_sites(pts: np.ndarray, pitch: float, image_wh: tuple[int, int]) -> np.ndarray:
+    """The sites ``s = 2 b - a`` that lines of three markers ``c, a, b`` predict with no marker within
+    SITE_EMPTY_PITCH, at a hole (a marker on the line past ``s``) or where the image's border cuts the
+    lattice (the next site past ``s`` outside the image); one per site (Rust: ``site_blobs::empty_sites``)."""
+    w, h = image_wh
+    sites: list[np.ndarray] = []
+
+    def near(q: np.ndarray, radius: float) -> bool:
+        return bool((np.hypot(pts[:, 0] - q[0], pts[:, 1] - q[1]) <= radius).any())
+
+    for a in pts:
+        d_all = np.hypot(pts[:, 0] - a[0], pts[:, 1] - a[1])
+        for j in np.nonzero((d_all >= SITE_LINE_STEP[0] * pitch) & (d_all <= SITE_LINE_STEP[1] * pitch))[0]:
+            b, d = pts[j], d_all[j]
+            s = 2 * b - a
+            if (min(s[0], s[1], w - 1 - s[0], h - 1 - s[1]) < SITE_INSIDE_PITCH * pitch
+                    or not near(2 * a - b, SITE_LINE_TOLERANCE * d) or near(s, SITE_EMPTY_PITCH * pitch)):
+                continue
+            beyond = 2 * s - b
+            if (near(beyond, SITE_LINE_TOLERANCE * d) or outside_the_image(beyond, image_wh)) and all(
+                    math.hypot(*(t - s)) > SITE_REACH_PITCH * pitch for t in sites):
+                sites.append(s)
+    return np.array(sites).reshape(-1, 2)
+
+
+def site_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.ndarray:
+    """(k, 3) markers (x, y, BLOB_CONFIDENCE) the network missed at the lattice's empty sites
+    (``_empty_sites``), found as the blob nearest each site by OpenCV's SimpleBlobDetector in the
+    RGB or grey ``image`` around it, at levels between its neighbours' grey and the gel's (Rust:
+    ``gelstereo_markers::site_blobs``)."""
+    import cv2
+
+    if not np.isfinite(pitch) or pitch <= 0 or len(markers) < 3:
+        return np.zeros((0, 3))
+    pts = markers[:, :2].astype(np.float64)
+    grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    h, w = grey.shape
+    found = []
+    for s in _empty_sites(pts, pitch, (w, h)):
+        half = SITE_SEARCH_HALF_PITCH * pitch
+        x0, y0 = max(int(math.floor(s[0] - half)), 0), max(int(math.floor(s[1] - half)), 0)
+        x1, y1 = min(int(math.ceil(s[0] + half)), w - 1), min(int(math.ceil(s[1] + half)), h - 1)
+        if x1 - x0 < 4 or y1 - y0 < 4:
+            continue
+        roi = np.ascontiguousarray(grey[y0:y1 + 1, x0:x1 + 1])
+        d = np.hypot(pts[:, 0] - s[0], pts[:, 1] - s[1])
+        order = np.argsort(d, kind="stable")
+        nearest = pts[order[:SITE_DOT_SAMPLES]][d[order[:SITE_DOT_SAMPLES]] <= 2.0 * pitch]
+        q = np.floor(nearest + 0.5).astype(int)
+        q = q[(q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] < w) & (q[:, 1] < h)]
+        dot = float(np.median(grey[q[:, 1], q[:, 0]])) if len(q) else 0.0
+        detector = _blob_detector(dot, float(np.median(roi)), pitch)
+        if detector is None:
+            continue
+        best = None
+        for k in detector.detect(roi):
+            b = np.array([k.pt[0] + x0, k.pt[1] + y0])
+            e = math.hypot(*(b - s))
+            far = np.hypot(pts[:, 0] - b[0], pts[:, 1] - b[1]).min() > SITE_REACH_PITCH * pitch
+            if e <= SITE_REACH_PITCH * pitch and far and (best is None or e < best[0]):
+                best = (e, b)
+        if best is not None:
+            found.append((best[1][0], best[1][1], BLOB_CONFIDENCE))
     return np.array(found).reshape(-1, 3)
 
 

@@ -308,3 +308,36 @@ def test_a_missed_dash_beside_a_squeezed_marker_is_found_as_in_rust():
     assert len(added) == 1 and np.hypot(added[0, 0] - 155, added[0, 1] - 140) < 0.5, added
     assert added[0, 2] == BLOB_CONFIDENCE
     assert len(squeezed_blobs(img, truth, 20.0)) == 0
+
+
+def test_dots_at_a_hole_and_at_the_border_are_found_and_nothing_past_the_lattice_as_in_rust():
+    """The Python twin of the Rust site_blobs tests: faint dots (30 grey levels below the gel) every 20 px,
+    the top row 6 px below the image's top; a dot missing inside the lattice and one of the top row
+    are found where they are, nothing is added with every dot found, and a spot one pitch past a
+    lattice that ends inside the image is not taken."""
+    import cv2
+
+    from gelstereo_train.postprocess import BLOB_CONFIDENCE, site_blobs
+
+    def gel(columns: int):
+        img = np.full((240, 320, 3), (160, 155, 150), np.uint8)
+        dots = []
+        for r in range(12):
+            for c in range(columns):
+                x, y = 20 + 20 * c, 6 + 20 * r
+                cv2.circle(img, (x, y), 4, (125, 125, 125), -1, cv2.LINE_AA)
+                dots.append((x, y, 1.0))
+        return img, np.array(dots, float)
+
+    img, dots = gel(15)
+    missing = [(160.0, 106.0), (100.0, 6.0)]
+    found = dots[[(x, y) not in missing for x, y, _ in dots]]
+    added = site_blobs(img, found, 20.0)
+    assert len(added) == 2, added
+    for x, y in missing:
+        assert np.hypot(added[:, 0] - x, added[:, 1] - y).min() < 0.5, added
+    assert (added[:, 2] == BLOB_CONFIDENCE).all()
+    assert len(site_blobs(img, dots, 20.0)) == 0
+    img, dots = gel(12)
+    cv2.circle(img, (260, 106), 4, (125, 125, 125), -1, cv2.LINE_AA)
+    assert len(site_blobs(img, dots, 20.0)) == 0

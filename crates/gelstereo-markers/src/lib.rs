@@ -30,6 +30,7 @@ pub mod postprocess;
 mod resize;
 pub mod runtime;
 pub mod self_test;
+pub mod site_blobs;
 pub mod squeezed_blobs;
 pub mod window;
 pub mod yolo;

@@ -29,6 +29,7 @@ use crate::postprocess::{
     DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
 };
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
+use crate::site_blobs::blobs_at_empty_sites;
 use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
@@ -1583,18 +1584,25 @@ impl Marknet {
                     .collect()
             }
         };
-        // Markers between squeezed ones that the network missed: part of the closer look.
-        if !self.close_look || post.lattice.is_none() {
+        if post.lattice.is_none() {
             return Ok(found);
         }
+        // Dots the network missed, found as blobs: between squeezed markers (part of the closer
+        // look), then where the lattice's lines put a site at a hole or at the border.
+        let close_look = self.close_look;
         found
             .into_iter()
             .zip(images)
             .zip(pitches)
             .map(|((mut found, image), pitch)| {
-                let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
-                if !blobs.is_empty() {
+                let before = found.accepted.len();
+                if close_look {
+                    let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
                     found.accepted.extend(blobs);
+                }
+                let at_sites = blobs_at_empty_sites(image, &found.accepted, pitch)?;
+                found.accepted.extend(at_sites);
+                if found.accepted.len() > before {
                     crate::sort_detections(&mut found.accepted);
                 }
                 Ok(found)

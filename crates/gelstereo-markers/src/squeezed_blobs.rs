@@ -65,7 +65,7 @@ pub const BLOB_CONFIDENCE: f32 = 0.5;
 pub const SEARCH_PITCH: f64 = 1.5;
 
 /// The median of `values`, the mean of the middle two for an even count (0 for none), by a histogram.
-fn median(values: impl Iterator<Item = u8>) -> f32 {
+pub(crate) fn median(values: impl Iterator<Item = u8>) -> f32 {
     let mut counts = [0usize; 256];
     let mut n = 0;
     for v in values {
@@ -91,7 +91,7 @@ fn median(values: impl Iterator<Item = u8>) -> f32 {
 }
 
 /// The grey part of `image` inside `rect`.
-fn grey_roi(image: &Mat, rect: Rect) -> Result<Mat> {
+pub(crate) fn grey_roi(image: &Mat, rect: Rect) -> Result<Mat> {
     let roi = Mat::roi(image, rect).map_err(cv_err("the squeezed region of the image"))?;
     let mut grey = Mat::default();
     match image.channels() {
@@ -189,7 +189,11 @@ fn squeezed_neighbourhoods(
 
 /// The blob detector for dots of median grey `dot` on a gel of median grey `gel`, `pitch` px apart;
 /// `None` when the two differ by less than [`MIN_CONTRAST`].
-fn detector_for(dot: f32, gel: f32, pitch: f64) -> Result<Option<opencv::core::Ptr<SimpleBlobDetector>>> {
+pub(crate) fn detector_for(
+    dot: f32,
+    gel: f32,
+    pitch: f64,
+) -> Result<Option<opencv::core::Ptr<SimpleBlobDetector>>> {
     let (lo, hi) = (dot.min(gel), dot.max(gel));
     let span = hi - lo;
     if span < MIN_CONTRAST {
