@@ -202,8 +202,7 @@ mod tests {
     }
 
     /// A 320 x 240 gel with faint dark dots of radius 4 (30 grey levels below the gel) every 20 px,
-    /// the top row 6 px below the image's top (x = 20, 40, ... 300; y = 6, 26, ... 226), and a
-    /// lattice of the same dots whose last column (x = 300) ends 19 px inside the right border.
+    /// the top row 6 px below the image's top (x = 20, 40, ... 300; y = 6, 26, ... 226).
     fn faint_gel() -> (Mat, Vec<Point2>) {
         let mut img =
             Mat::new_rows_cols_with_default(240, 320, CV_8UC3, Scalar::new(150.0, 155.0, 160.0, 0.0))
