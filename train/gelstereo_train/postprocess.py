@@ -512,7 +512,7 @@ def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.n
     return np.array(found).reshape(-1, 3)
 
 
-SITE_LINE_STEP = (0.75, 1.33)  # spacing of the lines that predict a site, in pitches (Rust: site_blobs)
+SITE_STEP = (0.75, 1.33)  # spacing of the lines that place an empty site, in pitches (Rust: SITE_STEP)
 SITE_LINE_TOLERANCE = 0.2  # a line's third point within this share of its spacing (Rust: LINE_TOLERANCE)
 SITE_EMPTY_PITCH = 0.5  # no marker this close: the site is empty (Rust: EMPTY_PITCH)
 SITE_INSIDE_PITCH = 0.15  # sites searched this far inside the outermost pixel centres (Rust: INSIDE_PITCH)
@@ -533,7 +533,7 @@ def _empty_sites(pts: np.ndarray, pitch: float, image_wh: tuple[int, int]) -> np
 
     for a in pts:
         d_all = np.hypot(pts[:, 0] - a[0], pts[:, 1] - a[1])
-        for j in np.nonzero((d_all >= SITE_LINE_STEP[0] * pitch) & (d_all <= SITE_LINE_STEP[1] * pitch))[0]:
+        for j in np.nonzero((d_all >= SITE_STEP[0] * pitch) & (d_all <= SITE_STEP[1] * pitch))[0]:
             b, d = pts[j], d_all[j]
             s = 2 * b - a
             if (min(s[0], s[1], w - 1 - s[0], h - 1 - s[1]) < SITE_INSIDE_PITCH * pitch
@@ -807,7 +807,6 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, co
     return spaced if spaced_member.sum() > lined_member.sum() else lined
 
 
-SITE_STEP = (0.75, 1.33)  # spacing of the lines that place an empty site, in pitches (Rust: SITE_STEP)
 SITE_REACH = 2.2  # members searched around an empty site, in pitches (Rust: SITE_REACH)
 
 

@@ -99,6 +99,13 @@ impl Buckets {
         &self.points
     }
 
+    /// Whether some point lies within `radius_px` of `p`.
+    pub fn any_within(&self, p: Point2, radius_px: f64) -> bool {
+        let mut any = false;
+        self.for_each_within(p, radius_px, |_, _| any = true);
+        any
+    }
+
     /// Calls `f(index, squared_distance)` for every point within `radius_px` of `p`.
     pub fn for_each_within(&self, p: Point2, radius_px: f64, mut f: impl FnMut(usize, f64)) {
         if !(p.x.is_finite() && p.y.is_finite()) || self.points.is_empty() {

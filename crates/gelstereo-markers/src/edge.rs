@@ -80,12 +80,19 @@ impl Side {
     }
 }
 
+/// How far `p` lies inside the outermost pixel centres of an image of `size`, px (negative outside):
+/// its distance to the nearest side.
+pub(crate) fn inside_the_image_px(p: Point2, size: ImageSize) -> f64 {
+    Side::all(size)
+        .iter()
+        .map(|side| side.inside_px(p))
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// Whether `p` lies outside the image span of `size` (more than [`IMAGE_SPAN_PX`] beyond its outermost
 /// pixel centres).
 pub(crate) fn outside_the_image(p: Point2, size: ImageSize) -> bool {
-    Side::all(size)
-        .iter()
-        .any(|side| side.inside_px(p) < -IMAGE_SPAN_PX)
+    inside_the_image_px(p, size) < -IMAGE_SPAN_PX
 }
 
 /// How far inside `side` (px; negative outside) the line inwards from `p` most nearly along the

@@ -523,7 +523,7 @@ fn patches_at_the_lattice_pitch(patch_of: &[Option<usize>], nn: &[f64], ratio: f
 
 /// The spacing, in pitches, of the lines that place an empty lattice site (contact strain changes it
 /// by well under a quarter from one marker to the next).
-const SITE_STEP: (f64, f64) = (0.75, 1.33);
+pub(crate) const SITE_STEP: (f64, f64) = (0.75, 1.33);
 
 /// Members searched around an empty site, in pitches: the far end of a line that ends at the site
 /// lies two steps away.
@@ -537,12 +537,11 @@ struct Taken {
 
 impl Taken {
     fn within(&self, p: Point2, radius: f64) -> bool {
-        let mut hit = false;
-        self.accepted.for_each_within(p, radius, |_, _| hit = true);
-        hit || self
-            .moved_up
-            .iter()
-            .any(|q| (q.x - p.x).hypot(q.y - p.y) <= radius)
+        self.accepted.any_within(p, radius)
+            || self
+                .moved_up
+                .iter()
+                .any(|q| (q.x - p.x).hypot(q.y - p.y) <= radius)
     }
 }
 

@@ -17,12 +17,11 @@ use gelstereo_core::{Detection, ImageSize, Point2};
 use opencv::core::{KeyPointTraitConst, Mat, MatTraitConst, MatTraitConstManual, Rect, Vector};
 use opencv::prelude::Feature2DTrait;
 
-use crate::edge::outside_the_image;
-use crate::squeezed_blobs::{BLOB_CONFIDENCE, detector_for, grey_roi, median};
+use crate::close_look::Region;
+use crate::edge::{inside_the_image_px, outside_the_image};
+use crate::lattice::SITE_STEP;
+use crate::squeezed_blobs::{BLOB_CONFIDENCE, detector_for, grey_roi, median, pixels_covering};
 use crate::{Result, cv_err};
-
-/// Spacing of the lines that predict a site, in pitches (as the lattice check's empty sites).
-const LINE_STEP_PITCH: (f64, f64) = (0.75, 1.33);
 
 /// A line's third point lies within this share of its spacing of where equal spacing puts it.
 const LINE_TOLERANCE: f64 = 0.2;
@@ -44,39 +43,31 @@ const SEARCH_HALF_PITCH: f64 = 0.7;
 /// The neighbouring markers whose grey gives the dots' grey.
 const DOT_SAMPLES: usize = 6;
 
-/// Whether some point of `grid` lies within `radius` of `p`.
-fn any_within(grid: &Buckets, p: Point2, radius: f64) -> bool {
-    let mut found = false;
-    grid.for_each_within(p, radius, |_, d2| found |= d2 <= radius * radius);
-    found
-}
-
 /// The empty sites the lines of `grid`'s markers predict at a hole or where the border of an image of
 /// `size` cuts the lattice (module doc), one per site.
 fn empty_sites(grid: &Buckets, pitch: f64, size: ImageSize) -> Vec<Point2> {
     let points = grid.points();
-    let (last_x, last_y) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
     let inside = INSIDE_PITCH * pitch;
     let mut sites: Vec<Point2> = Vec::new();
     for &a in points {
         let mut steps = Vec::new();
-        grid.for_each_within(a, LINE_STEP_PITCH.1 * pitch, |j, d2| {
+        grid.for_each_within(a, SITE_STEP.1 * pitch, |j, d2| {
             let d = d2.sqrt();
-            if (LINE_STEP_PITCH.0 * pitch..=LINE_STEP_PITCH.1 * pitch).contains(&d) {
+            if (SITE_STEP.0 * pitch..=SITE_STEP.1 * pitch).contains(&d) {
                 steps.push((points[j], d));
             }
         });
         for (b, d) in steps {
             let at = |u: Point2, v: Point2| Point2::new(2.0 * u.x - v.x, 2.0 * u.y - v.y);
             let s = at(b, a);
-            let placed = s.x.min(s.y).min(last_x - s.x).min(last_y - s.y) >= inside
-                && any_within(grid, at(a, b), LINE_TOLERANCE * d)
-                && !any_within(grid, s, EMPTY_PITCH * pitch);
+            let placed = inside_the_image_px(s, size) >= inside
+                && grid.any_within(at(a, b), LINE_TOLERANCE * d)
+                && !grid.any_within(s, EMPTY_PITCH * pitch);
             if !placed {
                 continue;
             }
             let beyond = at(s, b);
-            let hole_or_cut = any_within(grid, beyond, LINE_TOLERANCE * d) || outside_the_image(beyond, size);
+            let hole_or_cut = grid.any_within(beyond, LINE_TOLERANCE * d) || outside_the_image(beyond, size);
             if hole_or_cut
                 && sites
                     .iter()
@@ -89,14 +80,15 @@ fn empty_sites(grid: &Buckets, pitch: f64, size: ImageSize) -> Vec<Point2> {
     sites
 }
 
-/// The pixel rectangle within `half` px of `p`, clipped to an image of `size`; `None` when thinner
-/// than five pixels.
+/// The pixels within `half` px of `p` in an image of `size`; `None` when thinner than five pixels.
 fn square_around(p: Point2, half: f64, size: ImageSize) -> Option<Rect> {
-    let x0 = ((p.x - half).floor() as i32).max(0);
-    let y0 = ((p.y - half).floor() as i32).max(0);
-    let x1 = ((p.x + half).ceil() as i32).min(size.width as i32 - 1);
-    let y1 = ((p.y + half).ceil() as i32).min(size.height as i32 - 1);
-    (x1 - x0 >= 4 && y1 - y0 >= 4).then(|| Rect::new(x0, y0, x1 - x0 + 1, y1 - y0 + 1))
+    let square = Region {
+        x0: p.x - half,
+        y0: p.y - half,
+        x1: p.x + half,
+        y1: p.y + half,
+    };
+    pixels_covering(&square, size).filter(|r| r.width >= 5 && r.height >= 5)
 }
 
 /// The median grey of `image` at `points` (nearest pixels inside it).
@@ -153,7 +145,7 @@ fn blob_at(image: &Mat, s: Point2, grid: &Buckets, pitch: f64, size: ImageSize) 
             )
         })
         .map(|b| ((b.x - s.x).hypot(b.y - s.y), b))
-        .filter(|(e, b)| *e <= reach && !any_within(grid, *b, reach))
+        .filter(|(e, b)| *e <= reach && !grid.any_within(*b, reach))
         .min_by(|a, b| a.0.total_cmp(&b.0))
         .map(|(_, b)| b))
 }

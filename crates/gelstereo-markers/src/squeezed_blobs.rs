@@ -21,6 +21,7 @@ use opencv::imgproc;
 use opencv::prelude::Feature2DTrait;
 
 use crate::close_look::{Region, SQUEEZED_NN_PITCH, region_around};
+use crate::edge::inside_the_image_px;
 use crate::lattice::{SURROUNDED_GAP_DEG, largest_gap};
 use crate::postprocess::nearest_neighbour_distances;
 use crate::{Result, cv_err};
@@ -112,7 +113,7 @@ pub(crate) fn grey_roi(image: &Mat, rect: Rect) -> Result<Mat> {
 
 /// The whole pixels covering `region` (finite, within the image span of `size`); `None` for a
 /// region thinner than two pixels.
-fn pixels_covering(region: &Region, size: ImageSize) -> Option<Rect> {
+pub(crate) fn pixels_covering(region: &Region, size: ImageSize) -> Option<Rect> {
     let (x0, y0) = (
         region.x0.max(0.0).floor() as i32,
         region.y0.max(0.0).floor() as i32,
@@ -291,7 +292,6 @@ pub fn blobs_between_squeezed(
     detector
         .detect(&searched, &mut keypoints, &opencv::core::no_array())
         .map_err(cv_err("SimpleBlobDetector::detect"))?;
-    let (last_x, last_y) = (f64::from(size.width) - 1.0, f64::from(size.height) - 1.0);
     let edge = EDGE_PITCH * pitch;
     let grid = Buckets::new(&points, pitch);
     Ok(keypoints
@@ -302,7 +302,7 @@ pub fn blobs_between_squeezed(
                 f64::from(k.pt().y) + f64::from(y0),
             )
         })
-        .filter(|p| p.x.min(p.y).min(last_x - p.x).min(last_y - p.y) >= edge)
+        .filter(|p| inside_the_image_px(*p, size) >= edge)
         .filter(|p| missed_marker(*p, &grid, &squeezed, pitch))
         .map(|position| Detection {
             position,

@@ -554,9 +554,7 @@ impl Tracker {
 
     /// Whether a detection of `grid` lies within `gate` x the local pitch of `slot` around `centre`.
     fn any_within(&self, grid: &Buckets, slot: usize, centre: Point2, gate: f64) -> bool {
-        let mut any = false;
-        grid.for_each_within(centre, gate * self.pitch_px[slot], |_, _| any = true);
-        any
+        grid.any_within(centre, gate * self.pitch_px[slot])
     }
 
     /// A bucket grid over `points` for the gate queries: cells of one median pitch, so that a gate
