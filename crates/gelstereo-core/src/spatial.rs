@@ -21,6 +21,31 @@ fn bounds(points: &[Point2]) -> [f64; 4] {
     )
 }
 
+/// `v.floor()` for the cell arithmetic, inlined: without SSE4.1 in the baseline target `f64::floor`
+/// is a call into libm, and the radius queries made it a few percent of the post-processing. Exact for
+/// |v| < 2^63; beyond that, and for NaN (0 here), the comparisons and casts of the queries treat
+/// what it gives as they treat `f64::floor`'s value.
+#[inline]
+fn floor(v: f64) -> f64 {
+    // Truncating cast: saturating, NaN to 0.
+    let t = v as i64 as f64;
+    if t > v { t - 1.0 } else { t }
+}
+
+/// The cells `x.0..=x.1` by `y.0..=y.1` of a grid `nx` cells wide.
+struct CellSpan {
+    nx: usize,
+    x: (usize, usize),
+    y: (usize, usize),
+}
+
+impl CellSpan {
+    /// The first and last cell of each row of the span.
+    fn rows(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        (self.y.0..=self.y.1).map(|cy| (cy * self.nx + self.x.0, cy * self.nx + self.x.1))
+    }
+}
+
 /// Points sorted into square cells.
 #[derive(Debug, Clone)]
 pub struct Buckets {
@@ -100,33 +125,30 @@ impl Buckets {
     }
 
     /// Whether some point lies within `radius_px` of `p`.
+    /// It stops at the first such point: the lattice's site tests ask this thousands of times per
+    /// view, mostly of sites a marker holds.
     pub fn any_within(&self, p: Point2, radius_px: f64) -> bool {
-        let mut any = false;
-        self.for_each_within(p, radius_px, |_, _| any = true);
-        any
+        let r2 = radius_px * radius_px;
+        let Some(span) = self.cells_within(p, radius_px) else {
+            return false;
+        };
+        span.rows().any(|(first, last)| {
+            self.item_points[self.run(first, last)]
+                .iter()
+                .any(|q| (q.x - p.x).powi(2) + (q.y - p.y).powi(2) <= r2)
+        })
     }
 
     /// Calls `f(index, squared_distance)` for every point within `radius_px` of `p`.
     pub fn for_each_within(&self, p: Point2, radius_px: f64, mut f: impl FnMut(usize, f64)) {
-        if !(p.x.is_finite() && p.y.is_finite()) || self.points.is_empty() {
-            return;
-        }
         let r2 = radius_px * radius_px;
-        let lo_x = ((p.x - radius_px - self.x0) * self.inv_cell).floor();
-        let hi_x = ((p.x + radius_px - self.x0) * self.inv_cell).floor();
-        let lo_y = ((p.y - radius_px - self.y0) * self.inv_cell).floor();
-        let hi_y = ((p.y + radius_px - self.y0) * self.inv_cell).floor();
-        if hi_x < 0.0 || hi_y < 0.0 || lo_x >= self.nx as f64 || lo_y >= self.ny as f64 {
+        let Some(span) = self.cells_within(p, radius_px) else {
             return;
-        }
-        let cx0 = lo_x.max(0.0) as usize;
-        let cx1 = (hi_x as usize).min(self.nx - 1);
-        let cy0 = lo_y.max(0.0) as usize;
-        let cy1 = (hi_y as usize).min(self.ny - 1);
-        for cy in cy0..=cy1 {
-            // The cells of one row are consecutive in `items`: one loop per row, not per cell (the
-            // loop exits of the nearly empty cells were what a query spent its time on).
-            let run = self.run(cy * self.nx + cx0, cy * self.nx + cx1);
+        };
+        // The cells of one row are consecutive in `items`: one loop per row, not per cell (the loop
+        // exits of the nearly empty cells were what a query spent its time on).
+        for (first, last) in span.rows() {
+            let run = self.run(first, last);
             for (&i, q) in self.items[run.clone()].iter().zip(&self.item_points[run]) {
                 let d2 = (q.x - p.x).powi(2) + (q.y - p.y).powi(2);
                 if d2 <= r2 {
@@ -134,6 +156,27 @@ impl Buckets {
                 }
             }
         }
+    }
+
+    /// The cells within `radius_px` of `p`; `None` for a point that is not finite, an empty grid, or
+    /// a square around `p` that misses the grid.
+    #[inline]
+    fn cells_within(&self, p: Point2, radius_px: f64) -> Option<CellSpan> {
+        if !(p.x.is_finite() && p.y.is_finite()) || self.points.is_empty() {
+            return None;
+        }
+        let lo_x = floor((p.x - radius_px - self.x0) * self.inv_cell);
+        let hi_x = floor((p.x + radius_px - self.x0) * self.inv_cell);
+        let lo_y = floor((p.y - radius_px - self.y0) * self.inv_cell);
+        let hi_y = floor((p.y + radius_px - self.y0) * self.inv_cell);
+        if hi_x < 0.0 || hi_y < 0.0 || lo_x >= self.nx as f64 || lo_y >= self.ny as f64 {
+            return None;
+        }
+        Some(CellSpan {
+            nx: self.nx,
+            x: (lo_x.max(0.0) as usize, (hi_x as usize).min(self.nx - 1)),
+            y: (lo_y.max(0.0) as usize, (hi_y as usize).min(self.ny - 1)),
+        })
     }
 
     /// The entries of cells `first..=last` (of one row) in `items`.
@@ -168,9 +211,18 @@ impl Buckets {
         let fx = p.x - self.x0 - cx as f64 * cell_px;
         let fy = p.y - self.y0 - cy as f64 * cell_px;
         let margin = 1e-9 * (cell_px + self.x0.abs() + self.y0.abs() + p.x.abs() + p.y.abs());
+        // Rings 0 and 1 first, as three runs of cells (a nearest point mostly lies in them), then
+        // ring by ring outwards.
+        let (x0, x1) = ((cx - 1).max(0) as usize, (cx + 1).min(nx - 1) as usize);
         let mut best = f64::INFINITY;
-        for ring in 0..=nx.max(ny) {
-            best = self.nearest_in_ring(p, i, (cx, cy), ring, best);
+        for gy in (cy - 1).max(0)..=(cy + 1).min(ny - 1) {
+            let row = gy as usize * self.nx;
+            best = self.nearest_in_run(p, i, (row + x0, row + x1), best);
+        }
+        for ring in 1..=nx.max(ny) {
+            if ring > 1 {
+                best = self.nearest_in_ring(p, i, (cx, cy), ring, best);
+            }
             let reach =
                 clearance(cx, nx, ring, fx, cell_px).min(clearance(cy, ny, ring, fy, cell_px)) - margin;
             if best.is_finite() && reach > 0.0 && best <= reach * reach {
@@ -255,9 +307,22 @@ mod tests {
                 b.for_each_within(*q, r, |i, _| got.push(i));
                 got.sort_unstable();
                 let want: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].distance(*q) <= r).collect();
+                assert_eq!(b.any_within(*q, r), !want.is_empty(), "any: query {k} radius {r}");
                 assert_eq!(got, want, "query {k} radius {r}");
             }
         }
+    }
+
+    /// The inlined floor agrees with `f64::floor` wherever the cell arithmetic can land.
+    #[test]
+    fn the_cell_floor_is_the_floor() {
+        let values = [-2.5, -1e-12, -0.0, 0.0, 0.5, 2047.999_999, 1e15 + 0.5, -1e15];
+        for v in values {
+            assert_eq!(floor(v), v.floor(), "{v}");
+        }
+        // Out of range: on the same side of every cell index as `f64::floor`'s value.
+        assert!(floor(1e300) >= 1e18 && floor(f64::INFINITY) >= 1e18);
+        assert!(floor(-1e300) < 0.0 && floor(f64::NEG_INFINITY) < 0.0);
     }
 
     /// The ring search stops early only where no unsearched point can be closer: its answer is the
