@@ -49,15 +49,16 @@ fn empty_sites(grid: &Buckets, pitch: f64, size: ImageSize) -> Vec<Point2> {
     let points = grid.points();
     let inside = INSIDE_PITCH * pitch;
     let mut sites: Vec<Point2> = Vec::new();
+    let mut steps = Vec::new();
     for &a in points {
-        let mut steps = Vec::new();
+        steps.clear();
         grid.for_each_within(a, SITE_STEP.1 * pitch, |j, d2| {
             let d = d2.sqrt();
             if (SITE_STEP.0 * pitch..=SITE_STEP.1 * pitch).contains(&d) {
                 steps.push((points[j], d));
             }
         });
-        for (b, d) in steps {
+        for &(b, d) in &steps {
             let at = |u: Point2, v: Point2| Point2::new(2.0 * u.x - v.x, 2.0 * u.y - v.y);
             let s = at(b, a);
             // Cheapest and most often decisive first: in a whole lattice a marker holds `s`.
