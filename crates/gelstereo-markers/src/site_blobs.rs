@@ -43,26 +43,54 @@ const SEARCH_HALF_PITCH: f64 = 0.7;
 /// The neighbouring markers whose grey gives the dots' grey.
 const DOT_SAMPLES: usize = 6;
 
+/// Each point of `grid` with its lattice steps: the points [`SITE_STEP`] pitches from it, with their
+/// distance, in the grid's order; point `i`'s steps are `steps[start[i]..start[i + 1]]`.
+struct Steps {
+    start: Vec<usize>,
+    steps: Vec<(usize, f64)>,
+}
+
+impl Steps {
+    fn of(grid: &Buckets, pitch: f64) -> Self {
+        let (mut start, mut steps) = (vec![0], Vec::new());
+        for &a in grid.points() {
+            grid.for_each_within(a, SITE_STEP.1 * pitch, |j, d2| {
+                let d = d2.sqrt();
+                if (SITE_STEP.0 * pitch..=SITE_STEP.1 * pitch).contains(&d) {
+                    steps.push((j, d));
+                }
+            });
+            start.push(steps.len());
+        }
+        Self { start, steps }
+    }
+
+    fn from(&self, i: usize) -> &[(usize, f64)] {
+        &self.steps[self.start[i]..self.start[i + 1]]
+    }
+}
+
 /// The empty sites the lines of `grid`'s markers predict at a hole or where the border of an image of
 /// `size` cuts the lattice (module doc), one per site.
 fn empty_sites(grid: &Buckets, pitch: f64, size: ImageSize) -> Vec<Point2> {
     let points = grid.points();
     let inside = INSIDE_PITCH * pitch;
+    let steps = Steps::of(grid, pitch);
+    let empty = EMPTY_PITCH * pitch;
+    // Whether a marker lies within `empty` of `s`, a step beyond marker `b`: in a whole lattice one of
+    // `b`'s own steps does, which is quicker to find than by a query of the grid (asked only when
+    // none does; the same test of the same squared distance, so the same answer).
+    let held = |s: Point2, b: usize| {
+        let near = |q: &Point2| (q.x - s.x).powi(2) + (q.y - s.y).powi(2) <= empty * empty;
+        steps.from(b).iter().any(|&(k, _)| near(&points[k])) || grid.any_within(s, empty)
+    };
     let mut sites: Vec<Point2> = Vec::new();
-    let mut steps = Vec::new();
-    for &a in points {
-        steps.clear();
-        grid.for_each_within(a, SITE_STEP.1 * pitch, |j, d2| {
-            let d = d2.sqrt();
-            if (SITE_STEP.0 * pitch..=SITE_STEP.1 * pitch).contains(&d) {
-                steps.push((points[j], d));
-            }
-        });
-        for &(b, d) in &steps {
+    for (i, &a) in points.iter().enumerate() {
+        for &(j, d) in steps.from(i) {
+            let b = points[j];
             let at = |u: Point2, v: Point2| Point2::new(2.0 * u.x - v.x, 2.0 * u.y - v.y);
             let s = at(b, a);
-            // Cheapest and most often decisive first: in a whole lattice a marker holds `s`.
-            let placed = !grid.any_within(s, EMPTY_PITCH * pitch)
+            let placed = !held(s, j)
                 && inside_the_image_px(s, size) >= inside
                 && grid.any_within(at(a, b), LINE_TOLERANCE * d);
             if !placed {
