@@ -316,7 +316,7 @@ mod tests {
     /// The inlined floor agrees with `f64::floor` wherever the cell arithmetic can land.
     #[test]
     fn the_cell_floor_is_the_floor() {
-        let values = [-2.5, -1e-12, -0.0, 0.0, 0.5, 2047.999_999, 1e15 + 0.5, -1e15];
+        let values = [-2.5, -1e-12, -0.0, 0.0, 0.5, 2047.75, 1e15 + 0.5, -1e15];
         for v in values {
             assert_eq!(floor(v), v.floor(), "{v}");
         }
