@@ -124,9 +124,8 @@ impl Buckets {
         &self.points
     }
 
-    /// Whether some point lies within `radius_px` of `p`.
-    /// It stops at the first such point: the lattice's site tests ask this thousands of times per
-    /// view, mostly of sites a marker holds.
+    /// Whether some point lies within `radius_px` of `p`. It stops at the first such point: the
+    /// lattice's site tests ask this thousands of times per view, mostly of sites a marker holds.
     pub fn any_within(&self, p: Point2, radius_px: f64) -> bool {
         let r2 = radius_px * radius_px;
         let Some(span) = self.cells_within(p, radius_px) else {

@@ -51,6 +51,7 @@ struct Steps {
 }
 
 impl Steps {
+    /// The steps of every point of `grid`, whose lattice is `pitch` px.
     fn of(grid: &Buckets, pitch: f64) -> Self {
         let (mut start, mut steps) = (vec![0], Vec::new());
         for &a in grid.points() {
@@ -65,7 +66,8 @@ impl Steps {
         Self { start, steps }
     }
 
-    fn from(&self, i: usize) -> &[(usize, f64)] {
+    /// Point `i`'s steps.
+    fn around(&self, i: usize) -> &[(usize, f64)] {
         &self.steps[self.start[i]..self.start[i + 1]]
     }
 }
@@ -82,11 +84,11 @@ fn empty_sites(grid: &Buckets, pitch: f64, size: ImageSize) -> Vec<Point2> {
     // none does; the same test of the same squared distance, so the same answer).
     let held = |s: Point2, b: usize| {
         let near = |q: &Point2| (q.x - s.x).powi(2) + (q.y - s.y).powi(2) <= empty * empty;
-        steps.from(b).iter().any(|&(k, _)| near(&points[k])) || grid.any_within(s, empty)
+        steps.around(b).iter().any(|&(k, _)| near(&points[k])) || grid.any_within(s, empty)
     };
     let mut sites: Vec<Point2> = Vec::new();
     for (i, &a) in points.iter().enumerate() {
-        for &(j, d) in steps.from(i) {
+        for &(j, d) in steps.around(i) {
             let b = points[j];
             let at = |u: Point2, v: Point2| Point2::new(2.0 * u.x - v.x, 2.0 * u.y - v.y);
             let s = at(b, a);
