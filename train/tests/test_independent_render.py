@@ -2,25 +2,14 @@
 reads, and its truth says where each dot was drawn."""
 
 import csv
-import importlib.util
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "independent_render.py"
 
-
-def load():
-    spec = importlib.util.spec_from_file_location("independent_render", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_renderer_writes_the_simulators_layout_with_visible_flags_from_the_centres(tmp_path):
-    render = load()
+def test_the_renderer_writes_the_simulators_layout_with_visible_flags_from_the_centres(tmp_path, script):
+    render = script("independent_render")
     assert render.main(["--out", str(tmp_path / "a"), "--experiments", "2", "--seed", "3"]) == 0
     manifest = json.loads((tmp_path / "a" / "dataset.json").read_text())
     assert manifest["counts"]["test"] == {"experiments": 2, "frames": 2 * render.FRAMES}
@@ -48,8 +37,8 @@ def test_the_renderer_writes_the_simulators_layout_with_visible_flags_from_the_c
     assert (again / "test" / "exp_0001" / "markers.csv").read_text() == first
 
 
-def test_the_reference_layout_is_a_23_by_23_lattice_inside_the_view(tmp_path):
-    render = load()
+def test_the_reference_layout_is_a_23_by_23_lattice_inside_the_view(tmp_path, script):
+    render = script("independent_render")
     assert render.main(["--out", str(tmp_path), "--experiments", "1", "--seed", "2", "--sensor", "reference"]) == 0
     e = json.loads((tmp_path / "dataset.json").read_text())["experiments"][0]
     assert (e["image_width"], e["image_height"], e["lattice"]) == (640, 480, "square") and not e["light_dots"]
@@ -59,12 +48,10 @@ def test_the_reference_layout_is_a_23_by_23_lattice_inside_the_view(tmp_path):
     assert 16.0 <= e["pitch_px"] <= 18.0
 
 
-def test_the_squeeze_report_measures_contact_frames_in_pitches(tmp_path):
-    render = load()
+def test_the_squeeze_report_measures_contact_frames_in_pitches(tmp_path, script):
+    render = script("independent_render")
     render.main(["--out", str(tmp_path), "--experiments", "1", "--seed", "2", "--sensor", "reference"])
-    spec = importlib.util.spec_from_file_location("squeeze_report", SCRIPT.parent / "squeeze_report.py")
-    report = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(report)
+    report = script("squeeze_report")
     d = report.squeeze(tmp_path, 1)
     rows = list(csv.DictReader(open(tmp_path / "test" / "exp_0000" / "markers.csv")))
     contact_frames = {r["frame"] for r in rows if r["in_contact"] == "1"}

@@ -1,22 +1,10 @@
 """`scripts/miss_report.py`: each missed marker lands in the class of what lies near it."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "miss_report.py"
 
-
-def load():
-    spec = importlib.util.spec_from_file_location("miss_report", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_each_miss_is_classed_by_what_lies_near_it():
-    m = load()
+def test_each_miss_is_classed_by_what_lies_near_it(script):
+    m = script("miss_report")
     pitch = 20.0
     gt = np.array([(x, y) for y in range(40, 201, 20) for x in range(40, 201, 20)], np.float64)
     missed = {"off": (100.0, 100.0), "dropped": (140.0, 140.0), "unsure": (60.0, 160.0), "none": (180.0, 80.0)}
@@ -40,8 +28,8 @@ def test_each_miss_is_classed_by_what_lies_near_it():
     assert got[corner] == m.CLASSES.index("sure, dropped")
 
 
-def test_a_sure_candidate_at_the_border_is_its_own_class():
-    m = load()
+def test_a_sure_candidate_at_the_border_is_its_own_class(script):
+    m = script("miss_report")
     gt = np.array([(x, y) for y in range(5, 120, 20) for x in range(25, 140, 20)], np.float64)
     det = gt[1:]
     candidates = np.array([(*gt[0], 0.9)])
