@@ -39,17 +39,24 @@ OUTPUT_PITCH = 0.5  # a detection this close to a missed marker is a misplaced f
 BORDER_PITCH = 0.5  # a marker this close to the image's border is a border marker
 
 
+def missed(gt: np.ndarray, det: np.ndarray) -> np.ndarray:
+    """Which markers of `gt` (n, 2) no row of `det` (m, 2) matches (within r = 0.25 pitch)."""
+    out = np.ones(len(gt), bool)
+    if len(det):
+        out[match(det, gt, RADIUS_FRAC * median_nn_distance(gt))[1]] = False
+    return out
+
+
 def classify_misses(gt: np.ndarray, det: np.ndarray, candidates: np.ndarray, wh: tuple[int, int]) -> list[int]:
     """The class (index into CLASSES) of each marker of `gt` (n, 2) that no row of `det` (m, 2)
-    matches; `candidates` (k, 3): the network's x, y, confidence in the same image of size `wh`."""
+    matches (`missed`), in the order of `gt`; `candidates` (k, 3): the network's x, y, confidence in
+    the same image of size `wh`."""
     pitch = median_nn_distance(gt)
     det = np.asarray(det, np.float64).reshape(-1, 2)
-    matched = np.zeros(len(gt), bool)
-    if len(det):
-        matched[match(det, gt, RADIUS_FRAC * pitch)[1]] = True
+    lost = missed(gt, det)
     border = edge_distances(gt, wh).min(1) < BORDER_PITCH * pitch
     classes = []
-    for g, on_border in zip(gt[~matched], border[~matched]):
+    for g, on_border in zip(gt[lost], border[lost]):
         if len(det) and np.hypot(*(det - g).T).min() < OUTPUT_PITCH * pitch:
             classes.append(0)
             continue
@@ -102,22 +109,19 @@ def main() -> int:
             contact = np.array([r["in_contact"] == "1" for r in rs])
             markers += len(gt)
             d = det.get(frame, np.zeros((0, 2)))
-            pitch = median_nn_distance(gt)
-            matched = np.zeros(len(gt), bool)
-            if len(d):
-                matched[match(d, gt, RADIUS_FRAC * pitch)[1]] = True
-            if matched.all():
+            lost = missed(gt, d)
+            if not lost.any():
                 continue
             with Image.open(image) as im:
                 rgb = np.array(im.convert("RGB"))
             candidates, _ = runner.fitted(rgb)
             classes = classify_misses(gt, d, candidates, (rgb.shape[1], rgb.shape[0]))
-            for c, in_contact in zip(classes, contact[~matched]):
+            for c, in_contact in zip(classes, contact[lost]):
                 counts[(c, bool(in_contact))] += 1
     if not markers:
         raise SystemExit(f"{args.detections}: no markers scored (no EXPERIMENT_VIEW.csv for {args.data}/test?)")
-    missed = sum(counts.values())
-    print(f"markers {markers}, missed {missed} ({100 * missed / markers:.2f} %)")
+    lost_total = sum(counts.values())
+    print(f"markers {markers}, missed {lost_total} ({100 * lost_total / markers:.2f} %)")
     print(f"{'class':22s} {'not in contact':>15s} {'in contact':>11s}")
     for c, label in enumerate(CLASSES):
         print(f"{label:22s} {counts[(c, False)]:15d} {counts[(c, True)]:11d}")
