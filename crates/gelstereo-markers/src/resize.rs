@@ -254,6 +254,9 @@ pub(crate) fn resize_into_planar(
             }
             let src = &image.bytes[sy * stride..(sy + 1) * stride];
             held[k] = Some(sy);
+            if let Some(ahead) = image.bytes.get((sy + 2) * stride..(sy + 3) * stride) {
+                simd::prefetch(ahead);
+            }
             if let Some(w) = wide {
                 w.horizontal(src, &mut buffers[k], row_len);
                 continue;
@@ -402,7 +405,7 @@ mod simd {
         _mm512_castsi512_si256, _mm512_cvtepi32_ps, _mm512_cvtepu16_epi32, _mm512_extracti64x4_epi64,
         _mm512_loadu_si512, _mm512_madd_epi16, _mm512_maskz_permutex2var_epi8, _mm512_mul_ps,
         _mm512_packs_epi32, _mm512_permutexvar_epi64, _mm512_set1_ps, _mm512_setr_epi64, _mm512_srai_epi32,
-        _mm512_storeu_ps, _mm512_sub_ps,
+        _mm512_storeu_ps, _mm512_sub_ps, _MM_HINT_T0, _mm_prefetch,
     };
 
     use super::{Kernels, Tap};
@@ -634,6 +637,16 @@ mod simd {
         }
     }
 
+    /// Asks the CPU to bring `bytes` into its cache (a source row two ahead of the one being
+    /// resized): a frame is read once, mostly from memory, and without the hint the horizontal pass
+    /// waits on each of a row's cache lines in turn.
+    pub(super) fn prefetch(bytes: &[u8]) {
+        for line in bytes.chunks(64) {
+            // SAFETY: a prefetch only hints; the address lies inside `bytes`.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast()) };
+        }
+    }
+
     /// BGR row into three channel rows (`split`: B, G, R, each `padded_width` long), 16 pixels per
     /// step with SSSE3 shuffles; false (nothing done) without SSSE3 or when not allowed.
     pub(super) fn split_bgr(src: &[u8], split: &mut [u8], padded_width: usize, kernels: Kernels) -> bool {
@@ -772,6 +785,9 @@ mod simd {
 #[cfg(not(target_arch = "x86_64"))]
 mod simd {
     use super::{Kernels, Tap};
+
+    /// No cache hint on other targets.
+    pub(super) fn prefetch(_: &[u8]) {}
 
     #[derive(Debug)]
     pub(super) enum Blocks {}
