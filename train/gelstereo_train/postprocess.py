@@ -53,6 +53,7 @@ class LatticeCheck:
     adjacent_members: int = 3  # members within reach_frac x pitch that put a non-member on the lattice
     adjacent_min_confidence: float = 0.9  # confidence such a non-member needs to be kept
     looked_min_confidence: float = 0.4  # the same inside the region a closer look re-examined
+    line_end_min_confidence: float = 0.7  # a candidate this sure may join as the end of one line (Rust: the same)
 
 
 @dataclass
@@ -810,18 +811,30 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, co
 SITE_REACH = 2.2  # members searched around an empty site, in pitches (Rust: SITE_REACH)
 
 
+def _inside_px(p: np.ndarray, image_wh: tuple[int, int]) -> float:
+    """How far ``p`` lies inside the outermost pixel centres of an image of ``image_wh``, px (negative
+    outside; Rust: ``edge::inside_the_image_px``)."""
+    w, h = image_wh
+    return float(min(p[0], p[1], w - 1.0 - p[0], h - 1.0 - p[1]))
+
+
 def outside_the_image(p: np.ndarray, image_wh: tuple[int, int]) -> bool:
     """Whether ``p`` lies more than ``IMAGE_SPAN_PX`` beyond the outermost pixel centres of an image of
     ``image_wh`` (Rust: ``edge::outside_the_image``)."""
-    w, h = image_wh
-    return bool(min(p[0], p[1], w - 1.0 - p[0], h - 1.0 - p[1]) < -IMAGE_SPAN_PX)
+    return _inside_px(p, image_wh) < -IMAGE_SPAN_PX
+
+
+LINE_END_INSIDE_PITCH = 0.5  # a candidate joining as the end of one line lies this far inside (Rust: the same)
 
 
 def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pitch: float,
-                      check: LatticeCheck, image_wh: tuple[int, int] | None = None) -> bool:
+                      check: LatticeCheck, image_wh: tuple[int, int] | None = None,
+                      confidence: float = 0.0) -> bool:
     """Rust: ``lattice::at_an_empty_site``: no taken site within half a pitch, and on equally spaced
     lines of three with members in two directions, the middle of at least one, or, in an image of
-    ``image_wh``, the end of one whose next site beyond ``p`` lies outside the image."""
+    ``image_wh``, the end of one whose next site beyond ``p`` lies outside the image; a candidate of
+    ``confidence`` >= ``line_end_min_confidence`` at least ``LINE_END_INSIDE_PITCH`` inside an image of
+    ``image_wh`` needs only to be the end of one such line."""
     if len(taken) and np.hypot(taken[:, 0] - p[0], taken[:, 1] - p[1]).min() <= 0.5 * pitch:
         return False
     near = members[np.hypot(members[:, 0] - p[0], members[:, 1] - p[1]) <= SITE_REACH * pitch]
@@ -852,7 +865,9 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
     a = np.array(any_angles)
     d = np.abs(a[:, None] - a[None, :])
     two = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= math.radians(check.min_angle_deg)).any())
-    return (bool(middle_angles) or cut) and two
+    line_end = (confidence >= check.line_end_min_confidence and image_wh is not None
+                and _inside_px(p, image_wh) >= LINE_END_INSIDE_PITCH * pitch)
+    return ((bool(middle_angles) or cut) and two) or (line_end and len(a) > 0)
 
 
 def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_px: float,
@@ -880,7 +895,7 @@ def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_
         taken = kept[:, :2]
         moved = []
         for row in pool[np.argsort(-pool[:, 2], kind="stable")]:
-            if _at_an_empty_site(row[:2], members, taken, pitch, check, image_wh):
+            if _at_an_empty_site(row[:2], members, taken, pitch, check, image_wh, float(row[2])):
                 moved.append(row)
                 taken = np.vstack([taken, row[None, :2]])
         if moved:

@@ -167,6 +167,21 @@ def test_unsure_dots_the_image_border_cuts_the_lattice_at_join_and_those_past_it
     assert len(keep_the_lattice(every, LatticeCheck(), 1.0, unsure=past, image_wh=(260, 200))) == 80
 
 
+def test_a_sure_find_one_step_past_the_lattice_joins_inside_the_image_and_no_further():
+    """The Python twin of the Rust test of the same name: a sure find one step past the last column (the
+    end of its row) joins in a roomy image; an unsure one there, a sure one two steps past or between four
+    markers do not; within half a pitch of the border, or without the image's size, none joins."""
+    from gelstereo_train.postprocess import LatticeCheck, keep_the_lattice
+
+    lattice = np.array([(10 + 20.0 * c, 10 + 20.0 * r) for r in range(8) for c in range(10)])
+    rows = np.column_stack([lattice, np.full(len(lattice), 0.99)])
+    second = np.array([[210.5, 70.0, 0.8], [209.5, 90.0, 0.3], [230.0, 110.0, 0.9], [100.0, 80.0, 0.9]])
+    kept = keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=second, image_wh=(300, 200))
+    assert len(kept) == 81 and ((kept[:, 0] == 210.5) & (kept[:, 1] == 70.0)).any()
+    assert len(keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=second, image_wh=(218, 200))) == 80
+    assert len(keep_the_lattice(rows, LatticeCheck(), 1.0, unsure=second)) == 80
+
+
 def test_an_irregular_lattice_the_network_is_sure_of_is_kept_and_doubtful_spacing_is_not():
     """The Python twin of the Rust test: hand-placed dots (a 12 x 10 lattice of pitch 20, each moved up
     to a quarter pitch per axis) are a lattice by their spacing when the network is sure of them; the

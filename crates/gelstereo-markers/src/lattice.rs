@@ -32,7 +32,10 @@
 //! Where the image's border cuts the lattice, the end of a line whose next site beyond the candidate
 //! lies outside the image counts as the middle does: the lattice goes on past the border, it does not
 //! end there (a faint dot of the top row, next to another the network was unsure of, on the GelSlim
-//! frames).
+//! frames). A second-tier candidate the network is sure of
+//! ([`LatticeCheck::line_end_min_confidence`]) and at least [`LINE_END_INSIDE_PITCH`] inside the image
+//! needs only to be the end of one such line: a marker past a part of the lattice whose neighbours the
+//! network missed has lines on one side only.
 //!
 //! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
 //! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
@@ -56,7 +59,7 @@ use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, ImageSize, Point2, TieredDetections};
 
 use crate::close_look::Region;
-use crate::edge::outside_the_image;
+use crate::edge::{inside_the_image_px, outside_the_image};
 use crate::postprocess::{median_finite, nearest_neighbour_distances};
 
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
@@ -91,6 +94,11 @@ pub struct LatticeCheck {
     /// network saw the squeezed dots at a larger scale, and such a region lies inside the lattice,
     /// away from any membrane rim.
     pub looked_min_confidence: f32,
+    /// Confidence a second-tier candidate needs to join at an empty site as the end of a single line
+    /// of members ([`keep_the_lattice`]; with the image's size only, and at least
+    /// [`LINE_END_INSIDE_PITCH`] inside it): a marker whose neighbours on one side the network
+    /// missed has lines on one side only, where a doubtful find there is as often a rim.
+    pub line_end_min_confidence: f32,
 }
 
 impl Default for LatticeCheck {
@@ -107,6 +115,7 @@ impl Default for LatticeCheck {
             adjacent_members: 3,
             adjacent_min_confidence: 0.9,
             looked_min_confidence: 0.4,
+            line_end_min_confidence: 0.7,
         }
     }
 }
@@ -529,6 +538,11 @@ pub(crate) const SITE_STEP: (f64, f64) = (0.75, 1.33);
 /// lies two steps away.
 const SITE_REACH: f64 = 2.2;
 
+/// A candidate joining as the end of a single line lies at least this many pitches inside the
+/// image's outermost pixel centres: near the border, a find one step beyond the lattice is mostly a
+/// dot the border cuts whose centre lies outside (the edge check's), not a marker.
+pub const LINE_END_INSIDE_PITCH: f64 = 0.5;
+
 /// The sites taken: the accepted markers (bucketed) and those moved up from the second tier so far.
 struct Taken {
     accepted: Buckets,
@@ -549,8 +563,11 @@ impl Taken {
 /// no accepted marker within half a `pitch`, and on equally spaced lines of three with members in two
 /// directions, the middle of at least one, or, in an image of `size`, the end of one whose next site
 /// beyond `p` lies outside the image (the image's border cuts the lattice there; it does not end).
+/// A candidate of confidence `confidence` >= [`LatticeCheck::line_end_min_confidence`] at least
+/// [`LINE_END_INSIDE_PITCH`] inside an image of `size` needs only to be the end of one such line.
 fn at_an_empty_site(
     p: Point2,
+    confidence: f32,
     members: &Buckets,
     taken: &Taken,
     pitch: f64,
@@ -596,7 +613,9 @@ fn at_an_empty_site(
             }
         }
     }
-    (middle.count > 0 || cut_by_the_border) && any.two
+    let line_end = confidence >= check.line_end_min_confidence
+        && size.is_some_and(|s| inside_the_image_px(p, s) >= LINE_END_INSIDE_PITCH * pitch);
+    ((middle.count > 0 || cut_by_the_border) && any.two) || (line_end && any.count > 0)
 }
 
 /// `found` with its accepted markers moved to the second tier unless they are members, or on the
@@ -649,7 +668,7 @@ pub(crate) fn keep_fitted_lattice(
         };
         let mut unsure = Vec::new();
         for d in second_tier {
-            if at_an_empty_site(d.position, &members, &taken, pitch, check, size) {
+            if at_an_empty_site(d.position, d.confidence, &members, &taken, pitch, check, size) {
                 taken.moved_up.push(d.position);
                 accepted.push(d);
             } else {
@@ -766,6 +785,44 @@ mod tests {
             assert!(out.accepted.iter().any(|d| d.position == site), "{site:?}");
         }
         assert_eq!(out.second_tier.len(), 4);
+    }
+
+    #[test]
+    fn a_sure_find_one_step_past_the_lattice_joins_inside_the_image_and_no_further() {
+        // A 10 x 8 lattice (pitch 20, x 10-190, y 10-150) whose network missed the column after its
+        // last: sure finds one step past it end one line each (their row).
+        let lattice = square(10, 8, 20.0);
+        let second = [
+            (Point2::new(210.5, 70.0), 0.8),  // one step past the last column: joins
+            (Point2::new(209.5, 90.0), 0.3),  // the same, unsure: stays
+            (Point2::new(230.0, 110.0), 0.9), // two steps past: no line ends there
+            (Point2::new(100.0, 80.0), 0.9),  // between four markers: no line through it
+        ];
+        let check = LatticeCheck::default();
+        let tiered = tiers(&lattice, &second);
+        let fit = fit_lattice(&tiered.accepted, &check, 1.0);
+        let roomy = ImageSize {
+            width: 300,
+            height: 200,
+        };
+        let out = keep_fitted_lattice(tiered.clone(), fit.clone(), &check, None, Some(roomy));
+        assert_eq!(out.accepted.len(), lattice.len() + 1);
+        assert!(
+            out.accepted
+                .iter()
+                .any(|d| d.position == Point2::new(210.5, 70.0))
+        );
+        assert_eq!(out.second_tier.len(), 3);
+        // Within half a pitch of the border (an image 218 px wide: 6.5 px inside) a find past the
+        // lattice is mostly a dot the border cuts: it stays, and so without the image's size.
+        let narrow = ImageSize {
+            width: 218,
+            height: 200,
+        };
+        let cut = keep_fitted_lattice(tiered.clone(), fit.clone(), &check, None, Some(narrow));
+        assert_eq!(cut.accepted.len(), lattice.len());
+        let blind = keep_fitted_lattice(tiered, fit, &check, None, None);
+        assert_eq!(blind.accepted.len(), lattice.len());
     }
 
     #[test]

@@ -397,15 +397,15 @@ fn vertical(h0: &[i16], h1: &[i16], b0: i16, b1: i16, out: &mut [f32]) {
 #[allow(unsafe_code)]
 mod simd {
     use std::arch::x86_64::{
-        __m128i, _mm_add_epi16, _mm_cvtepi32_ps, _mm_div_ps, _mm_loadu_si128, _mm_madd_epi16,
-        _mm_mulhi_epi16, _mm_or_si128, _mm_packs_epi32, _mm_set1_epi16, _mm_set1_ps, _mm_setzero_si128,
-        _mm_shuffle_epi8, _mm_srai_epi16, _mm_srai_epi32, _mm_storeu_ps, _mm_storeu_si128, _mm_unpackhi_epi8,
-        _mm_unpackhi_epi16, _mm_unpacklo_epi8, _mm_unpacklo_epi16, _mm256_add_epi16, _mm256_loadu_si256,
-        _mm256_mulhi_epi16, _mm256_set1_epi16, _mm256_srai_epi16, _mm256_storeu_si256, _mm512_add_ps,
-        _mm512_castsi512_si256, _mm512_cvtepi32_ps, _mm512_cvtepu16_epi32, _mm512_extracti64x4_epi64,
-        _mm512_loadu_si512, _mm512_madd_epi16, _mm512_maskz_permutex2var_epi8, _mm512_mul_ps,
-        _mm512_packs_epi32, _mm512_permutexvar_epi64, _mm512_set1_ps, _mm512_setr_epi64, _mm512_srai_epi32,
-        _mm512_storeu_ps, _mm512_sub_ps, _MM_HINT_T0, _mm_prefetch,
+        __m128i, _MM_HINT_T0, _mm_add_epi16, _mm_cvtepi32_ps, _mm_div_ps, _mm_loadu_si128, _mm_madd_epi16,
+        _mm_mulhi_epi16, _mm_or_si128, _mm_packs_epi32, _mm_prefetch, _mm_set1_epi16, _mm_set1_ps,
+        _mm_setzero_si128, _mm_shuffle_epi8, _mm_srai_epi16, _mm_srai_epi32, _mm_storeu_ps, _mm_storeu_si128,
+        _mm_unpackhi_epi8, _mm_unpackhi_epi16, _mm_unpacklo_epi8, _mm_unpacklo_epi16, _mm256_add_epi16,
+        _mm256_loadu_si256, _mm256_mulhi_epi16, _mm256_set1_epi16, _mm256_srai_epi16, _mm256_storeu_si256,
+        _mm512_add_ps, _mm512_castsi512_si256, _mm512_cvtepi32_ps, _mm512_cvtepu16_epi32,
+        _mm512_extracti64x4_epi64, _mm512_loadu_si512, _mm512_madd_epi16, _mm512_maskz_permutex2var_epi8,
+        _mm512_mul_ps, _mm512_packs_epi32, _mm512_permutexvar_epi64, _mm512_set1_ps, _mm512_setr_epi64,
+        _mm512_srai_epi32, _mm512_storeu_ps, _mm512_sub_ps,
     };
 
     use super::{Kernels, Tap};
