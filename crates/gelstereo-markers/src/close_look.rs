@@ -90,10 +90,21 @@ impl Region {
 /// without a pitch or a squeezed candidate, or where the region is larger than
 /// [`CLOSE_LOOK_MAX_SHARE`] of the image.
 pub fn squeezed_region(kept: &[Detection], pitch_px: Option<f64>, size: ImageSize) -> Option<Region> {
-    let pitch = pitch_px.filter(|p| p.is_finite() && *p > 0.0)?;
     let points: Vec<_> = kept.iter().map(|d| d.position).collect();
-    let squeezed = nearest_neighbour_distances(&points)
-        .into_iter()
+    squeezed_region_of(kept, &nearest_neighbour_distances(&points), pitch_px, size)
+}
+
+/// [`squeezed_region`] given `nn`, each of `kept`'s nearest-neighbour distances among them.
+pub(crate) fn squeezed_region_of(
+    kept: &[Detection],
+    nn: &[f64],
+    pitch_px: Option<f64>,
+    size: ImageSize,
+) -> Option<Region> {
+    let pitch = pitch_px.filter(|p| p.is_finite() && *p > 0.0)?;
+    let squeezed = nn
+        .iter()
+        .copied()
         .zip(kept)
         .filter(|(nn, d)| *nn < SQUEEZED_NN_PITCH * pitch && d.confidence < SQUEEZED_MAX_CONFIDENCE)
         .map(|(_, d)| d.position);

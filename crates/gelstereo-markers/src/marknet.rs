@@ -11,14 +11,16 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
+use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
-use crate::close_look::{Region, close_look_input, close_look_zoom, merge, squeezed_region};
+use crate::close_look::{
+    Region, SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of,
+};
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::edge::drop_past_the_edge;
@@ -26,7 +28,8 @@ use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
 use crate::postprocess::{
-    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, pitch_of_confident,
+    DecodeGeometry, Selection, decode, dedup_radius_px, deduplicate, nearest_neighbour_distances,
+    pitch_of_confident,
 };
 use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::site_blobs::blobs_at_empty_sites;
@@ -274,6 +277,10 @@ struct Pass {
     fitted: Option<FittedSet>,
     /// The region a closer look re-examined ([`crate::close_look`]), if any.
     looked: Option<Region>,
+    /// Whether the closer look found every one of `kept` at least [`SQUEEZED_NN_PITCH`] x `pitch_px`
+    /// from the others: the markers, a subset of them, then hold no squeezed pair either, and the
+    /// blob search between squeezed markers has nothing to search.
+    spread: bool,
 }
 
 /// What the lattice check and the edge margin need of an image besides its markers.
@@ -286,6 +293,8 @@ struct Frame {
     pitch_px: Option<f64>,
     /// The region a closer look re-examined.
     looked: Option<Region>,
+    /// [`Pass::spread`].
+    spread: bool,
 }
 
 /// Detections and their lattice fit at one input scale.
@@ -381,6 +390,7 @@ impl Pass {
             layout_pitch_px,
             fitted,
             looked: None,
+            spread: false,
         }
     }
 
@@ -1253,9 +1263,14 @@ impl Marknet {
             window: Window,
         }
         let mut looks = Vec::new();
-        for (image, pass) in found.iter().enumerate() {
+        for (image, pass) in found.iter_mut().enumerate() {
+            let points: Vec<Point2> = pass.kept.iter().map(|d| d.position).collect();
+            let nn = nearest_neighbour_distances(&points);
+            pass.spread = pass
+                .pitch_px
+                .is_some_and(|p| nn.iter().all(|&d| d >= SQUEEZED_NN_PITCH * p));
             let (Some(region), Some(pitch)) = (
-                squeezed_region(&pass.kept, pass.pitch_px, sizes[image]),
+                squeezed_region_of(&pass.kept, &nn, pass.pitch_px, sizes[image]),
                 pass.pitch_px,
             ) else {
                 continue;
@@ -1533,6 +1548,7 @@ impl Marknet {
                     input_per_px: input_per_px(size, layout),
                     pitch_px: pass.pitch_px,
                     looked: pass.looked,
+                    spread: pass.spread,
                 }
             })
             .collect();
@@ -1556,7 +1572,7 @@ impl Marknet {
             drop_past_the_edge(&mut found, frame.size, frame.pitch_px);
             found
         };
-        let pitches: Vec<Option<f64>> = frames.iter().map(|f| f.pitch_px).collect();
+        let pitches: Vec<(Option<f64>, bool)> = frames.iter().map(|f| (f.pitch_px, f.spread)).collect();
         let found: Vec<TieredDetections> = match self.mre.as_mut() {
             None => selections
                 .into_iter()
@@ -1594,9 +1610,9 @@ impl Marknet {
             .into_iter()
             .zip(images)
             .zip(pitches)
-            .map(|((mut found, image), pitch)| {
+            .map(|((mut found, image), (pitch, spread))| {
                 let before = found.accepted.len();
-                if close_look {
+                if close_look && !spread {
                     let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
                     found.accepted.extend(blobs);
                 }
