@@ -1572,7 +1572,8 @@ impl Marknet {
             drop_past_the_edge(&mut found, frame.size, frame.pitch_px);
             found
         };
-        let pitches: Vec<(Option<f64>, bool)> = frames.iter().map(|f| (f.pitch_px, f.spread)).collect();
+        let pitch_and_spread: Vec<(Option<f64>, bool)> =
+            frames.iter().map(|f| (f.pitch_px, f.spread)).collect();
         let found: Vec<TieredDetections> = match self.mre.as_mut() {
             None => selections
                 .into_iter()
@@ -1609,7 +1610,7 @@ impl Marknet {
         found
             .into_iter()
             .zip(images)
-            .zip(pitches)
+            .zip(pitch_and_spread)
             .map(|((mut found, image), (pitch, spread))| {
                 let before = found.accepted.len();
                 if close_look && !spread {
