@@ -499,7 +499,7 @@ def squeezed_blobs(image: np.ndarray, markers: np.ndarray, pitch: float) -> np.n
     found = []
     for k in kps:
         b = np.array([k.pt[0] + ix0, k.pt[1] + iy0])
-        if min(b[0], b[1], w - 1 - b[0], h - 1 - b[1]) < BLOB_EDGE_PITCH * pitch:
+        if inside_the_image_px(b, (w, h)) < BLOB_EDGE_PITCH * pitch:
             continue
         d = np.hypot(*(pts - b).T)
         near = np.nonzero(d < BLOB_INSIDE_REACH_PITCH * pitch)[0]
@@ -526,7 +526,6 @@ def _empty_sites(pts: np.ndarray, pitch: float, image_wh: tuple[int, int]) -> np
     """The sites ``s = 2 b - a`` that lines of three markers ``c, a, b`` predict with no marker within
     SITE_EMPTY_PITCH, at a hole (a marker on the line past ``s``) or where the image's border cuts the
     lattice (the next site past ``s`` outside the image); one per site (Rust: ``site_blobs::empty_sites``)."""
-    w, h = image_wh
     sites: list[np.ndarray] = []
 
     def near(q: np.ndarray, radius: float) -> bool:
@@ -537,7 +536,7 @@ def _empty_sites(pts: np.ndarray, pitch: float, image_wh: tuple[int, int]) -> np
         for j in np.nonzero((d_all >= SITE_STEP[0] * pitch) & (d_all <= SITE_STEP[1] * pitch))[0]:
             b, d = pts[j], d_all[j]
             s = 2 * b - a
-            if (min(s[0], s[1], w - 1 - s[0], h - 1 - s[1]) < SITE_INSIDE_PITCH * pitch
+            if (inside_the_image_px(s, image_wh) < SITE_INSIDE_PITCH * pitch
                     or not near(2 * a - b, SITE_LINE_TOLERANCE * d) or near(s, SITE_EMPTY_PITCH * pitch)):
                 continue
             beyond = 2 * s - b
@@ -811,7 +810,7 @@ def lattice_fit(points: np.ndarray, check: LatticeCheck, input_per_px: float, co
 SITE_REACH = 2.2  # members searched around an empty site, in pitches (Rust: SITE_REACH)
 
 
-def _inside_px(p: np.ndarray, image_wh: tuple[int, int]) -> float:
+def inside_the_image_px(p: np.ndarray, image_wh: tuple[int, int]) -> float:
     """How far ``p`` lies inside the outermost pixel centres of an image of ``image_wh``, px (negative
     outside; Rust: ``edge::inside_the_image_px``)."""
     w, h = image_wh
@@ -821,7 +820,7 @@ def _inside_px(p: np.ndarray, image_wh: tuple[int, int]) -> float:
 def outside_the_image(p: np.ndarray, image_wh: tuple[int, int]) -> bool:
     """Whether ``p`` lies more than ``IMAGE_SPAN_PX`` beyond the outermost pixel centres of an image of
     ``image_wh`` (Rust: ``edge::outside_the_image``)."""
-    return _inside_px(p, image_wh) < -IMAGE_SPAN_PX
+    return inside_the_image_px(p, image_wh) < -IMAGE_SPAN_PX
 
 
 LINE_END_INSIDE_PITCH = 0.5  # a candidate joining as the end of one line lies this far inside (Rust: the same)
@@ -866,7 +865,7 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
     d = np.abs(a[:, None] - a[None, :])
     two = len(a) >= 2 and bool((np.minimum(d, math.pi - d) >= math.radians(check.min_angle_deg)).any())
     line_end = (confidence >= check.line_end_min_confidence and image_wh is not None
-                and _inside_px(p, image_wh) >= LINE_END_INSIDE_PITCH * pitch)
+                and inside_the_image_px(p, image_wh) >= LINE_END_INSIDE_PITCH * pitch)
     return ((bool(middle_angles) or cut) and two) or (line_end and len(a) > 0)
 
 
