@@ -53,7 +53,7 @@ class LatticeCheck:
     adjacent_members: int = 3  # members within reach_frac x pitch that put a non-member on the lattice
     adjacent_min_confidence: float = 0.9  # confidence such a non-member needs to be kept
     looked_min_confidence: float = 0.4  # the same inside the region a closer look re-examined
-    line_end_min_confidence: float = 0.7  # a candidate this sure may join as the end of one line (Rust: the same)
+    line_end_min_confidence: float = 0.7  # a candidate this sure may join on one line, end or middle (Rust: the same)
 
 
 @dataclass
@@ -823,7 +823,7 @@ def outside_the_image(p: np.ndarray, image_wh: tuple[int, int]) -> bool:
     return inside_the_image_px(p, image_wh) < -IMAGE_SPAN_PX
 
 
-LINE_END_INSIDE_PITCH = 0.5  # a candidate joining as the end of one line lies this far inside (Rust: the same)
+LINE_END_INSIDE_PITCH = 0.5  # a candidate joining on one line lies this far inside (Rust: the same)
 
 
 def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pitch: float,
@@ -833,7 +833,7 @@ def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pit
     lines of three with members in two directions, the middle of at least one, or, in an image of
     ``image_wh``, the end of one whose next site beyond ``p`` lies outside the image; a candidate of
     ``confidence`` >= ``line_end_min_confidence`` at least ``LINE_END_INSIDE_PITCH`` inside an image of
-    ``image_wh`` needs only to be the end of one such line."""
+    ``image_wh`` needs only to lie on one such line (its end or its middle)."""
     if len(taken) and np.hypot(taken[:, 0] - p[0], taken[:, 1] - p[1]).min() <= 0.5 * pitch:
         return False
     near = members[np.hypot(members[:, 0] - p[0], members[:, 1] - p[1]) <= SITE_REACH * pitch]

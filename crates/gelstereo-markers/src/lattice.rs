@@ -34,8 +34,8 @@
 //! end there (a faint dot of the top row, next to another the network was unsure of, on the GelSlim
 //! frames). A second-tier candidate the network is sure of
 //! ([`LatticeCheck::line_end_min_confidence`]) and at least [`LINE_END_INSIDE_PITCH`] inside the image
-//! needs only to be the end of one such line: a marker past a part of the lattice whose neighbours the
-//! network missed has lines on one side only.
+//! needs only to lie on one such line, at its end or in its middle: a marker past a part of the
+//! lattice whose neighbours the network missed has lines on one side only.
 //!
 //! A view's detections form a *lattice* when at least [`LatticeCheck::min_support`] are members and
 //! their spacing (median nearest-neighbour distance) is at least [`LatticeCheck::min_input_pitch_px`]
@@ -94,8 +94,8 @@ pub struct LatticeCheck {
     /// network saw the squeezed dots at a larger scale, and such a region lies inside the lattice,
     /// away from any membrane rim.
     pub looked_min_confidence: f32,
-    /// Confidence a second-tier candidate needs to join at an empty site as the end of a single line
-    /// of members ([`keep_the_lattice`]; with the image's size only, and at least
+    /// Confidence a second-tier candidate needs to join at an empty site on a single line of members
+    /// (its end or its middle) ([`keep_the_lattice`]; with the image's size only, and at least
     /// [`LINE_END_INSIDE_PITCH`] inside it): a marker whose neighbours on one side the network
     /// missed has lines on one side only, where a doubtful find there is as often a rim.
     pub line_end_min_confidence: f32,
@@ -545,7 +545,7 @@ pub(crate) const SITE_STEP: (f64, f64) = (0.75, 1.33);
 /// lies two steps away.
 const SITE_REACH: f64 = 2.2;
 
-/// A candidate joining as the end of a single line lies at least this many pitches inside the
+/// A candidate joining on a single line lies at least this many pitches inside the
 /// image's outermost pixel centres: near the border, a find one step beyond the lattice is mostly a
 /// dot the border cuts whose centre lies outside (the edge check's), not a marker.
 pub const LINE_END_INSIDE_PITCH: f64 = 0.5;
@@ -571,7 +571,8 @@ impl Taken {
 /// directions, the middle of at least one, or, in an image of `size`, the end of one whose next site
 /// beyond `p` lies outside the image (the image's border cuts the lattice there; it does not end).
 /// A candidate of confidence `confidence` >= [`LatticeCheck::line_end_min_confidence`] at least
-/// [`LINE_END_INSIDE_PITCH`] inside an image of `size` needs only to be the end of one such line.
+/// [`LINE_END_INSIDE_PITCH`] inside an image of `size` needs only to lie on one such line (its end or
+/// its middle).
 fn at_an_empty_site(
     p: Point2,
     confidence: f32,
