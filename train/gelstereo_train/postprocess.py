@@ -826,9 +826,8 @@ def outside_the_image(p: np.ndarray, image_wh: tuple[int, int]) -> bool:
 LINE_END_INSIDE_PITCH = 0.5  # a candidate joining on one line lies this far inside (Rust: the same)
 
 
-def _at_an_empty_site(p: np.ndarray, members: np.ndarray, taken: np.ndarray, pitch: float,
-                      check: LatticeCheck, image_wh: tuple[int, int] | None = None,
-                      confidence: float = 0.0) -> bool:
+def _at_an_empty_site(p: np.ndarray, confidence: float, members: np.ndarray, taken: np.ndarray, pitch: float,
+                      check: LatticeCheck, image_wh: tuple[int, int] | None) -> bool:
     """Rust: ``lattice::at_an_empty_site``: no taken site within half a pitch, and on equally spaced
     lines of three with members in two directions, the middle of at least one, or, in an image of
     ``image_wh``, the end of one whose next site beyond ``p`` lies outside the image; a candidate of
@@ -894,7 +893,7 @@ def keep_the_lattice(markers: np.ndarray, check: LatticeCheck | None, input_per_
         taken = kept[:, :2]
         moved = []
         for row in pool[np.argsort(-pool[:, 2], kind="stable")]:
-            if _at_an_empty_site(row[:2], members, taken, pitch, check, image_wh, float(row[2])):
+            if _at_an_empty_site(row[:2], float(row[2]), members, taken, pitch, check, image_wh):
                 moved.append(row)
                 taken = np.vstack([taken, row[None, :2]])
         if moved:
