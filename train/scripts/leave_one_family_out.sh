@@ -19,8 +19,9 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 MODE="${1:?train or score}"
 OUT="$(realpath -m "${2:?output folder}")"
-HELD_OUT=(marker:hue lattice:hexagonal res:1280x720 texture:scanlines)
 NAMES=(with no_hue no_hex no_720 no_scan)
+declare -A HELD_OUT=([no_hue]=marker:hue [no_hex]=lattice:hexagonal [no_720]=res:1280x720 [no_scan]=texture:scanlines)
+# scripts/family_views.py names a family's view with `:` as `_`
 VIEWS_SCORED=(marker_hue lattice_hexagonal res_1280x720 texture_scanlines all)
 if [ -z "${PY:-}" ]; then
   PY=python3
@@ -42,20 +43,20 @@ simulate_train_split() {  # out experiments frames seed randomization
 }
 
 train_all() {
-  local scratch
-  scratch="$(mktemp -d)"
-  trap 'rm -rf "$scratch"' EXIT
-  local data="$scratch/W"
+  # global: the EXIT trap runs after this function's locals are gone
+  SCRATCH="$(mktemp -d)"
+  trap 'rm -rf "$SCRATCH"' EXIT
+  local data="$SCRATCH/W"
   simulate_train_split "$data" "${EXPERIMENTS:-1600}" 4 141 wide
   cd "$ROOT/train"
   local common=(--data "$data" --minutes "${MINUTES:-7.3}" --device "${DEVICE:-cuda}" --augment-on device
     --batch 96 --threads 1 --workers 2 --seed 7 --stem s4 --canonical auto --p-contact 0.5
     --max-images 6000 --max-gb 12 --save-every-min 1)
-  for i in "${!NAMES[@]}"; do
+  for name in "${NAMES[@]}"; do
     local exclude=()
-    [ "$i" -gt 0 ] && exclude=(--exclude-family "${HELD_OUT[$((i - 1))]}")
+    [ -n "${HELD_OUT[$name]:-}" ] && exclude=(--exclude-family "${HELD_OUT[$name]}")
     OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1 "$PY" -m gelstereo_train.train_marknet "${common[@]}" \
-      --out "$OUT/${NAMES[$i]}.pt" "${exclude[@]}" 2>&1 | sed -u "s/^/[${NAMES[$i]}] /" >> "$OUT/train.log" &
+      --out "$OUT/$name.pt" "${exclude[@]}" 2>&1 | sed -u "s/^/[$name] /" >> "$OUT/train.log" &
   done
   wait
 }
