@@ -1,0 +1,436 @@
+//! The layer's influence operator on a square lattice: the displacement of every node under a
+//! traction that is uniform over each node's square cell, as a convolution applied by FFT.
+//!
+//! The stencils (displacement at node offsets from one loaded cell) come from the Fourier-space
+//! compliance of [`Layer`] times the cell's transform, inverted on a grid `OVERSAMPLING` times
+//! finer than the lattice and sampled at the nodes. The compliance falls as `1/|k|` and the
+//! cell's transform as `1/|k|` along the axes, so cutting the spectrum at the fine grid's
+//! Nyquist frequency leaves an error proportional to the fine spacing; two fine grids (`q` and
+//! `2q`) and a Richardson step remove its first order. A bonded layer's response decays within a
+//! few thicknesses, so the stencils are cut where they fall below `STENCIL_TAIL` of the largest
+//! entry and the lattice is padded by that radius: the FFT's circular convolution then equals
+//! the linear one on the lattice.
+
+use std::sync::Arc;
+
+use rustfft::num_complex::Complex64;
+use rustfft::{Fft, FftPlanner};
+
+use crate::error::{Error, Result};
+use crate::layer::Layer;
+
+/// The finer of the two grids the stencils are computed on, in grid steps per lattice step.
+const OVERSAMPLING: usize = 16;
+/// Stencil entries below this fraction of the largest (the self-compliance) are dropped.
+const STENCIL_TAIL: f64 = 2e-4;
+/// The largest stencil radius, lattice steps (a thick layer on a fine lattice is cut there).
+const MAX_RADIUS: usize = 96;
+
+/// The six distinct entries of the symmetric 3 x 3 operator, in this order: `ux<-τx`, `uy<-τy`,
+/// `ux<-τy` (= `uy<-τx`), `w<-p`, `w<-τx` (= `−ux<-p`), `w<-τy` (= `−uy<-p`).
+const ENTRIES: usize = 6;
+
+/// The influence operator of a layer on a `rows x cols` lattice of spacing `spacing_mm`.
+#[derive(Clone)]
+pub struct Influence {
+    rows: usize,
+    cols: usize,
+    spacing_mm: f64,
+    radius: usize,
+    /// Padded FFT size (rows, cols).
+    size: (usize, usize),
+    /// Transformed stencils per frequency, transposed layout (column-major over the padded grid).
+    spectrum: Vec<[Complex64; ENTRIES]>,
+    /// The largest eigenvalue of the operator over all frequencies, mm / kPa.
+    norm: f64,
+    row_fft: Arc<dyn Fft<f64>>,
+    row_ifft: Arc<dyn Fft<f64>>,
+    col_fft: Arc<dyn Fft<f64>>,
+    col_ifft: Arc<dyn Fft<f64>>,
+}
+
+impl std::fmt::Debug for Influence {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Influence")
+            .field("rows", &self.rows)
+            .field("cols", &self.cols)
+            .field("spacing_mm", &self.spacing_mm)
+            .field("radius", &self.radius)
+            .field("size", &self.size)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Per-node vectors of the operator: `[x, y, normal]` (traction `[τx, τy, p]` in kPa, or
+/// displacement `[ux, uy, w]` in mm).
+pub type Vec3 = [f64; 3];
+
+impl Influence {
+    /// Builds the operator of `layer` on a `rows x cols` lattice of spacing `spacing_mm`.
+    pub fn new(layer: &Layer, rows: usize, cols: usize, spacing_mm: f64) -> Result<Self> {
+        layer.validate()?;
+        if rows == 0 || cols == 0 || rows > 4096 || cols > 4096 {
+            return Err(Error::Invalid {
+                field: "lattice",
+                expected: "1 to 4096 rows and columns".into(),
+                found: format!("{rows} x {cols}"),
+            });
+        }
+        if !(spacing_mm.is_finite() && spacing_mm > 0.0) {
+            return Err(Error::Invalid {
+                field: "pitch_mm",
+                expected: "a positive, finite lattice pitch in mm".into(),
+                found: format!("{spacing_mm}"),
+            });
+        }
+        let radius = stencil_radius(layer, spacing_mm);
+        let fine = stencils(layer, spacing_mm, radius, OVERSAMPLING);
+        let coarse = stencils(layer, spacing_mm, radius, OVERSAMPLING / 2);
+        let stencil: Vec<[f64; ENTRIES]> = fine
+            .iter()
+            .zip(&coarse)
+            .map(|(f, c)| std::array::from_fn(|e| 2.0 * f[e] - c[e]))
+            .collect();
+        let size = (fft_size(rows + radius + 1), fft_size(cols + radius + 1));
+        let mut planner = FftPlanner::new();
+        let mut op = Self {
+            rows,
+            cols,
+            spacing_mm,
+            radius,
+            size,
+            spectrum: Vec::new(),
+            norm: 0.0,
+            row_fft: planner.plan_fft_forward(size.1),
+            row_ifft: planner.plan_fft_inverse(size.1),
+            col_fft: planner.plan_fft_forward(size.0),
+            col_ifft: planner.plan_fft_inverse(size.0),
+        };
+        op.spectrum = op.transform_stencil(&stencil);
+        op.norm = op.spectrum.iter().map(largest_eigenvalue).fold(0.0, f64::max);
+        Ok(op)
+    }
+
+    /// Lattice rows.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// Lattice columns.
+    pub fn cols(&self) -> usize {
+        self.cols
+    }
+
+    /// Lattice spacing, mm.
+    pub fn spacing_mm(&self) -> f64 {
+        self.spacing_mm
+    }
+
+    /// Stencil radius, lattice steps.
+    pub fn radius(&self) -> usize {
+        self.radius
+    }
+
+    /// The operator's largest eigenvalue, mm / kPa (the step bound of gradient methods).
+    pub fn norm(&self) -> f64 {
+        self.norm
+    }
+
+    /// The Euclidean norms of the pressure's row of the operator: its normal entries (`w<-p`)
+    /// and its tangential ones (`ux, uy <- p`), mm / kPa. Noise of standard deviation σ in the
+    /// normal (tangential) displacements reaches the pressure's gradient `(C u)_p` with standard
+    /// deviation σ times the first (second).
+    pub fn pressure_row_norms(&self) -> (f64, f64) {
+        let count = self.spectrum.len() as f64;
+        let (normal, tangential) = self.spectrum.iter().fold((0.0, 0.0), |(n, t), s| {
+            (n + s[3].norm_sqr(), t + s[4].norm_sqr() + s[5].norm_sqr())
+        });
+        ((normal / count).sqrt(), (tangential / count).sqrt())
+    }
+
+    /// `out = C t`: the displacement of every node under the tractions `t` (row-major over the
+    /// lattice). `work` is scratch space, resized as needed.
+    pub fn apply(&self, t: &[Vec3], out: &mut [Vec3], work: &mut Workspace) {
+        let n = self.rows * self.cols;
+        assert!(t.len() == n && out.len() == n, "fields must cover the lattice");
+        let (nr, nc) = self.size;
+        work.resize(nr * nc);
+        for (c, buf) in work.planes.iter_mut().enumerate() {
+            buf.fill(Complex64::new(0.0, 0.0));
+            for r in 0..self.rows {
+                for q in 0..self.cols {
+                    buf[r * nc + q] = Complex64::new(t[r * self.cols + q][c], 0.0);
+                }
+            }
+            self.forward(buf, &mut work.scratch);
+        }
+        let [px, py, pn] = &mut work.planes;
+        for (k, s) in self.spectrum.iter().enumerate() {
+            let (tx, ty, tn) = (px[k], py[k], pn[k]);
+            // w<-τ entries are imaginary (odd stencils); u<-p is their negative.
+            px[k] = s[0] * tx + s[2] * ty - s[4] * tn;
+            py[k] = s[2] * tx + s[1] * ty - s[5] * tn;
+            pn[k] = s[4] * tx + s[5] * ty + s[3] * tn;
+        }
+        let scale = 1.0 / (nr * nc) as f64;
+        for (c, buf) in work.planes.iter_mut().enumerate() {
+            self.inverse(buf, &mut work.scratch);
+            for r in 0..self.rows {
+                for q in 0..self.cols {
+                    out[r * self.cols + q][c] = buf[r * nc + q].re * scale;
+                }
+            }
+        }
+    }
+
+    /// 2-D forward FFT of a padded row-major plane, leaving it transposed (column-major).
+    fn forward(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
+        let (nr, nc) = self.size;
+        self.row_fft.process(buf);
+        transpose(buf, nr, nc, scratch);
+        buf.copy_from_slice(scratch);
+        self.col_fft.process(buf);
+    }
+
+    /// Inverse of [`forward`](Self::forward) without the 1 / size scale: column-major in,
+    /// row-major out.
+    fn inverse(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
+        let (nr, nc) = self.size;
+        self.col_ifft.process(buf);
+        transpose(buf, nc, nr, scratch);
+        buf.copy_from_slice(scratch);
+        self.row_ifft.process(buf);
+    }
+
+    /// The padded grid's transform of the stencils (offsets wrapped around), transposed layout.
+    fn transform_stencil(&self, stencil: &[[f64; ENTRIES]]) -> Vec<[Complex64; ENTRIES]> {
+        let (nr, nc) = self.size;
+        let r = self.radius as isize;
+        let side = 2 * self.radius + 1;
+        let mut planes = vec![vec![Complex64::new(0.0, 0.0); nr * nc]; ENTRIES];
+        for dy in -r..=r {
+            for dx in -r..=r {
+                let s = stencil[(dy + r) as usize * side + (dx + r) as usize];
+                let at = dy.rem_euclid(nr as isize) as usize * nc + dx.rem_euclid(nc as isize) as usize;
+                for (e, plane) in planes.iter_mut().enumerate() {
+                    plane[at] = Complex64::new(s[e], 0.0);
+                }
+            }
+        }
+        let mut scratch = Vec::new();
+        for plane in &mut planes {
+            self.forward(plane, &mut scratch);
+        }
+        (0..nr * nc)
+            .map(|k| std::array::from_fn(|e| planes[e][k]))
+            .collect()
+    }
+}
+
+/// Scratch buffers of [`Influence::apply`].
+#[derive(Debug, Clone, Default)]
+pub struct Workspace {
+    planes: [Vec<Complex64>; 3],
+    scratch: Vec<Complex64>,
+}
+
+impl Workspace {
+    fn resize(&mut self, n: usize) {
+        for p in &mut self.planes {
+            p.resize(n, Complex64::new(0.0, 0.0));
+        }
+        self.scratch.resize(n, Complex64::new(0.0, 0.0));
+    }
+}
+
+/// Largest eigenvalue of the Hermitian 3 x 3 matrix of one frequency (bounded by its largest
+/// absolute row sum, which is enough for a step size).
+fn largest_eigenvalue(s: &[Complex64; ENTRIES]) -> f64 {
+    let rows = [
+        s[0].norm() + s[2].norm() + s[4].norm(),
+        s[2].norm() + s[1].norm() + s[5].norm(),
+        s[4].norm() + s[5].norm() + s[3].norm(),
+    ];
+    rows.into_iter().fold(0.0, f64::max)
+}
+
+/// The smallest size >= `n` with no prime factor above 5 (fast FFT sizes).
+fn fft_size(n: usize) -> usize {
+    (n..)
+        .find(|&m| {
+            let mut m = m;
+            for p in [2, 3, 5] {
+                while m % p == 0 {
+                    m /= p;
+                }
+            }
+            m == 1
+        })
+        .unwrap_or(n)
+}
+
+fn transpose(src: &[Complex64], rows: usize, cols: usize, dst: &mut Vec<Complex64>) {
+    dst.resize(src.len(), Complex64::new(0.0, 0.0));
+    for r in 0..rows {
+        for c in 0..cols {
+            dst[c * rows + r] = src[r * cols + c];
+        }
+    }
+}
+
+/// The radius (lattice steps) beyond which the layer's normal response to a loaded cell stays
+/// below `STENCIL_TAIL` of its self-response, from a coarse look at the response along an axis.
+fn stencil_radius(layer: &Layer, spacing_mm: f64) -> usize {
+    // A first pass at a generous radius, then cut where every entry has decayed.
+    let generous = ((6.0 * layer.thickness_mm / spacing_mm).ceil() as usize).clamp(4, MAX_RADIUS);
+    let s = stencils(layer, spacing_mm, generous, 4);
+    let side = 2 * generous + 1;
+    let peak = s
+        .iter()
+        .flat_map(|e| e.iter())
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let mut radius = 1;
+    for (i, e) in s.iter().enumerate() {
+        let (dy, dx) = ((i / side).abs_diff(generous), (i % side).abs_diff(generous));
+        if e.iter().any(|v| v.abs() > STENCIL_TAIL * peak) {
+            radius = radius.max(dx.max(dy));
+        }
+    }
+    radius.min(generous)
+}
+
+/// The six stencils at offsets `[-radius, radius]^2` (row-major), from the spectrum sampled on
+/// a grid `q` times finer than the lattice spanning a period of `2 radius + 2` lattice steps.
+/// Only the lattice nodes are wanted, and `e^(i k x)` at a node depends on the frequency index
+/// modulo the period in lattice steps, so the fine spectrum is folded onto the lattice's
+/// frequencies (its aliases summed) and one small inverse FFT gives the nodes.
+fn stencils(layer: &Layer, a: f64, radius: usize, q: usize) -> Vec<[f64; ENTRIES]> {
+    let period = 2 * radius + 2;
+    let m = period * q;
+    let period_mm = period as f64 * a;
+    let dk = 2.0 * std::f64::consts::PI / period_mm;
+    let freq = |i: usize| if i <= m / 2 { i as f64 } else { i as f64 - m as f64 } * dk;
+    let sinc = |v: f64| if v.abs() < 1e-12 { 1.0 } else { v.sin() / v };
+    let mut planes = vec![vec![Complex64::new(0.0, 0.0); period * period]; ENTRIES];
+    for iy in 0..m {
+        let ky = freq(iy);
+        for ix in 0..m {
+            let kx = freq(ix);
+            let k = kx.hypot(ky);
+            let c = layer.compliance(k);
+            // At k = 0 the direction is undefined and the tangential response isotropic
+            // (longitudinal = transverse): any unit direction gives it.
+            let (ux, uy) = if k > 0.0 { (kx / k, ky / k) } else { (1.0, 0.0) };
+            let cell = a * a * sinc(0.5 * kx * a) * sinc(0.5 * ky * a);
+            let at = (iy % period) * period + ix % period;
+            planes[0][at].re += (c.longitudinal * ux * ux + c.transverse * uy * uy) * cell;
+            planes[1][at].re += (c.longitudinal * uy * uy + c.transverse * ux * ux) * cell;
+            planes[2][at].re += (c.longitudinal - c.transverse) * ux * uy * cell;
+            planes[3][at].re += c.normal * cell;
+            planes[4][at].im += c.coupling * ux * cell;
+            planes[5][at].im += c.coupling * uy * cell;
+        }
+    }
+    let ifft = FftPlanner::new().plan_fft_inverse(period);
+    let mut scratch = Vec::new();
+    let scale = 1.0 / (period_mm * period_mm);
+    for plane in &mut planes {
+        ifft.process(plane);
+        transpose(plane, period, period, &mut scratch);
+        plane.copy_from_slice(&scratch);
+        ifft.process(plane);
+    }
+    // `planes` is now transposed: index [x * period + y].
+    let side = 2 * radius + 1;
+    let mut out = vec![[0.0; ENTRIES]; side * side];
+    let r = radius as isize;
+    for dy in -r..=r {
+        for dx in -r..=r {
+            let at =
+                dx.rem_euclid(period as isize) as usize * period + dy.rem_euclid(period as isize) as usize;
+            let o = &mut out[(dy + r) as usize * side + (dx + r) as usize];
+            for (e, v) in o.iter_mut().enumerate() {
+                *v = planes[e][at].re * scale;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GEL: Layer = Layer {
+        thickness_mm: 2.5,
+        modulus_kpa: 150.0,
+        poisson: 0.45,
+    };
+
+    /// A uniform pressure over a wide patch of a bonded layer compresses it uniaxially in the
+    /// middle: `w = p h (1+ν)(1−2ν) / E(1−ν)`.
+    #[test]
+    fn a_wide_uniform_pressure_compresses_the_layer_uniaxially() {
+        let (rows, cols, a) = (61, 61, 0.5);
+        let op = Influence::new(&GEL, rows, cols, a).unwrap();
+        let p = 10.0;
+        let t = vec![[0.0, 0.0, p]; rows * cols];
+        let mut u = vec![[0.0; 3]; rows * cols];
+        op.apply(&t, &mut u, &mut Workspace::default());
+        let nu = GEL.poisson;
+        let want = p * GEL.thickness_mm * (1.0 + nu) * (1.0 - 2.0 * nu) / (GEL.modulus_kpa * (1.0 - nu));
+        let centre = u[30 * cols + 30];
+        assert!((centre[2] - want).abs() < 0.01 * want, "{centre:?} vs {want}");
+        assert!(centre[0].abs() < 1e-9 && centre[1].abs() < 1e-9);
+    }
+
+    /// A uniform shear over a wide patch shears the layer simply: `u = τ h / μ`.
+    #[test]
+    fn a_wide_uniform_shear_shears_the_layer_simply() {
+        let (rows, cols, a) = (61, 61, 0.5);
+        let op = Influence::new(&GEL, rows, cols, a).unwrap();
+        let t = vec![[3.0, -1.0, 0.0]; rows * cols];
+        let mut u = vec![[0.0; 3]; rows * cols];
+        op.apply(&t, &mut u, &mut Workspace::default());
+        let mu = GEL.shear_modulus_kpa();
+        let c = u[30 * cols + 30];
+        let h = GEL.thickness_mm;
+        assert!((c[0] - 3.0 * h / mu).abs() < 0.01 * 3.0 * h / mu, "{c:?}");
+        assert!((c[1] + h / mu).abs() < 0.01 * h / mu, "{c:?}");
+        assert!(c[2].abs() < 0.01 * h / mu, "{c:?}");
+    }
+
+    /// Reciprocity: the operator is symmetric (`<C s, t> = <s, C t>`).
+    #[test]
+    fn the_operator_is_symmetric() {
+        let (rows, cols) = (13, 17);
+        let op = Influence::new(&GEL, rows, cols, 0.8).unwrap();
+        let field = |seed: u64| -> Vec<Vec3> {
+            let mut x = seed;
+            (0..rows * cols)
+                .map(|_| {
+                    std::array::from_fn(|_| {
+                        x ^= x << 13;
+                        x ^= x >> 7;
+                        x ^= x << 17;
+                        (x % 1000) as f64 / 500.0 - 1.0
+                    })
+                })
+                .collect()
+        };
+        let (s, t) = (field(7), field(11));
+        let mut cs = vec![[0.0; 3]; rows * cols];
+        let mut ct = vec![[0.0; 3]; rows * cols];
+        let mut work = Workspace::default();
+        op.apply(&s, &mut cs, &mut work);
+        op.apply(&t, &mut ct, &mut work);
+        let dot = |a: &[Vec3], b: &[Vec3]| -> f64 {
+            a.iter()
+                .zip(b)
+                .map(|(x, y)| x[0] * y[0] + x[1] * y[1] + x[2] * y[2])
+                .sum()
+        };
+        let (l, r) = (dot(&cs, &t), dot(&s, &ct));
+        assert!((l - r).abs() < 1e-9 * l.abs().max(r.abs()), "{l} vs {r}");
+    }
+}
