@@ -9,13 +9,28 @@ use std::path::Path;
 use crate::{Error, GridIndex, MarkerStatus, Point2, Result, SlipState};
 
 /// Columns of `markers.csv`, in order.
-pub const MARKER_COLUMNS: [&str; 14] = [
-    "frame", "row", "col", "x_left", "y_left", "x_right", "y_right", "X_mm", "Y_mm", "Z_mm", "dX_mm",
-    "dY_mm", "dZ_mm", "status",
+pub const MARKER_COLUMNS: [&str; 17] = [
+    "frame",
+    "row",
+    "col",
+    "x_left",
+    "y_left",
+    "x_right",
+    "y_right",
+    "X_mm",
+    "Y_mm",
+    "Z_mm",
+    "dX_mm",
+    "dY_mm",
+    "dZ_mm",
+    "status",
+    "pressure_kPa",
+    "in_contact",
+    "slipping",
 ];
 
 /// Columns of `frames.csv`, in order.
-pub const FRAME_COLUMNS: [&str; 7] = [
+pub const FRAME_COLUMNS: [&str; 11] = [
     "frame",
     "contact",
     "contact_area_mm2",
@@ -23,6 +38,10 @@ pub const FRAME_COLUMNS: [&str; 7] = [
     "centroid_X_mm",
     "centroid_Y_mm",
     "slip",
+    "force_N",
+    "shear_x_N",
+    "shear_y_N",
+    "torque_Nmm",
 ];
 
 /// One row of `markers.csv`: one marker in one frame.
@@ -42,6 +61,12 @@ pub struct MarkerRecord {
     pub displacement_mm: Option<[f64; 3]>,
     /// How the position was obtained; empty for ground truth and single-frame reconstructions.
     pub status: Option<MarkerStatus>,
+    /// Contact pressure on the marker's cell, kPa; empty where the contact mechanics did not run.
+    pub pressure_kpa: Option<f64>,
+    /// Whether the marker lies in the contact region.
+    pub in_contact: Option<bool>,
+    /// Whether the marker slips against the object.
+    pub slipping: Option<bool>,
 }
 
 /// One row of `frames.csv`: the contact summary of one frame.
@@ -61,6 +86,22 @@ pub struct FrameSummary {
     pub centroid_mm: Option<[f64; 2]>,
     /// Slip state.
     pub slip: SlipState,
+    /// Total normal force on the gel, N; empty where it is unknown (no layer mechanics, a mono
+    /// sensor).
+    pub force_n: Option<f64>,
+    /// Total tangential force on the gel `[x, y]`, N, in the same frame as the centroid.
+    pub shear_n: Option<[f64; 2]>,
+    /// Torque of the tangential tractions about the contact normal through the pressure
+    /// centroid, N mm.
+    pub torque_nmm: Option<f64>,
+}
+
+/// Appends `,` and a flag as `0` / `1`, or nothing for `None`.
+fn push_flag(out: &mut String, v: Option<bool>) {
+    out.push(',');
+    if let Some(v) = v {
+        out.push(if v { '1' } else { '0' });
+    }
 }
 
 fn push_opt(out: &mut String, v: Option<f64>) {
@@ -72,7 +113,7 @@ fn push_opt(out: &mut String, v: Option<f64>) {
 }
 
 impl MarkerRecord {
-    /// Appends this row's 14 cells (no newline) in [`MARKER_COLUMNS`] order.
+    /// Appends this row's 17 cells (no newline) in [`MARKER_COLUMNS`] order.
     pub fn write_csv(&self, out: &mut String) {
         let _ = write!(out, "{},{},{}", self.frame, self.index.row, self.index.col);
         for p in [self.left_px, self.right_px] {
@@ -88,6 +129,9 @@ impl MarkerRecord {
         if let Some(s) = self.status {
             out.push_str(s.as_str());
         }
+        push_opt(out, self.pressure_kpa);
+        push_flag(out, self.in_contact);
+        push_flag(out, self.slipping);
     }
 
     /// Reads the row `row` of `table`.
@@ -125,12 +169,15 @@ impl MarkerRecord {
                 "" => None,
                 _ => Some(table.value(row, "status", "tracked, predicted or lost")?),
             },
+            pressure_kpa: table.opt_f64_if_present(row, "pressure_kPa")?,
+            in_contact: table.opt_flag_if_present(row, "in_contact")?,
+            slipping: table.opt_flag_if_present(row, "slipping")?,
         })
     }
 }
 
 impl FrameSummary {
-    /// Appends this row's 7 cells (no newline) in [`FRAME_COLUMNS`] order.
+    /// Appends this row's 11 cells (no newline) in [`FRAME_COLUMNS`] order.
     pub fn write_csv(&self, out: &mut String) {
         let _ = write!(out, "{},{}", self.frame, u8::from(self.contact));
         push_opt(out, self.contact_area_mm2);
@@ -138,6 +185,10 @@ impl FrameSummary {
         push_opt(out, self.centroid_mm.map(|c| c[0]));
         push_opt(out, self.centroid_mm.map(|c| c[1]));
         let _ = write!(out, ",{}", self.slip);
+        push_opt(out, self.force_n);
+        push_opt(out, self.shear_n.map(|s| s[0]));
+        push_opt(out, self.shear_n.map(|s| s[1]));
+        push_opt(out, self.torque_nmm);
     }
 
     /// Reads the row `row` of `table`.
@@ -156,6 +207,15 @@ impl FrameSummary {
                 _ => None,
             },
             slip: table.value(row, "slip", "no_contact, stick, partial_slip or gross_slip")?,
+            force_n: table.opt_f64_if_present(row, "force_N")?,
+            shear_n: match (
+                table.opt_f64_if_present(row, "shear_x_N")?,
+                table.opt_f64_if_present(row, "shear_y_N")?,
+            ) {
+                (Some(x), Some(y)) => Some([x, y]),
+                _ => None,
+            },
+            torque_nmm: table.opt_f64_if_present(row, "torque_Nmm")?,
         })
     }
 }
@@ -253,6 +313,34 @@ impl CsvTable {
             .unwrap_or(""))
     }
 
+    /// Whether the header has `column`.
+    pub fn has(&self, column: &str) -> bool {
+        self.header.iter().any(|h| h == column)
+    }
+
+    /// [`opt_f64`](Self::opt_f64), or `None` where the table has no such column (tables written
+    /// before the column existed).
+    pub fn opt_f64_if_present(&self, row: usize, column: &str) -> Result<Option<f64>> {
+        if self.has(column) {
+            self.opt_f64(row, column)
+        } else {
+            Ok(None)
+        }
+    }
+
+    /// A `0` / `1` flag, `None` for an empty cell or an absent column.
+    pub fn opt_flag_if_present(&self, row: usize, column: &str) -> Result<Option<bool>> {
+        if !self.has(column) {
+            return Ok(None);
+        }
+        match self.cell(row, column)? {
+            "" => Ok(None),
+            "0" => Ok(Some(false)),
+            "1" => Ok(Some(true)),
+            s => Err(table_err(&self.path, row + 2, column, "0, 1 or an empty cell", s)),
+        }
+    }
+
     /// Parses a required cell.
     pub fn value<T: std::str::FromStr>(&self, row: usize, column: &str, expected: &str) -> Result<T> {
         let s = self.cell(row, column)?;
@@ -302,6 +390,9 @@ mod tests {
             position_mm: Some([1.0, -2.5, 30.125]),
             displacement_mm: None,
             status: Some(MarkerStatus::Predicted),
+            pressure_kpa: Some(12.25),
+            in_contact: Some(true),
+            slipping: Some(false),
         };
         let mono = MarkerRecord {
             frame: 8,
@@ -320,7 +411,7 @@ mod tests {
 
     #[test]
     fn bad_cells_name_file_line_column_and_expectation() {
-        let text = format!("{}\n0,1,2,NaN,,,,,,,,,,tracked", MARKER_COLUMNS.join(","));
+        let text = format!("{}\n0,1,2,NaN,,,,,,,,,,tracked,,,", MARKER_COLUMNS.join(","));
         let table = CsvTable::from_text("gt/markers.csv", &text).unwrap();
         let err = MarkerRecord::from_table(&table, 0).unwrap_err().to_string();
         assert!(
@@ -345,6 +436,9 @@ mod tests {
             max_depth_mm: Some(0.75),
             centroid_mm: Some([0.5, -1.25]),
             slip: SlipState::PartialSlip,
+            force_n: Some(1.5),
+            shear_n: Some([0.25, -0.125]),
+            torque_nmm: Some(0.0625),
         };
         let mut text = FRAME_COLUMNS.join(",");
         text.push('\n');
@@ -355,11 +449,18 @@ mod tests {
         let unknown = FrameSummary {
             contact_area_mm2: None,
             max_depth_mm: None,
+            force_n: None,
+            shear_n: None,
+            torque_nmm: None,
             ..s
         };
         let mut row = String::new();
         unknown.write_csv(&mut row);
-        assert_eq!(row, "3,1,,,0.500000,-1.250000,partial_slip");
+        assert_eq!(row, "3,1,,,0.500000,-1.250000,partial_slip,,,,");
+        // A table written before the force columns existed reads as unknown force.
+        let old = "frame,contact,contact_area_mm2,max_depth_mm,centroid_X_mm,centroid_Y_mm,slip\n3,1,,,0.5,-1.25,partial_slip";
+        let back = FrameSummary::from_table(&CsvTable::from_text("mem", old).unwrap(), 0).unwrap();
+        assert_eq!(back, unknown);
         let table = CsvTable::from_text("mem", &format!("{}\n{row}", FRAME_COLUMNS.join(","))).unwrap();
         assert_eq!(FrameSummary::from_table(&table, 0).unwrap(), unknown);
     }
@@ -436,6 +537,9 @@ mod tests {
                     max_depth_mm: depth,
                     centroid_mm: centroid.map(|(x, y)| [x, y]),
                     slip: SlipState::Stick,
+                    force_n: area,
+                    shear_n: None,
+                    torque_nmm: depth,
                 };
                 let mut text = FRAME_COLUMNS.join(",");
                 text.push('\n');

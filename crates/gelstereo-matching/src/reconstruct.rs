@@ -59,8 +59,7 @@ impl ReconstructedMarker {
             left_px: self.left_px,
             right_px: self.right_px,
             position_mm: self.position_mm,
-            displacement_mm: None,
-            status: None,
+            ..Default::default()
         }
     }
 }

@@ -151,8 +151,25 @@ impl Influence {
     /// `out = C t`: the displacement of every node under the tractions `t` (row-major over the
     /// lattice). `work` is scratch space, resized as needed.
     pub fn apply(&self, t: &[Vec3], out: &mut [Vec3], work: &mut Workspace) {
+        self.transform(t, work);
+        let [px, py, pn] = &mut work.planes;
+        for (k, s) in self.spectrum.iter().enumerate() {
+            let v = operator(s).mul([px[k], py[k], pn[k]]);
+            (px[k], py[k], pn[k]) = (v[0], v[1], v[2]);
+        }
+        self.untransform(work, out);
+    }
+
+    /// The operator's 3 x 3 matrix at each frequency of the padded grid (transposed layout),
+    /// acting on `[τx, τy, p]`.
+    pub(crate) fn matrices(&self) -> impl Iterator<Item = Matrix3> + '_ {
+        self.spectrum.iter().map(operator)
+    }
+
+    /// Zero-pads the three components of `t` and transforms them into `work`'s planes.
+    pub(crate) fn transform(&self, t: &[Vec3], work: &mut Workspace) {
         let n = self.rows * self.cols;
-        assert!(t.len() == n && out.len() == n, "fields must cover the lattice");
+        assert!(t.len() == n, "fields must cover the lattice");
         let (nr, nc) = self.size;
         work.resize(nr * nc);
         for (c, buf) in work.planes.iter_mut().enumerate() {
@@ -164,14 +181,15 @@ impl Influence {
             }
             self.forward(buf, &mut work.scratch);
         }
-        let [px, py, pn] = &mut work.planes;
-        for (k, s) in self.spectrum.iter().enumerate() {
-            let (tx, ty, tn) = (px[k], py[k], pn[k]);
-            // w<-τ entries are imaginary (odd stencils); u<-p is their negative.
-            px[k] = s[0] * tx + s[2] * ty - s[4] * tn;
-            py[k] = s[2] * tx + s[1] * ty - s[5] * tn;
-            pn[k] = s[4] * tx + s[5] * ty + s[3] * tn;
-        }
+    }
+
+    /// Inverse of [`transform`](Self::transform): `work`'s planes back to the lattice.
+    pub(crate) fn untransform(&self, work: &mut Workspace, out: &mut [Vec3]) {
+        assert!(
+            out.len() == self.rows * self.cols,
+            "fields must cover the lattice"
+        );
+        let (nr, nc) = self.size;
         let scale = 1.0 / (nr * nc) as f64;
         for (c, buf) in work.planes.iter_mut().enumerate() {
             self.inverse(buf, &mut work.scratch);
@@ -230,8 +248,44 @@ impl Influence {
 /// Scratch buffers of [`Influence::apply`].
 #[derive(Debug, Clone, Default)]
 pub struct Workspace {
-    planes: [Vec<Complex64>; 3],
+    /// The three components' transforms.
+    pub(crate) planes: [Vec<Complex64>; 3],
     scratch: Vec<Complex64>,
+}
+
+/// A complex 3 x 3 matrix, row-major.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Matrix3(pub(crate) [[Complex64; 3]; 3]);
+
+impl Matrix3 {
+    pub(crate) fn mul(&self, v: [Complex64; 3]) -> [Complex64; 3] {
+        std::array::from_fn(|r| self.0[r][0] * v[0] + self.0[r][1] * v[1] + self.0[r][2] * v[2])
+    }
+
+    pub(crate) fn mul_matrix(&self, o: &Matrix3) -> Matrix3 {
+        Matrix3(std::array::from_fn(|r| {
+            std::array::from_fn(|c| (0..3).map(|k| self.0[r][k] * o.0[k][c]).sum())
+        }))
+    }
+
+    /// The inverse, by cofactors (the matrices inverted here are Hermitian and well conditioned).
+    pub(crate) fn inverse(&self) -> Matrix3 {
+        let m = &self.0;
+        let cof = |r: usize, c: usize| {
+            let (r0, r1) = ((r + 1) % 3, (r + 2) % 3);
+            let (c0, c1) = ((c + 1) % 3, (c + 2) % 3);
+            m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0]
+        };
+        let det = m[0][0] * cof(0, 0) + m[0][1] * cof(0, 1) + m[0][2] * cof(0, 2);
+        Matrix3(std::array::from_fn(|r| std::array::from_fn(|c| cof(c, r) / det)))
+    }
+}
+
+/// The operator's matrix at one frequency from its six distinct transformed stencils: the
+/// `w<-τ` entries are imaginary (odd stencils) and `u<-p` is their negative, so the matrix is
+/// Hermitian.
+fn operator(s: &[Complex64; ENTRIES]) -> Matrix3 {
+    Matrix3([[s[0], s[2], -s[4]], [s[2], s[1], -s[5]], [s[4], s[5], s[3]]])
 }
 
 impl Workspace {

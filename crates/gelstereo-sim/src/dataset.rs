@@ -515,6 +515,9 @@ impl Simulator {
             max_depth_mm: Some(def.max_depth_mm),
             centroid_mm: centroid,
             slip: def.slip,
+            force_n: None,
+            shear_n: None,
+            torque_nmm: None,
         };
         Ok(Frame {
             markers,
@@ -536,21 +539,20 @@ impl Simulator {
                 right_px: m.px[1],
                 position_mm: Some([p.x, p.y, p.z]),
                 displacement_mm: Some([p.x - rest.x, p.y - rest.y, p.z - rest.z]),
-                status: None,
+                in_contact: Some(m.in_contact),
+                ..Default::default()
             };
             rec.write_csv(out);
             let vis = |v: usize| u8::from(m.printed && m.px[v].is_some_and(|q: Point2| cams[v].contains(q)));
-            let _ = writeln!(out, ",{},{},{}", vis(0), vis(1), u8::from(m.in_contact));
+            let _ = writeln!(out, ",{},{}", vis(0), vis(1));
         }
     }
 }
 
-/// Header of `markers.csv`: the 14 docs/design.md columns and the simulator's ground-truth flags.
+/// Header of `markers.csv`: the docs/design.md columns (with the truth's `in_contact`) and the
+/// simulator's visibility flags.
 pub fn markers_header() -> String {
-    format!(
-        "{},visible_left,visible_right,in_contact\n",
-        MARKER_COLUMNS.join(",")
-    )
+    format!("{},visible_left,visible_right\n", MARKER_COLUMNS.join(","))
 }
 
 /// Writes one recording into `dir` (which must exist); `progress` is called once per frame.

@@ -73,7 +73,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut tr = Tracker::new(shape, &rref, TrackerConfig::default())?;
         let reference: Vec<Option<[f64; 3]>> =
             scene(0.0, 0.0).iter().map(|p| Some([p.x, p.y, p.z])).collect();
-        let surface = ReferenceSurface::new(shape, &reference)?;
+        let mut surface = ReferenceSurface::new(shape, &reference, ContactConfig::default())?;
         let mut slip = SlipDetector::new(SlipConfig::default())?;
         for (l, r) in &frames {
             let t0 = Instant::now();
@@ -93,7 +93,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 })
                 .collect();
             let t2 = Instant::now();
-            let c = surface.analyze(&pos, &ContactConfig::default())?;
+            let c = surface.analyze(&pos)?;
             let t3 = Instant::now();
             slip.update(&surface, &c);
             let t4 = Instant::now();

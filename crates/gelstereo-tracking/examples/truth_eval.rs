@@ -30,13 +30,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let verbose = std::env::var("VERBOSE").is_ok();
     // PER_RECORDING=1: one line per recording with gross-slip errors.
     let per_recording = std::env::var("PER_RECORDING").is_ok();
-    // Tuning overrides: LOAD_THRESHOLD, LOAD_ITERATIONS, MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
+    // Tuning overrides: MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
     // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
-    override_from_env("LOAD_THRESHOLD", &mut contact_cfg.load_threshold);
     override_from_env("MIN_DEPTH", &mut contact_cfg.min_depth_mm);
     override_from_env("CONTACT_NOISE", &mut contact_cfg.contact_noise_factor);
-    override_from_env("LOAD_ITERATIONS", &mut contact_cfg.load_iterations);
     override_from_env("CENTROID_DEPTH", &mut contact_cfg.centroid_depth_fraction);
     let mut slip_cfg = SlipConfig::default();
     override_from_env("SLIP_DRIFT", &mut slip_cfg.drift_mm_per_frame);
@@ -89,7 +87,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 slot[lin] = Some(p.map(|v| v + noise * (2.0 * uniform() - 1.0) * 3f64.sqrt()));
             }
         }
-        let surface = match ReferenceSurface::new(shape, &per_frame[0]) {
+        // The gel thickness of the recording's sensor (as `gelstereo track` reads it from meta.json).
+        let mut contact_cfg = contact_cfg.clone();
+        if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
+            contact_cfg.layer.thickness_mm = t;
+        }
+        let mut surface = match ReferenceSurface::new(shape, &per_frame[0], contact_cfg) {
             Ok(s) => s,
             // A track run that found no reference lattice reports no contact in every frame (as
             // `score_track` scores it).
@@ -107,11 +110,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             Err(e) => return Err(e.into()),
         };
-        // The gel thickness of the recording's sensor (as `gelstereo track` reads it from meta.json).
-        let mut contact_cfg = contact_cfg.clone();
-        if let Some(t) = meta_thickness_mm(&rec.join("meta.json")) {
-            contact_cfg.gel_thickness_mm = t;
-        }
         let mut det = SlipDetector::new(slip_cfg.clone())?;
         let (mut gt_onset, mut est_onset) = (None, None);
         let (tp0, fp0, fn0) = (tp, fp, fneg);
@@ -134,7 +132,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 per_frame[f] =
                     gelstereo_tracking::session::fill_from_neighbours(shape, &reference, &per_frame[f]);
             }
-            let c = surface.analyze(&per_frame[f], &contact_cfg)?;
+            let c = surface.analyze(&per_frame[f])?;
             let sl = det.update(&surface, &c);
             touched |= gt.contact;
             if !touched && sl.state != SlipState::NoContact && sl.state != SlipState::Stick {

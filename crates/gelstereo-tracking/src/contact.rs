@@ -7,18 +7,16 @@
 //!   (from the cameras through the gel towards the object).
 //! - **Indentation depth** of a marker is its displacement against the reference along the reversed
 //!   normal: positive when the surface is pushed towards the cameras.
-//! - The **contact region** is where the surface carries load. The surface displacement of an
-//!   elastic layer bonded to a rigid plate is the contact load blurred by the layer's response,
-//!   `w = K * q` (Johnson, *Contact Mechanics*, 1985, ch. 3; for a thin layer `K` is short-ranged,
-//!   of a width set by the layer thickness). We model `K` as two Gaussians of widths `0.35 t` and
-//!   `t` (weights 0.65 and 0.35; `t` the gel thickness: the layer model of the simulator, see
-//!   `docs/sim.md`; calibrate it for another gel) and recover `q >= 0` on the marker lattice by
-//!   projected Van Cittert iterations `q <- max(0, q + w - K * q)` from `q = w`. The contact region
-//!   is where `q` exceeds `load_threshold` x its maximum. Depth alone delimits the contact badly:
-//!   the layer's response spreads the indentation well beyond the contact (the half-depth region
-//!   is 1.8 times the contact area on the simulated training split). The area is integrated
-//!   exactly over the triangles of the deformed mesh clipped where the linearly interpolated load
-//!   crosses the threshold, so it resolves the contact edge below the pitch.
+//! - The **contact region, pressure, force and torque** come from the inverse problem of the
+//!   gel, an elastic layer bonded to a rigid plate ([`gelstereo_mechanics`]): the tractions
+//!   (pressure `p >= 0`, shear inside the friction cone's closure) whose exact layer response
+//!   explains the markers' 3-D displacements, regularised for the frame's measured noise. The
+//!   displacements enter in the **gel frame** of the reference surface: `z` along its normal
+//!   (away from the cameras), `x` along the lattice's columns, `y = z × x` along its rows. The
+//!   contact region is where the pressure exceeds what the noise alone puts there, its edge
+//!   placed below the pitch; the area is measured on the reference (material) surface. Depth
+//!   alone delimits the contact badly: the layer's response spreads the indentation well beyond
+//!   the contact.
 //! - The **centroid** is that of the deformed markers weighted by their 3 x 3 mean depth above a
 //!   fraction of its maximum: a blur by a symmetric, normalised kernel keeps the first moment, so
 //!   the indentation locates the load as well as the deconvolved load does, without the noise the
@@ -32,9 +30,19 @@
 //!   inside that patch.
 
 use gelstereo_core::{GridIndex, GridShape};
+use gelstereo_mechanics::inverse::{ContactLoad, InverseConfig, InverseSolver};
+use gelstereo_mechanics::{Influence, Layer};
 use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 
 use crate::error::{Error, Result, config_err};
+
+/// The reference sensor's gel: 2.5 mm of silicone (150 kPa, Poisson ratio 0.45) bonded to its
+/// acrylic window.
+pub const REFERENCE_LAYER: Layer = Layer {
+    thickness_mm: 2.5,
+    modulus_kpa: 150.0,
+    poisson: 0.45,
+};
 
 /// Settings of the contact estimate. Defaults were chosen on the simulated training split
 /// (`docs/tracking.md`).
@@ -46,16 +54,10 @@ pub struct ContactConfig {
     /// cross 0.001-0.015 mm deep while it slides) but gave isolated false contacts of 0.005-0.009 mm
     /// from images (val with Marknet-MRE: 7 -> 9 frames), where the robust noise estimate is low.
     pub min_depth_mm: f64,
-    /// Gel (elastic layer) thickness, mm: sets the width of the layer's response kernel. 2.5 mm on
-    /// the reference sensor.
-    pub gel_thickness_mm: f64,
-    /// Iterations of the load deconvolution (the early stop regularises it: 20 gave the best area
-    /// with 0.01 mm of 3-D noise on the training split, 60 without noise).
-    pub load_iterations: usize,
-    /// Contact where the recovered load exceeds this fraction of its maximum (0.35: the best share
-    /// of frames within 10 % of the simulator's area on the train + val splits, exact and with
-    /// 0.01 mm of 3-D noise; median area ratio 1.26 exact, 0.93 noisy).
-    pub load_threshold: f64,
+    /// The gel: thickness, Young's modulus and Poisson ratio ([`REFERENCE_LAYER`] by default).
+    pub layer: Layer,
+    /// Settings of the inverse problem.
+    pub inverse: InverseConfig,
     /// Whether to refine the largest depth with a local (Gaussian or quadratic) peak fit.
     pub refine_peak: bool,
     /// The contact threshold in standard deviations of the 3 x 3 mean depth, from the frame's
@@ -75,9 +77,8 @@ impl Default for ContactConfig {
     fn default() -> Self {
         Self {
             min_depth_mm: 0.01,
-            gel_thickness_mm: 2.5,
-            load_iterations: 20,
-            load_threshold: 0.35,
+            layer: REFERENCE_LAYER,
+            inverse: InverseConfig::default(),
             refine_peak: true,
             contact_noise_factor: 6.0,
             centroid_depth_fraction: 0.35,
@@ -95,16 +96,8 @@ impl ContactConfig {
                 self.min_depth_mm,
             ));
         }
-        if !(self.gel_thickness_mm.is_finite()
-            && self.gel_thickness_mm > 0.0
-            && self.gel_thickness_mm < 100.0)
-        {
-            return Err(config_err(
-                "gel_thickness_mm",
-                "a thickness in (0, 100) mm",
-                self.gel_thickness_mm,
-            ));
-        }
+        self.layer.validate()?;
+        self.inverse.validate()?;
         if !(self.contact_noise_factor.is_finite() && (0.0..1000.0).contains(&self.contact_noise_factor)) {
             return Err(config_err(
                 "contact_noise_factor",
@@ -112,16 +105,9 @@ impl ContactConfig {
                 self.contact_noise_factor,
             ));
         }
-        if !(1..=10_000).contains(&self.load_iterations) {
-            return Err(config_err("load_iterations", "1 to 10000", self.load_iterations));
-        }
-        for (field, v) in [
-            ("load_threshold", self.load_threshold),
-            ("centroid_depth_fraction", self.centroid_depth_fraction),
-        ] {
-            if !(v.is_finite() && v > 0.0 && v < 1.0) {
-                return Err(config_err(field, "a fraction in (0, 1)", v));
-            }
+        let v = self.centroid_depth_fraction;
+        if !(v.is_finite() && v > 0.0 && v < 1.0) {
+            return Err(config_err("centroid_depth_fraction", "a fraction in (0, 1)", v));
         }
         Ok(())
     }
@@ -130,7 +116,8 @@ impl ContactConfig {
 /// A triangle of the marker mesh: three row-major lattice positions.
 pub type Triangle = [u32; 3];
 
-/// The reference surface: marker positions of the reference frame, the mesh over them and its normals.
+/// The reference surface: marker positions of the reference frame, the mesh over them and its
+/// normals, the gel frame, and the contact analysis of later frames against it.
 #[derive(Debug, Clone)]
 pub struct ReferenceSurface {
     shape: GridShape,
@@ -138,13 +125,21 @@ pub struct ReferenceSurface {
     normals: Vec<Option<Vector3<f64>>>,
     triangles: Vec<Triangle>,
     plane_normal: Vector3<f64>,
+    /// The gel frame's axes in the left camera frame: x along the columns, y along the rows, z
+    /// the plane normal.
+    gel_axes: [Vector3<f64>; 3],
     pitch_mm: f64,
+    config: ContactConfig,
+    /// The inverse problem's solver, built at the first contact (its set-up is the layer's
+    /// influence operator on this lattice).
+    mechanics: Option<Box<InverseSolver>>,
 }
 
 impl ReferenceSurface {
     /// Builds the surface from the reference positions, mm, dense over `shape` (row-major, `None`
-    /// where a marker is missing). Needs at least one triangle.
-    pub fn new(shape: GridShape, positions_mm: &[Option<[f64; 3]>]) -> Result<Self> {
+    /// where a marker is missing), to analyse frames with `config`. Needs at least one triangle.
+    pub fn new(shape: GridShape, positions_mm: &[Option<[f64; 3]>], config: ContactConfig) -> Result<Self> {
+        config.validate()?;
         if positions_mm.len() != shape.count() {
             return Err(Error::Mismatch {
                 what: "reference positions",
@@ -211,14 +206,29 @@ impl ReferenceSurface {
             .map(|(n, p)| p.map(|_| n.try_normalize(1e-12).unwrap_or(plane_normal)))
             .collect();
         let pitch_mm = lattice_pitch_mm(shape, &pos).unwrap_or(1.0);
+        let gel_axes = gel_axes(shape, &pos, plane_normal);
         Ok(Self {
             shape,
             positions_mm: pos,
             normals,
             triangles,
             plane_normal,
+            gel_axes,
             pitch_mm,
+            config,
+            mechanics: None,
         })
+    }
+
+    /// The settings frames are analysed with.
+    pub fn config(&self) -> &ContactConfig {
+        &self.config
+    }
+
+    /// The gel frame's axes `[x, y, z]` in the left camera frame: x along the lattice's columns,
+    /// y along its rows, z the surface's normal away from the cameras.
+    pub fn gel_axes(&self) -> [Vector3<f64>; 3] {
+        self.gel_axes
     }
 
     /// The lattice.
@@ -253,8 +263,8 @@ impl ReferenceSurface {
 
     /// Analyses one frame: `current_mm` holds the frame's 3-D marker positions, dense over the
     /// lattice like the reference (`None` where a marker is lost).
-    pub fn analyze(&self, current_mm: &[Option<[f64; 3]>], config: &ContactConfig) -> Result<ContactFrame> {
-        config.validate()?;
+    pub fn analyze(&mut self, current_mm: &[Option<[f64; 3]>]) -> Result<ContactFrame> {
+        let config = self.config.clone();
         if current_mm.len() != self.positions_mm.len() {
             return Err(Error::Mismatch {
                 what: "frame positions",
@@ -300,33 +310,20 @@ impl ReferenceSurface {
             (true, Some(k)) => refine_peak(self.shape, &depth, k).map_or(marker_max, |z| z.max(smooth_max)),
             _ => marker_max,
         };
-        let mut area = 0.0;
-        let mut in_contact = vec![false; n];
-        let mut load = vec![0.0; n];
-        let mut threshold = 0.0;
-        if contact {
-            let w: Vec<f64> = depth.iter().map(|d| d.unwrap_or(0.0).max(0.0)).collect();
-            load = deconvolve_load(
-                self.shape,
-                &w,
-                config.gel_thickness_mm / self.pitch_mm,
-                config.load_iterations,
-            );
-            let q_max = load.iter().copied().fold(0.0, f64::max);
-            threshold = config.load_threshold * q_max;
-            for k in 0..n {
-                in_contact[k] = depth[k].is_some() && load[k] > threshold;
+        let (load, traction) = if contact {
+            let (load, traction) = self.mechanics(&displacement, depth_noise)?;
+            (Some(load), traction)
+        } else {
+            if let Some(m) = self.mechanics.as_mut() {
+                m.reset();
             }
-            for t in &self.triangles {
-                let idx = t.map(|i| i as usize);
-                let (Some(p0), Some(p1), Some(p2)) =
-                    (positions[idx[0]], positions[idx[1]], positions[idx[2]])
-                else {
-                    continue;
-                };
-                area += clipped_area([p0, p1, p2], idx.map(|i| load[i] - threshold));
-            }
-        }
+            (None, vec![[0.0; 3]; n])
+        };
+        let area = load.as_ref().map_or(0.0, |l| l.area_mm2);
+        let in_contact: Vec<bool> = match &load {
+            Some(l) => (0..n).map(|k| l.in_contact[k] && depth[k].is_some()).collect(),
+            None => vec![false; n],
+        };
         // The contact centroid: deformed positions weighted by the smoothed depth above
         // `centroid_depth_fraction` of its maximum. The indentation is the load blurred by a
         // symmetric, normalised kernel, which keeps the load's first moment, so the depth locates
@@ -352,11 +349,66 @@ impl ReferenceSurface {
             centroid_mm: centroid,
             material_centroid_mm: material_centroid,
             depth_noise_mm: depth_noise,
-            load_mm: load,
-            load_threshold_mm: threshold,
+            force_n: load.as_ref().map_or(0.0, |l| l.force_n),
+            shear_n: load.as_ref().map_or([0.0; 2], |l| l.shear_n),
+            torque_nmm: load.as_ref().map_or(0.0, |l| l.torque_nmm),
+            traction_kpa: traction,
             peak: peak_index.and_then(|k| index_of(self.shape, k)),
         })
     }
+
+    /// The tractions on the gel that explain the frame's displacements (gel frame, kPa per
+    /// marker cell) and what they add up to.
+    fn mechanics(
+        &mut self,
+        displacement: &[Option<Vector3<f64>>],
+        depth_noise: f64,
+    ) -> Result<(ContactLoad, Vec<[f64; 3]>)> {
+        let (rows, cols) = (usize::from(self.shape.rows), usize::from(self.shape.cols));
+        let solver = match &mut self.mechanics {
+            Some(s) => s,
+            None => {
+                let op = Influence::new(&self.config.layer, rows, cols, self.pitch_mm)?;
+                self.mechanics
+                    .insert(Box::new(InverseSolver::new(op, self.config.inverse.clone())?))
+            }
+        };
+        let [ex, ey, ez] = self.gel_axes;
+        // Into the gel is towards the cameras: −z.
+        let gel: Vec<Option<[f64; 3]>> = displacement
+            .iter()
+            .map(|d| d.map(|d| [d.dot(&ex), d.dot(&ey), -d.dot(&ez)]))
+            .collect();
+        let component = |c: usize| -> Vec<Option<f64>> { gel.iter().map(|d| d.map(|d| d[c])).collect() };
+        let tangential_noise = depth_noise_mm(self.shape, &component(0))
+            .hypot(depth_noise_mm(self.shape, &component(1)))
+            / std::f64::consts::SQRT_2;
+        let t = solver.solve(&gel, [tangential_noise, depth_noise])?;
+        let load = ContactLoad::new(&t, rows, cols, self.pitch_mm);
+        Ok((load, t.traction_kpa))
+    }
+}
+
+/// The gel frame's axes in the camera frame: z the plane normal, x the mean step along the
+/// lattice's rows (from one column to the next) made normal to z, y = z × x (down the rows).
+fn gel_axes(shape: GridShape, pos: &[Option<Point3<f64>>], normal: Vector3<f64>) -> [Vector3<f64>; 3] {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let mut along = Vector3::zeros();
+    for r in 0..rows {
+        for c in 0..cols.saturating_sub(1) {
+            if let (Some(a), Some(b)) = (pos[r * cols + c], pos[r * cols + c + 1]) {
+                along += b - a;
+            }
+        }
+    }
+    let x = (along - normal * along.dot(&normal))
+        .try_normalize(1e-12)
+        .unwrap_or_else(|| {
+            (Vector3::x() - normal * normal.x)
+                .try_normalize(1e-12)
+                .unwrap_or(Vector3::y())
+        });
+    [x, normal.cross(&x), normal]
 }
 
 /// Contact geometry of one frame.
@@ -372,7 +424,7 @@ pub struct ContactFrame {
     pub in_contact: Vec<bool>,
     /// Whether anything touches the gel.
     pub contact: bool,
-    /// Contact area on the deformed surface, mm^2.
+    /// Contact area on the reference (material) surface, mm^2.
     pub contact_area_mm2: f64,
     /// Largest indentation depth, mm (refined below the pitch; 0 without any depth).
     pub max_depth_mm: f64,
@@ -386,11 +438,16 @@ pub struct ContactFrame {
     /// depth and the mean of its 8-neighbours' (over sqrt(1 + 1/8)); robust, since most of the
     /// lattice lies outside the contact where the depth field is smooth.
     pub depth_noise_mm: f64,
-    /// Recovered contact load per marker, in mm of indentation it supports (row-major; zeros
-    /// without contact).
-    pub load_mm: Vec<f64>,
-    /// The load above which a marker is in contact in this frame, mm.
-    pub load_threshold_mm: f64,
+    /// Total normal force on the gel, N (0 without contact).
+    pub force_n: f64,
+    /// Total tangential force on the gel along the gel frame's `[x, y]` (the lattice's columns
+    /// and rows), N.
+    pub shear_n: [f64; 2],
+    /// Torque of the tangential tractions about the normal through the pressure centroid, N mm.
+    pub torque_nmm: f64,
+    /// Traction on each marker's cell `[τx, τy, p]` in the gel frame, kPa (row-major; zeros
+    /// without contact): `p` the pressure into the gel.
+    pub traction_kpa: Vec<[f64; 3]>,
     /// The deepest marker.
     pub peak: Option<GridIndex>,
 }
@@ -495,115 +552,6 @@ fn lattice_pitch_mm(shape: GridShape, pos: &[Option<Point3<f64>>]) -> Option<f64
     crate::tracker::median(d).filter(|p| *p > 0.0)
 }
 
-/// Normalised Gaussian taps of standard deviation `sigma` (in lattice steps), radius 3 sigma.
-fn gaussian_taps(sigma: f64) -> Vec<f64> {
-    let r = (3.0 * sigma).ceil().max(1.0) as i64;
-    let mut taps: Vec<f64> = (-r..=r)
-        .map(|x| (-(x * x) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let sum: f64 = taps.iter().sum();
-    taps.iter_mut().for_each(|t| *t /= sum);
-    taps
-}
-
-/// `dst = G * src` on a `rows x cols` grid, separable, zero outside; `tmp` holds the row pass.
-///
-/// Each pass adds one tap at a time to whole lines of the grid at once, so its loops are long and
-/// vectorise: the row pass on the transposed grid (columns are then contiguous lines), the column
-/// pass on the grid itself. Each output still adds its taps in tap order from the same start as a
-/// sum per output would (-0.0, `Sum`'s, along rows; 0.0 along columns), so the bits are those of
-/// that sum (`blur_sums_each_output_in_tap_order`); this is most of the contact stage.
-fn blur(src: &[f64], rows: usize, cols: usize, taps: &[f64], tmp: &mut [f64], dst: &mut [f64]) {
-    transpose(src, rows, cols, tmp);
-    tap_lines(tmp, cols, rows, taps, -0.0, dst);
-    transpose(dst, cols, rows, tmp);
-    tap_lines(tmp, rows, cols, taps, 0.0, dst);
-}
-
-/// `out[i] = start + sum_k taps[k] * src[i + k - r]` over the `lines` lines of `len` values (line i of
-/// `src` is `src[i * len..(i + 1) * len]`), skipping the lines beyond either end, taps in order.
-fn tap_lines(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx") {
-        return wide::tap_lines(src, lines, len, taps, start, out);
-    }
-    tap_lines_portable(src, lines, len, taps, start, out);
-}
-
-/// [`tap_lines`] compiled for AVX: 4 doubles per instruction instead of SSE2's 2. No FMA: each
-/// `o += t * v` rounds the product and the sum apart, as the portable build does, so the bits are
-/// the same.
-#[cfg(target_arch = "x86_64")]
-#[allow(unsafe_code)]
-mod wide {
-    pub(super) fn tap_lines(
-        src: &[f64],
-        lines: usize,
-        len: usize,
-        taps: &[f64],
-        start: f64,
-        out: &mut [f64],
-    ) {
-        // SAFETY: called only where the CPU has AVX (`is_x86_feature_detected!` in the caller).
-        unsafe { tap_lines_avx(src, lines, len, taps, start, out) }
-    }
-
-    #[target_feature(enable = "avx")]
-    fn tap_lines_avx(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
-        super::tap_lines_portable(src, lines, len, taps, start, out);
-    }
-}
-
-#[inline(always)]
-fn tap_lines_portable(src: &[f64], lines: usize, len: usize, taps: &[f64], start: f64, out: &mut [f64]) {
-    let r = taps.len() / 2;
-    out.fill(start);
-    for (k, t) in taps.iter().enumerate() {
-        let first = r.saturating_sub(k);
-        let end = (lines + r).saturating_sub(k).min(lines);
-        if first >= end {
-            continue;
-        }
-        let from = first + k - r;
-        let source = &src[from * len..(from + end - first) * len];
-        for (o, v) in out[first * len..end * len].iter_mut().zip(source) {
-            *o += t * v;
-        }
-    }
-}
-
-/// `dst` (`cols x rows`) = the transpose of `src` (`rows x cols`).
-fn transpose(src: &[f64], rows: usize, cols: usize, dst: &mut [f64]) {
-    for (y, row) in src.chunks_exact(cols).take(rows).enumerate() {
-        for (x, v) in row.iter().enumerate() {
-            dst[x * rows + y] = *v;
-        }
-    }
-}
-
-/// The non-negative load `q` with `K * q = w` on the lattice (projected Van Cittert, `iterations`
-/// steps from `q = w`), for the two-Gaussian layer kernel of a gel `thickness_pitch` pitches thick.
-pub fn deconvolve_load(shape: GridShape, w: &[f64], thickness_pitch: f64, iterations: usize) -> Vec<f64> {
-    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
-    let n = rows * cols;
-    if w.len() != n || n == 0 {
-        return vec![0.0; w.len()];
-    }
-    let narrow = gaussian_taps(0.35 * thickness_pitch);
-    let wide = gaussian_taps(thickness_pitch);
-    let mut q: Vec<f64> = w.iter().map(|v| v.max(0.0)).collect();
-    let (mut tmp, mut a, mut b) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-    for _ in 0..iterations {
-        blur(&q, rows, cols, &narrow, &mut tmp, &mut a);
-        blur(&q, rows, cols, &wide, &mut tmp, &mut b);
-        for k in 0..n {
-            let kq = 0.65 * a[k] + 0.35 * b[k];
-            q[k] = (q[k] + w[k] - kq).max(0.0);
-        }
-    }
-    q
-}
-
 /// Triangles over the lattice cells whose corners are present: two per full cell (split along the
 /// diagonal from top-left to bottom-right), one when exactly three corners are present.
 pub fn mesh_triangles<T>(shape: GridShape, present: &[Option<T>]) -> Vec<Triangle> {
@@ -631,30 +579,6 @@ pub fn mesh_triangles<T>(shape: GridShape, present: &[Option<T>]) -> Vec<Triangl
         }
     }
     out
-}
-
-/// Area of the part of triangle `p` where the linear function with vertex values `f` is positive.
-fn clipped_area(p: [Point3<f64>; 3], f: [f64; 3]) -> f64 {
-    let mut poly: Vec<Point3<f64>> = Vec::with_capacity(4);
-    for i in 0..3 {
-        let j = (i + 1) % 3;
-        if f[i] > 0.0 {
-            poly.push(p[i]);
-        }
-        if (f[i] > 0.0) != (f[j] > 0.0) {
-            let t = f[i] / (f[i] - f[j]);
-            poly.push(p[i] + (p[j] - p[i]) * t);
-        }
-    }
-    if poly.len() < 3 {
-        return 0.0;
-    }
-    (1..poly.len() - 1)
-        .map(|k| {
-            let (a, b, c) = (poly[0], poly[k], poly[k + 1]);
-            0.5 * (b - a).cross(&(c - a)).norm()
-        })
-        .sum()
 }
 
 /// The peak depth over the 3 x 3 lattice neighbourhood of `k` (u, v in lattice steps): the apex
@@ -718,6 +642,7 @@ fn fit_apex(patch: &[f64; 9]) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use gelstereo_mechanics::Influence;
 
     type Positions = Vec<Option<[f64; 3]>>;
 
@@ -742,13 +667,13 @@ mod tests {
     fn spherical_cap_centroid_and_depth_resolve_below_the_pitch() {
         // Apex between markers.
         let (shape, rest, pressed) = lattice(4.0, 0.6, 0.33, -0.21);
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
         assert!(
             (surface.plane_normal() - Vector3::z()).norm() < 1e-9,
             "normal points away from the camera"
         );
         assert!((surface.pitch_mm() - 0.8).abs() < 1e-9);
-        let f = surface.analyze(&pressed, &ContactConfig::default()).unwrap();
+        let f = surface.analyze(&pressed).unwrap();
         assert!(f.contact);
         // The contact lies inside the cap (r^2 < 2 R d).
         let cap = std::f64::consts::PI * 2.0 * 4.0 * 0.6;
@@ -770,15 +695,17 @@ mod tests {
             "max depth {}",
             f.max_depth_mm
         );
-        let unrefined = surface
-            .analyze(
-                &pressed,
-                &ContactConfig {
-                    refine_peak: false,
-                    ..Default::default()
-                },
-            )
-            .unwrap();
+        let unrefined = ReferenceSurface::new(
+            shape,
+            &rest,
+            ContactConfig {
+                refine_peak: false,
+                ..Default::default()
+            },
+        )
+        .unwrap()
+        .analyze(&pressed)
+        .unwrap();
         assert!(unrefined.max_depth_mm < 0.6 - 0.005);
         assert_eq!(surface.triangles().len(), 2 * 22 * 22);
     }
@@ -796,8 +723,8 @@ mod tests {
                 (Some([x, y, 24.0]), Some([x, y, 24.0 - w]))
             })
             .unzip();
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
-        let f = surface.analyze(&pressed, &ContactConfig::default()).unwrap();
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
+        let f = surface.analyze(&pressed).unwrap();
         assert!(
             (f.max_depth_mm - 0.5).abs() < 1e-6,
             "max depth {}",
@@ -805,73 +732,33 @@ mod tests {
         );
     }
 
-    /// Both passes give, bit for bit, each output's sum over its taps in tap order (what a sum per
-    /// output computes), at every row and column from the edges inwards and for kernels wider than
-    /// the grid.
-    #[test]
-    fn blur_sums_each_output_in_tap_order() {
-        let (rows, cols) = (5, 9);
-        let src: Vec<f64> = (0..rows * cols)
-            .map(|i| ((i * 7919 % 113) as f64 / 17.0 - 3.0) * if i % 5 == 0 { 0.0 } else { 1.0 })
-            .collect();
-        for sigma in [0.4, 1.3, 4.0] {
-            let taps = gaussian_taps(sigma);
-            let r = taps.len() / 2;
-            let (mut tmp, mut dst) = (vec![0.0; rows * cols], vec![0.0; rows * cols]);
-            blur(&src, rows, cols, &taps, &mut tmp, &mut dst);
-            for y in 0..rows {
-                for x in 0..cols {
-                    let want: f64 = (0..taps.len())
-                        .filter(|&k| x + k >= r && x + k - r < cols)
-                        .map(|k| taps[k] * src[y * cols + x + k - r])
-                        .sum();
-                    assert_eq!(
-                        tmp[y * cols + x].to_bits(),
-                        want.to_bits(),
-                        "sigma {sigma}, ({x}, {y})"
-                    );
-                    let want = (0..taps.len())
-                        .filter(|&k| y + k >= r && y + k - r < rows)
-                        .fold(0.0, |acc, k| acc + taps[k] * tmp[(y + k - r) * cols + x]);
-                    assert_eq!(
-                        dst[y * cols + x].to_bits(),
-                        want.to_bits(),
-                        "column pass, sigma {sigma}, ({x}, {y})"
-                    );
-                }
-            }
-        }
-    }
-
     /// The flat 23 x 23 lattice (pitch 0.8 mm, 24 mm in front of the camera) and the same lattice
-    /// pressed by the layer's response (default gel) to a uniform load of `load_mm` on the markers
-    /// within `radius_mm` of (`cx`, `cy`): (rest, pressed, load per marker).
-    fn blurred_disc(load_mm: f64, radius_mm: f64, cx: f64, cy: f64) -> (Positions, Positions, Vec<f64>) {
+    /// pressed into the reference gel by a rigid flat punch of radius `radius_mm`, `depth_mm` deep
+    /// at (`cx`, `cy`) (the layer's exact response): (rest, pressed, pressure per marker, kPa).
+    fn flat_punch(depth_mm: f64, radius_mm: f64, cx: f64, cy: f64) -> (Positions, Positions, Vec<f64>) {
         let shape = GridShape::REFERENCE;
         let xy = |i: GridIndex| ((f64::from(i.col) - 11.0) * 0.8, (f64::from(i.row) - 11.0) * 0.8);
-        let load: Vec<f64> = shape
+        let pen: Vec<f64> = shape
             .indices()
             .map(|i| {
                 let (x, y) = xy(i);
                 if (x - cx).hypot(y - cy) < radius_mm {
-                    load_mm
+                    depth_mm
                 } else {
-                    0.0
+                    -1.0
                 }
             })
             .collect();
-        let t = ContactConfig::default().gel_thickness_mm / 0.8;
-        let (narrow, wide) = (gaussian_taps(0.35 * t), gaussian_taps(t));
-        let (mut tmp, mut a, mut b) = (vec![0.0; 529], vec![0.0; 529], vec![0.0; 529]);
-        blur(&load, 23, 23, &narrow, &mut tmp, &mut a);
-        blur(&load, 23, 23, &wide, &mut tmp, &mut b);
+        let op = Influence::new(&REFERENCE_LAYER, 23, 23, 0.8).unwrap();
+        let sol = gelstereo_mechanics::forward::indent(&op, &pen, 1e-8);
         let rest: Positions = shape.indices().map(|i| Some([xy(i).0, xy(i).1, 24.0])).collect();
+        // Gel frame = camera frame here, but for z: into the gel is towards the camera (−z).
         let pressed: Positions = rest
             .iter()
-            .enumerate()
-            .map(|(k, p)| p.map(|p| [p[0], p[1], 24.0 - 0.65 * a[k] - 0.35 * b[k]]))
+            .zip(&sol.displacement_mm)
+            .map(|(p, d)| p.map(|p| [p[0] + d[0], p[1] + d[1], p[2] - d[2]]))
             .collect();
-        (rest, pressed, load)
+        (rest, pressed, sol.pressure_kpa)
     }
 
     /// A deterministic uniform generator on [-1, 1) (xorshift), for reproducible noise.
@@ -886,47 +773,50 @@ mod tests {
     }
 
     #[test]
-    fn the_load_of_a_blurred_disc_is_recovered() {
-        // Surface = layer response to a uniform load on a disc of radius 2.4 mm (3 pitches) at
-        // (0.4, 0) mm: the deconvolution must give the disc back, area and centroid.
+    fn a_flat_punch_is_recovered() {
+        // A flat punch of radius 2.4 mm (3 pitches), 0.1 mm deep at (0.4, 0) mm: its region, area
+        // and force come back from the markers' displacements.
         let shape = GridShape::REFERENCE;
-        let cfg = ContactConfig::default();
-        let (rest, pressed, load) = blurred_disc(0.3, 2.4, 0.4, 0.0);
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
-        let f = surface.analyze(&pressed, &cfg).unwrap();
-        // The markers inside the disc: 29 of the lattice (each standing for one 0.64 mm^2 cell).
-        let inside = load.iter().filter(|q| **q > 0.0).count() as f64 * 0.64;
+        let (rest, pressed, pressure) = flat_punch(0.1, 2.4, 0.4, 0.0);
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
+        let f = surface.analyze(&pressed).unwrap();
+        let inside = pressure.iter().filter(|p| **p > 0.0).count() as f64 * 0.64;
         assert!(
-            (f.contact_area_mm2 - inside).abs() < 0.2 * inside,
+            (f.contact_area_mm2 - inside).abs() < 0.1 * inside,
             "area {} vs {inside}",
             f.contact_area_mm2
         );
+        let force: f64 = pressure.iter().sum::<f64>() * 0.64e-3;
+        assert!(
+            (f.force_n / force - 1.0).abs() < 0.05,
+            "force {} vs {force}",
+            f.force_n
+        );
         let c = f.centroid_mm.unwrap();
         assert!((c.x - 0.4).abs() < 0.1 && c.y.abs() < 0.1, "{c:?}");
-        let recovered: usize = (0..529).filter(|&k| f.in_contact[k] != (load[k] > 0.0)).count();
-        assert!(recovered <= 8, "{recovered} markers misclassified");
+        let wrong = (0..529)
+            .filter(|&k| f.in_contact[k] != (pressure[k] > 0.0))
+            .count();
+        assert!(wrong <= 4, "{wrong} markers misclassified");
     }
 
     #[test]
     fn no_press_is_no_contact_and_missing_markers_are_tolerated() {
         let (shape, rest, _) = lattice(4.0, 0.0, 0.0, 0.0);
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
-        let f = surface.analyze(&rest, &ContactConfig::default()).unwrap();
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
+        let f = surface.analyze(&rest).unwrap();
         assert!(!f.contact && f.contact_area_mm2 == 0.0 && f.centroid_mm.is_none() && f.max_depth_mm == 0.0);
         let (_, _, mut pressed) = lattice(4.0, 0.5, 0.0, 0.0);
         pressed[11 * 23 + 11] = None;
         pressed[5] = None;
-        let f = surface.analyze(&pressed, &ContactConfig::default()).unwrap();
+        let f = surface.analyze(&pressed).unwrap();
         assert!(f.contact && f.depth_mm[5].is_none());
-        let short = surface
-            .analyze(&pressed[..10], &ContactConfig::default())
-            .unwrap_err()
-            .to_string();
+        let short = surface.analyze(&pressed[..10]).unwrap_err().to_string();
         assert!(
             short.contains("frame positions") && short.contains("529"),
             "{short}"
         );
-        let none = ReferenceSurface::new(shape, &vec![None; 529])
+        let none = ReferenceSurface::new(shape, &vec![None; 529], ContactConfig::default())
             .unwrap_err()
             .to_string();
         assert!(none.contains("no triangle"), "{none}");
@@ -937,8 +827,8 @@ mod tests {
         // A noise-free press 0.03 mm deep by a wide cap (3 x 3 mean 0.019 mm) is a contact (floor
         // 0.01 mm).
         let (shape, rest, shallow) = lattice(40.0, 0.03, 0.0, 0.0);
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
-        let f = surface.analyze(&shallow, &ContactConfig::default()).unwrap();
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
+        let f = surface.analyze(&shallow).unwrap();
         assert!(f.contact && f.depth_noise_mm < 1e-6, "{}", f.depth_noise_mm);
         // No press, 0.01 mm of depth noise (uniform, deterministic): estimated, and no contact.
         let mut u = uniform_noise(0x2545_F491_4F6C_DD1D);
@@ -946,7 +836,7 @@ mod tests {
             .iter()
             .map(|p| p.map(|[x, y, z]| [x, y, z + 0.01 * 3f64.sqrt() * u()]))
             .collect();
-        let f = surface.analyze(&noisy, &ContactConfig::default()).unwrap();
+        let f = surface.analyze(&noisy).unwrap();
         assert!((f.depth_noise_mm - 0.01).abs() < 0.003, "{}", f.depth_noise_mm);
         assert!(!f.contact);
     }
@@ -961,7 +851,7 @@ mod tests {
         // of the clipped contact area instead has a median error of 0.17 mm and 16 of the 40
         // draws beyond 0.2 mm.
         let shape = GridShape::REFERENCE;
-        let (rest, pressed, load) = blurred_disc(0.3, 2.4, 0.5, -0.3);
+        let (rest, pressed, load) = flat_punch(0.1, 2.4, 0.5, -0.3);
         let loaded: Vec<[f64; 3]> = rest
             .iter()
             .zip(&load)
@@ -972,8 +862,7 @@ mod tests {
             .iter()
             .fold([0.0, 0.0], |a, p| [a[0] + p[0], a[1] + p[1]])
             .map(|v| v / loaded.len() as f64);
-        let surface = ReferenceSurface::new(shape, &rest).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface = ReferenceSurface::new(shape, &rest, ContactConfig::default()).unwrap();
         let mut u = uniform_noise(0x9E37_79B9_7F4A_7C15);
         let s3 = 3f64.sqrt();
         let mut errors: Vec<f64> = (0..40)
@@ -984,7 +873,7 @@ mod tests {
                         p.map(|[x, y, z]| [x + 0.005 * s3 * u(), y + 0.005 * s3 * u(), z + 0.03 * s3 * u()])
                     })
                     .collect();
-                let f = surface.analyze(&noisy, &cfg).unwrap();
+                let f = surface.analyze(&noisy).unwrap();
                 f.centroid_mm
                     .map_or(f64::INFINITY, |c| (c.x - truth[0]).hypot(c.y - truth[1]))
             })

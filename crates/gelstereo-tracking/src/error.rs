@@ -42,6 +42,9 @@ pub enum Error {
         /// What was given.
         found: String,
     },
+    /// The gel's facts or the contact mechanics' settings.
+    #[error("gel mechanics: {0}")]
+    Mechanics(#[from] gelstereo_mechanics::Error),
     /// A coordinate is NaN or infinite.
     #[error("{what}: expected finite coordinates, found {found}")]
     NotFinite {

@@ -174,7 +174,7 @@ impl StereoSession {
                 reference_mm[lin] = Some([p.x, p.y, p.z]);
             }
         }
-        let surface = ReferenceSurface::new(shape, &reference_mm)?;
+        let surface = ReferenceSurface::new(shape, &reference_mm, config.contact.clone())?;
         let slip = SlipDetector::new(config.slip.clone())?;
         let around = shape
             .indices()
@@ -258,7 +258,7 @@ impl StereoSession {
             .iter()
             .map(|p| p.map(|p| [p.x, p.y, p.z]))
             .collect();
-        let surface = ReferenceSurface::new(self.shape, &positions)?;
+        let surface = ReferenceSurface::new(self.shape, &positions, self.config.contact.clone())?;
         self.left.rezero();
         self.right.rezero();
         self.surface = surface;
@@ -365,7 +365,7 @@ impl StereoSession {
         // measured 8-neighbours.
         let filled = fill_from_neighbours(self.shape, &self.reference_mm, &current);
         let m_filled = mark();
-        let contact = self.surface.analyze(&filled, &self.config.contact)?;
+        let contact = self.surface.analyze(&filled)?;
         let m_contact = mark();
         let slip = self.slip.update(&self.surface, &contact);
         self.stage_marks.extend(
@@ -408,6 +408,7 @@ impl StereoSession {
                 position_mm: position,
                 displacement_mm: displacement,
                 status: Some(status),
+                ..Default::default()
             });
         }
         let summary = FrameSummary {
@@ -421,6 +422,9 @@ impl StereoSession {
             }),
             centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
             slip: slip.state,
+            force_n: None,
+            shear_n: None,
+            torque_nmm: None,
         };
         Ok(StereoFrame {
             markers,
@@ -597,6 +601,9 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
         max_depth_mm: Some(0.0),
         centroid_mm: None,
         slip: SlipState::NoContact,
+        force_n: None,
+        shear_n: None,
+        torque_nmm: None,
     };
     (markers, summary)
 }
@@ -803,6 +810,9 @@ impl MonoSession {
             max_depth_mm: None,
             centroid_mm: planar.centroid_mm,
             slip: planar.state,
+            force_n: None,
+            shear_n: None,
+            torque_nmm: None,
         };
         Ok(MonoFrame {
             markers,

@@ -543,9 +543,9 @@ mod tests {
     #[test]
     fn press_slide_goes_stick_partial_gross_and_release_is_no_contact() {
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
-        let cfg = ContactConfig::default();
         let mut states = Vec::new();
         // No contact, press, a slide the whole contact carries, slides beyond the limit 0.8 w of
         // the contact's outer half (w < 0.5 and 0.56 mm), the contact moving across the gel, release.
@@ -564,7 +564,7 @@ mod tests {
                 Some(m) => frame(m, s),
                 None => flat.clone(),
             };
-            let c = surface.analyze(&pos, &cfg).unwrap();
+            let c = surface.analyze(&pos).unwrap();
             states.push(det.update(&surface, &c).state);
         }
         use SlipState::*;
@@ -589,13 +589,13 @@ mod tests {
         // as a contact), then the real contact at x = 0, held: the depth pattern jumps 4 mm, 1.7 x
         // its radius, in one frame. Nothing slides (read as a drift, the jump latched gross slip).
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
-        let cfg = ContactConfig::default();
         let states: Vec<SlipState> = [-4.0, -4.0, 0.0, 0.0, 0.0]
             .iter()
             .map(|&m| {
-                let c = surface.analyze(&frame(m, 0.3), &cfg).unwrap();
+                let c = surface.analyze(&frame(m, 0.3)).unwrap();
                 det.update(&surface, &c).state
             })
             .collect();
@@ -610,15 +610,15 @@ mod tests {
         // (here 30 of a corner, 0.02 mm of noise depth, no displacement): they would dilute the
         // contact's mean shear and plateau.
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let script = [(0.0, 0.0), (0.0, 0.02), (0.1, 0.6), (0.2, 0.6), (0.3, 0.6)];
-        let run = |config: SlipConfig| -> Vec<SlipState> {
+        let mut run = |config: SlipConfig| -> Vec<SlipState> {
             let mut det = SlipDetector::new(config).unwrap();
             script
                 .iter()
                 .map(|&(m, s)| {
-                    let mut c = surface.analyze(&frame(m, s), &cfg).unwrap();
+                    let mut c = surface.analyze(&frame(m, s)).unwrap();
                     for k in (0..5).flat_map(|r| (0..6).map(move |col| r * 23 + col)) {
                         c.in_contact[k] = true;
                         c.depth_mm[k] = Some(0.02);
@@ -655,8 +655,8 @@ mod tests {
                 .collect()
         };
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let script = [
             (0.0, 0.0),
             (0.0, 0.01),
@@ -665,13 +665,16 @@ mod tests {
             (0.09, 0.1),
             (0.12, 0.1),
         ];
-        let run = |config: SlipConfig| -> Vec<SlipState> {
+        let mut run = |config: SlipConfig| -> Vec<SlipState> {
             let mut det = SlipDetector::new(config).unwrap();
             script
                 .iter()
                 .map(|&(m, s)| {
-                    det.update(&surface, &surface.analyze(&frame(m, s), &cfg).unwrap())
-                        .state
+                    {
+                        let c = surface.analyze(&frame(m, s)).unwrap();
+                        det.update(&surface, &c)
+                    }
+                    .state
                 })
                 .collect()
         };
@@ -696,13 +699,13 @@ mod tests {
         // as a noisy drift from images does: its mean shear is 0.25-0.35 x the depth, below the
         // friction limit of a sliding contact.
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
-        let run = |config: SlipConfig| -> Vec<SlipFrame> {
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
+        let mut run = |config: SlipConfig| -> Vec<SlipFrame> {
             let mut det = SlipDetector::new(config).unwrap();
             (0..5)
                 .map(|k| {
-                    let c = surface.analyze(&frame(0.03 * f64::from(k), 0.2), &cfg).unwrap();
+                    let c = surface.analyze(&frame(0.03 * f64::from(k), 0.2)).unwrap();
                     det.update(&surface, &c)
                 })
                 .collect()
@@ -747,12 +750,12 @@ mod tests {
                 .collect()
         };
         let flat = flattened(&twist(0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let mut states = Vec::new();
         for angle in [0.0, 0.03, 0.25] {
             let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
-            let c = surface.analyze(&twist(angle), &cfg).unwrap();
+            let c = surface.analyze(&twist(angle)).unwrap();
             states.push(det.update(&surface, &c).state);
         }
         assert_eq!(
@@ -786,17 +789,20 @@ mod tests {
                 .collect()
         };
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let mut script = vec![(0.0, 0.0), (0.0, 0.02), (0.0, 0.04), (0.0, 0.06)];
         script.extend((1..=10).map(|k| (0.03 * f64::from(k), 0.12)));
-        let states = |config: SlipConfig| -> Vec<SlipState> {
+        let mut states = |config: SlipConfig| -> Vec<SlipState> {
             let mut det = SlipDetector::new(config).unwrap();
             script
                 .iter()
                 .map(|(phi, omega)| {
-                    det.update(&surface, &surface.analyze(&frame(*phi, *omega), &cfg).unwrap())
-                        .state
+                    {
+                        let c = surface.analyze(&frame(*phi, *omega)).unwrap();
+                        det.update(&surface, &c)
+                    }
+                    .state
                 })
                 .collect()
         };
@@ -821,12 +827,12 @@ mod tests {
         // whole depth pattern; the half-maximum centroid on the lattice lagged it by about 10 %
         // (0.018 mm a frame for 0.02), below the floor.
         let flat = flattened(&frame(0.0, 0.0));
-        let surface = ReferenceSurface::new(GridShape::REFERENCE, &flat).unwrap();
-        let cfg = ContactConfig::default();
+        let mut surface =
+            ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
         let mut det = SlipDetector::new(SlipConfig::default()).unwrap();
         let frames: Vec<SlipFrame> = (0..12)
             .map(|k| {
-                let c = surface.analyze(&frame(0.011 * f64::from(k), 0.6), &cfg).unwrap();
+                let c = surface.analyze(&frame(0.011 * f64::from(k), 0.6)).unwrap();
                 det.update(&surface, &c)
             })
             .collect();

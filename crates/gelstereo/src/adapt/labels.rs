@@ -526,20 +526,33 @@ pub fn skipped_text(skipped: &BTreeMap<&'static str, usize>) -> String {
 }
 
 fn marker_header() -> String {
-    format!(
-        "{},visible_left,visible_right,in_contact\n",
-        MARKER_COLUMNS.join(",")
-    )
+    format!("{},visible_left,visible_right\n", MARKER_COLUMNS.join(","))
 }
 
-/// One label row: the 14 docs/design.md columns (row = col = -1: pseudo-labels are not indexed) and
-/// the visibility flags of its view.
+/// One label row: the docs/design.md columns (row = col = -1: pseudo-labels are not indexed;
+/// `in_contact` 0) and the visibility flags of its view.
 fn write_label(out: &mut String, frame: usize, view: usize, p: Point2) {
-    if view == 0 {
-        let _ = writeln!(out, "{frame},-1,-1,{:.3},{:.3},,,,,,,,,,1,0,0", p.x, p.y);
+    let mut cells = vec![String::new(); MARKER_COLUMNS.len() + 2];
+    let mut set = |column: &str, value: String| {
+        if let Some(i) = MARKER_COLUMNS.iter().position(|c| *c == column) {
+            cells[i] = value;
+        }
+    };
+    set("frame", frame.to_string());
+    set("row", "-1".into());
+    set("col", "-1".into());
+    let (x, y) = if view == 0 {
+        ("x_left", "y_left")
     } else {
-        let _ = writeln!(out, "{frame},-1,-1,,,{:.3},{:.3},,,,,,,,0,1,0", p.x, p.y);
-    }
+        ("x_right", "y_right")
+    };
+    set(x, format!("{:.3}", p.x));
+    set(y, format!("{:.3}", p.y));
+    set("in_contact", "0".into());
+    let n = MARKER_COLUMNS.len();
+    cells[n] = u8::from(view == 0).to_string();
+    cells[n + 1] = u8::from(view == 1).to_string();
+    let _ = writeln!(out, "{}", cells.join(","));
 }
 
 fn dataset_json(input: &Path, config: &PseudoLabelConfig, s: &PseudoLabelSummary) -> String {
