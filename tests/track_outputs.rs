@@ -182,7 +182,7 @@ fn two_cameras_and_capture_share_one_path_and_their_frames_track_alike() {
     assert_eq!(rows.len(), 24);
     // Capture time = the videos' frame times (30 Hz), from the first frame.
     assert!(
-        (rows[3][7].parse::<f64>().unwrap() - 0.1).abs() < 1e-3,
+        (rows[3][11].parse::<f64>().unwrap() - 0.1).abs() < 1e-3,
         "{frames}"
     );
     assert!(rows.iter().any(|r| r[6] == "gross_slip"), "{frames}");
@@ -238,7 +238,7 @@ fn long_recording(dir: &Path, n: usize) -> PathBuf {
 fn table_frames(out: &Path) -> (BTreeMap<u32, usize>, BTreeSet<u32>) {
     let markers = std::fs::read_to_string(out.join("markers.csv")).unwrap();
     let frames = std::fs::read_to_string(out.join("frames.csv")).unwrap();
-    for (name, text, cells) in [("markers.csv", &markers, 14), ("frames.csv", &frames, 9)] {
+    for (name, text, cells) in [("markers.csv", &markers, 17), ("frames.csv", &frames, 13)] {
         assert!(text.ends_with('\n'), "{name} ends mid-line");
         for line in text.lines() {
             assert_eq!(line.split(',').count(), cells, "{name}: cut line '{line}'");

@@ -71,6 +71,8 @@ pub struct Args {
     repeats: u16,
     #[command(flatten)]
     localizer: LocalizerArgs,
+    #[command(flatten)]
+    gel: crate::gel_args::GelArgs,
     /// Stereo recordings (folders with left/ and right/) or images (consecutive images form pairs);
     /// with --calib or --pipeline: one stereo recording.
     #[arg(value_name = "INPUT")]
@@ -132,6 +134,7 @@ fn pipeline_config(args: &Args, recording: &Path) -> anyhow::Result<PipelineConf
     config.calibration = args.calib.clone().or(config.calibration);
     config.method = Some(args.method);
     config.localizer = args.localizer.config()?;
+    args.gel.apply(&mut config)?;
     Ok(config)
 }
 

@@ -62,10 +62,8 @@ pub struct Args {
     /// overfills the view without a sensor description, it settles the right view's column offset.
     #[arg(long, value_name = "MM")]
     pitch_mm: Option<f64>,
-    /// Gel thickness, mm (width of the layer response used for the contact region); default: the
-    /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
-    #[arg(long, value_name = "MM")]
-    gel_thickness_mm: Option<f64>,
+    #[command(flatten)]
+    gel: crate::gel_args::GelArgs,
     /// Sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor whose
     /// marker grid overfills the cameras' view: its lattice, projected through the calibration,
     /// places the visible markers on the sensor's own grid indices. Default: the recording's
@@ -140,9 +138,7 @@ impl Args {
         if let Some(g) = &self.grid {
             config.grid = Some(gelstereo::parse_grid(g, "--grid")?);
         }
-        if let Some(t) = self.gel_thickness_mm {
-            config.session.contact.gel_thickness_mm = t;
-        }
+        self.gel.apply(&mut config)?;
         config.session.planar.pitch_mm = self.pitch_mm;
         if let Some(path) = &self.sensor {
             config.sensor = Some(SensorSpec::load(path)?);

@@ -16,6 +16,7 @@ mod cmd_eval;
 mod cmd_reconstruct;
 mod cmd_simulate;
 mod cmd_track;
+mod gel_args;
 mod project;
 
 /// Stereo visuotactile reconstruction for GelStereo-type tactile sensors.

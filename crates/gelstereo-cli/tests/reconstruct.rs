@@ -66,12 +66,13 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     ]);
     assert!(log.contains("23x23 lattice"), "{log}");
 
-    // markers.csv: the docs/design.md header and one row per marker and frame, displacement empty.
+    // markers.csv: the docs/design.md header and one row per marker and frame, displacement and
+    // contact mechanics empty.
     let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
     let mut lines = csv.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "frame,row,col,x_left,y_left,x_right,y_right,X_mm,Y_mm,Z_mm,dX_mm,dY_mm,dZ_mm,status"
+        "frame,row,col,x_left,y_left,x_right,y_right,X_mm,Y_mm,Z_mm,dX_mm,dY_mm,dZ_mm,status,pressure_kPa,in_contact,slipping"
     );
     let rows: Vec<&str> = lines.collect();
     assert_eq!(rows.len(), 6 * 529);

@@ -147,6 +147,7 @@ mod tests {
             n,
             n,
             a,
+            None,
         )
         .area_mm2;
         let hertz_area = pi * radius * depth;

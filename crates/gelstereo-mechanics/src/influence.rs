@@ -43,6 +43,8 @@ pub struct Influence {
     spectrum: Vec<[Complex64; ENTRIES]>,
     /// The largest eigenvalue of the operator over all frequencies, mm / kPa.
     norm: f64,
+    /// Per frequency (transposed layout), the index of its negative.
+    mirror: Vec<usize>,
     row_fft: Arc<dyn Fft<f64>>,
     row_ifft: Arc<dyn Fft<f64>>,
     col_fft: Arc<dyn Fft<f64>>,
@@ -101,6 +103,11 @@ impl Influence {
             size,
             spectrum: Vec::new(),
             norm: 0.0,
+            mirror: (0..size.1)
+                .flat_map(|c| {
+                    (0..size.0).map(move |r| ((size.1 - c) % size.1) * size.0 + (size.0 - r) % size.0)
+                })
+                .collect(),
             row_fft: planner.plan_fft_forward(size.1),
             row_ifft: planner.plan_fft_inverse(size.1),
             col_fft: planner.plan_fft_forward(size.0),
@@ -172,15 +179,25 @@ impl Influence {
         assert!(t.len() == n, "fields must cover the lattice");
         let (nr, nc) = self.size;
         work.resize(nr * nc);
-        for (c, buf) in work.planes.iter_mut().enumerate() {
-            buf.fill(Complex64::new(0.0, 0.0));
-            for r in 0..self.rows {
-                for q in 0..self.cols {
-                    buf[r * nc + q] = Complex64::new(t[r * self.cols + q][c], 0.0);
-                }
+        // Two real fields in one complex FFT: x + i y, split by the symmetry of real spectra.
+        let [px, py, pn] = &mut work.planes;
+        px.fill(Complex64::new(0.0, 0.0));
+        pn.fill(Complex64::new(0.0, 0.0));
+        for r in 0..self.rows {
+            for q in 0..self.cols {
+                let v = t[r * self.cols + q];
+                px[r * nc + q] = Complex64::new(v[0], v[1]);
+                pn[r * nc + q] = Complex64::new(v[2], 0.0);
             }
-            self.forward(buf, &mut work.scratch);
         }
+        self.forward(px, &mut work.scratch);
+        self.forward(pn, &mut work.scratch);
+        for (k, &m) in self.mirror.iter().enumerate() {
+            let (z, zm) = (px[k], px[m].conj());
+            py[k] = (z - zm) * Complex64::new(0.0, -0.5);
+            work.scratch[k] = (z + zm) * 0.5;
+        }
+        px.copy_from_slice(&work.scratch[..nr * nc]);
     }
 
     /// Inverse of [`transform`](Self::transform): `work`'s planes back to the lattice.
@@ -191,12 +208,17 @@ impl Influence {
         );
         let (nr, nc) = self.size;
         let scale = 1.0 / (nr * nc) as f64;
-        for (c, buf) in work.planes.iter_mut().enumerate() {
-            self.inverse(buf, &mut work.scratch);
-            for r in 0..self.rows {
-                for q in 0..self.cols {
-                    out[r * self.cols + q][c] = buf[r * nc + q].re * scale;
-                }
+        // The fields are real: x + i y comes back from one inverse FFT of X + i Y.
+        let [px, py, pn] = &mut work.planes;
+        for (x, y) in px.iter_mut().zip(py.iter()) {
+            *x += y * Complex64::new(0.0, 1.0);
+        }
+        self.inverse(px, &mut work.scratch);
+        self.inverse(pn, &mut work.scratch);
+        for r in 0..self.rows {
+            for q in 0..self.cols {
+                let (xy, p) = (px[r * nc + q], pn[r * nc + q]);
+                out[r * self.cols + q] = [xy.re * scale, xy.im * scale, p.re * scale];
             }
         }
     }

@@ -350,14 +350,17 @@ pub struct ContactLoad {
 
 impl ContactLoad {
     /// Sums the tractions of the cells in contact of a `rows x cols` lattice of pitch
-    /// `spacing_mm`. The area counts each cell in contact, then moves each side that borders a
+    /// `spacing_mm`: those whose pressure exceeds the noise's and, with `allowed`, that it
+    /// allows. The area counts each cell in contact, then moves each side that borders a
     /// cell out of contact to where the pressure vanishes: `p²` falls linearly to the edge of a
     /// smooth contact (Hertz: `p² ∝ a² − r²`), extrapolated from the cell and its neighbour
     /// inwards, within one pitch; half a pitch where the pressure rises towards the edge (a
     /// flat punch) and the edge cannot be placed.
-    pub fn new(t: &Tractions, rows: usize, cols: usize, spacing_mm: f64) -> Self {
+    pub fn new(t: &Tractions, rows: usize, cols: usize, spacing_mm: f64, allowed: Option<&[bool]>) -> Self {
         let p = |k: usize| t.selected_kpa[k];
-        let in_contact: Vec<bool> = (0..rows * cols).map(|k| p(k) > t.noise_pressure_kpa).collect();
+        let in_contact: Vec<bool> = (0..rows * cols)
+            .map(|k| p(k) > t.noise_pressure_kpa && allowed.is_none_or(|a| a[k]))
+            .collect();
         let cell = spacing_mm * spacing_mm;
         let (mut force, mut shear, mut moment) = (0.0, [0.0; 2], [0.0; 2]);
         let mut area = 0.0;
@@ -499,6 +502,7 @@ mod tests {
                 n,
                 n,
                 a,
+                None,
             )
             .area_mm2;
             let sigma = 0.01;
@@ -508,7 +512,7 @@ mod tests {
                 .map(|d| Some(d.map(|v| v + sigma * noise())))
                 .collect();
             let mut solver = InverseSolver::new(op.clone(), InverseConfig::default()).unwrap();
-            let load = ContactLoad::new(&solver.solve(&u, [sigma; 2]).unwrap(), n, n, a);
+            let load = ContactLoad::new(&solver.solve(&u, [sigma; 2]).unwrap(), n, n, a, None);
             let want = truth.force_n(a);
             assert!(
                 (load.force_n / want - 1.0).abs() < 0.05,

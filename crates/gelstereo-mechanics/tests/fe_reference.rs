@@ -80,7 +80,7 @@ fn the_fe_reference_contacts_are_recovered() {
                 .collect();
             let mut solver = InverseSolver::new(op.clone(), InverseConfig::default()).unwrap();
             let t = solver.solve(&u, [sigma; 2]).unwrap();
-            let load = ContactLoad::new(&t, rows, cols, pitch);
+            let load = ContactLoad::new(&t, rows, cols, pitch, None);
             let half = [(cols - 1) as f64 * pitch / 2.0, (rows - 1) as f64 * pitch / 2.0];
             let c = load.centroid_mm.unwrap();
             eprintln!(

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 use std::sync::{Mutex, MutexGuard};
 
+use gelstereo::GelFacts;
 use gelstereo::core::StereoPair;
 use gelstereo::sim::SensorSpec;
 use gelstereo::{
@@ -28,6 +29,9 @@ use crate::image::to_mat;
 ///     grid: the marker lattice, "ROWSxCOLS" or (rows, cols) (default: the sensor's, else 23x23).
 ///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor
 ///         whose grid overfills the cameras' view: the visible markers get the sensor's own indices.
+///     gel_thickness_mm, gel_modulus_kpa, poisson, friction: the gel's facts and the friction
+///         coefficient of the contact mechanics, as `gelstereo track`'s flags of the same names
+///         (default: the reference sensor's 2.5 mm, 150 kPa, 0.45 and 0.6).
 ///
 /// Every other setting is `gelstereo track`'s default. The first frame that can be indexed is the
 /// reference (no contact): marker ids are its grid indices, displacement is measured against it.
@@ -43,19 +47,32 @@ pub struct PyPipeline {
 #[pymethods]
 impl PyPipeline {
     #[new]
-    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None))]
+    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None))]
+    #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
         calibration: Option<PathBuf>,
         models: Option<PathBuf>,
         grid: Option<&Bound<'_, PyAny>>,
         sensor: Option<PathBuf>,
+        gel_thickness_mm: Option<f64>,
+        gel_modulus_kpa: Option<f64>,
+        poisson: Option<f64>,
+        friction: Option<f64>,
     ) -> PyResult<Self> {
         let mut config = PipelineConfig {
             calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
             grid: grid.map(grid_shape).transpose()?,
             ..PipelineConfig::default()
         };
+        config
+            .apply_gel(&GelFacts {
+                thickness_mm: gel_thickness_mm,
+                modulus_kpa: gel_modulus_kpa,
+                poisson,
+                friction,
+            })
+            .map_err(|e| to_py(&e))?;
         if let Some(dir) = models {
             // Models named explicitly are used or reported, never replaced by the blob detector.
             config = config.with_models(&dir);
@@ -176,7 +193,8 @@ fn grid_shape(grid: &Bound<'_, PyAny>) -> PyResult<GridShape> {
 ///     markers: dict of equal-length numpy arrays, one entry per tracked marker in id order:
 ///         row, col (int64 grid index), status ("tracked", "predicted", "lost"), x_left, y_left,
 ///         x_right, y_right (px), X_mm, Y_mm, Z_mm (3-D, left camera frame), dX_mm, dY_mm, dZ_mm
-///         (displacement against the reference); NaN where a view or the 3-D stages lack a value.
+///         (displacement against the reference); NaN where a view or the 3-D stages lack a value;
+///         pressure_kPa (contact pressure on the marker's cell), in_contact and slipping (bool).
 ///     contact: the `Contact` (area, depth, centroid, region).
 ///     slip: "no_contact", "stick", "partial_slip" or "gross_slip".
 ///     note: why the frame is flagged (unreadable, not localized, reference not yet indexed...);
@@ -217,6 +235,9 @@ impl PyFrame {
             area_mm2: summary.contact_area_mm2.unwrap_or(f64::NAN),
             max_depth_mm: summary.max_depth_mm.unwrap_or(f64::NAN),
             centroid_mm: summary.centroid_mm.map(|[x, y]| (x, y)),
+            force_n: summary.force_n.unwrap_or(f64::NAN),
+            shear_n: summary.shear_n.map_or((f64::NAN, f64::NAN), |[x, y]| (x, y)),
+            torque_nmm: summary.torque_nmm.unwrap_or(f64::NAN),
             region: PyArray2::from_owned_array(py, Array2::from(region)).unbind(),
         };
         let earlier = output
@@ -267,6 +288,10 @@ impl PyFrame {
 ///     area_mm2: contact area, mm^2 (0 without contact; NaN when the sensor's scale is unknown).
 ///     max_depth_mm: largest indentation depth, mm (0 without contact; NaN for a mono sensor).
 ///     centroid_mm: contact centroid (X, Y) in the left camera frame, mm; None without contact.
+///     force_n: total normal force on the gel, N (0 without contact; NaN for a mono sensor).
+///     shear_n: total tangential force (x, y) along the gel frame's axes (the lattice's columns
+///         and rows), N.
+///     torque_nmm: torque of the shear about the normal through the pressure centroid, N mm.
 ///     region: (K, 2) int64 array of the (row, col) ids of the markers in contact.
 #[pyclass(module = "gelstereo", name = "Contact", frozen)]
 pub struct PyContact {
@@ -279,6 +304,12 @@ pub struct PyContact {
     #[pyo3(get)]
     centroid_mm: Option<(f64, f64)>,
     #[pyo3(get)]
+    force_n: f64,
+    #[pyo3(get)]
+    shear_n: (f64, f64),
+    #[pyo3(get)]
+    torque_nmm: f64,
+    #[pyo3(get)]
     region: Py<PyArray2<i64>>,
 }
 
@@ -286,9 +317,10 @@ pub struct PyContact {
 impl PyContact {
     fn __repr__(&self) -> String {
         format!(
-            "gelstereo.Contact(area_mm2={:.3}, max_depth_mm={:.3}, centroid_mm={})",
+            "gelstereo.Contact(area_mm2={:.3}, max_depth_mm={:.3}, force_n={:.4}, centroid_mm={})",
             self.area_mm2,
             self.max_depth_mm,
+            self.force_n,
             self.centroid_mm
                 .map_or("None".into(), |(x, y)| format!("({x:.3}, {y:.3})"))
         )
@@ -323,5 +355,11 @@ fn markers_dict<'py>(py: Python<'py>, rows: &[MarkerRecord]) -> PyResult<Bound<'
             floats(&|m| m.displacement_mm.map(|v| v[k])),
         )?;
     }
+    dict.set_item("pressure_kPa", floats(&|m| m.pressure_kpa))?;
+    let flags = |f: fn(&MarkerRecord) -> Option<bool>| {
+        PyArray1::from_iter(py, rows.iter().map(|m| f(m).unwrap_or(false)))
+    };
+    dict.set_item("in_contact", flags(|m| m.in_contact))?;
+    dict.set_item("slipping", flags(|m| m.slipping))?;
     Ok(dict)
 }

@@ -408,7 +408,9 @@ impl StereoSession {
                 position_mm: position,
                 displacement_mm: displacement,
                 status: Some(status),
-                ..Default::default()
+                pressure_kpa: Some(contact.traction_kpa[lin][2]),
+                in_contact: Some(contact.in_contact[lin]),
+                slipping: Some(contact.slipping[lin]),
             });
         }
         let summary = FrameSummary {
@@ -422,9 +424,9 @@ impl StereoSession {
             }),
             centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
             slip: slip.state,
-            force_n: None,
-            shear_n: None,
-            torque_nmm: None,
+            force_n: Some(contact.force_n),
+            shear_n: Some(contact.shear_n),
+            torque_nmm: Some(contact.torque_nmm),
         };
         Ok(StereoFrame {
             markers,

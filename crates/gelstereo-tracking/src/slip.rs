@@ -70,6 +70,8 @@ pub struct SlipConfig {
     /// on exact 3-D, a slide never seen); on exact 3-D the load's contact lies within that core.
     /// Chosen among 0.2-0.5 on the train / val splits and the seed-303 / 404 sets (docs/tracking.md).
     pub core_depth_fraction: f64,
+    /// ... and whose pressure exceeds this fraction of its largest (0.35).
+    pub core_load_fraction: f64,
     /// Stick fraction below which the contact is in partial slip (0.9, as the simulator's ground truth).
     pub stick_fraction: f64,
     /// Relative tolerance of the displacement plateau.
@@ -116,6 +118,7 @@ impl Default for SlipConfig {
             stick_shear_per_depth: 0.5,
             shear_noise_factor: 4.0,
             core_depth_fraction: 0.3,
+            core_load_fraction: 0.35,
             stick_fraction: 0.9,
             plateau_tolerance: 0.1,
             plateau_min_mm: 0.02,
@@ -153,6 +156,7 @@ impl SlipConfig {
         }
         for (field, v) in [
             ("stick_fraction", self.stick_fraction),
+            ("core_load_fraction", self.core_load_fraction),
             ("plateau_tolerance", self.plateau_tolerance),
             ("twist_gross_fraction", self.twist_gross_fraction),
             ("min_shear_per_depth", self.min_shear_per_depth),
@@ -282,11 +286,17 @@ impl SlipDetector {
         let reference = surface.positions_mm();
         let mut tangential = Vec::new();
         let mut at = Vec::new();
-        // The contact markers within the indentation's core: from images, the deconvolved load's
-        // noise adds markers away from the indentation whose near-zero shear dilutes the contact's.
+        // The markers of the contact's core, where the pressure exceeds `core_load_fraction` of
+        // its largest and the indentation `core_depth_fraction` of its deepest: the displacement
+        // there is what the object's motion drags. The loaded region's rim, where the shear falls
+        // off, and from images markers away from the indentation would dilute it.
         let core = self.config.core_depth_fraction * smoothed.iter().flatten().copied().fold(0.0, f64::max);
+        let peak_load = frame.traction_kpa.iter().fold(0.0f64, |m, t| m.max(t[2]));
+        let core_load = self.config.core_load_fraction * peak_load;
         for (k, d) in frame.displacement_mm.iter().enumerate() {
-            let in_core = frame.in_contact[k] && smoothed[k].is_some_and(|z| z > core);
+            let in_core = frame.in_contact[k]
+                && frame.traction_kpa[k][2] > core_load
+                && smoothed[k].is_some_and(|z| z > core);
             if let (true, Some(d), Some(n), Some(x)) = (in_core, d, normals[k], reference[k]) {
                 tangential.push(d - n * d.dot(&n));
                 at.push(x.coords);
@@ -606,9 +616,9 @@ mod tests {
     #[test]
     fn spurious_contact_markers_away_from_the_indentation_do_not_hide_a_slide() {
         // The cap slides across the gel (0.1 mm a frame beyond the friction limit). From images,
-        // the deconvolved load's noise also puts markers far from the indentation into the contact
-        // (here 30 of a corner, 0.02 mm of noise depth, no displacement): they would dilute the
-        // contact's mean shear and plateau.
+        // noise can also put markers far from the indentation into the contact (here 30 of a
+        // corner, 0.02 mm of noise depth, no displacement, the contact's largest pressure): they
+        // would dilute the contact's mean shear and plateau.
         let flat = flattened(&frame(0.0, 0.0));
         let mut surface =
             ReferenceSurface::new(GridShape::REFERENCE, &flat, ContactConfig::default()).unwrap();
@@ -619,8 +629,10 @@ mod tests {
                 .iter()
                 .map(|&(m, s)| {
                     let mut c = surface.analyze(&frame(m, s)).unwrap();
+                    let peak = c.traction_kpa.iter().fold(0.0f64, |m, t| m.max(t[2]));
                     for k in (0..5).flat_map(|r| (0..6).map(move |col| r * 23 + col)) {
                         c.in_contact[k] = true;
+                        c.traction_kpa[k] = [0.0, 0.0, peak];
                         c.depth_mm[k] = Some(0.02);
                         c.displacement_mm[k] = Some(Vector3::new(0.0, 0.0, -0.02));
                     }
@@ -631,9 +643,10 @@ mod tests {
         let states = run(SlipConfig::default());
         assert_eq!(states[..2], [SlipState::Stick; 2], "{states:?}");
         assert_eq!(states[3..], [SlipState::GrossSlip; 2], "{states:?}");
-        // Every contact marker (the core fraction at its floor).
+        // Every contact marker (the core fractions at their floor).
         let all = run(SlipConfig {
             core_depth_fraction: 1e-6,
+            core_load_fraction: 1e-6,
             ..SlipConfig::default()
         });
         assert!(!all[3..].contains(&SlipState::GrossSlip), "{all:?}");

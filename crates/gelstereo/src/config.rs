@@ -61,7 +61,7 @@ impl Default for PipelineConfig {
 
 impl PipelineConfig {
     /// The defaults plus what the recording folder `dir` describes: its `calib.yaml`, and from its
-    /// `meta.json` the grid, the gel thickness and the sensor description (each only when present
+    /// `meta.json` the grid, the gel's facts and the sensor description (each only when present
     /// and readable: older recordings lack them).
     pub fn for_recording(dir: &Path) -> Self {
         let mut config = Self::default();
@@ -77,8 +77,15 @@ impl PipelineConfig {
         }
         let meta = RecordingMeta::read(dir);
         self.grid = meta.grid;
-        if let Some(t) = meta.gel_thickness_mm {
-            self.session.contact.gel_thickness_mm = t;
+        let layer = &mut self.session.contact.layer;
+        for (value, fact) in [
+            (meta.gel_thickness_mm, &mut layer.thickness_mm),
+            (meta.gel_modulus_kpa, &mut layer.modulus_kpa),
+            (meta.gel_poisson, &mut layer.poisson),
+        ] {
+            if let Some(v) = value {
+                *fact = v;
+            }
         }
         self.recording_sensor = meta.sensor;
     }
@@ -109,6 +116,41 @@ impl PipelineConfig {
     }
 }
 
+/// The gel's facts and friction coefficient a user gives (`gelstereo track --gel-thickness-mm
+/// --gel-modulus-kpa --poisson --friction`, the Python `Pipeline`'s keywords of the same names);
+/// `None` keeps what the configuration holds.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct GelFacts {
+    /// Thickness between the contact surface and the rigid window, mm.
+    pub thickness_mm: Option<f64>,
+    /// Young's modulus, kPa.
+    pub modulus_kpa: Option<f64>,
+    /// Poisson ratio, in [0, 0.5).
+    pub poisson: Option<f64>,
+    /// Coulomb friction coefficient between gel and object.
+    pub friction: Option<f64>,
+}
+
+impl PipelineConfig {
+    /// Writes the given facts into the contact settings and checks them all; an error names the
+    /// fact, the range expected and the value.
+    pub fn apply_gel(&mut self, facts: &GelFacts) -> crate::Result<()> {
+        let contact = &mut self.session.contact;
+        for (value, fact) in [
+            (facts.thickness_mm, &mut contact.layer.thickness_mm),
+            (facts.modulus_kpa, &mut contact.layer.modulus_kpa),
+            (facts.poisson, &mut contact.layer.poisson),
+            (facts.friction, &mut contact.friction),
+        ] {
+            if let Some(v) = value {
+                *fact = v;
+            }
+        }
+        contact.validate()?;
+        Ok(())
+    }
+}
+
 /// What a recording's `meta.json` says about its sensor.
 #[derive(Debug, Clone, Default)]
 pub struct RecordingMeta {
@@ -116,6 +158,10 @@ pub struct RecordingMeta {
     pub grid: Option<GridShape>,
     /// `sensor.gel.thickness_mm`.
     pub gel_thickness_mm: Option<f64>,
+    /// `sensor.gel.modulus_kpa`.
+    pub gel_modulus_kpa: Option<f64>,
+    /// `sensor.gel.poisson`.
+    pub gel_poisson: Option<f64>,
     /// `sensor`, when it parses and validates.
     pub sensor: Option<SensorSpec>,
 }
@@ -134,18 +180,21 @@ impl RecordingMeta {
             let cols = u16::try_from(v.get("grid")?.get("cols")?.as_u64()?).ok()?;
             Some(GridShape { rows, cols })
         })();
-        let gel_thickness_mm = v
-            .get("sensor")
-            .and_then(|s| s.get("gel"))
-            .and_then(|g| g.get("thickness_mm"))
-            .and_then(|t| t.as_f64());
+        let gel = |field: &str| {
+            v.get("sensor")
+                .and_then(|s| s.get("gel"))
+                .and_then(|g| g.get(field))
+                .and_then(|t| t.as_f64())
+        };
         let sensor = v
             .get("sensor")
             .and_then(|s| serde_json::from_value::<SensorSpec>(s.clone()).ok())
             .filter(|s| s.validate("meta.json sensor").is_ok());
         Self {
             grid,
-            gel_thickness_mm,
+            gel_thickness_mm: gel("thickness_mm"),
+            gel_modulus_kpa: gel("modulus_kpa"),
+            gel_poisson: gel("poisson"),
             sensor,
         }
     }

@@ -49,7 +49,9 @@ mod start;
 pub mod track;
 pub mod truth;
 
-pub use config::{PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python};
+pub use config::{
+    GelFacts, PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python,
+};
 pub use error::{Error, Result};
 pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
 pub use start::detect_padded;

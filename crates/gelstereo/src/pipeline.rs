@@ -240,6 +240,21 @@ impl Pipeline {
         }
     }
 
+    /// The contact mechanics' settings: the gel's facts and the friction coefficient.
+    pub fn contact_config(&self) -> &gelstereo_tracking::ContactConfig {
+        &self.session_config.contact
+    }
+
+    /// The gel frame in the left camera frame, mm: its origin and its axes `[x, y, z]` (x along
+    /// the lattice's columns, y along its rows, z the reference surface's normal away from the
+    /// cameras); `None` for mono sensors and before the reference frame.
+    pub fn gel_frame(&self) -> Option<(nalgebra::Point3<f64>, [nalgebra::Vector3<f64>; 3])> {
+        match &self.session {
+            Some(Session::Stereo(s)) => Some((s.surface().gel_origin_mm(), s.surface().gel_axes())),
+            _ => None,
+        }
+    }
+
     /// The localizer, e.g. for its timing of the last frame.
     pub fn localizer(&self) -> &dyn Localizer {
         self.localizer.as_ref()

@@ -121,6 +121,55 @@ impl Sink for TableSink {
     }
 }
 
+/// `gel.json`: the gel's facts and friction coefficient the contact mechanics used, and the gel
+/// frame (origin and axes in the left camera frame), written once the reference frame sets it.
+pub struct GelSink {
+    folder: Arc<OutputFolder>,
+    written: bool,
+}
+
+impl GelSink {
+    /// Writes into `folder`.
+    pub fn new(folder: Arc<OutputFolder>) -> Self {
+        Self {
+            folder,
+            written: false,
+        }
+    }
+}
+
+impl Sink for GelSink {
+    fn frame(&mut self, frame: &FrameContext) -> Result<()> {
+        let Some((origin, axes)) = frame.pipeline.gel_frame().filter(|_| !self.written) else {
+            return Ok(());
+        };
+        let c = frame.pipeline.contact_config();
+        let v = |v: nalgebra::Vector3<f64>| [v.x, v.y, v.z];
+        let json = serde_json::json!({
+            "gel": {
+                "thickness_mm": c.layer.thickness_mm,
+                "modulus_kpa": c.layer.modulus_kpa,
+                "poisson": c.layer.poisson,
+            },
+            "friction": c.friction,
+            "gel_frame_in_left_camera": {
+                "origin_mm": [origin.x, origin.y, origin.z],
+                "x_axis": v(axes[0]),
+                "y_axis": v(axes[1]),
+                "z_axis": v(axes[2]),
+                "convention": "p_gel = [x_axis; y_axis; z_axis] (p_left - origin_mm): x along the lattice's columns, y along its rows, z the reference surface's normal away from the cameras",
+            },
+        });
+        let path = self.folder.claim("gel.json")?;
+        let text = serde_json::to_string_pretty(&json).unwrap_or_default() + "\n";
+        let mut file = gelstereo_io::atomic::AtomicFile::create(&path)?;
+        file.write_all(text.as_bytes()).map_err(file_err(&path))?;
+        file.commit()?;
+        self.written = true;
+        Ok(())
+    }
+}
+
 /// One JSON object per frame and line (the columns of both tables, markers nested, plus `t_s`
 /// and `note`), flushed per frame: `gelstereo track --jsonl -`.
 pub struct JsonlSink<W: Write> {
@@ -147,6 +196,10 @@ pub fn frame_json(out: &FrameOutput) -> serde_json::Value {
         "centroid_X_mm": s.centroid_mm.map(|c| c[0]),
         "centroid_Y_mm": s.centroid_mm.map(|c| c[1]),
         "slip": s.slip.as_str(),
+        "force_N": s.force_n,
+        "shear_x_N": s.shear_n.map(|v| v[0]),
+        "shear_y_N": s.shear_n.map(|v| v[1]),
+        "torque_Nmm": s.torque_nmm,
         "note": out.note,
         "markers": markers,
     })
@@ -168,6 +221,9 @@ fn marker_json(m: &MarkerRecord) -> serde_json::Value {
         "dY_mm": xyz(m.displacement_mm, 1),
         "dZ_mm": xyz(m.displacement_mm, 2),
         "status": m.status.map(|s| s.as_str()),
+        "pressure_kPa": m.pressure_kpa,
+        "in_contact": m.in_contact,
+        "slipping": m.slipping,
     })
 }
 

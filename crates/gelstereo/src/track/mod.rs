@@ -283,10 +283,13 @@ pub fn sinks(
     options: &SinkOptions,
     stereo: bool,
 ) -> Result<Vec<Box<dyn Sink>>> {
-    use crate::sink::{OverlaySink, PlotSink, PlySink, TableSink};
+    use crate::sink::{GelSink, OverlaySink, PlotSink, PlySink, TableSink};
     let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
     if options.tables {
         sinks.push(Box::new(TableSink::create(folder)?));
+        if stereo {
+            sinks.push(Box::new(GelSink::new(folder.clone())));
+        }
     }
     if options.ply_every > 0 && stereo {
         sinks.push(Box::new(PlySink::new(folder.clone(), options.ply_every)));

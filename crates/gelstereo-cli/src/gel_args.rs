@@ -1,0 +1,45 @@
+//! The gel's facts on the command line (`track`, `bench`): each overrides the recording's sensor
+//! description (its `meta.json`) and the reference sensor's defaults.
+
+use clap::Args;
+use gelstereo::GelFacts;
+use gelstereo::PipelineConfig;
+
+/// `--gel-thickness-mm`, `--gel-modulus-kpa`, `--poisson`, `--friction`.
+#[derive(Debug, Clone, Args)]
+pub struct GelArgs {
+    /// Gel thickness between the contact surface and the rigid window, mm. Default: the
+    /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
+    #[arg(long, value_name = "MM")]
+    pub gel_thickness_mm: Option<f64>,
+    /// The gel's Young's modulus, kPa: scales pressure and force. Default: the recording's sensor
+    /// description, else 150 (the reference sensor).
+    #[arg(long, value_name = "KPA")]
+    pub gel_modulus_kpa: Option<f64>,
+    /// The gel's Poisson ratio, in [0, 0.5). Default: the recording's sensor description, else
+    /// 0.45 (the reference sensor).
+    #[arg(long, value_name = "RATIO")]
+    pub poisson: Option<f64>,
+    /// Coulomb friction coefficient between gel and object: a marker slips where its shear
+    /// traction reaches it times the pressure. Default: 0.6.
+    #[arg(long, value_name = "MU")]
+    pub friction: Option<f64>,
+}
+
+impl GelArgs {
+    /// Writes the given facts into `config` and checks them: a bad value is an error naming the
+    /// fact and the range expected.
+    pub fn apply(&self, config: &mut PipelineConfig) -> anyhow::Result<()> {
+        let facts = GelFacts {
+            thickness_mm: self.gel_thickness_mm,
+            modulus_kpa: self.gel_modulus_kpa,
+            poisson: self.poisson,
+            friction: self.friction,
+        };
+        config.apply_gel(&facts).map_err(|e| {
+            anyhow::anyhow!(
+                "{e} (from --gel-thickness-mm, --gel-modulus-kpa, --poisson, --friction or the recording's meta.json)"
+            )
+        })
+    }
+}
