@@ -83,23 +83,25 @@ fn the_fe_reference_contacts_are_recovered() {
             let load = ContactLoad::new(&t, rows, cols, pitch, None);
             let half = [(cols - 1) as f64 * pitch / 2.0, (rows - 1) as f64 * pitch / 2.0];
             let c = load.centroid_mm.unwrap();
-            eprintln!(
-                "{} sigma {sigma}: force {:.4} / {:.4}, area {:.2} / {:.2}, shear {:.4} {:.4} / {:.4} {:.4}, centroid {:.3} {:.3} / {:.3} {:.3}, it {}",
+            let centroid_err = (c[0] - half[0] - case.centroid_mm[0]).hypot(c[1] - half[1] - case.centroid_mm[1]);
+            let force_err = load.force_n / case.force_n - 1.0;
+            let area_err = load.area_mm2 / case.area_mm2 - 1.0;
+            let shear_err = (load.shear_n[0] - case.shear_n[0]).hypot(load.shear_n[1] - case.shear_n[1]);
+            println!(
+                "{:<20} noise {sigma:.2} mm: force {:+.1} %, area {:+.1} %, centroid {:.3} mm, shear off by {:.4} N",
                 case.name,
-                load.force_n,
-                case.force_n,
-                load.area_mm2,
-                case.area_mm2,
-                load.shear_n[0],
-                load.shear_n[1],
-                case.shear_n[0],
-                case.shear_n[1],
-                c[0] - half[0],
-                c[1] - half[1],
-                case.centroid_mm[0],
-                case.centroid_mm[1],
-                t.iterations
+                100.0 * force_err,
+                100.0 * area_err,
+                centroid_err,
+                shear_err
             );
+            // Two bumps of 2.9 mm² each are below the 4 pitch² a contact needs to be resolved; their
+            // area is that of the cells around each, more than the truth.
+            let area_tolerance = if case.name == "two-bumps" { 1.0 } else { 0.2 };
+            assert!(force_err.abs() < 0.1, "{}: force {} vs {}", case.name, load.force_n, case.force_n);
+            assert!(area_err.abs() < area_tolerance, "{}: area {} vs {}", case.name, load.area_mm2, case.area_mm2);
+            assert!(centroid_err < 0.25 * pitch, "{}: centroid {c:?}", case.name);
+            assert!(shear_err < 0.1 * case.force_n, "{}: shear {:?} vs {:?}", case.name, load.shear_n, case.shear_n);
         }
     }
 }
