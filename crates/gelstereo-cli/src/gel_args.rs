@@ -4,10 +4,15 @@
 use clap::Args;
 use gelstereo::GelFacts;
 use gelstereo::PipelineConfig;
+use gelstereo::gel::GelFile;
 
-/// `--gel-thickness-mm`, `--gel-modulus-kpa`, `--poisson`, `--friction`.
+/// `--gel FILE`, `--gel-thickness-mm`, `--gel-modulus-kpa`, `--poisson`, `--friction`.
 #[derive(Debug, Clone, Args)]
 pub struct GelArgs {
+    /// The gel's facts from a file (`gel.json` as `track` or `calibrate-gel` write it); a flag
+    /// below that is also given must agree with it.
+    #[arg(long, value_name = "FILE")]
+    pub gel: Option<std::path::PathBuf>,
     /// Gel thickness between the contact surface and the rigid window, mm. Default: the
     /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
     #[arg(long, value_name = "MM")]
@@ -30,15 +35,18 @@ impl GelArgs {
     /// Writes the given facts into `config` and checks them: a bad value is an error naming the
     /// fact and the range expected.
     pub fn apply(&self, config: &mut PipelineConfig) -> anyhow::Result<()> {
-        let facts = GelFacts {
+        let mut facts = GelFacts {
             thickness_mm: self.gel_thickness_mm,
             modulus_kpa: self.gel_modulus_kpa,
             poisson: self.poisson,
             friction: self.friction,
         };
+        if let Some(path) = &self.gel {
+            facts = facts.with_file(&GelFile::read(path)?, path)?;
+        }
         config.apply_gel(&facts).map_err(|e| {
             anyhow::anyhow!(
-                "{e} (from --gel-thickness-mm, --gel-modulus-kpa, --poisson, --friction or the recording's meta.json)"
+                "{e} (from --gel, --gel-thickness-mm, --gel-modulus-kpa, --poisson, --friction or the recording's meta.json)"
             )
         })
     }

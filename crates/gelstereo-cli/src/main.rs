@@ -9,6 +9,7 @@ use gelstereo_core::interrupt;
 mod cmd_adapt;
 mod cmd_bench;
 mod cmd_calibrate;
+mod cmd_calibrate_gel;
 mod cmd_capture;
 mod cmd_detect;
 mod cmd_doctor;
@@ -40,6 +41,8 @@ enum Command {
     Bench(cmd_bench::Args),
     /// Stereo checkerboard calibration: OpenCV YAML/XML or a mrcal pair, with RMS and epipolar errors.
     Calibrate(cmd_calibrate::Args),
+    /// Find the gel's Young's modulus from a press of known force; write a gel file for `track --gel`.
+    CalibrateGel(cmd_calibrate_gel::Args),
     /// Save camera frames (one side-by-side camera, or two cameras L,R) as a stereo recording.
     Capture(cmd_capture::Args),
     /// Simulate a GelStereo sensor: stereo recordings with exact ground truth, split train/val/test.
@@ -85,6 +88,7 @@ fn main() -> ExitCode {
         Command::Eval(args) => cmd_eval::run(&args),
         Command::Bench(args) => cmd_bench::run(&args),
         Command::Calibrate(args) => cmd_calibrate::run(&args),
+        Command::CalibrateGel(args) => cmd_calibrate_gel::run(&args),
         Command::Capture(args) => cmd_capture::run(&args),
         Command::Simulate(args) => cmd_simulate::run(&args),
         Command::Track(args) => cmd_track::run(&args),

@@ -3,6 +3,7 @@
 //! sheared) and two bumps, solved with scikit-fem (`train/fe/fe_reference.py`,
 //! `docs/experiments/fe-reference.md`). The solver sees the FE's surface displacements at the
 //! markers, exact and with 0.01 mm of noise on every component.
+#![allow(clippy::unwrap_used)]
 
 use gelstereo_mechanics::inverse::{ContactLoad, InverseConfig, InverseSolver};
 use gelstereo_mechanics::{Influence, Layer, Vec3};
@@ -83,7 +84,8 @@ fn the_fe_reference_contacts_are_recovered() {
             let load = ContactLoad::new(&t, rows, cols, pitch, None);
             let half = [(cols - 1) as f64 * pitch / 2.0, (rows - 1) as f64 * pitch / 2.0];
             let c = load.centroid_mm.unwrap();
-            let centroid_err = (c[0] - half[0] - case.centroid_mm[0]).hypot(c[1] - half[1] - case.centroid_mm[1]);
+            let centroid_err =
+                (c[0] - half[0] - case.centroid_mm[0]).hypot(c[1] - half[1] - case.centroid_mm[1]);
             let force_err = load.force_n / case.force_n - 1.0;
             let area_err = load.area_mm2 / case.area_mm2 - 1.0;
             let shear_err = (load.shear_n[0] - case.shear_n[0]).hypot(load.shear_n[1] - case.shear_n[1]);
@@ -98,10 +100,28 @@ fn the_fe_reference_contacts_are_recovered() {
             // Two bumps of 2.9 mm² each are below the 4 pitch² a contact needs to be resolved; their
             // area is that of the cells around each, more than the truth.
             let area_tolerance = if case.name == "two-bumps" { 1.0 } else { 0.2 };
-            assert!(force_err.abs() < 0.1, "{}: force {} vs {}", case.name, load.force_n, case.force_n);
-            assert!(area_err.abs() < area_tolerance, "{}: area {} vs {}", case.name, load.area_mm2, case.area_mm2);
+            assert!(
+                force_err.abs() < 0.1,
+                "{}: force {} vs {}",
+                case.name,
+                load.force_n,
+                case.force_n
+            );
+            assert!(
+                area_err.abs() < area_tolerance,
+                "{}: area {} vs {}",
+                case.name,
+                load.area_mm2,
+                case.area_mm2
+            );
             assert!(centroid_err < 0.25 * pitch, "{}: centroid {c:?}", case.name);
-            assert!(shear_err < 0.1 * case.force_n, "{}: shear {:?} vs {:?}", case.name, load.shear_n, case.shear_n);
+            assert!(
+                shear_err < 0.1 * case.force_n,
+                "{}: shear {:?} vs {:?}",
+                case.name,
+                load.shear_n,
+                case.shear_n
+            );
         }
     }
 }

@@ -6,6 +6,7 @@ use std::sync::{Mutex, MutexGuard};
 
 use gelstereo::GelFacts;
 use gelstereo::core::StereoPair;
+use gelstereo::gel::GelFile;
 use gelstereo::sim::SensorSpec;
 use gelstereo::{
     Frame, FrameOutput, GridShape, Images, MarkerRecord, Method, Pipeline, PipelineConfig, parse_grid,
@@ -29,6 +30,8 @@ use crate::image::to_mat;
 ///     grid: the marker lattice, "ROWSxCOLS" or (rows, cols) (default: the sensor's, else 23x23).
 ///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor
 ///         whose grid overfills the cameras' view: the visible markers get the sensor's own indices.
+///     gel: a gel file (`gel.json` as `gelstereo track` or `calibrate-gel` write it); a keyword
+///         below that is also given must agree with it.
 ///     gel_thickness_mm, gel_modulus_kpa, poisson, friction: the gel's facts and the friction
 ///         coefficient of the contact mechanics, as `gelstereo track`'s flags of the same names
 ///         (default: the reference sensor's 2.5 mm, 150 kPa, 0.45 and 0.6).
@@ -47,7 +50,7 @@ pub struct PyPipeline {
 #[pymethods]
 impl PyPipeline {
     #[new]
-    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None))]
+    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel = None, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -55,6 +58,7 @@ impl PyPipeline {
         models: Option<PathBuf>,
         grid: Option<&Bound<'_, PyAny>>,
         sensor: Option<PathBuf>,
+        gel: Option<PathBuf>,
         gel_thickness_mm: Option<f64>,
         gel_modulus_kpa: Option<f64>,
         poisson: Option<f64>,
@@ -65,14 +69,17 @@ impl PyPipeline {
             grid: grid.map(grid_shape).transpose()?,
             ..PipelineConfig::default()
         };
-        config
-            .apply_gel(&GelFacts {
-                thickness_mm: gel_thickness_mm,
-                modulus_kpa: gel_modulus_kpa,
-                poisson,
-                friction,
-            })
-            .map_err(|e| to_py(&e))?;
+        let mut facts = GelFacts {
+            thickness_mm: gel_thickness_mm,
+            modulus_kpa: gel_modulus_kpa,
+            poisson,
+            friction,
+        };
+        if let Some(path) = &gel {
+            let file = GelFile::read(path).map_err(|e| to_py(&e))?;
+            facts = facts.with_file(&file, path).map_err(|e| to_py(&e))?;
+        }
+        config.apply_gel(&facts).map_err(|e| to_py(&e))?;
         if let Some(dir) = models {
             // Models named explicitly are used or reported, never replaced by the blob detector.
             config = config.with_models(&dir);

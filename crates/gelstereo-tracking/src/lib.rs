@@ -27,9 +27,10 @@ pub mod slip;
 mod synthetic;
 pub mod tracker;
 
-pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
+pub use contact::{ContactConfig, ContactFrame, REFERENCE_LAYER, ReferenceSurface};
 pub use error::{Error, Result};
 pub use field::{DenseField, interpolate};
+pub use gelstereo_mechanics::Layer;
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 pub use session::{
     CpuClock, MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,

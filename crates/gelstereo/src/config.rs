@@ -131,6 +131,33 @@ pub struct GelFacts {
     pub friction: Option<f64>,
 }
 
+impl GelFacts {
+    /// These facts completed by a gel file's (`path` names it in errors): a fact given both here
+    /// and in the file must agree with it.
+    pub fn with_file(self, file: &crate::gel::GelFile, path: &Path) -> crate::Result<Self> {
+        let agree = |given: Option<f64>, name: &str, filed: f64| -> crate::Result<Option<f64>> {
+            match given {
+                Some(v) if (v - filed).abs() > 1e-9 * filed.abs().max(1.0) => {
+                    Err(crate::Error::Invalid(format!(
+                        "{name} {v} disagrees with {} (gel.{name} {filed}): give one of them, or make them agree",
+                        path.display()
+                    )))
+                }
+                _ => Ok(Some(filed)),
+            }
+        };
+        Ok(Self {
+            thickness_mm: agree(self.thickness_mm, "thickness_mm", file.layer.thickness_mm)?,
+            modulus_kpa: agree(self.modulus_kpa, "modulus_kpa", file.layer.modulus_kpa)?,
+            poisson: agree(self.poisson, "poisson", file.layer.poisson)?,
+            friction: match file.friction {
+                Some(f) => agree(self.friction, "friction", f)?,
+                None => self.friction,
+            },
+        })
+    }
+}
+
 impl PipelineConfig {
     /// Writes the given facts into the contact settings and checks them all; an error names the
     /// fact, the range expected and the value.

@@ -41,6 +41,7 @@ mod config;
 pub mod doctor;
 mod error;
 pub mod eval;
+pub mod gel;
 mod pipeline;
 pub mod reconstruct;
 pub mod sink;
