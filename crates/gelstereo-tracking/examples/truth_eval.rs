@@ -30,12 +30,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let verbose = std::env::var("VERBOSE").is_ok();
     // PER_RECORDING=1: one line per recording with gross-slip errors.
     let per_recording = std::env::var("PER_RECORDING").is_ok();
-    // Tuning overrides: MIN_DEPTH, CONTACT_NOISE, CENTROID_DEPTH, CORE_DEPTH, SLIP_DRIFT,
+    // Tuning overrides: MIN_DEPTH, CONTACT_NOISE, CORE_DEPTH, SLIP_DRIFT,
     // MIN_SHEAR, STICK_SHEAR_PER_DEPTH, SHEAR_NOISE, SHEAR_PER_DEPTH, DRIFT_NOISE, TWIST_GROSS, TURN_RATIO.
     let mut contact_cfg = ContactConfig::default();
     override_from_env("MIN_DEPTH", &mut contact_cfg.min_depth_mm);
     override_from_env("CONTACT_NOISE", &mut contact_cfg.contact_noise_factor);
-    override_from_env("CENTROID_DEPTH", &mut contact_cfg.centroid_depth_fraction);
     let mut slip_cfg = SlipConfig::default();
     override_from_env("SLIP_DRIFT", &mut slip_cfg.drift_mm_per_frame);
     override_from_env("SHEAR_PER_DEPTH", &mut slip_cfg.min_shear_per_depth);

@@ -17,11 +17,9 @@
 //!   placed below the pitch; the area is measured on the reference (material) surface. Depth
 //!   alone delimits the contact badly: the layer's response spreads the indentation well beyond
 //!   the contact.
-//! - The **centroid** is that of the deformed markers weighted by their 3 x 3 mean depth above a
-//!   fraction of its maximum: a blur by a symmetric, normalised kernel keeps the first moment, so
-//!   the indentation locates the load as well as the deconvolved load does, without the noise the
-//!   deconvolution amplifies at the contact's edge (from images, localization noise of 0.1-0.3 px
-//!   is several hundredths of a mm of depth).
+//! - The **centroid** is the pressure centroid of the deformed contact points: the markers in
+//!   contact at their current positions, weighted by their pressure. (The indentation's own
+//!   centre stays behind a sliding contact: the surface is dragged, the depth pattern is not.)
 //! - The **largest depth** is refined below the pitch by a least-squares paraboloid over the
 //!   logarithm of the 3 x 3 depths around the deepest marker (a 2-D Gaussian peak: the layer's
 //!   response makes a smooth indentation peak Gaussian-like; the three-point Gaussian estimator of
@@ -78,12 +76,6 @@ pub struct ContactConfig {
     /// 3 x 3 means of noise stays below it (no false contact on the train / val splits with 0.01 and
     /// 0.02 mm of 3-D noise), while a noise-free recording is in contact from 0.01 mm.
     pub contact_noise_factor: f64,
-    /// The contact centroid weighs the deformed markers by how far their 3 x 3 mean depth exceeds
-    /// this fraction of its maximum (0.35; chosen among 0.2-0.4 on the train / val splits from
-    /// images, shipped and fast models, and on exact and noisy 3-D). The clipped area's own
-    /// centroid followed the noise of the deconvolved load at the contact's edge (from images,
-    /// centroid within 0.2 mm in 38 % of the train / val frames against 62 % now).
-    pub centroid_depth_fraction: f64,
 }
 
 impl Default for ContactConfig {
@@ -96,7 +88,6 @@ impl Default for ContactConfig {
             contact_depth_fraction: 0.2,
             refine_peak: true,
             contact_noise_factor: 6.0,
-            centroid_depth_fraction: 0.35,
         }
     }
 }
@@ -128,10 +119,7 @@ impl ContactConfig {
                 self.contact_noise_factor,
             ));
         }
-        for (field, v) in [
-            ("centroid_depth_fraction", self.centroid_depth_fraction),
-            ("contact_depth_fraction", self.contact_depth_fraction),
-        ] {
+        for (field, v) in [("contact_depth_fraction", self.contact_depth_fraction)] {
             if !(v.is_finite() && (0.0..1.0).contains(&v)) {
                 return Err(config_err(field, "a fraction in [0, 1)", v));
             }
@@ -370,19 +358,15 @@ impl ReferenceSurface {
             Some(l) => (0..n).map(|k| l.in_contact[k] && depth[k].is_some()).collect(),
             None => vec![false; n],
         };
-        // The contact centroid: deformed positions weighted by the smoothed depth above
-        // `centroid_depth_fraction` of its maximum. The indentation is the load blurred by a
-        // symmetric, normalised kernel, which keeps the load's first moment, so the depth locates
-        // the contact as the load does, without the deconvolution's noise gain at the boundary.
+        // The contact centroid: the pressure centroid of the deformed contact points.
+        let pressure: Vec<Option<f64>> = (0..n).map(|k| in_contact[k].then_some(traction[k][2])).collect();
         let centroid = (contact && area > 0.0)
-            .then(|| {
-                depth_weighted_centroid(&positions, &smooth, config.centroid_depth_fraction * smooth_max)
-            })
+            .then(|| weighted_centroid(&positions, &pressure, 0.0))
             .flatten();
         // Material centroid of the indentation: reference positions weighted by the smoothed depth
         // above half its maximum (the depth is far less noisy than the deconvolved load).
         let material_centroid = contact
-            .then(|| depth_weighted_centroid(&self.positions_mm, &smooth, 0.5 * smooth_max))
+            .then(|| weighted_centroid(&self.positions_mm, &smooth, 0.5 * smooth_max))
             .flatten();
         Ok(ContactFrame {
             positions_mm: positions,
@@ -503,9 +487,9 @@ pub struct ContactFrame {
     pub peak: Option<GridIndex>,
 }
 
-/// Centroid of `points` weighted by how far the (smoothed) depth exceeds `level`, mm; `None`
-/// when no point does.
-fn depth_weighted_centroid(
+/// Centroid of `points` weighted by how far their weight (a smoothed depth, a pressure) exceeds
+/// `level`, mm; `None` when no point's does.
+fn weighted_centroid(
     points: &[Option<Point3<f64>>],
     depth: &[Option<f64>],
     level: f64,
