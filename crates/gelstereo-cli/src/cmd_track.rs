@@ -141,7 +141,7 @@ impl Args {
             config.grid = Some(gelstereo::parse_grid(g, "--grid")?);
         }
         if let Some(t) = self.gel_thickness_mm {
-            config.session.contact.gel_thickness_mm = t;
+            config.session.contact.layer.thickness_mm = t;
         }
         config.session.planar.pitch_mm = self.pitch_mm;
         if let Some(path) = &self.sensor {

@@ -78,7 +78,7 @@ impl PipelineConfig {
         let meta = RecordingMeta::read(dir);
         self.grid = meta.grid;
         if let Some(t) = meta.gel_thickness_mm {
-            self.session.contact.gel_thickness_mm = t;
+            self.session.contact.layer.thickness_mm = t;
         }
         self.recording_sensor = meta.sensor;
     }

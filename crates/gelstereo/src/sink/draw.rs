@@ -41,7 +41,7 @@ pub(crate) fn write_ply(
         "dX_mm",
         "dY_mm",
         "dZ_mm",
-        "load_mm",
+        "pressure_kPa",
         "in_contact",
     ];
     let mut props: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
@@ -56,7 +56,7 @@ pub(crate) fn write_ply(
             d.x,
             d.y,
             d.z,
-            contact.load_mm.get(k).copied().unwrap_or(0.0),
+            contact.traction_kpa.get(k).map_or(0.0, |t| t[2]),
             f64::from(u8::from(contact.in_contact[k])),
         ];
         for (v, list) in vals.iter().zip(props.iter_mut()) {
