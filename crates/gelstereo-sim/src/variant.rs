@@ -79,8 +79,8 @@ fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
             half_extent_mm: half_extent,
             grid_spacing_mm: 2.0 * half_extent / 90.0,
             friction: rng.random_range(0.4..1.0),
-            shear_compliance: base.gel.shear_compliance,
-            spreading: rng.random_range(0.05..0.3),
+            modulus_kpa: base.gel.modulus_kpa,
+            poisson: rng.random_range(0.40..0.49),
         },
         cameras: CamerasSpec {
             image_width: w,
@@ -229,8 +229,8 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
             half_extent_mm: half_extent,
             grid_spacing_mm: 2.0 * half_extent / 90.0,
             friction: rng.random_range(0.4..1.0),
-            shear_compliance: base.gel.shear_compliance,
-            spreading: rng.random_range(0.05..0.6),
+            modulus_kpa: base.gel.modulus_kpa,
+            poisson: rng.random_range(0.35..0.49),
         },
         cameras: CamerasSpec {
             image_width: w,
@@ -290,8 +290,8 @@ pub fn gelsight_mini_like() -> SensorSpec {
             half_extent_mm: 16.0,
             grid_spacing_mm: 0.36,
             friction: 0.8,
-            shear_compliance: 1.33,
-            spreading: 0.15,
+            modulus_kpa: crate::sensor::REFERENCE_MODULUS_KPA,
+            poisson: crate::sensor::REFERENCE_POISSON,
         },
         cameras: CamerasSpec {
             image_width: w,
