@@ -120,8 +120,8 @@ const WIDE_RESOLUTIONS: [(u32, u32); 14] = [
 
 /// A random sensor of the widened domain: image 320x240 to 1920x1080, marker pitch in the image
 /// 8 to 100 px (log-uniform), 4 to 60 markers per side, square (half), hexagonal or irregular
-/// lattices, dots 0.25-0.75 of the pitch on a gel that spreads up to 4x more than `full`'s (so dots
-/// touch and overlap at indenter rims), and one in five on a round and one in five on a
+/// lattices, dots 0.25-0.75 of the pitch on a gel of Poisson ratio 0.35-0.49 (its bulge squeezes
+/// dots at indenter rims), and one in five on a round and one in five on a
 /// trapezoidal membrane with the housing around it in view. Without a membrane, half overfill the
 /// images (markers cut by every border).
 pub fn random_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> SensorSpec {

@@ -140,7 +140,7 @@ fn wide_ground_truth_is_consistent_and_reproducible() {
         sim.marker_rows(2, &f.markers, &mut rows);
         for (m, line) in f.markers.iter().zip(rows.lines()) {
             let cols: Vec<&str> = line.split(',').collect();
-            let vis = &cols[cols.len() - 3..cols.len() - 1];
+            let vis = &cols[cols.len() - 2..];
             for v in 0..2 {
                 let inside = m.px[v].is_some_and(|q| cams[v].contains(q));
                 let want = if m.printed && inside { "1" } else { "0" };
