@@ -53,9 +53,8 @@ pub enum Randomization {
     /// reproducible byte for byte.
     Wide,
     /// `wide`'s sensors and looks under flat-faced indenters only (flat punch, hexagon, box),
-    /// pressed up to 1.5 x deeper into a gel that spreads 0.6-1.4 mm per unit slope per mm of
-    /// thickness: the rims squeeze the dots around them into touching and overlapping dashes, as
-    /// often as real flat contacts do (docs/sim.md).
+    /// pressed up to 1.5 x deeper into a nearly incompressible gel (Poisson ratio 0.47-0.499): the
+    /// layer squeezed out from under the rims crowds the dots around them (docs/sim.md).
     Rims,
 }
 
@@ -251,7 +250,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 Randomization::Wide => wide_look(&config.sensor, &mut rng),
                 Randomization::Rims => {
                     let (mut sensor, appearance) = wide_look(&config.sensor, &mut rng);
-                    sensor.gel.spreading = rng.random_range(RIM_SPREADING);
+                    sensor.gel.poisson = rng.random_range(RIM_POISSON);
                     (sensor, appearance)
                 }
             };
@@ -297,9 +296,9 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
 
 /// The flat-faced indenters of the `rims` randomisation: their rims squeeze the gel hardest.
 const RIM_SHAPES: [&str; 3] = ["flat_cylinder", "hexagon", "prism"];
-/// How much the `rims` randomisation's gels spread (mm per unit slope per mm of thickness):
-/// enough to squeeze the dots next to a rim to 0.3-0.7 of their width, as real flat contacts do.
-const RIM_SPREADING: std::ops::Range<f64> = 0.6..1.4;
+/// Poisson ratios of the `rims` randomisation's gels: nearly incompressible, so that the layer
+/// squeezed under a flat face bulges out past its rim the most a bonded layer can.
+pub const RIM_POISSON: std::ops::Range<f64> = 0.47..0.499;
 /// Press depths of the `rims` randomisation: up to this many times the shape's usual range.
 const RIM_DEPTH_FACTOR: f64 = 1.5;
 
@@ -423,7 +422,7 @@ pub struct Simulator {
 }
 
 impl Simulator {
-    /// Prepares an experiment (camera lookups, layer kernel).
+    /// Prepares an experiment (camera lookups, the layer's influence operator).
     pub fn new(experiment: Experiment) -> Result<Self> {
         Self::with_optics(experiment, None)
     }
@@ -433,7 +432,7 @@ impl Simulator {
         let sensor = experiment.sensor.build()?;
         let optics = optics.unwrap_or_else(|| Arc::new(StereoOptics::new(&sensor)));
         let grid = SurfaceGrid::new(&sensor.spec.gel);
-        let layer = Layer::new(&sensor.spec.gel, grid);
+        let layer = Layer::new(&sensor.spec.gel, grid)?;
         let rest_left = sensor
             .spec
             .grid_shape()
@@ -515,9 +514,9 @@ impl Simulator {
             max_depth_mm: Some(def.max_depth_mm),
             centroid_mm: centroid,
             slip: def.slip,
-            force_n: None,
-            shear_n: None,
-            torque_nmm: None,
+            force_n: Some(def.force_n),
+            shear_n: Some(def.shear_n),
+            torque_nmm: Some(def.torque_nmm),
         };
         Ok(Frame {
             markers,
@@ -539,7 +538,9 @@ impl Simulator {
                 right_px: m.px[1],
                 position_mm: Some([p.x, p.y, p.z]),
                 displacement_mm: Some([p.x - rest.x, p.y - rest.y, p.z - rest.z]),
+                pressure_kpa: Some(m.pressure_kpa),
                 in_contact: Some(m.in_contact),
+                slipping: Some(m.slipping),
                 ..Default::default()
             };
             rec.write_csv(out);

@@ -74,6 +74,9 @@ pub enum Error {
     /// PNG encoding failed.
     #[error("PNG encoding: {0}")]
     Png(String),
+    /// The gel's facts or the physics grid out of the contact mechanics' range.
+    #[error("gel mechanics: {0}")]
+    Mechanics(#[from] gelstereo_mechanics::Error),
     /// A camera or calibration error from `gelstereo-geometry`.
     #[error(transparent)]
     Geometry(#[from] gelstereo_geometry::Error),

@@ -127,8 +127,13 @@ pub struct MarkerTruth {
     pub printed: bool,
     /// Whether the marker touches the object.
     pub in_contact: bool,
-    /// Contact load under the marker, mm (0 outside contact): drives the fading.
+    /// Contact load under the marker, mm (0 outside contact; [`Deformation::load`]): drives the
+    /// fading.
     pub load_mm: f64,
+    /// Contact pressure at the marker's rest position, kPa (bilinear over the physics grid).
+    pub pressure_kpa: f64,
+    /// Whether the marker touches the object and its cell slips (traction at the friction limit).
+    pub slipping: bool,
 }
 
 /// Ground truth of every marker of the sensor for deformation `def`.
@@ -172,6 +177,8 @@ pub fn marker_truth(sensor: &Sensor, optics: &StereoOptics, def: &Deformation) -
                 printed: sensor.spec.marker_printed(index.row, index.col),
                 in_contact: def.in_contact(x, y),
                 load_mm: def.grid.sample(&def.load, x, y).max(0.0),
+                pressure_kpa: def.pressure_kpa(x, y),
+                slipping: def.slipping(x, y),
             }
         })
         .collect()

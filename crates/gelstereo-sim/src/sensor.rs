@@ -128,11 +128,33 @@ pub struct GridSpec {
     pub lattice: Lattice,
 }
 
-/// Gel layer mechanics (an elastic layer on a rigid acrylic plate).
+/// Young's modulus of the reference sensor's gel, kPa (`calib/reference-sensor.json`; the same
+/// value as the pipeline's `gelstereo_tracking::contact::REFERENCE_LAYER`, checked by a test of the
+/// `gelstereo` crate).
+pub const REFERENCE_MODULUS_KPA: f64 = 150.0;
+/// Poisson ratio of the reference sensor's gel (as [`REFERENCE_MODULUS_KPA`]).
+pub const REFERENCE_POISSON: f64 = 0.45;
+
+fn reference_modulus_kpa() -> f64 {
+    REFERENCE_MODULUS_KPA
+}
+
+fn reference_poisson() -> f64 {
+    REFERENCE_POISSON
+}
+
+/// Gel layer mechanics: a linear elastic layer bonded to a rigid acrylic plate
+/// (`gelstereo_mechanics::Layer`), with the simulated patch of its surface and the friction
+/// against the object.
+///
+/// Sensor files written before the layer had a modulus and a Poisson ratio read as the reference
+/// values ([`REFERENCE_MODULUS_KPA`], [`REFERENCE_POISSON`]); their `spreading` and
+/// `shear_compliance` (factors of an earlier, non-physical response) are accepted and ignored: the
+/// layer's exact response gives both the lateral bulge and the tangential compliance.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(from = "GelFile")]
 pub struct GelSpec {
-    /// Thickness of the elastomer layer, mm; sets the width of the elastic response kernel.
+    /// Thickness of the elastomer layer between the contact surface and the rigid plate, mm.
     pub thickness_mm: f64,
     /// Half-width of the simulated square of gel surface around the origin, mm (must cover what the
     /// cameras see).
@@ -141,12 +163,53 @@ pub struct GelSpec {
     pub grid_spacing_mm: f64,
     /// Coulomb friction coefficient between gel and object.
     pub friction: f64,
-    /// Tangential over normal compliance of the layer (Cerruti against Boussinesq; about 1.3-1.5
-    /// for a nearly incompressible layer).
-    pub shear_compliance: f64,
-    /// Lateral spreading: outward surface displacement per unit slope of the indentation, per mm of
-    /// layer thickness.
-    pub spreading: f64,
+    /// Young's modulus of the elastomer, kPa.
+    pub modulus_kpa: f64,
+    /// Poisson ratio of the elastomer, in [0, 0.5).
+    pub poisson: f64,
+}
+
+/// [`GelSpec`] as a file holds it: the modulus and Poisson ratio may be absent (older files) and
+/// the obsolete `spreading` and `shear_compliance` present.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct GelFile {
+    thickness_mm: f64,
+    half_extent_mm: f64,
+    grid_spacing_mm: f64,
+    friction: f64,
+    #[serde(default = "reference_modulus_kpa")]
+    modulus_kpa: f64,
+    #[serde(default = "reference_poisson")]
+    poisson: f64,
+    #[serde(default, rename = "shear_compliance")]
+    _shear_compliance: Option<serde::de::IgnoredAny>,
+    #[serde(default, rename = "spreading")]
+    _spreading: Option<serde::de::IgnoredAny>,
+}
+
+impl From<GelFile> for GelSpec {
+    fn from(f: GelFile) -> Self {
+        Self {
+            thickness_mm: f.thickness_mm,
+            half_extent_mm: f.half_extent_mm,
+            grid_spacing_mm: f.grid_spacing_mm,
+            friction: f.friction,
+            modulus_kpa: f.modulus_kpa,
+            poisson: f.poisson,
+        }
+    }
+}
+
+impl GelSpec {
+    /// The elastic layer of the contact mechanics.
+    pub fn layer(&self) -> gelstereo_mechanics::Layer {
+        gelstereo_mechanics::Layer {
+            thickness_mm: self.thickness_mm,
+            modulus_kpa: self.modulus_kpa,
+            poisson: self.poisson,
+        }
+    }
 }
 
 /// The stereo pair: both cameras share the image size.
@@ -351,8 +414,11 @@ impl SensorSpec {
             ));
         }
         in_range(src, "gel.friction", gel.friction, 0.05, 5.0)?;
-        in_range(src, "gel.shear_compliance", gel.shear_compliance, 0.1, 10.0)?;
-        in_range(src, "gel.spreading", gel.spreading, 0.0, 2.0)?;
+        positive(src, "gel.modulus_kpa", gel.modulus_kpa)?;
+        if !(gel.poisson.is_finite() && (0.0..0.5).contains(&gel.poisson)) {
+            // 0.5, the incompressible limit, makes a bonded layer rigid under a uniform load.
+            return Err(field_err(src, "gel.poisson", "a number in [0, 0.5)", gel.poisson));
+        }
         let c = &self.cameras;
         if !(16..=8192).contains(&c.image_width) {
             return Err(field_err(
@@ -558,6 +624,38 @@ mod tests {
         assert!(b.y > a.y + 10.0);
     }
 
+    /// A file written before the gel had a modulus and a Poisson ratio (and with the factors of
+    /// the earlier response, `shear_compliance` and `spreading`) reads as the reference gel.
+    #[test]
+    fn older_gel_fields_read_as_the_reference_layer() {
+        let reference = SensorSpec::reference();
+        assert_eq!(reference.gel.modulus_kpa, REFERENCE_MODULUS_KPA);
+        assert_eq!(reference.gel.poisson, REFERENCE_POISSON);
+        let mut value = serde_json::to_value(&reference).unwrap();
+        let gel = value["gel"].as_object_mut().unwrap();
+        gel.remove("modulus_kpa");
+        gel.remove("poisson");
+        gel.insert("shear_compliance".into(), 1.33.into());
+        gel.insert("spreading".into(), 0.15.into());
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("old.json");
+        std::fs::write(&f, value.to_string()).unwrap();
+        let old = SensorSpec::load(&f).unwrap();
+        assert_eq!(old, reference);
+        // Written back, the file holds the layer's facts and not the obsolete factors.
+        let text = serde_json::to_string(&old).unwrap();
+        assert!(
+            text.contains("\"modulus_kpa\":150.0") && !text.contains("spreading"),
+            "{text}"
+        );
+        // Unknown fields of the gel are still refused.
+        let mut value = serde_json::to_value(&reference).unwrap();
+        value["gel"]["modulus"] = 1.0.into();
+        std::fs::write(&f, value.to_string()).unwrap();
+        let e = SensorSpec::load(&f).unwrap_err().to_string();
+        assert!(e.contains("old.json") && e.contains("modulus"), "{e}");
+    }
+
     #[test]
     fn bad_fields_are_named() {
         let mut spec = SensorSpec::reference();
@@ -578,6 +676,25 @@ mod tests {
         spec.cameras.left.position_mm[2] = 5.0;
         let e = spec.validate("x.json").unwrap_err().to_string();
         assert!(e.contains("cameras.left.position_mm"), "{e}");
+        for (modulus, poisson, field, found) in [
+            (0.0, 0.45, "gel.modulus_kpa", "0"),
+            (f64::INFINITY, 0.45, "gel.modulus_kpa", "inf"),
+            (150.0, 0.5, "gel.poisson", "0.5"),
+            (150.0, -0.1, "gel.poisson", "-0.1"),
+            (150.0, f64::NAN, "gel.poisson", "NaN"),
+        ] {
+            let mut spec = SensorSpec::reference();
+            spec.gel.modulus_kpa = modulus;
+            spec.gel.poisson = poisson;
+            let e = spec.validate("x.json").unwrap_err().to_string();
+            assert!(
+                e.contains("x.json") && e.contains(field) && e.contains(found),
+                "{e}"
+            );
+            if field == "gel.poisson" {
+                assert!(e.contains("[0, 0.5)"), "{e}");
+            }
+        }
 
         let dir = std::env::temp_dir().join(format!("gs-sensor-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();

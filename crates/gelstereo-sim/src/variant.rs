@@ -79,8 +79,8 @@ fn try_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
             half_extent_mm: half_extent,
             grid_spacing_mm: 2.0 * half_extent / 90.0,
             friction: rng.random_range(0.4..1.0),
-            shear_compliance: base.gel.shear_compliance,
-            spreading: rng.random_range(0.05..0.3),
+            modulus_kpa: base.gel.modulus_kpa,
+            poisson: rng.random_range(0.40..0.49),
         },
         cameras: CamerasSpec {
             image_width: w,
@@ -120,8 +120,8 @@ const WIDE_RESOLUTIONS: [(u32, u32); 14] = [
 
 /// A random sensor of the widened domain: image 320x240 to 1920x1080, marker pitch in the image
 /// 8 to 100 px (log-uniform), 4 to 60 markers per side, square (half), hexagonal or irregular
-/// lattices, dots 0.25-0.75 of the pitch on a gel that spreads up to 4x more than `full`'s (so dots
-/// touch and overlap at indenter rims), and one in five on a round and one in five on a
+/// lattices, dots 0.25-0.75 of the pitch on a gel of Poisson ratio 0.35-0.49 (its bulge squeezes
+/// dots at indenter rims), and one in five on a round and one in five on a
 /// trapezoidal membrane with the housing around it in view. Without a membrane, half overfill the
 /// images (markers cut by every border).
 pub fn random_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> SensorSpec {
@@ -229,8 +229,8 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
             half_extent_mm: half_extent,
             grid_spacing_mm: 2.0 * half_extent / 90.0,
             friction: rng.random_range(0.4..1.0),
-            shear_compliance: base.gel.shear_compliance,
-            spreading: rng.random_range(0.05..0.6),
+            modulus_kpa: base.gel.modulus_kpa,
+            poisson: rng.random_range(0.35..0.49),
         },
         cameras: CamerasSpec {
             image_width: w,
@@ -290,8 +290,8 @@ pub fn gelsight_mini_like() -> SensorSpec {
             half_extent_mm: 16.0,
             grid_spacing_mm: 0.36,
             friction: 0.8,
-            shear_compliance: 1.33,
-            spreading: 0.15,
+            modulus_kpa: crate::sensor::REFERENCE_MODULUS_KPA,
+            poisson: crate::sensor::REFERENCE_POISSON,
         },
         cameras: CamerasSpec {
             image_width: w,

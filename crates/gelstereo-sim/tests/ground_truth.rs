@@ -318,8 +318,12 @@ fn a_smeared_marker_is_centred_on_its_truth() {
     }
     assert!(offsets.len() >= 20, "{} markers smear over 2-5 px", offsets.len());
     let worst = offsets.iter().copied().fold(0.0, f64::max);
+    // 0.15 px, not 0.1: with the bonded layer the bulge beside the sliding sphere travels with it,
+    // so the markers there accelerate during the exposure (1.5 px per frame² on a 4.5 px smear in
+    // this recording) and a smear's mean lies up to 0.11 px off the middle of its path; the other
+    // markers stay within 0.04 px.
     assert!(
-        worst < 0.1,
+        worst < 0.15,
         "smear centres up to {worst:.2} px off the sharp dots' centres"
     );
 }

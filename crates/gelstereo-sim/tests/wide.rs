@@ -233,9 +233,9 @@ fn rims_squeeze_the_lattice_without_folding_it() {
             e.script.indenter
         );
         assert!(
-            (0.6..1.4).contains(&e.sensor.gel.spreading),
+            gelstereo_sim::dataset::RIM_POISSON.contains(&e.sensor.gel.poisson),
             "{}",
-            e.sensor.gel.spreading
+            e.sensor.gel.poisson
         );
         assert!(!e.families.is_empty());
     }
