@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Makes data/sample/press-slide: the bundled sample stereo recording of the main job
 # (scripts/run-sample.sh). A simulated fingertip pressed, slid (partial then gross slip) and lifted,
-# 24 stereo frames of the reference sensor (640x480, reference look), written by `gelstereo simulate`
+# 40 stereo frames of the reference sensor (640x480, reference look), written by `gelstereo simulate`
 # and re-encoded as JPEG (quality 85) to keep the checkout small; markers.csv / frames.csv are the
 # simulator's exact ground truth. Needs a release build and the Python env of scripts/setup.sh.
 #
@@ -11,7 +11,7 @@ root="$(cd "$(dirname "$0")/../.." && pwd)"
 bin="$root/target/release/gelstereo"
 tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
-"$bin" simulate --out "$tmp/sim" --experiments 1 --frames-per-experiment 24 --seed 3 --randomization off --quiet
+"$bin" simulate --out "$tmp/sim" --experiments 1 --frames-per-experiment 40 --seed 3 --randomization off --quiet
 src="$(ls -d "$tmp"/sim/*/exp_0000)"
 dst="$root/data/sample/press-slide"
 rm -rf "$dst"

@@ -134,7 +134,7 @@ fn pipeline_config(args: &Args, recording: &Path) -> anyhow::Result<PipelineConf
     config.calibration = args.calib.clone().or(config.calibration);
     config.method = Some(args.method);
     config.localizer = args.localizer.config()?;
-    args.gel.apply(&mut config)?;
+    args.gel.apply(&mut config, None)?;
     Ok(config)
 }
 

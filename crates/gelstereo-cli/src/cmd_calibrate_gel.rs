@@ -51,7 +51,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let known = known_forces(args)?;
     let mut config = PipelineConfig::for_recording(&args.recording);
     config.calibration = args.calib.clone().or(config.calibration);
-    args.gel.apply(&mut config)?;
+    args.gel.apply(&mut config, None)?;
     if config.calibration.is_none() {
         bail!(
             "{}: a stereo recording needs --calib FILE or its calib.yaml",

@@ -64,9 +64,10 @@ pub struct Args {
     pitch_mm: Option<f64>,
     #[command(flatten)]
     gel: crate::gel_args::GelArgs,
-    /// Sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor whose
-    /// marker grid overfills the cameras' view: its lattice, projected through the calibration,
-    /// places the visible markers on the sensor's own grid indices. Default: the recording's
+    /// Sensor description (JSON, as `gelstereo simulate --sensor` takes): its gel's thickness,
+    /// modulus, Poisson ratio and friction for the contact mechanics (a flag above must agree), and
+    /// for a stereo sensor whose marker grid overfills the cameras' view its lattice, projected
+    /// through the calibration, places the visible markers on the sensor's own grid indices. Default: the recording's
     /// meta.json `sensor`. Without one such a recording is indexed from its visible top-left marker.
     #[arg(long, value_name = "FILE")]
     sensor: Option<PathBuf>,
@@ -138,11 +139,11 @@ impl Args {
         if let Some(g) = &self.grid {
             config.grid = Some(gelstereo::parse_grid(g, "--grid")?);
         }
-        self.gel.apply(&mut config)?;
         config.session.planar.pitch_mm = self.pitch_mm;
         if let Some(path) = &self.sensor {
             config.sensor = Some(SensorSpec::load(path)?);
         }
+        self.gel.apply(&mut config, self.sensor.as_deref())?;
         Ok(config)
     }
 

@@ -33,8 +33,9 @@ pub struct GelArgs {
 
 impl GelArgs {
     /// Writes the given facts into `config` and checks them: a bad value is an error naming the
-    /// fact and the range expected.
-    pub fn apply(&self, config: &mut PipelineConfig) -> anyhow::Result<()> {
+    /// fact and the range expected. With a sensor description (`sensor`: `config.sensor`, read
+    /// from that file) its gel's facts are used, and a flag must agree with them.
+    pub fn apply(&self, config: &mut PipelineConfig, sensor: Option<&std::path::Path>) -> anyhow::Result<()> {
         let mut facts = GelFacts {
             thickness_mm: self.gel_thickness_mm,
             modulus_kpa: self.gel_modulus_kpa,
@@ -43,6 +44,9 @@ impl GelArgs {
         };
         if let Some(path) = &self.gel {
             facts = facts.with_file(&GelFile::read(path)?, path)?;
+        }
+        if let (Some(spec), Some(path)) = (&config.sensor, sensor) {
+            facts = facts.with_file(&GelFile::of_sensor(spec), path)?;
         }
         config.apply_gel(&facts).map_err(|e| {
             anyhow::anyhow!(

@@ -127,8 +127,7 @@ pub struct Tractions {
     /// The pressure the data's noise alone can put on a cell, kPa: cells above it are in contact.
     pub noise_pressure_kpa: f64,
     /// The pressure per cell of the first, penalised fit, kPa: it selects the cells in contact
-    /// and places the contact's edge; the penalty shrinks it by about the noise's pressure
-    /// everywhere, which keeps noise at the edge from pushing it outwards.
+    /// (the refitted pressure places the edge between them and the free ones).
     pub selected_kpa: Vec<f64>,
 }
 
@@ -376,7 +375,7 @@ impl ContactLoad {
                 shear[1] += ty;
                 moment[0] += load * c as f64;
                 moment[1] += load * r as f64;
-                let pk = p(k);
+                let pk = load;
                 area += 1.0;
                 for (dr, dc) in [(0isize, 1isize), (0, -1), (1, 0), (-1, 0)] {
                     let at = |s: isize| {
@@ -388,7 +387,10 @@ impl ContactLoad {
                         continue;
                     }
                     let edge = match at(-1).filter(|&j| in_contact[j]) {
-                        Some(j) if p(j) > pk => (pk * pk / (p(j) * p(j) - pk * pk)).min(1.0),
+                        Some(j) if t.traction_kpa[j][2] > pk => {
+                            let pj = t.traction_kpa[j][2];
+                            (pk * pk / (pj * pj - pk * pk)).min(1.0)
+                        }
                         _ => 0.5,
                     };
                     area += edge - 0.5;

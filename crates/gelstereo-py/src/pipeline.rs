@@ -28,8 +28,9 @@ use crate::image::to_mat;
 ///     models: folder with marknet.onnx and mre.onnx for Marknet-MRE (default: the shipped
 ///         data/models, or the blob detector where they are not installed).
 ///     grid: the marker lattice, "ROWSxCOLS" or (rows, cols) (default: the sensor's, else 23x23).
-///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes) of a stereo sensor
-///         whose grid overfills the cameras' view: the visible markers get the sensor's own indices.
+///     sensor: sensor description (JSON, as `gelstereo simulate --sensor` takes): its gel's facts
+///         for the contact mechanics and, for a stereo sensor whose grid overfills the cameras'
+///         view, the visible markers get the sensor's own indices.
 ///     gel: a gel file (`gel.json` as `gelstereo track` or `calibrate-gel` write it); a keyword
 ///         below that is also given must agree with it.
 ///     gel_thickness_mm, gel_modulus_kpa, poisson, friction: the gel's facts and the friction
@@ -79,18 +80,20 @@ impl PyPipeline {
             let file = GelFile::read(path).map_err(|e| to_py(&e))?;
             facts = facts.with_file(&file, path).map_err(|e| to_py(&e))?;
         }
+        if let Some(path) = &sensor {
+            let spec = SensorSpec::load(path).map_err(|e| to_py(&e))?;
+            facts = facts
+                .with_file(&GelFile::of_sensor(&spec), path)
+                .map_err(|e| to_py(&e))?;
+            config.sensor = Some(spec);
+        }
         config.apply_gel(&facts).map_err(|e| to_py(&e))?;
         if let Some(dir) = models {
             // Models named explicitly are used or reported, never replaced by the blob detector.
             config = config.with_models(&dir);
             config.method = Some(Method::MarknetMre);
         }
-        let inner = py.detach(|| {
-            if let Some(path) = sensor {
-                config.sensor = Some(SensorSpec::load(&path).map_err(|e| to_py(&e))?);
-            }
-            Pipeline::new(&config).map_err(|e| to_py(&e))
-        })?;
+        let inner = py.detach(|| Pipeline::new(&config).map_err(|e| to_py(&e)))?;
         Ok(Self {
             inner: Mutex::new(inner),
         })

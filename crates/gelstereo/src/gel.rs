@@ -30,6 +30,19 @@ pub struct GelFile {
 const MAX_GEL_FILE_BYTES: u64 = 1 << 20;
 
 impl GelFile {
+    /// The gel's facts of a sensor description (`gelstereo simulate --sensor`, `track --sensor`).
+    pub fn of_sensor(sensor: &crate::sim::SensorSpec) -> Self {
+        let gel = &sensor.gel;
+        Self {
+            layer: Layer {
+                thickness_mm: gel.thickness_mm,
+                modulus_kpa: gel.modulus_kpa,
+                poisson: gel.poisson,
+            },
+            friction: Some(gel.friction),
+        }
+    }
+
     /// Reads and checks `path`; an error names the file, the field and what was expected.
     pub fn read(path: &Path) -> Result<Self> {
         let invalid = |what: String| Error::Invalid(format!("{}: {what}", path.display()));
