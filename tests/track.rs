@@ -75,7 +75,7 @@ fn sample_recording_gives_tables_meshes_overlays_plots_and_the_slip_of_the_truth
     // Every id in every frame, and every tracked marker within r = 0.25 pitch (4 px, docs/design.md) of
     // its own ground-truth marker: no id swaps.
     let rows = markers(&out.join("markers.csv"));
-    assert_eq!(rows.len(), 24 * 529);
+    assert_eq!(rows.len(), 40 * 529);
     let gt: BTreeMap<(u32, GridIndex), MarkerRecord> = markers(&sample.join("markers.csv"))
         .into_iter()
         .map(|m| ((m.frame, m.index), m))

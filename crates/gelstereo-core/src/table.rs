@@ -89,7 +89,8 @@ pub struct FrameSummary {
     /// Total normal force on the gel, N; empty where it is unknown (no layer mechanics, a mono
     /// sensor).
     pub force_n: Option<f64>,
-    /// Total tangential force on the gel `[x, y]`, N, in the same frame as the centroid.
+    /// Total tangential force on the gel `[x, y]`, N, along the gel frame's axes (the lattice's
+    /// columns and rows).
     pub shear_n: Option<[f64; 2]>,
     /// Torque of the tangential tractions about the contact normal through the pressure
     /// centroid, N mm.

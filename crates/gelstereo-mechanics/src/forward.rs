@@ -40,7 +40,9 @@ pub fn indent(op: &Influence, pen_mm: &[f64], tolerance: f64) -> Indentation {
         let t: Vec<Vec3> = p.iter().map(|&v| [0.0, 0.0, v]).collect();
         op.apply(&t, out, work);
     };
-    let scale = pen_mm.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-12);
+    // The tolerance is relative to the deepest overlap: the free surface's (negative) overlap far
+    // from the indenter says nothing of the contact's scale.
+    let scale = pen_mm.iter().fold(0.0f64, |m, v| m.max(*v)).max(1e-12);
     let mut p: Vec<f64> = pen_mm
         .iter()
         .map(|&v| {

@@ -41,7 +41,7 @@ def tables(sample, gelstereo_bin, tmp_path_factory):
 
 def test_python_tracks_the_sample_as_gelstereo_track_does(tracked, tables):
     markers, frames = tables
-    assert len(tracked) == len(frames) == 24
+    assert len(tracked) == len(frames) == 40
     by_frame = defaultdict(list)
     for row in markers:
         by_frame[int(row["frame"])].append(row)

@@ -169,12 +169,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 cent_ok += usize::from(ce <= 0.2);
             }
             if verbose && (gt.contact || c.contact) {
+                // The share of the load on the friction cone, and the shear per unit normal force.
+                let (mut slipping, mut load) = (0.0, 0.0);
+                for (k, t) in c.traction_kpa.iter().enumerate().filter(|(k, _)| c.in_contact[*k]) {
+                    load += t[2];
+                    slipping += if c.slipping[k] { t[2] } else { 0.0 };
+                }
                 println!(
-                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4} noise {:.4}",
+                    "{} f {f:3} area {:6.2}/{:6.2} ({:+.2}) force {:.3}/{:.3} cone {:.2} ratio {:.3}/{:.3} depth {:.3}/{:.3} cent {:.3} slip {:>12}/{:<12} sf {:.2} drift {:+.4} shear {:.3} rot {:+.4} turned {:+.4} noise {:.4}",
                     rec.display(),
                     c.contact_area_mm2,
                     gt_area,
                     ae,
+                    c.force_n,
+                    gt.force_n.unwrap_or(f64::NAN),
+                    slipping / load.max(f64::MIN_POSITIVE),
+                    c.shear_n[0].hypot(c.shear_n[1]) / c.force_n.max(f64::MIN_POSITIVE),
+                    gt.shear_n.map_or(f64::NAN, |s| s[0].hypot(s[1])) / gt.force_n.unwrap_or(f64::NAN),
                     c.max_depth_mm,
                     gt_depth,
                     ce,

@@ -28,7 +28,7 @@ fn sample_recording_tracks_with_3d_markers_slip_and_timestamps() {
     for f in FrameSource::open_path(&sample(), false).unwrap() {
         outs.push(pipeline.process(&f.into_frame().unwrap()).unwrap());
     }
-    assert_eq!(outs.len(), 24);
+    assert_eq!(outs.len(), 40);
     assert!(outs.iter().all(|o| o.note.is_none() && o.markers.len() == 529));
     // Frame number / 30 Hz (the recording declares no rate), from the first frame.
     assert!((outs[3].t_s - 0.1).abs() < 1e-9, "{}", outs[3].t_s);
