@@ -127,7 +127,11 @@ fn jsonl_to_standard_output_parses_line_by_line_and_out_dash_is_refused() {
         let markers = v["markers"].as_array().unwrap();
         assert_eq!(markers.len(), 529);
         assert!(markers[0]["X_mm"].is_f64() && markers[0]["status"].is_string());
-        assert!(v["force_N"].is_f64() && markers[0]["pressure_kPa"].is_f64() && markers[0]["in_contact"].is_boolean());
+        assert!(
+            v["force_N"].is_f64()
+                && markers[0]["pressure_kPa"].is_f64()
+                && markers[0]["in_contact"].is_boolean()
+        );
     }
     // Nothing written beside the stream; `--out -` is refused without creating a folder `-`.
     assert_eq!(std::fs::read_dir(cwd.path()).unwrap().count(), 0);

@@ -15,19 +15,19 @@ pub struct GelArgs {
     pub gel: Option<std::path::PathBuf>,
     /// Gel thickness between the contact surface and the rigid window, mm. Default: the
     /// recording's sensor description (meta.json), else 2.5 (the reference sensor).
-    #[arg(long, value_name = "MM")]
+    #[arg(long, value_name = "MM", allow_negative_numbers = true)]
     pub gel_thickness_mm: Option<f64>,
     /// The gel's Young's modulus, kPa: scales pressure and force. Default: the recording's sensor
     /// description, else 150 (the reference sensor).
-    #[arg(long, value_name = "KPA")]
+    #[arg(long, value_name = "KPA", allow_negative_numbers = true)]
     pub gel_modulus_kpa: Option<f64>,
     /// The gel's Poisson ratio, in [0, 0.5). Default: the recording's sensor description, else
     /// 0.45 (the reference sensor).
-    #[arg(long, value_name = "RATIO")]
+    #[arg(long, value_name = "RATIO", allow_negative_numbers = true)]
     pub poisson: Option<f64>,
     /// Coulomb friction coefficient between gel and object: a marker slips where its shear
     /// traction reaches it times the pressure. Default: 0.6.
-    #[arg(long, value_name = "MU")]
+    #[arg(long, value_name = "MU", allow_negative_numbers = true)]
     pub friction: Option<f64>,
 }
 

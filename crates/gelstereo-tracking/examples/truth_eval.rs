@@ -171,7 +171,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             if verbose && (gt.contact || c.contact) {
                 // The share of the load on the friction cone, and the shear per unit normal force.
                 let (mut slipping, mut load) = (0.0, 0.0);
-                for (k, t) in c.traction_kpa.iter().enumerate().filter(|(k, _)| c.in_contact[*k]) {
+                for (k, t) in c
+                    .traction_kpa
+                    .iter()
+                    .enumerate()
+                    .filter(|(k, _)| c.in_contact[*k])
+                {
                     load += t[2];
                     slipping += if c.slipping[k] { t[2] } else { 0.0 };
                 }

@@ -1,0 +1,159 @@
+//! End-to-end tests of the contact mechanics a user relies on: force and area from the bundled
+//! sample (made by the bonded-layer simulator, data/sample/make-sample.sh) against its truth,
+//! `gelstereo calibrate-gel` finding the gel's modulus from the truth's forces, and the gel's facts
+//! refused with a clear message when they are wrong or disagree.
+
+// A test helper may panic: that is how a test reports failure.
+#![allow(clippy::expect_used, clippy::unwrap_used)]
+
+use std::path::PathBuf;
+
+use gelstereo_core::{CsvTable, FrameSummary};
+
+mod common;
+use common::{gelstereo, repo, text};
+
+fn sample() -> PathBuf {
+    repo().join("data/sample/press-slide")
+}
+
+fn frames(path: &std::path::Path) -> Vec<FrameSummary> {
+    let t = CsvTable::read(path).unwrap();
+    (0..t.len())
+        .map(|r| FrameSummary::from_table(&t, r).unwrap())
+        .collect()
+}
+
+#[test]
+fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let run = gelstereo(&[
+        "track",
+        "--quiet",
+        "--no-ply",
+        "--out",
+        out.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    assert!(run.status.success(), "{}", text(&run));
+    let est = frames(&out.join("frames.csv"));
+    let truth = frames(&sample().join("frames.csv"));
+    // Frames whose contact covers at least 4 pitch² (0.8 mm pitch).
+    let pairs: Vec<(&FrameSummary, &FrameSummary)> = est
+        .iter()
+        .zip(&truth)
+        .filter(|(_, t)| t.contact && t.contact_area_mm2.unwrap() >= 4.0 * 0.64)
+        .collect();
+    assert!(pairs.len() >= 25, "{} frames in contact", pairs.len());
+    let within = |f: &dyn Fn(&FrameSummary) -> f64, tolerance: f64| {
+        pairs
+            .iter()
+            .filter(|(e, t)| (f(e) / f(t) - 1.0).abs() <= tolerance)
+            .count() as f64
+            / pairs.len() as f64
+    };
+    let force = within(&|s| s.force_n.unwrap(), 0.1);
+    let area = within(&|s| s.contact_area_mm2.unwrap(), 0.2);
+    assert!(
+        force >= 0.8,
+        "force within 10 % in {:.0} % of the frames",
+        100.0 * force
+    );
+    assert!(
+        area >= 0.9,
+        "area within 20 % in {:.0} % of the frames",
+        100.0 * area
+    );
+    let gel: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("gel.json")).unwrap()).unwrap();
+    assert_eq!(gel["gel"]["modulus_kpa"], 150.0);
+    let z = &gel["gel_frame_in_left_camera"]["z_axis"];
+    assert!(
+        z[2].as_f64().unwrap() > 0.9,
+        "the gel's normal points away from the cameras: {z}"
+    );
+}
+
+#[test]
+fn calibrate_gel_finds_the_modulus_from_known_forces() {
+    let dir = tempfile::tempdir().unwrap();
+    let gel = dir.path().join("gel.json");
+    let forces = sample().join("frames.csv");
+    // Start from a modulus 40 % too low: the fit must land near the simulator's 150 kPa.
+    let run = gelstereo(&[
+        "calibrate-gel",
+        "--forces",
+        forces.to_str().unwrap(),
+        "--gel-modulus-kpa",
+        "90",
+        "--out",
+        gel.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    assert!(run.status.success(), "{}", text(&run));
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&gel).unwrap()).unwrap();
+    let modulus = v["gel"]["modulus_kpa"].as_f64().unwrap();
+    assert!(
+        (modulus / 150.0 - 1.0).abs() < 0.1,
+        "{modulus} kPa; {}",
+        text(&run)
+    );
+    // The file feeds `track --gel`; a flag that disagrees with it is refused.
+    let out = dir.path().join("out");
+    let clash = gelstereo(&[
+        "track",
+        "--gel",
+        gel.to_str().unwrap(),
+        "--gel-modulus-kpa",
+        "300",
+        "--out",
+        out.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    assert!(!clash.status.success());
+    assert!(
+        text(&clash).contains("disagrees with") && text(&clash).contains("gel.json"),
+        "{}",
+        text(&clash)
+    );
+    // Refuses to replace the file without --force.
+    let again = gelstereo(&[
+        "calibrate-gel",
+        "--force-n",
+        "1",
+        "--out",
+        gel.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    assert!(
+        !again.status.success() && text(&again).contains("--force"),
+        "{}",
+        text(&again)
+    );
+}
+
+#[test]
+fn bad_gel_facts_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    for (flag, value, named) in [
+        ("--poisson", "0.5", "poisson"),
+        ("--poisson", "NaN", "poisson"),
+        ("--gel-modulus-kpa", "-3", "modulus_kpa"),
+        ("--gel-thickness-mm", "0", "thickness_mm"),
+        ("--friction", "inf", "friction"),
+    ] {
+        let out = dir.path().join(format!("out-{}", flag.trim_start_matches('-')));
+        let run = gelstereo(&[
+            "track",
+            flag,
+            value,
+            "--out",
+            out.to_str().unwrap(),
+            sample().to_str().unwrap(),
+        ]);
+        assert!(!run.status.success(), "{flag} {value} accepted");
+        assert!(text(&run).contains(named), "{flag} {value}: {}", text(&run));
+        assert!(!out.exists(), "{flag} {value}: an output folder was made");
+    }
+}
