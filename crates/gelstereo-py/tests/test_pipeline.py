@@ -13,7 +13,8 @@ import gelstereo
 from gil import main_thread_share_while
 
 MARKER_KEYS = ["row", "col", "status", "x_left", "y_left", "x_right", "y_right",
-               "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm", "dZ_mm"]
+               "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm", "dZ_mm", "pressure_kPa", "in_contact",
+               "slipping"]
 SLIP_STATES = {"no_contact", "stick", "partial_slip", "gross_slip"}
 
 
@@ -54,6 +55,14 @@ def test_python_tracks_the_sample_as_gelstereo_track_does(tracked, tables):
         assert Counter(out.markers["status"]) == Counter(r["status"] for r in rows), k
         assert out.contact.max_depth_mm == pytest.approx(float(summary["max_depth_mm"]), abs=1e-6)
         assert out.contact.area_mm2 == pytest.approx(float(summary["contact_area_mm2"]), abs=1e-6)
+        # The contact mechanics' figures: the same force, shear, torque and pressures.
+        assert out.contact.force_n == pytest.approx(float(summary["force_N"]), abs=1e-6)
+        assert out.contact.shear_n == pytest.approx(
+            (float(summary["shear_x_N"]), float(summary["shear_y_N"])), abs=1e-6)
+        assert out.contact.torque_nmm == pytest.approx(float(summary["torque_Nmm"]), abs=1e-6)
+        table_p = np.array([float(r["pressure_kPa"]) for r in rows])
+        np.testing.assert_allclose(out.markers["pressure_kPa"], table_p, atol=1e-6)
+        np.testing.assert_array_equal(out.markers["in_contact"], [r["in_contact"] == "1" for r in rows])
         # Same ids in the same order, same 3-D positions (the tables print 6 decimals).
         np.testing.assert_array_equal(out.markers["row"], [int(r["row"]) for r in rows])
         np.testing.assert_array_equal(out.markers["col"], [int(r["col"]) for r in rows])
@@ -103,11 +112,11 @@ def test_grey_and_bgr_give_the_same_mono_tracking(sample):
 def test_rezero_makes_the_current_shape_the_reference(sample):
     pipeline = gelstereo.Pipeline(calibration=str(sample / "calib.yaml"))
     frames = list(pairs(sample))
-    for left, right in frames[:8]:
+    for left, right in frames[:12]:
         pressed = pipeline.process(left, right)
     assert pressed.contact.max_depth_mm > 0.5
     pipeline.rezero()
-    again = pipeline.process(*frames[7])
+    again = pipeline.process(*frames[11])
     # The same images against themselves: no displacement, no contact.
     assert np.nanmax(np.abs(again.markers["dZ_mm"])) < 0.01
     assert again.slip == "no_contact"
@@ -131,6 +140,9 @@ def test_a_frame_of_another_size_comes_back_flagged(sample):
         ({"grid": 23.5}, TypeError, ["ROWSxCOLS"]),
         ({"models": "no-such-models"}, gelstereo.GelstereoError, ["no-such-models"]),
         ({"sensor": "no-sensor.json"}, gelstereo.GelstereoError, ["no-sensor.json"]),
+        ({"poisson": 0.5}, gelstereo.GelstereoError, ["poisson", "[0, 0.5)"]),
+        ({"gel_modulus_kpa": float("nan")}, gelstereo.GelstereoError, ["modulus_kpa"]),
+        ({"gel": "no-gel.json"}, gelstereo.GelstereoError, ["no-gel.json"]),
     ],
 )
 def test_unusable_settings_raise_with_the_rust_message(kwargs, error, words):

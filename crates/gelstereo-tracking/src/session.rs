@@ -125,6 +125,8 @@ pub struct StereoSession {
     /// The last frame number tracked: a later call with a gap (unreadable frames were not passed
     /// on) lets the trackers predict across it ([`Tracker::skip_frames`]).
     last_frame: Option<u32>,
+    /// The 3-D positions the last frame wrote (the reference [`rezero`](Self::rezero) takes).
+    last_written: Vec<Option<[f64; 3]>>,
 }
 
 impl StereoSession {
@@ -202,6 +204,7 @@ impl StereoSession {
             stage_marks: Vec::new(),
             parallel: false,
             last_frame: None,
+            last_written: Vec::new(),
         })
     }
 
@@ -251,12 +254,20 @@ impl StereoSession {
     }
 
     /// Makes the latest frame the new reference (drift correction): the 2-D trackers re-zero, the
-    /// reference surface is rebuilt from the latest 3-D positions and the slip history restarts.
+    /// reference surface is rebuilt from the latest 3-D positions (as written: measured where
+    /// measured, the contact analysis's fill elsewhere) and the slip history restarts.
     pub fn rezero(&mut self, latest: &ContactFrame) -> Result<()> {
         let positions: Vec<Option<[f64; 3]>> = latest
             .positions_mm
             .iter()
-            .map(|p| p.map(|p| [p.x, p.y, p.z]))
+            .enumerate()
+            .map(|(k, p)| {
+                self.last_written
+                    .get(k)
+                    .copied()
+                    .flatten()
+                    .or(p.map(|p| [p.x, p.y, p.z]))
+            })
             .collect();
         let surface = ReferenceSurface::new(self.shape, &positions, self.config.contact.clone())?;
         self.left.rezero();
@@ -382,6 +393,7 @@ impl StereoSession {
                 measured[k] = true;
             }
         }
+        self.last_written.clone_from(&written);
         let mut markers = Vec::with_capacity(self.ids.len());
         for id in &self.ids {
             let Some(lin) = self.shape.linear(*id) else {
