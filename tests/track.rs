@@ -64,6 +64,8 @@ fn sample_recording_gives_tables_meshes_overlays_plots_and_the_slip_of_the_truth
         "overlays/depth_000010.png",
         "plots/contact_area.png",
         "plots/max_depth.png",
+        "plots/force.png",
+        "plots/force.svg",
         "plots/slip.png",
         "plots/slip.svg",
         "plots/max_depth.svg",

@@ -461,6 +461,23 @@ impl PlotSink {
             unknown_note: "one camera measures no depth".into(),
             ..area.clone()
         };
+        let force = TimeSeries {
+            title: "force on the gel".into(),
+            y_label: "force (N)".into(),
+            curves: vec![
+                Curve {
+                    name: "normal".into(),
+                    values: h.iter().map(|f| f.force_n).collect(),
+                },
+                Curve {
+                    name: "shear".into(),
+                    values: h.iter().map(|f| f.shear_n.map(|[x, y]| x.hypot(y))).collect(),
+                },
+            ],
+            y_resolution: 0.001,
+            unknown_note: "one camera gives no force".into(),
+            ..area.clone()
+        };
         let slip: Vec<_> = h.iter().map(|f| f.slip).collect();
         let f = &self.folder;
         for ext in ["png", "svg"] {
@@ -470,6 +487,9 @@ impl PlotSink {
             if self.stereo {
                 f.write_atomic(&format!("plots/max_depth.{ext}"), |p| {
                     Ok(figures::time_series(p, &depth)?)
+                })?;
+                f.write_atomic(&format!("plots/force.{ext}"), |p| {
+                    Ok(figures::time_series(p, &force)?)
                 })?;
             }
             f.write_atomic(&format!("plots/slip.{ext}"), |p| {
