@@ -136,7 +136,8 @@ impl Layer {
 /// layer and grid: the result does not depend on which simulator built it first).
 fn influence(facts: &gelstereo_mechanics::Layer, grid: SurfaceGrid) -> Result<Arc<Influence>> {
     type Key = [u64; 5];
-    static CACHE: OnceLock<Mutex<Vec<(Key, Arc<Influence>)>>> = OnceLock::new();
+    type Cache = Mutex<Vec<(Key, Arc<Influence>)>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
     let key = [
         facts.thickness_mm.to_bits(),
         facts.modulus_kpa.to_bits(),
@@ -538,17 +539,17 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
     let mut sum = Vector2::zeros();
     let mut sum_z = 0.0;
     let (mut force, mut shear, mut moment) = (0.0, [0.0; 2], Vector2::zeros());
-    for k in 0..nn {
+    for (k, &pk) in p.iter().enumerate().take(nn) {
         let u = sol.displacement[k];
         max_depth = max_depth.max(u[2]);
-        if p[k] > 0.0 {
+        if pk > 0.0 {
             let r = Vector2::from(grid.node(k % n, k / n));
             contact += 1;
             stuck_count += usize::from(!sol.slipping[k]);
             sum += Vector2::new(r.x + u[0], r.y + u[1]);
             sum_z -= u[2];
-            force += p[k];
-            moment += r * p[k];
+            force += pk;
+            moment += r * pk;
             shear[0] += sol.traction[k][0];
             shear[1] += sol.traction[k][1];
         }
