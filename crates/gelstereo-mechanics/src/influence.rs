@@ -437,11 +437,7 @@ fn stencils(layer: &Layer, a: f64, radius: usize, q: usize) -> Vec<[f64; ENTRIES
 mod tests {
     use super::*;
 
-    const GEL: Layer = Layer {
-        thickness_mm: 2.5,
-        modulus_kpa: 150.0,
-        poisson: 0.45,
-    };
+    const GEL: Layer = Layer::REFERENCE;
 
     /// A uniform pressure over a wide patch of a bonded layer compresses it uniaxially in the
     /// middle: `w = p h (1+ν)(1−2ν) / E(1−ν)`.

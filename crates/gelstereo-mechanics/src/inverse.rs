@@ -444,11 +444,7 @@ mod tests {
     use crate::forward::indent;
     use crate::layer::Layer;
 
-    const GEL: Layer = Layer {
-        thickness_mm: 2.5,
-        modulus_kpa: 150.0,
-        poisson: 0.45,
-    };
+    const GEL: Layer = Layer::REFERENCE;
 
     #[test]
     fn the_projection_lands_on_the_cone() {

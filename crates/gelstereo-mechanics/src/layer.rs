@@ -42,6 +42,14 @@ pub struct Layer {
 }
 
 impl Layer {
+    /// The reference sensor's gel: 2.5 mm of silicone (150 kPa, Poisson ratio 0.45) bonded to its
+    /// acrylic window (`calib/reference-sensor.json`, the pipeline's default).
+    pub const REFERENCE: Self = Self {
+        thickness_mm: 2.5,
+        modulus_kpa: 150.0,
+        poisson: 0.45,
+    };
+
     /// Checks the three facts: a positive finite thickness and modulus and a Poisson ratio in
     /// [0, 0.5) (0.5, the incompressible limit, makes a bonded layer rigid under uniform load).
     pub fn validate(&self) -> Result<()> {

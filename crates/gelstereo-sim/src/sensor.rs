@@ -128,12 +128,10 @@ pub struct GridSpec {
     pub lattice: Lattice,
 }
 
-/// Young's modulus of the reference sensor's gel, kPa (`calib/reference-sensor.json`; the same
-/// value as the pipeline's `gelstereo_tracking::contact::REFERENCE_LAYER`, checked by a test of the
-/// `gelstereo` crate).
-pub const REFERENCE_MODULUS_KPA: f64 = 150.0;
+/// Young's modulus of the reference sensor's gel, kPa: sensor files without one have it.
+pub const REFERENCE_MODULUS_KPA: f64 = gelstereo_mechanics::Layer::REFERENCE.modulus_kpa;
 /// Poisson ratio of the reference sensor's gel (as [`REFERENCE_MODULUS_KPA`]).
-pub const REFERENCE_POISSON: f64 = 0.45;
+pub const REFERENCE_POISSON: f64 = gelstereo_mechanics::Layer::REFERENCE.poisson;
 
 fn reference_modulus_kpa() -> f64 {
     REFERENCE_MODULUS_KPA

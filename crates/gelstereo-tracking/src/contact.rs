@@ -34,14 +34,6 @@ use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 
 use crate::error::{Error, Result, config_err};
 
-/// The reference sensor's gel: 2.5 mm of silicone (150 kPa, Poisson ratio 0.45) bonded to its
-/// acrylic window.
-pub const REFERENCE_LAYER: Layer = Layer {
-    thickness_mm: 2.5,
-    modulus_kpa: 150.0,
-    poisson: 0.45,
-};
-
 /// A marker slips where its shear traction reaches this fraction of the friction cone: the
 /// traction is recovered from noisy displacements, and a slipping region's sits on the cone.
 const SLIP_CONE: f64 = 0.9;
@@ -56,7 +48,7 @@ pub struct ContactConfig {
     /// cross 0.001-0.015 mm deep while it slides) but gave isolated false contacts of 0.005-0.009 mm
     /// from images (val with Marknet-MRE: 7 -> 9 frames), where the robust noise estimate is low.
     pub min_depth_mm: f64,
-    /// The gel: thickness, Young's modulus and Poisson ratio ([`REFERENCE_LAYER`] by default).
+    /// The gel: thickness, Young's modulus and Poisson ratio ([`Layer::REFERENCE`] by default).
     pub layer: Layer,
     /// Settings of the inverse problem.
     pub inverse: InverseConfig,
@@ -82,7 +74,7 @@ impl Default for ContactConfig {
     fn default() -> Self {
         Self {
             min_depth_mm: 0.01,
-            layer: REFERENCE_LAYER,
+            layer: Layer::REFERENCE,
             inverse: InverseConfig::default(),
             friction: 0.6,
             contact_depth_fraction: 0.2,
@@ -784,7 +776,7 @@ mod tests {
                 }
             })
             .collect();
-        let op = Influence::new(&REFERENCE_LAYER, 23, 23, 0.8).unwrap();
+        let op = Influence::new(&Layer::REFERENCE, 23, 23, 0.8).unwrap();
         let sol = gelstereo_mechanics::forward::indent(&op, &pen, 1e-8);
         let rest: Positions = shape.indices().map(|i| Some([xy(i).0, xy(i).1, 24.0])).collect();
         // Gel frame = camera frame here, but for z: into the gel is towards the camera (−z).

@@ -70,14 +70,11 @@ pub use gelstereo_markers::{LocalizerConfig, Method};
 
 #[cfg(test)]
 mod tests {
-    /// The simulator's reference gel and the pipeline's default layer are the same gel (the
-    /// simulator cannot depend on the tracking crate, so each holds the values).
+    /// The reference sensor's file (`calib/reference-sensor.json`) describes the gel the pipeline
+    /// assumes by default.
     #[test]
     fn the_simulated_and_the_assumed_reference_gel_agree() {
-        let layer = gelstereo_tracking::contact::REFERENCE_LAYER;
         let gel = gelstereo_sim::SensorSpec::reference().gel;
-        assert_eq!(gel.layer(), layer);
-        assert_eq!(gelstereo_sim::sensor::REFERENCE_MODULUS_KPA, layer.modulus_kpa);
-        assert_eq!(gelstereo_sim::sensor::REFERENCE_POISSON, layer.poisson);
+        assert_eq!(gel.layer(), gelstereo_tracking::ContactConfig::default().layer);
     }
 }
