@@ -31,7 +31,6 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
     let run = gelstereo(&[
         "track",
         "--quiet",
-        "--no-ply",
         "--out",
         out.to_str().unwrap(),
         sample().to_str().unwrap(),
@@ -73,6 +72,32 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
         z[2].as_f64().unwrap() > 0.9,
         "the gel's normal points away from the cameras: {z}"
     );
+    // The height map of frame 20 (pressed, sliding) in the gel frame: the surface as deep at its
+    // lowest as the truth's largest depth; the .npy holds the float heights.
+    let scale: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("heightmap/scale.json")).unwrap()).unwrap();
+    let (rows, cols) = (
+        scale["rows"].as_u64().unwrap() as usize,
+        scale["cols"].as_u64().unwrap() as usize,
+    );
+    assert_eq!((rows, cols), (89, 89));
+    let file = std::fs::File::open(out.join("heightmap/000020.png")).unwrap();
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    reader.next_frame(&mut buf).unwrap();
+    let lowest = buf
+        .chunks_exact(2)
+        .map(|b| f64::from(u16::from_be_bytes([b[0], b[1]])) / 1e4 - 3.2768)
+        .fold(f64::INFINITY, f64::min);
+    let deepest = truth[20].max_depth_mm.unwrap();
+    assert!(
+        (lowest + deepest).abs() < 0.1,
+        "lowest {lowest} mm, truth's depth {deepest} mm"
+    );
+    let npy = std::fs::read(out.join("heightmap/000020.npy")).unwrap();
+    assert!(npy.starts_with(b"\x93NUMPY") && npy.len() > rows * cols * 4);
 }
 
 #[test]

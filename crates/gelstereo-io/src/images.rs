@@ -132,6 +132,39 @@ pub fn encode_png(
     Ok(out)
 }
 
+/// Encodes 16-bit grey pixels, row by row, as a PNG in memory (a height map's counts).
+pub fn encode_png_gray16(
+    pixels: &[u16],
+    (width, height): (u32, u32),
+) -> std::result::Result<Vec<u8>, png::EncodingError> {
+    let mut out = Vec::with_capacity(pixels.len());
+    let mut encoder = png::Encoder::new(&mut out, width, height);
+    encoder.set_color(png::ColorType::Grayscale);
+    encoder.set_depth(png::BitDepth::Sixteen);
+    let bytes: Vec<u8> = pixels.iter().flat_map(|v| v.to_be_bytes()).collect();
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(&bytes)?;
+    writer.finish()?;
+    Ok(out)
+}
+
+/// Writes `values` (`rows x cols`, row-major) as a NumPy `.npy` array of float32.
+pub fn write_npy_f32(path: &Path, rows: usize, cols: usize, values: Vec<f32>) -> Result<()> {
+    let io = |e: std::io::Error| crate::Error::Io {
+        path: path.to_path_buf(),
+        source: e,
+    };
+    let array = ndarray::Array2::from_shape_vec((rows, cols), values).map_err(|e| {
+        io(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            e.to_string(),
+        ))
+    })?;
+    let file = std::fs::File::create(path).map_err(io)?;
+    ndarray_npy::WriteNpyExt::write_npy(&array, std::io::BufWriter::new(file))
+        .map_err(|e| io(std::io::Error::other(e.to_string())))
+}
+
 /// How many bytes at the end of a file are searched for its format's end marker.
 const END_MARKER_WINDOW_BYTES: u64 = 4096;
 

@@ -10,6 +10,66 @@ use gelstereo_tracking::{ContactFrame, TrackFrame};
 
 use crate::Result;
 
+/// A dense height map of the deformed surface in the gel frame.
+pub struct HeightMap {
+    /// Rows and columns of samples.
+    pub rows: usize,
+    /// Columns of samples.
+    pub cols: usize,
+    /// Sample spacing on the rest surface, mm.
+    pub pixel_mm: f64,
+    /// Gel-frame `[x, y]` of sample (0, 0), mm.
+    pub origin_mm: [f64; 2],
+    /// `z` of the deformed surface, mm, row-major (NaN unknown).
+    pub z_mm: Vec<f32>,
+}
+
+/// The deformed surface's height in the gel frame, sampled `per_pitch` times per marker pitch over
+/// the lattice's rest positions: each marker's `z`, bilinear within each lattice cell whose four
+/// markers are known.
+pub fn height_map(
+    shape: GridShape,
+    contact: &ContactFrame,
+    gel: &crate::GelFrame,
+    per_pitch: usize,
+) -> HeightMap {
+    let (rows, cols) = (usize::from(shape.rows), usize::from(shape.cols));
+    let z: Vec<Option<f64>> = contact
+        .positions_mm
+        .iter()
+        .map(|p| p.map(|p| gel.to_gel(p)[2]))
+        .collect();
+    let (h, w) = ((rows - 1) * per_pitch + 1, (cols - 1) * per_pitch + 1);
+    let mut z_mm = vec![f32::NAN; h * w];
+    for (i, out) in z_mm.iter_mut().enumerate() {
+        let (fr, fc) = (
+            (i / w) as f64 / per_pitch as f64,
+            (i % w) as f64 / per_pitch as f64,
+        );
+        let (r, c) = ((fr as usize).min(rows - 2), (fc as usize).min(cols - 2));
+        let (ar, ac) = (fr - r as f64, fc - c as f64);
+        let at = |rr: usize, cc: usize| z[rr * cols + cc];
+        if let (Some(a), Some(b), Some(cz), Some(d)) =
+            (at(r, c), at(r, c + 1), at(r + 1, c), at(r + 1, c + 1))
+        {
+            let top = a * (1.0 - ac) + b * ac;
+            let bottom = cz * (1.0 - ac) + d * ac;
+            *out = (top * (1.0 - ar) + bottom * ar) as f32;
+        }
+    }
+    let pitch = gel.pitch_mm;
+    HeightMap {
+        rows: h,
+        cols: w,
+        pixel_mm: pitch / per_pitch as f64,
+        origin_mm: [
+            -((cols - 1) as f64) / 2.0 * pitch,
+            -((rows - 1) as f64) / 2.0 * pitch,
+        ],
+        z_mm,
+    }
+}
+
 /// Writes the marker cloud and the deformed mesh of a stereo frame.
 pub(crate) fn write_ply(
     paths: (&Path, &Path),

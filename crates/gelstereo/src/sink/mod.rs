@@ -140,9 +140,10 @@ impl GelSink {
 
 impl Sink for GelSink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
-        let Some((origin, axes)) = frame.pipeline.gel_frame().filter(|_| !self.written) else {
+        let Some(gel) = frame.pipeline.gel_frame().filter(|_| !self.written) else {
             return Ok(());
         };
+        let (origin, axes) = (gel.origin_mm, gel.axes);
         let c = frame.pipeline.contact_config();
         let v = |v: nalgebra::Vector3<f64>| [v.x, v.y, v.z];
         let json = serde_json::json!({
@@ -167,6 +168,92 @@ impl Sink for GelSink {
         file.commit()?;
         self.written = true;
         Ok(())
+    }
+}
+
+/// Samples of a height map per marker pitch.
+const HEIGHT_SAMPLES_PER_PITCH: usize = 4;
+/// A height map PNG's count per mm and the height of count 0 (unknown): counts of 0.1 µm from
+/// −3.2768 mm.
+const HEIGHT_COUNTS_PER_MM: f64 = 1e4;
+const HEIGHT_PNG_OFFSET_MM: f64 = -3.2768;
+
+/// Dense height maps of the deformed gel surface in the gel frame, every Nth stereo frame:
+/// `heightmap/NNNNNN.npy` (float32 mm, NaN unknown) and `heightmap/NNNNNN.png` (16-bit grey,
+/// `z_mm = count / 10000 − 3.2768`, 0 unknown), described by `heightmap/scale.json`.
+pub struct HeightMapSink {
+    folder: Arc<OutputFolder>,
+    every: usize,
+    described: bool,
+}
+
+impl HeightMapSink {
+    /// Writes every `every`th frame (0: none).
+    pub fn new(folder: Arc<OutputFolder>, every: usize) -> Self {
+        Self {
+            folder,
+            every,
+            described: false,
+        }
+    }
+}
+
+impl Sink for HeightMapSink {
+    fn frame(&mut self, frame: &FrameContext) -> Result<()> {
+        let out = frame.output;
+        let (Some(Stages::Stereo(st)), Some(gel)) = (&out.stages, frame.pipeline.gel_frame()) else {
+            return Ok(());
+        };
+        if !every(out.frame, self.every) {
+            return Ok(());
+        }
+        let map = draw::height_map(
+            frame.pipeline.shape(),
+            &st.contact,
+            &gel,
+            HEIGHT_SAMPLES_PER_PITCH,
+        );
+        if !self.described {
+            let json = serde_json::json!({
+                "frame": "gel frame (gel.json): z along the reference surface's normal away from the cameras, origin at its centre",
+                "rows": map.rows,
+                "cols": map.cols,
+                "pixel_mm": map.pixel_mm,
+                "x0_mm": map.origin_mm[0],
+                "y0_mm": map.origin_mm[1],
+                "npy": "float32 z_mm of the deformed surface at (x0 + col * pixel, y0 + row * pixel) of the rest surface; NaN unknown",
+                "png": {"z_mm": "count / 10000 - 3.2768", "unknown": 0},
+            });
+            self.folder.write_atomic("heightmap/scale.json", |p| {
+                let text = serde_json::to_string_pretty(&json).unwrap_or_default() + "\n";
+                std::fs::write(p, text).map_err(file_err(p))
+            })?;
+            self.described = true;
+        }
+        let counts: Vec<u16> = map
+            .z_mm
+            .iter()
+            .map(|z| {
+                if z.is_finite() {
+                    ((f64::from(*z) - HEIGHT_PNG_OFFSET_MM) * HEIGHT_COUNTS_PER_MM)
+                        .round()
+                        .clamp(1.0, 65535.0) as u16
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let size = (map.cols as u32, map.rows as u32);
+        self.folder
+            .write_atomic(&format!("heightmap/{:06}.png", out.frame), |p| {
+                let bytes = images::encode_png_gray16(&counts, size)
+                    .map_err(|e| crate::Error::Invalid(format!("{}: cannot encode: {e}", p.display())))?;
+                std::fs::write(p, bytes).map_err(file_err(p))
+            })?;
+        self.folder
+            .write_atomic(&format!("heightmap/{:06}.npy", out.frame), |p| {
+                Ok(images::write_npy_f32(p, map.rows, map.cols, map.z_mm.clone())?)
+            })
     }
 }
 

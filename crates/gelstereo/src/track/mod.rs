@@ -283,7 +283,7 @@ pub fn sinks(
     options: &SinkOptions,
     stereo: bool,
 ) -> Result<Vec<Box<dyn Sink>>> {
-    use crate::sink::{GelSink, OverlaySink, PlotSink, PlySink, TableSink};
+    use crate::sink::{GelSink, HeightMapSink, OverlaySink, PlotSink, PlySink, TableSink};
     let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
     if options.tables {
         sinks.push(Box::new(TableSink::create(folder)?));
@@ -293,6 +293,7 @@ pub fn sinks(
     }
     if options.ply_every > 0 && stereo {
         sinks.push(Box::new(PlySink::new(folder.clone(), options.ply_every)));
+        sinks.push(Box::new(HeightMapSink::new(folder.clone(), options.ply_every)));
     }
     if options.overlay_every > 0 {
         sinks.push(Box::new(OverlaySink::new(
