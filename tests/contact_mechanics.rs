@@ -96,6 +96,10 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
         (lowest + deepest).abs() < 0.1,
         "lowest {lowest} mm, truth's depth {deepest} mm"
     );
+    // The mesh carries each vertex in the gel frame too.
+    let mesh = std::fs::read(out.join("ply/mesh_000020.ply")).unwrap();
+    let header = String::from_utf8_lossy(&mesh[..mesh.len().min(1000)]).into_owned();
+    assert!(header.contains("property float z_gel_mm"), "{header}");
     let npy = std::fs::read(out.join("heightmap/000020.npy")).unwrap();
     assert!(npy.starts_with(b"\x93NUMPY") && npy.len() > rows * cols * 4);
 }

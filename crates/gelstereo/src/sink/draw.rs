@@ -78,6 +78,7 @@ pub(crate) fn write_ply(
     triangles: &[[u32; 3]],
     contact: &ContactFrame,
     reprojection: &[Option<f64>],
+    gel: &crate::GelFrame,
 ) -> Result<()> {
     let cloud: Vec<MarkerPoint> = shape
         .indices()
@@ -103,6 +104,9 @@ pub(crate) fn write_ply(
         "dZ_mm",
         "pressure_kPa",
         "in_contact",
+        "x_gel_mm",
+        "y_gel_mm",
+        "z_gel_mm",
     ];
     let mut props: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
     for (k, p) in contact.positions_mm.iter().enumerate() {
@@ -110,6 +114,7 @@ pub(crate) fn write_ply(
         vertex_of[k] = mesh.vertices_mm.len() as u32;
         mesh.vertices_mm.push([p.x, p.y, p.z]);
         let d = contact.displacement_mm[k].unwrap_or_default();
+        let in_gel = gel.to_gel(*p);
         let vals = [
             contact.depth_mm[k].unwrap_or(0.0),
             d.norm(),
@@ -118,6 +123,9 @@ pub(crate) fn write_ply(
             d.z,
             contact.traction_kpa.get(k).map_or(0.0, |t| t[2]),
             f64::from(u8::from(contact.in_contact[k])),
+            in_gel[0],
+            in_gel[1],
+            in_gel[2],
         ];
         for (v, list) in vals.iter().zip(props.iter_mut()) {
             list.push(*v as f32);

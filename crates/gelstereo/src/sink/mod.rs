@@ -348,7 +348,7 @@ impl PlySink {
 impl Sink for PlySink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
         let out = frame.output;
-        let Some(Stages::Stereo(st)) = &out.stages else {
+        let (Some(Stages::Stereo(st)), Some(gel)) = (&out.stages, frame.pipeline.gel_frame()) else {
             return Ok(());
         };
         if !every(out.frame, self.every) {
@@ -366,6 +366,7 @@ impl Sink for PlySink {
                     p.surface_triangles(),
                     &st.contact,
                     &st.reprojection_px,
+                    &gel,
                 )
             })
         })
