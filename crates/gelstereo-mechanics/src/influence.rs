@@ -226,20 +226,20 @@ impl Influence {
     /// 2-D forward FFT of a padded row-major plane, leaving it transposed (column-major).
     fn forward(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
         let (nr, nc) = self.size;
-        self.row_fft.process(buf);
+        run_fft(&*self.row_fft, buf, scratch);
         transpose(buf, nr, nc, scratch);
-        buf.copy_from_slice(scratch);
-        self.col_fft.process(buf);
+        buf.copy_from_slice(&scratch[..nr * nc]);
+        run_fft(&*self.col_fft, buf, scratch);
     }
 
     /// Inverse of [`forward`](Self::forward) without the 1 / size scale: column-major in,
     /// row-major out.
     fn inverse(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
         let (nr, nc) = self.size;
-        self.col_ifft.process(buf);
+        run_fft(&*self.col_ifft, buf, scratch);
         transpose(buf, nc, nr, scratch);
-        buf.copy_from_slice(scratch);
-        self.row_ifft.process(buf);
+        buf.copy_from_slice(&scratch[..nr * nc]);
+        run_fft(&*self.row_ifft, buf, scratch);
     }
 
     /// The padded grid's transform of the stencils (offsets wrapped around), transposed layout.
@@ -343,6 +343,16 @@ fn fft_size(n: usize) -> usize {
             m == 1
         })
         .unwrap_or(n)
+}
+
+/// Every line of `buf` through `fft`, with its scratch space taken from `scratch` (grown once, not
+/// allocated per call: the lattice's FFTs are small and run tens of times a frame).
+fn run_fft(fft: &dyn Fft<f64>, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
+    let need = fft.get_inplace_scratch_len();
+    if scratch.len() < need {
+        scratch.resize(need, Complex64::new(0.0, 0.0));
+    }
+    fft.process_with_scratch(buf, &mut scratch[..need]);
 }
 
 fn transpose(src: &[Complex64], rows: usize, cols: usize, dst: &mut Vec<Complex64>) {
