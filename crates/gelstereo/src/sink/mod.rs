@@ -200,13 +200,10 @@ impl HeightMapSink {
 
 impl Sink for HeightMapSink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
-        let out = frame.output;
-        let (Some(Stages::Stereo(st)), Some(gel)) = (&out.stages, frame.pipeline.gel_frame()) else {
+        let Some((st, gel)) = due_stereo(frame, self.every) else {
             return Ok(());
         };
-        if !every(out.frame, self.every) {
-            return Ok(());
-        }
+        let out = frame.output;
         let map = draw::height_map(
             frame.pipeline.shape(),
             &st.contact,
@@ -326,6 +323,18 @@ impl<W: Write> Sink for JsonlSink<W> {
     }
 }
 
+/// The stereo stages and the gel frame of `frame` when it is one of every `every_n`; `None` for
+/// other frames, mono sensors and frames before the reference.
+fn due_stereo<'a>(
+    frame: &'a FrameContext,
+    every_n: usize,
+) -> Option<(&'a gelstereo_tracking::StereoFrame, crate::GelFrame)> {
+    match (&frame.output.stages, frame.pipeline.gel_frame()) {
+        (Some(Stages::Stereo(st)), Some(gel)) if every(frame.output.frame, every_n) => Some((st, gel)),
+        _ => None,
+    }
+}
+
 /// Whether frame `frame` is one of every `every` (0: none).
 fn every(frame: u32, every: usize) -> bool {
     every > 0 && (frame as usize).is_multiple_of(every)
@@ -347,13 +356,10 @@ impl PlySink {
 
 impl Sink for PlySink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
-        let out = frame.output;
-        let (Some(Stages::Stereo(st)), Some(gel)) = (&out.stages, frame.pipeline.gel_frame()) else {
+        let Some((st, gel)) = due_stereo(frame, self.every) else {
             return Ok(());
         };
-        if !every(out.frame, self.every) {
-            return Ok(());
-        }
+        let out = frame.output;
         let p = frame.pipeline;
         let cloud = format!("ply/cloud_{:06}.ply", out.frame);
         let mesh = format!("ply/mesh_{:06}.ply", out.frame);
