@@ -356,7 +356,8 @@ impl ReferenceSurface {
             .then(|| weighted_centroid(&positions, &pressure, 0.0))
             .flatten();
         // Material centroid of the indentation: reference positions weighted by the smoothed depth
-        // above half its maximum (the depth is far less noisy than the deconvolved load).
+        // above half its maximum (the indentation's pattern, which a sliding contact drags across
+        // the gel).
         let material_centroid = contact
             .then(|| weighted_centroid(&self.positions_mm, &smooth, 0.5 * smooth_max))
             .flatten();

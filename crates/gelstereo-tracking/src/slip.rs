@@ -64,10 +64,8 @@ pub struct SlipConfig {
     /// change on the train / val splits or the seed-303 / 404 sets, exact, noisy or from images.
     pub shear_noise_factor: f64,
     /// The shear, its plateau and the twist are measured on the contact markers whose 3 x 3 mean
-    /// depth exceeds this fraction of its maximum (0.3). From images the deconvolved load's noise
-    /// puts markers away from the indentation into the contact, whose near-zero shear dilutes
-    /// the contact's (train `exp_0058`: 0.02-0.05 mm of mean shear from images against 0.17 mm
-    /// on exact 3-D, a slide never seen); on exact 3-D the load's contact lies within that core.
+    /// depth exceeds this fraction of its maximum (0.3). From images, noise can put markers away
+    /// from the indentation into the contact, whose near-zero shear dilutes the contact's.
     /// Chosen among 0.2-0.5 on the train / val splits and the seed-303 / 404 sets (docs/tracking.md).
     pub core_depth_fraction: f64,
     /// ... and whose pressure exceeds this fraction of its largest (0.35).
