@@ -142,7 +142,6 @@ mod tests {
             &crate::inverse::Tractions {
                 traction_kpa: sol.pressure_kpa.iter().map(|&p| [0.0, 0.0, p]).collect(),
                 iterations: 0,
-                misfit_mm: 0.0,
                 noise_pressure_kpa: 0.0,
                 selected_kpa: sol.pressure_kpa.clone(),
             },

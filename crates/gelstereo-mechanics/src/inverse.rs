@@ -122,8 +122,6 @@ pub struct Tractions {
     pub traction_kpa: Vec<Vec3>,
     /// Iterations used.
     pub iterations: usize,
-    /// RMS misfit of the displacement over the markers, mm.
-    pub misfit_mm: f64,
     /// The pressure the data's noise alone can put on a cell, kPa: cells above it are in contact.
     pub noise_pressure_kpa: f64,
     /// The pressure per cell of the first, penalised fit, kPa: it selects the cells in contact
@@ -215,17 +213,9 @@ impl InverseSolver {
         self.previous.copy_from_slice(&z);
         self.previous_dual.copy_from_slice(&w);
         iterations += self.admm(&mut z, &mut w, &data, 0.0, Some(&support));
-        let mut fitted = vec![[0.0; 3]; n];
-        self.op.apply(&z, &mut fitted, &mut self.work);
-        let sq: f64 = fitted
-            .iter()
-            .zip(&u)
-            .map(|(f, u)| (0..3).map(|c| (f[c] - u[c]).powi(2)).sum::<f64>())
-            .sum();
         Ok(Tractions {
             traction_kpa: z,
             iterations,
-            misfit_mm: (sq / (3 * n) as f64).sqrt(),
             noise_pressure_kpa: noise_pressure,
             selected_kpa,
         })
@@ -493,7 +483,6 @@ mod tests {
                 &Tractions {
                     traction_kpa: truth.pressure_kpa.iter().map(|&p| [0.0, 0.0, p]).collect(),
                     iterations: 0,
-                    misfit_mm: 0.0,
                     noise_pressure_kpa: 0.0,
                     selected_kpa: truth.pressure_kpa.clone(),
                 },
