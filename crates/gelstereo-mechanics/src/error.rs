@@ -25,5 +25,14 @@ pub enum Error {
     },
 }
 
+/// The error of a fact or setting `field` that is not `expected`.
+pub(crate) fn invalid(field: &'static str, expected: &str, found: impl std::fmt::Display) -> Error {
+    Error::Invalid {
+        field,
+        expected: expected.to_owned(),
+        found: found.to_string(),
+    }
+}
+
 /// Result of this crate.
 pub type Result<T> = std::result::Result<T, Error>;

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use rustfft::num_complex::Complex64;
 use rustfft::{Fft, FftPlanner};
 
-use crate::error::{Error, Result};
+use crate::error::{Result, invalid};
 use crate::layer::Layer;
 
 /// The finer of the two grids the stencils are computed on, in grid steps per lattice step.
@@ -72,18 +72,18 @@ impl Influence {
     pub fn new(layer: &Layer, rows: usize, cols: usize, spacing_mm: f64) -> Result<Self> {
         layer.validate()?;
         if rows == 0 || cols == 0 || rows > 4096 || cols > 4096 {
-            return Err(Error::Invalid {
-                field: "lattice",
-                expected: "1 to 4096 rows and columns".into(),
-                found: format!("{rows} x {cols}"),
-            });
+            return Err(invalid(
+                "lattice",
+                "1 to 4096 rows and columns",
+                format!("{rows} x {cols}"),
+            ));
         }
         if !(spacing_mm.is_finite() && spacing_mm > 0.0) {
-            return Err(Error::Invalid {
-                field: "pitch_mm",
-                expected: "a positive, finite lattice pitch in mm".into(),
-                found: format!("{spacing_mm}"),
-            });
+            return Err(invalid(
+                "pitch_mm",
+                "a positive, finite lattice pitch in mm",
+                spacing_mm,
+            ));
         }
         let radius = stencil_radius(layer, spacing_mm);
         let fine = stencils(layer, spacing_mm, radius, OVERSAMPLING);

@@ -11,7 +11,7 @@
 //! the cone, a projection per cell; warm-started from the previous frame it needs few
 //! iterations.
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, invalid};
 use rustfft::num_complex::Complex64;
 
 use crate::influence::{Influence, Matrix3, Vec3, Workspace};
@@ -51,39 +51,23 @@ impl InverseConfig {
     /// Checks the settings' ranges.
     pub fn validate(&self) -> Result<()> {
         if !(self.friction_bound.is_finite() && self.friction_bound > 0.0) {
-            return Err(Error::Invalid {
-                field: "friction_bound",
-                expected: "a positive ratio".into(),
-                found: format!("{}", self.friction_bound),
-            });
+            return Err(invalid("friction_bound", "a positive ratio", self.friction_bound));
         }
         if !(1..=100_000).contains(&self.max_iterations) {
-            return Err(Error::Invalid {
-                field: "max_iterations",
-                expected: "1 to 100000".into(),
-                found: format!("{}", self.max_iterations),
-            });
+            return Err(invalid("max_iterations", "1 to 100000", self.max_iterations));
         }
         if !(self.penalty.is_finite() && self.penalty > 0.0) {
-            return Err(Error::Invalid {
-                field: "penalty",
-                expected: "a positive fraction".into(),
-                found: format!("{}", self.penalty),
-            });
+            return Err(invalid("penalty", "a positive fraction", self.penalty));
         }
         if !(self.sparsity.is_finite() && self.sparsity >= 0.0) {
-            return Err(Error::Invalid {
-                field: "sparsity",
-                expected: "a non-negative number of standard deviations".into(),
-                found: format!("{}", self.sparsity),
-            });
+            return Err(invalid(
+                "sparsity",
+                "a non-negative number of standard deviations",
+                self.sparsity,
+            ));
         }
         if !(self.tolerance.is_finite() && self.tolerance > 0.0) {
-            return Err(Error::Invalid {
-                field: "tolerance",
-                expected: "a positive fraction".into(),
-                found: format!("{}", self.tolerance),
-            });
+            return Err(invalid("tolerance", "a positive fraction", self.tolerance));
         }
         Ok(())
     }

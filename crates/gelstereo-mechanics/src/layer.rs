@@ -28,7 +28,7 @@
 //! positive in compression; the traction `τ` is what the object exerts on the gel. Units: mm and
 //! kPa, so a compliance is in mm / kPa per unit of transformed traction.
 
-use crate::error::{Error, Result};
+use crate::error::{Result, invalid};
 
 /// The elastic layer's facts: what the contact mechanics needs of the gel.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -57,21 +57,13 @@ impl Layer {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err(Error::Invalid {
-                    field,
-                    expected: format!("a positive, finite {unit}"),
-                    found: format!("{v}"),
-                })
+                Err(invalid(field, &format!("a positive, finite {unit}"), v))
             }
         };
         positive("thickness_mm", self.thickness_mm, "thickness in mm")?;
         positive("modulus_kpa", self.modulus_kpa, "Young's modulus in kPa")?;
         if !(self.poisson.is_finite() && (0.0..0.5).contains(&self.poisson)) {
-            return Err(Error::Invalid {
-                field: "poisson",
-                expected: "a Poisson ratio in [0, 0.5)".into(),
-                found: format!("{}", self.poisson),
-            });
+            return Err(invalid("poisson", "a Poisson ratio in [0, 0.5)", self.poisson));
         }
         Ok(())
     }
