@@ -140,7 +140,10 @@ impl GelSink {
 
 impl Sink for GelSink {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
-        let Some(gel) = frame.pipeline.gel_frame().filter(|_| !self.written) else {
+        if self.written {
+            return Ok(());
+        }
+        let Some(gel) = frame.pipeline.gel_frame() else {
             return Ok(());
         };
         let (origin, axes) = (gel.origin_mm, gel.axes);
@@ -329,8 +332,11 @@ fn due_stereo<'a>(
     frame: &'a FrameContext,
     every_n: usize,
 ) -> Option<(&'a gelstereo_tracking::StereoFrame, crate::GelFrame)> {
-    match (&frame.output.stages, frame.pipeline.gel_frame()) {
-        (Some(Stages::Stereo(st)), Some(gel)) if every(frame.output.frame, every_n) => Some((st, gel)),
+    if !every(frame.output.frame, every_n) {
+        return None;
+    }
+    match &frame.output.stages {
+        Some(Stages::Stereo(st)) => Some((st, frame.pipeline.gel_frame()?)),
         _ => None,
     }
 }
