@@ -186,3 +186,58 @@ fn bad_gel_facts_are_refused_by_name() {
         assert!(!out.exists(), "{flag} {value}: an output folder was made");
     }
 }
+
+/// The first frame in gross slip.
+fn gross_onset(frames: &[FrameSummary]) -> Option<usize> {
+    frames.iter().position(|f| f.slip == gelstereo_core::SlipState::GrossSlip)
+}
+
+#[test]
+fn a_sliding_flat_punch_is_flagged_gross_within_a_frame_of_its_onset() {
+    // A flat punch (a singular pressure at its rim, the case a kinematic slip rule flags early or
+    // not at all) pressed, sheared through partial slip and slid, simulated by the bonded layer.
+    let dir = tempfile::tempdir().unwrap();
+    let sim = dir.path().join("sim");
+    let made = gelstereo(&[
+        "simulate",
+        "--quiet",
+        "--out",
+        sim.to_str().unwrap(),
+        "--experiments",
+        "1",
+        "--frames-per-experiment",
+        "30",
+        "--seed",
+        "2",
+        "--randomization",
+        "off",
+        "--indenter",
+        "flat_cylinder",
+        "--motion",
+        "press-slide",
+    ]);
+    assert!(made.status.success(), "{}", text(&made));
+    let rec = sim.join("train/exp_0000");
+    let meta = std::fs::read_to_string(rec.join("meta.json")).unwrap();
+    assert!(meta.contains("\"flat_cylinder\"") && meta.contains("\"press_slide\""), "{meta}");
+    let out = dir.path().join("out");
+    let run = gelstereo(&["track", "--quiet", "--out", out.to_str().unwrap(), rec.to_str().unwrap()]);
+    assert!(run.status.success(), "{}", text(&run));
+    let truth = frames(&rec.join("frames.csv"));
+    let est = frames(&out.join("frames.csv"));
+    let truth_onset = gross_onset(&truth).expect("the simulated slide reaches gross slip");
+    assert!(
+        truth[..truth_onset].iter().any(|f| f.slip == gelstereo_core::SlipState::PartialSlip),
+        "the slide passes through partial slip first"
+    );
+    let onset = gross_onset(&est).expect("gross slip flagged");
+    assert!(
+        onset.abs_diff(truth_onset) <= 1,
+        "gross slip flagged at frame {onset}, truth {truth_onset}"
+    );
+    let first_contact = truth.iter().position(|f| f.contact).unwrap();
+    assert!(
+        est[..first_contact].iter().all(|f| f.slip == gelstereo_core::SlipState::NoContact),
+        "slip before contact"
+    );
+}

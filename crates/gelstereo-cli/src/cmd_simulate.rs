@@ -42,6 +42,15 @@ pub struct Args {
     /// dataset of these arguments, for a test set without simulating the training data.
     #[arg(long, value_name = "SPLIT")]
     split: Option<String>,
+    /// Every experiment presses this indenter (its size is still drawn): sphere, flat_cylinder,
+    /// side_cylinder, cube_edge, cube_corner, cone, prism, hexagon, star, cross, nut, groove, text,
+    /// bumpy or fingertip. Default: the experiments cycle through all of them.
+    #[arg(long, value_name = "SHAPE")]
+    indenter: Option<String>,
+    /// Every experiment makes this motion: press, press-slide, press-twist or press-slide-twist.
+    /// Default: drawn per experiment.
+    #[arg(long, value_name = "KIND")]
+    motion: Option<String>,
     /// Instead of gel recordings, write a checkerboard calibration set seen through the sensor's
     /// cameras: the board's INNER corners, COLSxROWS (as `gelstereo calibrate --board`).
     #[arg(long, value_name = "COLSxROWS")]
@@ -90,6 +99,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         sensor,
         randomization,
         only_split: args.split.as_deref().map(str::parse).transpose()?,
+        indenter: args.indenter.clone(),
+        motion: args.motion.as_deref().map(str::parse).transpose()?,
     };
     config.validate()?;
     let planned = gelstereo_sim::dataset::plan(&config)?;

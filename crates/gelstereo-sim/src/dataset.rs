@@ -25,7 +25,7 @@ use crate::appearance::Appearance;
 use crate::appearance::random_housing;
 use crate::error::{Error, Result, io_err};
 use crate::indenter::{Indenter, SHAPES};
-use crate::motion::Script;
+use crate::motion::{MotionKind, Script};
 use crate::physics::{Layer, SurfaceGrid, deform};
 use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
 use crate::sensor::{Sensor, SensorSpec};
@@ -108,6 +108,11 @@ pub struct DatasetConfig {
     /// Write only this split's experiments (the same bytes as in the whole dataset); all when
     /// `None`.
     pub only_split: Option<Split>,
+    /// Every experiment uses this indenter shape (one of [`SHAPES`]) instead of cycling through
+    /// them; its size is still drawn.
+    pub indenter: Option<String>,
+    /// Every experiment makes this motion instead of a drawn one.
+    pub motion: Option<MotionKind>,
 }
 
 impl DatasetConfig {
@@ -120,6 +125,8 @@ impl DatasetConfig {
             sensor: SensorSpec::reference(),
             randomization: Randomization::Full,
             only_split: None,
+            indenter: None,
+            motion: None,
         }
     }
 
@@ -137,6 +144,15 @@ impl DatasetConfig {
                 name: "frames_per_experiment",
                 value: self.frames_per_experiment.to_string(),
                 expected: "2 to 100000 (frame 0 is the no-contact reference)".into(),
+            });
+        }
+        if let Some(name) = &self.indenter
+            && !SHAPES.contains(&name.as_str())
+        {
+            return Err(Error::Parameter {
+                name: "indenter",
+                value: name.clone(),
+                expected: format!("one of {}", SHAPES.join(", ")),
             });
         }
         self.sensor.validate("sensor")
@@ -262,7 +278,10 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 .max(sensor.gel.grid_spacing_mm / 0.4)
                 .clamp(0.3, 3.0);
             let shapes: &[&str] = if rims { &RIM_SHAPES } else { &SHAPES };
-            let shape = shapes[(index as usize + shape_offset) % shapes.len()];
+            let shape = config
+                .indenter
+                .as_deref()
+                .unwrap_or(shapes[(index as usize + shape_offset) % shapes.len()]);
             let indenter = Indenter::random(shape, scale, &mut rng).unwrap_or(Indenter::Sphere {
                 radius_mm: 4.0 * scale,
             });
@@ -271,6 +290,7 @@ pub fn plan(config: &DatasetConfig) -> Result<Vec<Experiment>> {
                 config.frames_per_experiment,
                 0.3 * width,
                 scale,
+                config.motion,
                 &mut rng,
             );
             if rims {

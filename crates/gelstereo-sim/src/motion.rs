@@ -20,6 +20,29 @@ pub enum MotionKind {
     PressSlideTwist,
 }
 
+impl MotionKind {
+    /// The names [`MotionKind::from_str`](std::str::FromStr) takes, as written in `meta.json`.
+    pub const NAMES: [&'static str; 4] = ["press", "press_slide", "press_twist", "press_slide_twist"];
+}
+
+impl std::str::FromStr for MotionKind {
+    type Err = crate::error::Error;
+    /// Accepts the `meta.json` names, with `-` for `_` as on a command line.
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s.replace('-', "_").as_str() {
+            "press" => Ok(Self::Press),
+            "press_slide" => Ok(Self::PressSlide),
+            "press_twist" => Ok(Self::PressTwist),
+            "press_slide_twist" => Ok(Self::PressSlideTwist),
+            _ => Err(crate::error::Error::Parameter {
+                name: "motion",
+                value: s.to_owned(),
+                expected: format!("one of {}", Self::NAMES.join(", ")),
+            }),
+        }
+    }
+}
+
 /// One experiment's motion: an indenter, where it touches down and how it moves afterwards.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Script {
@@ -66,13 +89,23 @@ fn smoothstep(t: f64) -> f64 {
 impl Script {
     /// A random script for `indenter` over `frames` frames, touching down within `reach_mm` of the
     /// gel centre; depths and slides are multiplied by `scale` (1 for a gel about 18 mm wide).
-    pub fn random(indenter: Indenter, frames: u32, reach_mm: f64, scale: f64, rng: &mut impl Rng) -> Self {
-        let kind = match rng.random_range(0..10) {
+    /// `kind` fixes the motion; the draw is made either way, so that the other draws of a seed do
+    /// not depend on it.
+    pub fn random(
+        indenter: Indenter,
+        frames: u32,
+        reach_mm: f64,
+        scale: f64,
+        kind: Option<MotionKind>,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let drawn = match rng.random_range(0..10) {
             0..=1 => MotionKind::Press,
             2..=6 => MotionKind::PressSlide,
             7..=8 => MotionKind::PressTwist,
             _ => MotionKind::PressSlideTwist,
         };
+        let kind = kind.unwrap_or(drawn);
         let (dlo, dhi) = indenter.depth_range_mm();
         let max_depth_mm = rng.random_range(dlo..dhi) * scale;
         let r = reach_mm * rng.random_range(0.0f64..1.0).sqrt();

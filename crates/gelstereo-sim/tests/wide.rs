@@ -262,3 +262,22 @@ fn rims_squeeze_the_lattice_without_folding_it() {
         "markers {closest} pitch apart: the gel folded over itself"
     );
 }
+
+#[test]
+fn a_chosen_indenter_and_motion_are_used_by_every_experiment_and_unknown_names_are_refused() {
+    use gelstereo_sim::MotionKind;
+    use gelstereo_sim::dataset::{DatasetConfig, plan};
+    let mut config = DatasetConfig::new(12, 10, 5);
+    let drawn = plan(&config).unwrap();
+    config.indenter = Some("flat_cylinder".into());
+    config.motion = Some("press-slide".parse().unwrap());
+    let chosen = plan(&config).unwrap();
+    assert!(chosen.iter().all(|e| e.script.indenter.name() == "flat_cylinder"));
+    assert!(chosen.iter().all(|e| e.script.kind == MotionKind::PressSlide));
+    // The other draws of the seed are those of the unconstrained plan.
+    assert!(drawn.iter().zip(&chosen).all(|(a, b)| a.appearance == b.appearance && a.split == b.split));
+    config.indenter = Some("teapot".into());
+    let err = plan(&config).unwrap_err().to_string();
+    assert!(err.contains("indenter") && err.contains("teapot") && err.contains("flat_cylinder"), "{err}");
+    assert!("slide-press".parse::<MotionKind>().unwrap_err().to_string().contains("press_slide"));
+}

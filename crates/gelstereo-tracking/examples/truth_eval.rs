@@ -45,6 +45,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     override_from_env("CORE_DEPTH", &mut slip_cfg.core_depth_fraction);
     override_from_env("TURN_RATIO", &mut slip_cfg.twist_turn_ratio);
     override_from_env("TWIST_GROSS", &mut slip_cfg.twist_gross_fraction);
+    override_from_env("CONE_LOAD", &mut slip_cfg.cone_load_fraction);
     let (mut area_ok, mut depth_ok, mut cent_ok, mut cmp) = (0usize, 0usize, 0usize, 0usize);
     let mut conf = [[0usize; 4]; 4];
     let (mut tp, mut fp, mut fneg) = (0usize, 0usize, 0usize);
