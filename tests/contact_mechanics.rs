@@ -96,10 +96,41 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
         (lowest + deepest).abs() < 0.1,
         "lowest {lowest} mm, truth's depth {deepest} mm"
     );
-    // The mesh carries each vertex in the gel frame too.
-    let mesh = std::fs::read(out.join("ply/mesh_000020.ply")).unwrap();
-    let header = String::from_utf8_lossy(&mesh[..mesh.len().min(1000)]).into_owned();
-    assert!(header.contains("property float z_gel_mm"), "{header}");
+    // The PLYs are in the gel frame: the reference surface flat at z = 0 around the origin, the
+    // pressed surface as deep as the truth.
+    let cloud =
+        |n: usize| gelstereo_io::ply::read_marker_cloud(&out.join(format!("ply/cloud_{n:06}.ply"))).unwrap();
+    let rest = cloud(0);
+    let mean = |k: usize| rest.iter().map(|p| p.position_mm[k]).sum::<f64>() / rest.len() as f64;
+    assert!(
+        mean(0).abs() < 0.05 && mean(1).abs() < 0.05,
+        "centre ({}, {})",
+        mean(0),
+        mean(1)
+    );
+    // (Within the 3-D noise of the reference frame's markers.)
+    assert!(
+        rest.iter().all(|p| p.position_mm[2].abs() < 0.1),
+        "the reference surface is flat at z = 0"
+    );
+    let pressed = cloud(20)
+        .iter()
+        .map(|p| p.position_mm[2])
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        (pressed + deepest).abs() < 0.1,
+        "lowest marker {pressed} mm, truth's depth {deepest} mm"
+    );
+    // markers.csv carries the gel frame beside the camera frame.
+    let table = CsvTable::read(&out.join("markers.csv")).unwrap();
+    let dz_gel = (0..table.len())
+        .filter(|&r| table.value::<u32>(r, "frame", "").unwrap() == 20)
+        .filter_map(|r| table.opt_f64(r, "dZ_gel_mm").unwrap())
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        (dz_gel + deepest).abs() < 0.1,
+        "dZ_gel_mm {dz_gel}, truth's depth {deepest} mm"
+    );
     let npy = std::fs::read(out.join("heightmap/000020.npy")).unwrap();
     assert!(npy.starts_with(b"\x93NUMPY") && npy.len() > rows * cols * 4);
 }
@@ -189,7 +220,9 @@ fn bad_gel_facts_are_refused_by_name() {
 
 /// The first frame in gross slip.
 fn gross_onset(frames: &[FrameSummary]) -> Option<usize> {
-    frames.iter().position(|f| f.slip == gelstereo_core::SlipState::GrossSlip)
+    frames
+        .iter()
+        .position(|f| f.slip == gelstereo_core::SlipState::GrossSlip)
 }
 
 #[test]
@@ -219,15 +252,26 @@ fn a_sliding_flat_punch_is_flagged_gross_within_a_frame_of_its_onset() {
     assert!(made.status.success(), "{}", text(&made));
     let rec = sim.join("train/exp_0000");
     let meta = std::fs::read_to_string(rec.join("meta.json")).unwrap();
-    assert!(meta.contains("\"flat_cylinder\"") && meta.contains("\"press_slide\""), "{meta}");
+    assert!(
+        meta.contains("\"flat_cylinder\"") && meta.contains("\"press_slide\""),
+        "{meta}"
+    );
     let out = dir.path().join("out");
-    let run = gelstereo(&["track", "--quiet", "--out", out.to_str().unwrap(), rec.to_str().unwrap()]);
+    let run = gelstereo(&[
+        "track",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
+        rec.to_str().unwrap(),
+    ]);
     assert!(run.status.success(), "{}", text(&run));
     let truth = frames(&rec.join("frames.csv"));
     let est = frames(&out.join("frames.csv"));
     let truth_onset = gross_onset(&truth).expect("the simulated slide reaches gross slip");
     assert!(
-        truth[..truth_onset].iter().any(|f| f.slip == gelstereo_core::SlipState::PartialSlip),
+        truth[..truth_onset]
+            .iter()
+            .any(|f| f.slip == gelstereo_core::SlipState::PartialSlip),
         "the slide passes through partial slip first"
     );
     let onset = gross_onset(&est).expect("gross slip flagged");
@@ -237,7 +281,9 @@ fn a_sliding_flat_punch_is_flagged_gross_within_a_frame_of_its_onset() {
     );
     let first_contact = truth.iter().position(|f| f.contact).unwrap();
     assert!(
-        est[..first_contact].iter().all(|f| f.slip == gelstereo_core::SlipState::NoContact),
+        est[..first_contact]
+            .iter()
+            .all(|f| f.slip == gelstereo_core::SlipState::NoContact),
         "slip before contact"
     );
 }

@@ -6,6 +6,7 @@
 
 mod common;
 
+use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -243,7 +244,10 @@ fn long_recording(dir: &Path, n: usize) -> PathBuf {
 fn table_frames(out: &Path) -> (BTreeMap<u32, usize>, BTreeSet<u32>) {
     let markers = std::fs::read_to_string(out.join("markers.csv")).unwrap();
     let frames = std::fs::read_to_string(out.join("frames.csv")).unwrap();
-    for (name, text, cells) in [("markers.csv", &markers, 17), ("frames.csv", &frames, 13)] {
+    for (name, text, cells) in [
+        ("markers.csv", &markers, MARKER_COLUMNS.len()),
+        ("frames.csv", &frames, FRAME_COLUMNS.len() + 2),
+    ] {
         assert!(text.ends_with('\n'), "{name} ends mid-line");
         for line in text.lines() {
             assert_eq!(line.split(',').count(), cells, "{name}: cut line '{line}'");

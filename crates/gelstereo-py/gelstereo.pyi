@@ -49,6 +49,20 @@ class Markers(TypedDict):
     dX_mm: npt.NDArray[np.float64]
     dY_mm: npt.NDArray[np.float64]
     dZ_mm: npt.NDArray[np.float64]
+    pressure_kPa: npt.NDArray[np.float64]
+    """Contact pressure on the marker's cell, kPa (NaN where the contact mechanics did not run)."""
+    in_contact: npt.NDArray[np.bool_]
+    slipping: npt.NDArray[np.bool_]
+    """The marker's traction lies on the friction cone."""
+    X_gel_mm: npt.NDArray[np.float64]
+    """Position in the gel frame (origin at the centre of the reference surface, z the gel's normal
+    away from the cameras), mm; the same for Y_gel_mm, Z_gel_mm."""
+    Y_gel_mm: npt.NDArray[np.float64]
+    Z_gel_mm: npt.NDArray[np.float64]
+    dX_gel_mm: npt.NDArray[np.float64]
+    """Displacement in the gel frame, mm (dZ_gel_mm < 0 where the gel is pressed in)."""
+    dY_gel_mm: npt.NDArray[np.float64]
+    dZ_gel_mm: npt.NDArray[np.float64]
 
 class Contact:
     """The contact of one frame."""
@@ -62,6 +76,12 @@ class Contact:
     """Contact centroid (X, Y) in the left camera frame, mm; None without contact."""
     region: npt.NDArray[np.int64]
     """(K, 2) array of the (row, col) ids of the markers in contact."""
+    force_n: float
+    """Total normal force on the gel, N (0 without contact; NaN for a mono sensor)."""
+    shear_n: Tuple[float, float]
+    """Tangential force along the gel frame's x and y, N."""
+    torque_nmm: float
+    """Torque of the shear about the normal through the pressure centroid, N mm."""
 
 class Frame:
     """One processed frame."""

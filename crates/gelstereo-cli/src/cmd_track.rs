@@ -91,6 +91,11 @@ pub struct Args {
     /// Do not write PLY files (as --ply-every 0).
     #[arg(long)]
     no_ply: bool,
+    /// Coordinates of the PLY files: gel (origin at the centre of the reference surface, z the
+    /// gel's normal away from the cameras; the transform is in gel.json) or camera (the left
+    /// camera's frame, as markers.csv's X_mm, Y_mm, Z_mm).
+    #[arg(long, default_value = "gel", value_name = "FRAME")]
+    ply_frame: gelstereo_io::ply::CoordinateFrame,
     /// Length factor of the displacement arrows in the overlays.
     #[arg(long, default_value_t = 3.0)]
     arrow_scale: f64,
@@ -150,6 +155,7 @@ impl Args {
     fn sink_options(&self) -> SinkOptions {
         SinkOptions {
             ply_every: if self.no_ply { 0 } else { self.ply_every },
+            ply_frame: self.ply_frame,
             overlay_every: self.overlay_every,
             arrow_scale: self.arrow_scale,
             ..SinkOptions::default()

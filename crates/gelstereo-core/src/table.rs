@@ -9,7 +9,7 @@ use std::path::Path;
 use crate::{Error, GridIndex, MarkerStatus, Point2, Result, SlipState};
 
 /// Columns of `markers.csv`, in order.
-pub const MARKER_COLUMNS: [&str; 17] = [
+pub const MARKER_COLUMNS: [&str; 23] = [
     "frame",
     "row",
     "col",
@@ -27,6 +27,12 @@ pub const MARKER_COLUMNS: [&str; 17] = [
     "pressure_kPa",
     "in_contact",
     "slipping",
+    "X_gel_mm",
+    "Y_gel_mm",
+    "Z_gel_mm",
+    "dX_gel_mm",
+    "dY_gel_mm",
+    "dZ_gel_mm",
 ];
 
 /// Columns of `frames.csv`, in order.
@@ -67,6 +73,13 @@ pub struct MarkerRecord {
     pub in_contact: Option<bool>,
     /// Whether the marker slips against the object.
     pub slipping: Option<bool>,
+    /// 3-D position in the gel frame (origin at the centre of the reference surface, x along the
+    /// lattice's columns, y along its rows, z the surface's normal away from the cameras), mm;
+    /// empty where no gel frame is known (ground truth, single-frame reconstructions, mono).
+    pub gel_position_mm: Option<[f64; 3]>,
+    /// 3-D displacement in the gel frame, mm: `[dx, dy]` the shear, `dz` negative where the gel is
+    /// pressed in.
+    pub gel_displacement_mm: Option<[f64; 3]>,
 }
 
 /// One row of `frames.csv`: the contact summary of one frame.
@@ -114,7 +127,7 @@ fn push_opt(out: &mut String, v: Option<f64>) {
 }
 
 impl MarkerRecord {
-    /// Appends this row's 17 cells (no newline) in [`MARKER_COLUMNS`] order.
+    /// Appends this row's 23 cells (no newline) in [`MARKER_COLUMNS`] order.
     pub fn write_csv(&self, out: &mut String) {
         let _ = write!(out, "{},{},{}", self.frame, self.index.row, self.index.col);
         for p in [self.left_px, self.right_px] {
@@ -133,6 +146,11 @@ impl MarkerRecord {
         push_opt(out, self.pressure_kpa);
         push_flag(out, self.in_contact);
         push_flag(out, self.slipping);
+        for v in [self.gel_position_mm, self.gel_displacement_mm] {
+            for k in 0..3 {
+                push_opt(out, v.map(|v| v[k]));
+            }
+        }
     }
 
     /// Reads the row `row` of `table`.
@@ -143,18 +161,17 @@ impl MarkerRecord {
                 _ => None,
             })
         };
+        // The gel-frame columns are newer than the others: tables without them still read.
         let vec3 = |names: [&str; 3]| -> Result<Option<[f64; 3]>> {
             let [a, b, c] = names;
-            Ok(
-                match (
-                    table.opt_f64(row, a)?,
-                    table.opt_f64(row, b)?,
-                    table.opt_f64(row, c)?,
-                ) {
-                    (Some(a), Some(b), Some(c)) => Some([a, b, c]),
-                    _ => None,
-                },
-            )
+            let cell = |name: &str| match name.contains("_gel_") {
+                true => table.opt_f64_if_present(row, name),
+                false => table.opt_f64(row, name),
+            };
+            Ok(match (cell(a)?, cell(b)?, cell(c)?) {
+                (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+                _ => None,
+            })
         };
         Ok(Self {
             frame: table.value(row, "frame", "a frame number")?,
@@ -173,6 +190,8 @@ impl MarkerRecord {
             pressure_kpa: table.opt_f64_if_present(row, "pressure_kPa")?,
             in_contact: table.opt_flag_if_present(row, "in_contact")?,
             slipping: table.opt_flag_if_present(row, "slipping")?,
+            gel_position_mm: vec3(["X_gel_mm", "Y_gel_mm", "Z_gel_mm"])?,
+            gel_displacement_mm: vec3(["dX_gel_mm", "dY_gel_mm", "dZ_gel_mm"])?,
         })
     }
 }
@@ -394,6 +413,8 @@ mod tests {
             pressure_kpa: Some(12.25),
             in_contact: Some(true),
             slipping: Some(false),
+            gel_position_mm: Some([0.5, -0.25, -0.125]),
+            gel_displacement_mm: None,
         };
         let mono = MarkerRecord {
             frame: 8,
@@ -412,7 +433,10 @@ mod tests {
 
     #[test]
     fn bad_cells_name_file_line_column_and_expectation() {
-        let text = format!("{}\n0,1,2,NaN,,,,,,,,,,tracked,,,", MARKER_COLUMNS.join(","));
+        let text = format!(
+            "{}\n0,1,2,NaN,,,,,,,,,,tracked,,,,,,,,,",
+            MARKER_COLUMNS.join(",")
+        );
         let table = CsvTable::from_text("gt/markers.csv", &text).unwrap();
         let err = MarkerRecord::from_table(&table, 0).unwrap_err().to_string();
         assert!(

@@ -3,7 +3,8 @@
 //! (`o3d.io.read_point_cloud` / `read_triangle_mesh`) and MeshLab, which use `x y z` and the
 //! `vertex_indices` face list and ignore (or show as scalar fields) the extra properties.
 //!
-//! Coordinates are mm in the LEFT camera frame (x right, y down, z forward), stored as `float`.
+//! Coordinates are mm, stored as `float`, in the [`CoordinateFrame`] the caller chooses (the LEFT
+//! camera's, x right, y down, z forward, or the gel's), named in a header comment.
 //!
 //! Marker cloud layout:
 //! ```text
@@ -35,12 +36,48 @@ use ply_rs_bw::writer::Writer;
 
 use crate::{Error, Result};
 
+/// The frame a PLY's coordinates are in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CoordinateFrame {
+    /// The gel frame: origin at the centre of the reference surface, x along the lattice's
+    /// columns, y along its rows, z the surface's normal away from the cameras (the transform
+    /// from the left camera is in the output's `gel.json`).
+    #[default]
+    Gel,
+    /// The left camera frame: x right, y down, z forward.
+    LeftCamera,
+}
+
+impl CoordinateFrame {
+    /// The header comment that names the frame.
+    fn header_comment(self) -> &'static str {
+        match self {
+            Self::Gel => {
+                "gelstereo: mm, gel frame (origin at the centre of the reference surface, x along the \
+                 columns, y along the rows, z the surface normal away from the cameras; gel.json)"
+            }
+            Self::LeftCamera => "gelstereo: mm, left camera frame (x right, y down, z forward)",
+        }
+    }
+}
+
+impl std::str::FromStr for CoordinateFrame {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "gel" => Ok(Self::Gel),
+            "camera" => Ok(Self::LeftCamera),
+            _ => Err(format!("'{s}': expected gel or camera")),
+        }
+    }
+}
+
 /// One reconstructed marker of a point cloud.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MarkerPoint {
     /// The marker's grid identity.
     pub index: GridIndex,
-    /// Position in the left camera frame, mm.
+    /// Position in the cloud's [`CoordinateFrame`], mm.
     pub position_mm: [f64; 3],
     /// Reprojection error of the triangulated point (the larger of the two views), px.
     pub reprojection_error_px: f64,
@@ -58,7 +95,7 @@ pub struct VertexProperty {
 /// A triangle mesh with extra per-vertex properties.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct TriangleMesh {
-    /// Vertex positions in the left camera frame, mm.
+    /// Vertex positions in the mesh's [`CoordinateFrame`], mm.
     pub vertices_mm: Vec<[f64; 3]>,
     /// Extra per-vertex scalars, each with one value per vertex.
     pub properties: Vec<VertexProperty>,
@@ -94,12 +131,10 @@ fn write_file(path: &Path, ply: &mut Ply<DefaultElement>) -> Result<()> {
     f.commit()
 }
 
-fn new_ply(comment: &str) -> Ply<DefaultElement> {
+fn new_ply(frame: CoordinateFrame, comment: &str) -> Ply<DefaultElement> {
     let mut ply = Ply::<DefaultElement>::new();
     ply.header.encoding = Encoding::BinaryLittleEndian;
-    ply.header
-        .comments
-        .push("gelstereo: mm, left camera frame (x right, y down, z forward)".to_owned());
+    ply.header.comments.push(frame.header_comment().to_owned());
     for line in comment.lines().filter(|l| !l.trim().is_empty()) {
         ply.header.comments.push(line.trim().to_owned());
     }
@@ -107,8 +142,14 @@ fn new_ply(comment: &str) -> Ply<DefaultElement> {
 }
 
 /// Writes `points` as a binary little-endian PLY point cloud to `path` (layout in the module docs);
-/// `comment` lines go into the header. Points with a non-finite coordinate are rejected.
-pub fn write_marker_cloud(path: &Path, points: &[MarkerPoint], comment: &str) -> Result<()> {
+/// `frame` and the `comment` lines go into the header. Points with a non-finite coordinate are
+/// rejected.
+pub fn write_marker_cloud(
+    path: &Path,
+    points: &[MarkerPoint],
+    frame: CoordinateFrame,
+    comment: &str,
+) -> Result<()> {
     if let Some(p) = points
         .iter()
         .find(|p| !finite3(&p.position_mm) || !p.reprojection_error_px.is_finite())
@@ -118,7 +159,7 @@ pub fn write_marker_cloud(path: &Path, points: &[MarkerPoint], comment: &str) ->
             format!("marker {} has a non-finite position or error: {:?}", p.index, p),
         ));
     }
-    let mut ply = new_ply(comment);
+    let mut ply = new_ply(frame, comment);
     let mut vertex = ElementDef::new("vertex".to_owned());
     for name in ["x", "y", "z"] {
         vertex.properties.add(scalar(name, ScalarType::Float));
@@ -153,7 +194,7 @@ pub fn write_marker_cloud(path: &Path, points: &[MarkerPoint], comment: &str) ->
 /// Writes `mesh` as a binary little-endian PLY triangle mesh to `path` (layout in the module docs).
 /// Checks that every property has one value per vertex, that property names are plain identifiers
 /// distinct from `x y z`, and that faces refer to existing vertices.
-pub fn write_mesh(path: &Path, mesh: &TriangleMesh, comment: &str) -> Result<()> {
+pub fn write_mesh(path: &Path, mesh: &TriangleMesh, frame: CoordinateFrame, comment: &str) -> Result<()> {
     let n = mesh.vertices_mm.len();
     if let Some(i) = mesh.vertices_mm.iter().position(|p| !finite3(p)) {
         return Err(invalid(
@@ -199,7 +240,7 @@ pub fn write_mesh(path: &Path, mesh: &TriangleMesh, comment: &str) -> Result<()>
             format!("{n} vertices: PLY int indices hold at most {}", i32::MAX),
         ));
     }
-    let mut ply = new_ply(comment);
+    let mut ply = new_ply(frame, comment);
     let mut vertex = ElementDef::new("vertex".to_owned());
     for name in &names {
         vertex.properties.add(scalar(name, ScalarType::Float));
@@ -318,7 +359,7 @@ mod tests {
                 reprojection_error_px: 0.05 * f64::from(i),
             })
             .collect();
-        write_marker_cloud(&path, &points, "frame 0").unwrap();
+        write_marker_cloud(&path, &points, CoordinateFrame::LeftCamera, "frame 0").unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let header = String::from_utf8_lossy(&bytes[..bytes.len().min(400)]).to_string();
         assert!(
@@ -347,7 +388,7 @@ mod tests {
             position_mm: [f64::NAN, 0.0, 1.0],
             ..points[0]
         }];
-        let err = chain(&write_marker_cloud(&path, &nan, "").unwrap_err());
+        let err = chain(&write_marker_cloud(&path, &nan, CoordinateFrame::LeftCamera, "").unwrap_err());
         assert!(err.contains("000000.ply") && err.contains("non-finite"), "{err}");
     }
 
@@ -368,7 +409,7 @@ mod tests {
             }],
             faces: vec![[0, 1, 2], [1, 3, 2]],
         };
-        write_mesh(&path, &mesh, "contact surface").unwrap();
+        write_mesh(&path, &mesh, CoordinateFrame::Gel, "contact surface").unwrap();
         let mut f = std::io::BufReader::new(std::fs::File::open(&path).unwrap());
         let ply = Parser::<DefaultElement>::new().read_ply(&mut f).unwrap();
         assert_eq!(ply.header.encoding, Encoding::BinaryLittleEndian);
@@ -385,7 +426,10 @@ mod tests {
             faces: vec![[0, 1, 4]],
             ..mesh.clone()
         };
-        assert!(chain(&write_mesh(&path, &bad_face, "").unwrap_err()).contains("beyond the 4 vertices"));
+        assert!(
+            chain(&write_mesh(&path, &bad_face, CoordinateFrame::Gel, "").unwrap_err())
+                .contains("beyond the 4 vertices")
+        );
         let short = TriangleMesh {
             properties: vec![VertexProperty {
                 name: "depth_mm".into(),
@@ -394,7 +438,7 @@ mod tests {
             ..mesh.clone()
         };
         assert!(
-            chain(&write_mesh(&path, &short, "").unwrap_err())
+            chain(&write_mesh(&path, &short, CoordinateFrame::Gel, "").unwrap_err())
                 .contains("1 values, expected one per vertex (4)")
         );
         let clash = TriangleMesh {
@@ -404,6 +448,6 @@ mod tests {
             }],
             ..mesh
         };
-        assert!(chain(&write_mesh(&path, &clash, "").unwrap_err()).contains("'x'"));
+        assert!(chain(&write_mesh(&path, &clash, CoordinateFrame::Gel, "").unwrap_err()).contains("'x'"));
     }
 }

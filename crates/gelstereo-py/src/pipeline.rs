@@ -371,5 +371,20 @@ fn markers_dict<'py>(py: Python<'py>, rows: &[MarkerRecord]) -> PyResult<Bound<'
     };
     dict.set_item("in_contact", flags(|m| m.in_contact))?;
     dict.set_item("slipping", flags(|m| m.slipping))?;
+    // In markers.csv's column order: positions, then displacements.
+    for (prefix, vector) in [
+        (
+            "",
+            (|m| m.gel_position_mm) as fn(&MarkerRecord) -> Option<[f64; 3]>,
+        ),
+        ("d", |m| m.gel_displacement_mm),
+    ] {
+        for (k, axis) in ["X", "Y", "Z"].into_iter().enumerate() {
+            dict.set_item(
+                format!("{prefix}{axis}_gel_mm"),
+                floats(&|m| vector(m).map(|v| v[k])),
+            )?;
+        }
+    }
     Ok(dict)
 }

@@ -14,7 +14,7 @@ from gil import main_thread_share_while
 
 MARKER_KEYS = ["row", "col", "status", "x_left", "y_left", "x_right", "y_right",
                "X_mm", "Y_mm", "Z_mm", "dX_mm", "dY_mm", "dZ_mm", "pressure_kPa", "in_contact",
-               "slipping"]
+               "slipping", "X_gel_mm", "Y_gel_mm", "Z_gel_mm", "dX_gel_mm", "dY_gel_mm", "dZ_gel_mm"]
 SLIP_STATES = {"no_contact", "stick", "partial_slip", "gross_slip"}
 
 
@@ -66,8 +66,9 @@ def test_python_tracks_the_sample_as_gelstereo_track_does(tracked, tables):
         # Same ids in the same order, same 3-D positions (the tables print 6 decimals).
         np.testing.assert_array_equal(out.markers["row"], [int(r["row"]) for r in rows])
         np.testing.assert_array_equal(out.markers["col"], [int(r["col"]) for r in rows])
-        table_z = np.array([float(r["Z_mm"]) if r["Z_mm"] else np.nan for r in rows])
-        np.testing.assert_allclose(out.markers["Z_mm"], table_z, atol=1e-6, equal_nan=True)
+        for column in ("Z_mm", "Z_gel_mm", "dZ_gel_mm"):
+            table = np.array([float(r[column]) if r[column] else np.nan for r in rows])
+            np.testing.assert_allclose(out.markers[column], table, atol=1e-6, equal_nan=True)
     # The sample presses, then slides: the tracker sees contact and slip.
     assert {f.slip for f in tracked} >= {"no_contact", "stick"}
 

@@ -275,9 +275,23 @@ fn a_chosen_indenter_and_motion_are_used_by_every_experiment_and_unknown_names_a
     assert!(chosen.iter().all(|e| e.script.indenter.name() == "flat_cylinder"));
     assert!(chosen.iter().all(|e| e.script.kind == MotionKind::PressSlide));
     // The other draws of the seed are those of the unconstrained plan.
-    assert!(drawn.iter().zip(&chosen).all(|(a, b)| a.appearance == b.appearance && a.split == b.split));
+    assert!(
+        drawn
+            .iter()
+            .zip(&chosen)
+            .all(|(a, b)| a.appearance == b.appearance && a.split == b.split)
+    );
     config.indenter = Some("teapot".into());
     let err = plan(&config).unwrap_err().to_string();
-    assert!(err.contains("indenter") && err.contains("teapot") && err.contains("flat_cylinder"), "{err}");
-    assert!("slide-press".parse::<MotionKind>().unwrap_err().to_string().contains("press_slide"));
+    assert!(
+        err.contains("indenter") && err.contains("teapot") && err.contains("flat_cylinder"),
+        "{err}"
+    );
+    assert!(
+        "slide-press"
+            .parse::<MotionKind>()
+            .unwrap_err()
+            .to_string()
+            .contains("press_slide")
+    );
 }

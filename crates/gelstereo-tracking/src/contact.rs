@@ -232,18 +232,17 @@ impl ReferenceSurface {
         &self.config
     }
 
-    /// The gel frame's axes `[x, y, z]` in the left camera frame: x along the lattice's columns,
-    /// y along its rows, z the surface's normal away from the cameras.
-    pub fn gel_axes(&self) -> [Vector3<f64>; 3] {
-        self.gel_axes
-    }
-
-    /// The gel frame's origin in the left camera frame, mm: the mean of the reference markers
-    /// (the centre of the reference surface).
-    pub fn gel_origin_mm(&self) -> Point3<f64> {
+    /// The gel frame: origin at the centre of the reference surface (the mean of its markers),
+    /// x along the lattice's columns, y along its rows, z the surface's normal away from the
+    /// cameras.
+    pub fn gel_frame(&self) -> GelFrame {
         let present: Vec<Point3<f64>> = self.positions_mm.iter().flatten().copied().collect();
         let sum = present.iter().fold(Vector3::zeros(), |a, p| a + p.coords);
-        Point3::from(sum / present.len().max(1) as f64)
+        GelFrame {
+            origin_mm: Point3::from(sum / present.len().max(1) as f64),
+            axes: self.gel_axes,
+            pitch_mm: self.pitch_mm(),
+        }
     }
 
     /// The lattice.
@@ -434,6 +433,31 @@ fn gel_axes(shape: GridShape, pos: &[Option<Point3<f64>>], normal: Vector3<f64>)
                 .unwrap_or(Vector3::y())
         });
     [x, normal.cross(&x), normal]
+}
+
+/// The gel frame of a stereo sensor in the left camera frame, mm: origin at the centre of the
+/// reference surface, `x` along the lattice's columns, `y` along its rows, `z` the surface's normal
+/// away from the cameras; `p_gel = [x; y; z] (p_left − origin)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GelFrame {
+    /// The origin, mm.
+    pub origin_mm: Point3<f64>,
+    /// The axes `[x, y, z]`, unit vectors.
+    pub axes: [Vector3<f64>; 3],
+    /// The marker pitch on the reference surface, mm.
+    pub pitch_mm: f64,
+}
+
+impl GelFrame {
+    /// A point of the left camera frame in the gel frame, mm.
+    pub fn to_gel(&self, p: Point3<f64>) -> [f64; 3] {
+        self.vector_to_gel(p - self.origin_mm)
+    }
+
+    /// A vector of the left camera frame (a displacement) in the gel frame.
+    pub fn vector_to_gel(&self, v: Vector3<f64>) -> [f64; 3] {
+        self.axes.map(|a| a.dot(&v))
+    }
 }
 
 /// Contact geometry of one frame.

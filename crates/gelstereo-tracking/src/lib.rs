@@ -27,7 +27,7 @@ pub mod slip;
 mod synthetic;
 pub mod tracker;
 
-pub use contact::{ContactConfig, ContactFrame, ReferenceSurface};
+pub use contact::{ContactConfig, ContactFrame, GelFrame, ReferenceSurface};
 pub use error::{Error, Result};
 pub use field::{DenseField, interpolate};
 pub use gelstereo_mechanics::Layer;

@@ -394,6 +394,7 @@ impl StereoSession {
             }
         }
         self.last_written.clone_from(&written);
+        let gel = self.surface.gel_frame();
         let mut markers = Vec::with_capacity(self.ids.len());
         for id in &self.ids {
             let Some(lin) = self.shape.linear(*id) else {
@@ -423,6 +424,8 @@ impl StereoSession {
                 pressure_kpa: Some(contact.traction_kpa[lin][2]),
                 in_contact: Some(contact.in_contact[lin]),
                 slipping: Some(contact.slipping[lin]),
+                gel_position_mm: position.map(|p| gel.to_gel(Point3::from(p))),
+                gel_displacement_mm: displacement.map(|d| gel.vector_to_gel(Vector3::from(d))),
             });
         }
         let summary = FrameSummary {

@@ -175,7 +175,11 @@ impl SlipConfig {
             }
         }
         if !(self.cone_load_fraction.is_finite() && (0.0..=1.0).contains(&self.cone_load_fraction)) {
-            return Err(config_err("cone_load_fraction", "a fraction in [0, 1]", self.cone_load_fraction));
+            return Err(config_err(
+                "cone_load_fraction",
+                "a fraction in [0, 1]",
+                self.cone_load_fraction,
+            ));
         }
         Ok(())
     }
@@ -185,7 +189,12 @@ impl SlipConfig {
 /// (0 without load).
 pub fn cone_load_share(frame: &ContactFrame) -> f64 {
     let (mut on_cone, mut total) = (0.0, 0.0);
-    for ((t, &inside), &slipping) in frame.traction_kpa.iter().zip(&frame.in_contact).zip(&frame.slipping) {
+    for ((t, &inside), &slipping) in frame
+        .traction_kpa
+        .iter()
+        .zip(&frame.in_contact)
+        .zip(&frame.slipping)
+    {
         if inside {
             total += t[2];
             if slipping {

@@ -54,7 +54,8 @@ pub use config::{
     GelFacts, PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python,
 };
 pub use error::{Error, Result};
-pub use pipeline::{Frame, FrameLocalizer, FrameOutput, GelFrame, Images, Pipeline, Stages, join_rayon_pool};
+pub use gelstereo_tracking::GelFrame;
+pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
 pub use start::detect_padded;
 
 pub use gelstereo_core as core;

@@ -124,27 +124,6 @@ impl FrameOutput {
     }
 }
 
-/// The gel frame of a stereo sensor in the left camera frame, mm: origin at the centre of the
-/// reference surface, `x` along the lattice's columns, `y` along its rows, `z` the surface's normal
-/// away from the cameras; `p_gel = [x; y; z] (p_left − origin)`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GelFrame {
-    /// The origin, mm.
-    pub origin_mm: nalgebra::Point3<f64>,
-    /// The axes `[x, y, z]`, unit vectors.
-    pub axes: [nalgebra::Vector3<f64>; 3],
-    /// The marker pitch on the reference surface, mm.
-    pub pitch_mm: f64,
-}
-
-impl GelFrame {
-    /// A point of the left camera frame in the gel frame, mm.
-    pub fn to_gel(&self, p: nalgebra::Point3<f64>) -> [f64; 3] {
-        let d = p - self.origin_mm;
-        self.axes.map(|a| a.dot(&d))
-    }
-}
-
 /// The whole pipeline, built once (models loaded, calibration read), then fed frame by frame.
 /// The first frame that can be indexed is the reference (no contact): marker ids are its grid
 /// indices, displacement is measured against it. Frames before it, and frames that cannot be read or
@@ -268,13 +247,9 @@ impl Pipeline {
 
     /// The gel frame in the left camera frame; `None` for mono sensors and before the reference
     /// frame.
-    pub fn gel_frame(&self) -> Option<GelFrame> {
+    pub fn gel_frame(&self) -> Option<gelstereo_tracking::GelFrame> {
         match &self.session {
-            Some(Session::Stereo(s)) => Some(GelFrame {
-                origin_mm: s.surface().gel_origin_mm(),
-                axes: s.surface().gel_axes(),
-                pitch_mm: s.surface().pitch_mm(),
-            }),
+            Some(Session::Stereo(s)) => Some(s.surface().gel_frame()),
             _ => None,
         }
     }

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use gelstereo_core::table::MARKER_COLUMNS;
 use gelstereo_io::images;
-use gelstereo_io::ply::{MarkerPoint, write_marker_cloud};
+use gelstereo_io::ply::{CoordinateFrame, MarkerPoint, write_marker_cloud};
 use gelstereo_matching::FrameReconstruction;
 
 use crate::{Error, Result};
@@ -135,7 +135,12 @@ fn write_cloud(path: &Path, frame: u32, rec: &FrameReconstruction) -> Result<()>
             })
         })
         .collect();
-    Ok(write_marker_cloud(path, &points, &format!("frame {frame}"))?)
+    Ok(write_marker_cloud(
+        path,
+        &points,
+        CoordinateFrame::LeftCamera,
+        &format!("frame {frame}"),
+    )?)
 }
 
 /// Whether `name` is a point cloud of this module: six digits and `.ply`.

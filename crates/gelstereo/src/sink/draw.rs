@@ -5,7 +5,9 @@ use std::path::Path;
 
 use gelstereo_core::{FrameSummary, GridShape, Point2};
 use gelstereo_io::figures::{self, OverlayMarker};
-use gelstereo_io::ply::{MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh};
+use gelstereo_io::ply::{
+    CoordinateFrame, MarkerPoint, TriangleMesh, VertexProperty, write_marker_cloud, write_mesh,
+};
 use gelstereo_tracking::{ContactFrame, TrackFrame};
 
 use crate::Result;
@@ -70,62 +72,67 @@ pub fn height_map(
     }
 }
 
-/// Writes the marker cloud and the deformed mesh of a stereo frame.
+/// Writes the marker cloud and the deformed mesh of a stereo frame, coordinates and displacements
+/// in `frame` (the gel's or the left camera's).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn write_ply(
     paths: (&Path, &Path),
-    frame: u32,
+    frame_number: u32,
     shape: GridShape,
     triangles: &[[u32; 3]],
     contact: &ContactFrame,
     reprojection: &[Option<f64>],
     gel: &crate::GelFrame,
+    frame: CoordinateFrame,
 ) -> Result<()> {
+    let point = |p: &nalgebra::Point3<f64>| match frame {
+        CoordinateFrame::Gel => gel.to_gel(*p),
+        CoordinateFrame::LeftCamera => [p.x, p.y, p.z],
+    };
+    let vector = |d: nalgebra::Vector3<f64>| match frame {
+        CoordinateFrame::Gel => gel.vector_to_gel(d),
+        CoordinateFrame::LeftCamera => [d.x, d.y, d.z],
+    };
     let cloud: Vec<MarkerPoint> = shape
         .indices()
         .enumerate()
         .filter_map(|(k, index)| {
-            let p = contact.positions_mm[k]?;
             Some(MarkerPoint {
                 index,
-                position_mm: [p.x, p.y, p.z],
+                position_mm: point(contact.positions_mm[k].as_ref()?),
                 reprojection_error_px: reprojection[k].unwrap_or(0.0),
             })
         })
         .collect();
-    let comment = format!("frame {frame}; reprojection_error 0 for markers predicted from their neighbours");
-    write_marker_cloud(paths.0, &cloud, &comment)?;
+    let comment =
+        format!("frame {frame_number}; reprojection_error 0 for markers predicted from their neighbours");
+    write_marker_cloud(paths.0, &cloud, frame, &comment)?;
     let mut vertex_of = vec![u32::MAX; shape.count()];
     let mut mesh = TriangleMesh::default();
     let names = [
         "depth_mm",
         "displacement_mm",
-        "dX_mm",
-        "dY_mm",
-        "dZ_mm",
+        "dx_mm",
+        "dy_mm",
+        "dz_mm",
         "pressure_kPa",
         "in_contact",
-        "x_gel_mm",
-        "y_gel_mm",
-        "z_gel_mm",
     ];
     let mut props: Vec<Vec<f32>> = vec![Vec::new(); names.len()];
     for (k, p) in contact.positions_mm.iter().enumerate() {
         let Some(p) = p else { continue };
         vertex_of[k] = mesh.vertices_mm.len() as u32;
-        mesh.vertices_mm.push([p.x, p.y, p.z]);
+        mesh.vertices_mm.push(point(p));
         let d = contact.displacement_mm[k].unwrap_or_default();
-        let in_gel = gel.to_gel(*p);
+        let [dx, dy, dz] = vector(d);
         let vals = [
             contact.depth_mm[k].unwrap_or(0.0),
             d.norm(),
-            d.x,
-            d.y,
-            d.z,
+            dx,
+            dy,
+            dz,
             contact.traction_kpa.get(k).map_or(0.0, |t| t[2]),
             f64::from(u8::from(contact.in_contact[k])),
-            in_gel[0],
-            in_gel[1],
-            in_gel[2],
         ];
         for (v, list) in vals.iter().zip(props.iter_mut()) {
             list.push(*v as f32);
@@ -145,7 +152,8 @@ pub(crate) fn write_ply(
             values,
         })
         .collect();
-    write_mesh(paths.1, &mesh, &format!("frame {frame}; deformed marker surface"))?;
+    let comment = format!("frame {frame_number}; deformed marker surface");
+    write_mesh(paths.1, &mesh, frame, &comment)?;
     Ok(())
 }
 

@@ -17,6 +17,7 @@ use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
 use gelstereo_core::{FrameSummary, GridShape, MarkerRecord};
 use gelstereo_io::figures::{self, ColourScale, Curve, OverlayView, TimeSeries, Timeline};
 use gelstereo_io::images;
+use gelstereo_io::ply::CoordinateFrame;
 use gelstereo_tracking::{TrackFrame, interpolate};
 
 pub use folder::{MANIFEST, OutputFolder};
@@ -311,6 +312,12 @@ fn marker_json(m: &MarkerRecord) -> serde_json::Value {
         "pressure_kPa": m.pressure_kpa,
         "in_contact": m.in_contact,
         "slipping": m.slipping,
+        "X_gel_mm": xyz(m.gel_position_mm, 0),
+        "Y_gel_mm": xyz(m.gel_position_mm, 1),
+        "Z_gel_mm": xyz(m.gel_position_mm, 2),
+        "dX_gel_mm": xyz(m.gel_displacement_mm, 0),
+        "dY_gel_mm": xyz(m.gel_displacement_mm, 1),
+        "dZ_gel_mm": xyz(m.gel_displacement_mm, 2),
     })
 }
 
@@ -351,12 +358,17 @@ fn every(frame: u32, every: usize) -> bool {
 pub struct PlySink {
     folder: Arc<OutputFolder>,
     every: usize,
+    coordinates: CoordinateFrame,
 }
 
 impl PlySink {
-    /// Writes every `every`th frame (0: none).
-    pub fn new(folder: Arc<OutputFolder>, every: usize) -> Self {
-        Self { folder, every }
+    /// Writes every `every`th frame (0: none), coordinates in `coordinates`.
+    pub fn new(folder: Arc<OutputFolder>, every: usize, coordinates: CoordinateFrame) -> Self {
+        Self {
+            folder,
+            every,
+            coordinates,
+        }
     }
 }
 
@@ -379,6 +391,7 @@ impl Sink for PlySink {
                     &st.contact,
                     &st.reprojection_px,
                     &gel,
+                    self.coordinates,
                 )
             })
         })

@@ -239,6 +239,8 @@ pub struct SinkOptions {
     pub plots: bool,
     /// A PLY marker cloud and mesh every N stereo frames (0: none).
     pub ply_every: usize,
+    /// The frame of the PLYs' coordinates (the gel's by default).
+    pub ply_frame: gelstereo_io::ply::CoordinateFrame,
     /// Overlays every N frames (0: none).
     pub overlay_every: usize,
     /// Length factor of the displacement arrows in the overlays.
@@ -253,6 +255,7 @@ impl Default for SinkOptions {
             tables: true,
             plots: true,
             ply_every: 10,
+            ply_frame: gelstereo_io::ply::CoordinateFrame::Gel,
             overlay_every: 10,
             arrow_scale: 3.0,
         }
@@ -267,8 +270,13 @@ impl SinkOptions {
             1 => "every frame".to_owned(),
             n => format!("every {n} frames"),
         };
+        let ply_frame = match (self.ply_every, self.ply_frame) {
+            (0, _) => "",
+            (_, gelstereo_io::ply::CoordinateFrame::Gel) => " (gel frame)",
+            (_, gelstereo_io::ply::CoordinateFrame::LeftCamera) => " (left camera frame)",
+        };
         format!(
-            "tables {}, plots {}, PLY {}, overlays {}",
+            "tables {}, plots {}, PLY {}{ply_frame}, overlays {}",
             if self.tables { "yes" } else { "no" },
             if self.plots { "yes" } else { "no" },
             every(self.ply_every),
@@ -287,12 +295,17 @@ pub fn sinks(
     let mut sinks: Vec<Box<dyn Sink>> = Vec::new();
     if options.tables {
         sinks.push(Box::new(TableSink::create(folder)?));
-        if stereo {
-            sinks.push(Box::new(GelSink::new(folder.clone())));
-        }
+    }
+    // The gel frame's transform goes with every output written in it.
+    if stereo && (options.tables || options.ply_every > 0) {
+        sinks.push(Box::new(GelSink::new(folder.clone())));
     }
     if options.ply_every > 0 && stereo {
-        sinks.push(Box::new(PlySink::new(folder.clone(), options.ply_every)));
+        sinks.push(Box::new(PlySink::new(
+            folder.clone(),
+            options.ply_every,
+            options.ply_frame,
+        )));
         sinks.push(Box::new(HeightMapSink::new(folder.clone(), options.ply_every)));
     }
     if options.overlay_every > 0 {
