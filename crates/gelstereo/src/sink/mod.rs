@@ -482,13 +482,19 @@ impl Sink for OverlaySink {
 /// maps of every Nth frame on one colour scale for the whole run (indentation depth for stereo,
 /// displacement in the image for mono: `overlays/depth_NNNNNN.png` or
 /// `overlays/displacement_NNNNNN.png`); the deepest frame's contact surface
-/// (`plots/contact_surface.png` and `.svg`).
+/// (`plots/contact_surface.png` and `.svg`); for stereo, the force and the contact pressure over
+/// time (`plots/force`, `plots/pressure`) and the pressure over the lattice in the frame of the
+/// largest force (`plots/pressure_map`).
 pub struct PlotSink {
     folder: Arc<OutputFolder>,
     stereo: bool,
     heat_every: usize,
     history: Vec<FrameSummary>,
     times_s: Vec<f64>,
+    /// Per frame, the largest pressure on a marker's cell, kPa (`None` without the mechanics).
+    peak_pressure_kpa: Vec<Option<f64>>,
+    /// The frame of the largest normal force so far, its force and its pressures (row-major, kPa).
+    most_loaded: Option<(u32, f64, Vec<f64>)>,
     shape: Option<GridShape>,
     /// Per heat-map frame, the values over the lattice (NaN unknown).
     heat: Vec<(u32, Vec<f32>)>,
@@ -506,9 +512,26 @@ impl PlotSink {
             heat_every,
             history: Vec::new(),
             times_s: Vec::new(),
+            peak_pressure_kpa: Vec::new(),
+            most_loaded: None,
             shape: None,
             heat: Vec::new(),
             deepest: None,
+        }
+    }
+
+    /// Keeps the frame's pressures: its peak, and the whole field if it carries the most force.
+    fn keep_pressure(&mut self, out: &FrameOutput) {
+        let Some(Stages::Stereo(st)) = &out.stages else {
+            self.peak_pressure_kpa.push(None);
+            return;
+        };
+        let pressure: Vec<f64> = st.contact.traction_kpa.iter().map(|t| t[2]).collect();
+        self.peak_pressure_kpa
+            .push(Some(pressure.iter().copied().fold(0.0, f64::max)));
+        let force = st.contact.force_n;
+        if force > 0.0 && self.most_loaded.as_ref().is_none_or(|(_, f, _)| *f < force) {
+            self.most_loaded = Some((out.frame, force, pressure));
         }
     }
 
@@ -591,6 +614,23 @@ impl PlotSink {
             unknown_note: "one camera gives no force".into(),
             ..area.clone()
         };
+        let pressure = TimeSeries {
+            title: "contact pressure".into(),
+            y_label: "pressure (kPa)".into(),
+            curves: vec![
+                Curve {
+                    name: "peak".into(),
+                    values: self.peak_pressure_kpa.clone(),
+                },
+                Curve {
+                    name: "mean (force / area)".into(),
+                    values: h.iter().map(mean_pressure_kpa).collect(),
+                },
+            ],
+            y_resolution: 0.1,
+            unknown_note: "one camera gives no pressure".into(),
+            ..area.clone()
+        };
         let slip: Vec<_> = h.iter().map(|f| f.slip).collect();
         let f = &self.folder;
         for ext in ["png", "svg"] {
@@ -604,10 +644,37 @@ impl PlotSink {
                 f.write_atomic(&format!("plots/force.{ext}"), |p| {
                     Ok(figures::time_series(p, &force)?)
                 })?;
+                f.write_atomic(&format!("plots/pressure.{ext}"), |p| {
+                    Ok(figures::time_series(p, &pressure)?)
+                })?;
             }
             f.write_atomic(&format!("plots/slip.{ext}"), |p| {
                 Ok(figures::slip_timeline(p, "slip state", &timeline, &slip)?)
             })?;
+        }
+        Ok(())
+    }
+
+    /// The pressure over the lattice in the frame of the largest force, one cell per marker.
+    fn pressure_map(&self, shape: GridShape) -> Result<()> {
+        let Some((frame, force, pressure)) = &self.most_loaded else {
+            return Ok(());
+        };
+        let scale = ColourScale::covering("contact pressure (kPa)", pressure.iter().copied(), 0.1);
+        let field = figures::Field {
+            width: usize::from(shape.cols),
+            height: usize::from(shape.rows),
+            values: pressure.clone(),
+            x_extent: (0.0, f64::from(shape.cols.saturating_sub(1))),
+            y_extent: (0.0, f64::from(shape.rows.saturating_sub(1))),
+            axis_labels: ("marker column".into(), "marker row".into()),
+        };
+        let title = format!("pressure, frame {frame} (largest force, {force:.3} N)");
+        for ext in ["png", "svg"] {
+            self.folder
+                .write_atomic(&format!("plots/pressure_map.{ext}"), |p| {
+                    Ok(figures::heatmap(p, &title, &field, &scale)?)
+                })?;
         }
         Ok(())
     }
@@ -672,6 +739,7 @@ impl Sink for PlotSink {
         let shape = frame.pipeline.shape();
         self.shape = Some(shape);
         self.keep(frame.output, shape);
+        self.keep_pressure(frame.output);
         self.history.push(frame.output.summary.clone());
         self.times_s.push(frame.output.t_s);
         Ok(())
@@ -680,10 +748,21 @@ impl Sink for PlotSink {
     fn finish(&mut self) -> Result<()> {
         self.time_series()?;
         match self.shape {
-            Some(shape) => self.heat_maps(shape),
+            Some(shape) => {
+                self.pressure_map(shape)?;
+                self.heat_maps(shape)
+            }
             None => Ok(()),
         }
     }
+}
+
+/// The mean contact pressure of a frame, kPa: its normal force over its contact area (0 without
+/// contact, `None` without the contact mechanics).
+fn mean_pressure_kpa(summary: &FrameSummary) -> Option<f64> {
+    let (force, area) = (summary.force_n?, summary.contact_area_mm2?);
+    // N / mm² is MPa.
+    Some(if area > 0.0 { 1e3 * force / area } else { 0.0 })
 }
 
 /// Saves frames as a stereo recording on disk (`left/NNNNNN.png`, `right/NNNNNN.png`, or the
