@@ -112,7 +112,7 @@ pub struct SlipConfig {
     /// its friction limit, while a drift of a contact whose core still sticks is noise or the
     /// rim of a partial slip. 0.3: from images a sliding contact's share on the cone is noisy and
     /// can stay below one half; 0.2-0.4 alike on simulated test sets and on flat-punch slides,
-    /// which lose their early onsets (docs/tracking.md, "Gross slip at the friction limit"). 0
+    /// which lose their early onsets (docs/contact-mechanics.md, "Slip"). 0
     /// disables the test.
     pub cone_load_fraction: f64,
 }
