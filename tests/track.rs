@@ -154,6 +154,18 @@ fn unreadable_and_resized_frames_are_flagged_not_fatal_and_missing_ones_are_name
         &opencv::core::Vector::new(),
     )
     .unwrap();
+    // A frame that shows no marker at all (both views black).
+    let black = opencv::core::Mat::new_rows_cols_with_default(
+        480,
+        640,
+        opencv::core::CV_8UC3,
+        opencv::core::Scalar::all(0.0),
+    )
+    .unwrap();
+    for side in ["left", "right"] {
+        let path = rec.join(side).join("000007.jpg");
+        opencv::imgcodecs::imwrite(path.to_str().unwrap(), &black, &opencv::core::Vector::new()).unwrap();
+    }
     let out = dir.path().join("out");
     let (ok, err) = track(&[
         "--method",
@@ -174,9 +186,12 @@ fn unreadable_and_resized_frames_are_flagged_not_fatal_and_missing_ones_are_name
         (0..8).collect::<Vec<_>>(),
         "no gap in frames.csv"
     );
+    assert!(
+        err.contains("frame 7") && err.contains("no usable markers"),
+        "{err}"
+    );
     let rows = markers(&out.join("markers.csv"));
     for bad in [3, 5] {
-        assert_eq!(est[bad].slip, SlipState::NoContact);
         let lost: Vec<_> = rows.iter().filter(|m| m.frame == bad as u32).collect();
         assert!(
             lost.len() == 529
@@ -185,6 +200,24 @@ fn unreadable_and_resized_frames_are_flagged_not_fatal_and_missing_ones_are_name
                     .all(|m| m.status == Some(MarkerStatus::Lost) && m.position_mm.is_none())
         );
     }
+    // Frames that know nothing of the contact say so: every contact cell empty, not 0 or
+    // no_contact, and the note says why.
+    let table = std::fs::read_to_string(out.join("frames.csv")).unwrap();
+    for bad in [3, 5, 7] {
+        assert!(!est[bad].measured, "frame {bad}: {:?}", est[bad]);
+        let line = table.lines().nth(bad + 1).unwrap();
+        assert!(line.starts_with(&format!("{bad},,,,,,,,,,,")), "{line}");
+        assert!(
+            line.split(',').next_back().is_some_and(|note| !note.is_empty()),
+            "{line}"
+        );
+    }
+    assert!(
+        est[..7]
+            .iter()
+            .enumerate()
+            .all(|(k, f)| f.measured || k == 3 || k == 5)
+    );
     // A frame missing from one view is an error that names it.
     std::fs::remove_file(rec.join("right/000006.jpg")).unwrap();
     let (ok, err) = track(&[

@@ -92,7 +92,8 @@ class Frame:
     """Seconds from the first frame."""
     markers: Markers
     contact: Contact
-    slip: SlipState
+    slip: Optional[SlipState]
+    """None when the frame's contact is unknown (see note)."""
     note: Optional[str]
     """Why the frame is flagged (unreadable, not localized, reference not yet indexed); None if not."""
     log: List[str]

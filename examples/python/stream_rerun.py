@@ -52,8 +52,9 @@ def log_frame(frame, left) -> None:
     rr.log("markers/displacement", rr.Arrows3D(origins=xyz[moved] - displacement[moved], vectors=displacement[moved]))
     rr.log("contact/max_depth_mm", rr.Scalars(frame.contact.max_depth_mm))
     rr.log("contact/area_mm2", rr.Scalars(frame.contact.area_mm2))
-    rr.log("slip/level", rr.Scalars(SLIP_STATES.index(frame.slip)))
-    rr.log("slip/state", rr.TextLog(frame.slip))
+    if frame.slip is not None:  # None: a flagged frame, its contact unknown
+        rr.log("slip/level", rr.Scalars(SLIP_STATES.index(frame.slip)))
+        rr.log("slip/state", rr.TextLog(frame.slip))
 
 
 def main() -> None:

@@ -11,6 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 import gelstereo
 from recording import stereo_frames
 
@@ -39,10 +41,11 @@ def main() -> None:
         frame = pipeline.process(left, right, timestamp=k / args.fps)
         times_s.append(frame.timestamp)
         depth_mm.append(frame.contact.max_depth_mm)
-        slip.append(SLIP_STATES.index(frame.slip))
+        # A flagged frame (unreadable, no usable markers) knows no slip state: a gap in the plot.
+        slip.append(np.nan if frame.slip is None else SLIP_STATES.index(frame.slip))
         tracked = int((frame.markers["status"] == "tracked").sum())
         print(f"t = {frame.timestamp:6.3f} s  depth {frame.contact.max_depth_mm:5.3f} mm  "
-              f"{frame.slip:<12}  {tracked} markers tracked")
+              f"{frame.slip or 'unknown':<12}  {tracked} markers tracked")
 
     figure, (depth_axes, slip_axes) = plt.subplots(2, 1, sharex=True, figsize=(7, 5), constrained_layout=True)
     depth_axes.plot(times_s, depth_mm, color="tab:blue")

@@ -251,7 +251,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 if warnings <= MAX_WARNINGS {
                     progress.suspend(|| {
                         eprintln!(
-                            "warning: frame {}: {note}; frame written as lost / no contact",
+                            "warning: frame {}: {note}; frame written with its contact unknown (empty cells)",
                             out.frame
                         )
                     });

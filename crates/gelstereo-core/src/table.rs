@@ -108,6 +108,10 @@ pub struct FrameSummary {
     /// Torque of the tangential tractions about the contact normal through the pressure
     /// centroid, N mm.
     pub torque_nmm: Option<f64>,
+    /// Whether the frame was measured. `false` for a frame that could not be read or localized,
+    /// or that showed no usable markers: it knows nothing of the contact, and every contact
+    /// column is written empty (never as no contact or 0).
+    pub measured: bool,
 }
 
 /// Appends `,` and a flag as `0` / `1`, or nothing for `None`.
@@ -199,6 +203,10 @@ impl MarkerRecord {
 impl FrameSummary {
     /// Appends this row's 11 cells (no newline) in [`FRAME_COLUMNS`] order.
     pub fn write_csv(&self, out: &mut String) {
+        if !self.measured {
+            let _ = write!(out, "{}{}", self.frame, ",".repeat(FRAME_COLUMNS.len() - 1));
+            return;
+        }
         let _ = write!(out, "{},{}", self.frame, u8::from(self.contact));
         push_opt(out, self.contact_area_mm2);
         push_opt(out, self.max_depth_mm);
@@ -213,6 +221,9 @@ impl FrameSummary {
 
     /// Reads the row `row` of `table`.
     pub fn from_table(table: &CsvTable, row: usize) -> Result<Self> {
+        if table.cell(row, "contact")?.is_empty() {
+            return Ok(Self::unmeasured(table.value(row, "frame", "a frame number")?));
+        }
         let contact: u8 = table.value(row, "contact", "0 or 1")?;
         Ok(Self {
             frame: table.value(row, "frame", "a frame number")?,
@@ -236,7 +247,24 @@ impl FrameSummary {
                 _ => None,
             },
             torque_nmm: table.opt_f64_if_present(row, "torque_Nmm")?,
+            measured: true,
         })
+    }
+
+    /// The summary of frame `frame` that was not measured: every contact figure unknown.
+    pub fn unmeasured(frame: u32) -> Self {
+        Self {
+            frame,
+            contact: false,
+            contact_area_mm2: None,
+            max_depth_mm: None,
+            centroid_mm: None,
+            slip: SlipState::NoContact,
+            force_n: None,
+            shear_n: None,
+            torque_nmm: None,
+            measured: false,
+        }
     }
 }
 
@@ -464,6 +492,7 @@ mod tests {
             force_n: Some(1.5),
             shear_n: Some([0.25, -0.125]),
             torque_nmm: Some(0.0625),
+            measured: true,
         };
         let mut text = FRAME_COLUMNS.join(",");
         text.push('\n');
@@ -565,6 +594,7 @@ mod tests {
                     force_n: area,
                     shear_n: None,
                     torque_nmm: depth,
+                    measured: true,
                 };
                 let mut text = FRAME_COLUMNS.join(",");
                 text.push('\n');

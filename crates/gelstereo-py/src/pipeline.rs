@@ -204,9 +204,11 @@ fn grid_shape(grid: &Bound<'_, PyAny>) -> PyResult<GridShape> {
 ///         row, col (int64 grid index), status ("tracked", "predicted", "lost"), x_left, y_left,
 ///         x_right, y_right (px), X_mm, Y_mm, Z_mm (3-D, left camera frame), dX_mm, dY_mm, dZ_mm
 ///         (displacement against the reference); NaN where a view or the 3-D stages lack a value;
-///         pressure_kPa (contact pressure on the marker's cell), in_contact and slipping (bool).
-///     contact: the `Contact` (area, depth, centroid, region).
-///     slip: "no_contact", "stick", "partial_slip" or "gross_slip".
+///         pressure_kPa (contact pressure on the marker's cell), in_contact and slipping (bool);
+///         X_gel_mm, Y_gel_mm, Z_gel_mm, dX_gel_mm, dY_gel_mm, dZ_gel_mm (the same in the gel frame).
+///     contact: the `Contact` (area, depth, centroid, region); NaN figures for a frame whose
+///         contact is unknown (flagged: unreadable, or no usable markers).
+///     slip: "no_contact", "stick", "partial_slip" or "gross_slip"; None when the contact is unknown.
 ///     note: why the frame is flagged (unreadable, not localized, reference not yet indexed...);
 ///         None for a frame processed normally.
 ///     log: informational lines (how the reference lattice was indexed, re-zeroing).
@@ -223,7 +225,7 @@ pub struct PyFrame {
     #[pyo3(get)]
     contact: Py<PyContact>,
     #[pyo3(get)]
-    slip: &'static str,
+    slip: Option<&'static str>,
     #[pyo3(get)]
     note: Option<String>,
     #[pyo3(get)]
@@ -260,7 +262,7 @@ impl PyFrame {
             timestamp: output.t_s,
             markers: markers_dict(py, &output.markers)?.unbind(),
             contact: Py::new(py, contact)?,
-            slip: output.summary.slip.as_str(),
+            slip: output.summary.measured.then_some(output.summary.slip.as_str()),
             note: output.note,
             log: output.log,
             earlier,
@@ -282,7 +284,7 @@ impl PyFrame {
             "gelstereo.Frame(frame={}, timestamp={:.3}, {count} markers, slip={}{})",
             self.frame,
             self.timestamp,
-            self.slip,
+            self.slip.unwrap_or("unknown"),
             self.note
                 .as_ref()
                 .map(|n| format!(", note={n:?}"))

@@ -537,6 +537,7 @@ impl Simulator {
             force_n: Some(def.force_n),
             shear_n: Some(def.shear_n),
             torque_nmm: Some(def.torque_nmm),
+            measured: true,
         };
         Ok(Frame {
             markers,

@@ -6,8 +6,7 @@
 //!   in-plane field (see [`crate::planar`]).
 
 use gelstereo_core::{
-    Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, SlipState,
-    TieredDetections,
+    Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, TieredDetections,
 };
 use gelstereo_geometry::Triangulator;
 use nalgebra::{Point3, Vector3};
@@ -442,6 +441,7 @@ impl StereoSession {
             force_n: Some(contact.force_n),
             shear_n: Some(contact.shear_n),
             torque_nmm: Some(contact.torque_nmm),
+            measured: true,
         };
         Ok(StereoFrame {
             markers,
@@ -600,7 +600,7 @@ fn frames_skipped(last: &mut Option<u32>, frame: u32) -> u32 {
     skipped
 }
 
-/// Rows for a frame without data: every id lost, no contact.
+/// Rows for a frame without data: every id lost, the contact unmeasured (empty cells).
 pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameSummary) {
     let markers = ids
         .iter()
@@ -611,18 +611,7 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
             ..Default::default()
         })
         .collect();
-    let summary = FrameSummary {
-        frame,
-        contact: false,
-        contact_area_mm2: Some(0.0),
-        max_depth_mm: Some(0.0),
-        centroid_mm: None,
-        slip: SlipState::NoContact,
-        force_n: None,
-        shear_n: None,
-        torque_nmm: None,
-    };
-    (markers, summary)
+    (markers, FrameSummary::unmeasured(frame))
 }
 
 /// The normalised median test of particle image velocimetry (Westerweel & Scarano, "Universal outlier
@@ -830,6 +819,7 @@ impl MonoSession {
             force_n: None,
             shear_n: None,
             torque_nmm: None,
+            measured: true,
         };
         Ok(MonoFrame {
             markers,
@@ -848,7 +838,7 @@ impl MonoSession {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use gelstereo_core::ImageSize;
+    use gelstereo_core::{ImageSize, SlipState};
     use gelstereo_geometry::{Camera, StereoRig, TriangulationConfig};
     use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 

@@ -2,7 +2,7 @@
 //! fallback), tracking, triangulation, displacement, contact geometry and slip, one frame at a time.
 
 use gelstereo_core::{
-    FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, Point2, SlipState, StereoPair,
+    FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, MarkerStatus, Point2, SlipState, StereoPair,
     TieredDetections,
 };
 use gelstereo_geometry::StereoRig;
@@ -106,6 +106,19 @@ impl FrameOutput {
         self.summary.slip
     }
 
+    /// Flags a frame whose markers say nothing of the contact: its contact figures become
+    /// unknown, per frame and per marker, and the stages' results are dropped (no PLY, height map
+    /// or plot is drawn from them).
+    fn forget_contact(&mut self, note: String) {
+        self.summary = FrameSummary::unmeasured(self.frame);
+        self.contact_region.clear();
+        self.stages = None;
+        for m in &mut self.markers {
+            (m.pressure_kpa, m.in_contact, m.slipping) = (None, None, None);
+        }
+        self.note = Some(note);
+    }
+
     fn flagged(frame: u32, t_s: f64, note: String, ids: Option<&[GridIndex]>) -> Self {
         let (markers, summary) = flagged_rows(ids.unwrap_or(&[]), frame);
         Self {
@@ -122,6 +135,26 @@ impl FrameOutput {
             stages: None,
         }
     }
+}
+
+/// Share of a frame's ids that must be measured (tracked in every view) for its contact to mean
+/// anything: a black, grey or noise frame, or a view covered, leaves the tracker predicting
+/// markers from nothing.
+const MIN_TRACKED_SHARE: f64 = 0.25;
+
+/// Why a frame's markers cannot be used (`None` when they can): fewer than [`MIN_TRACKED_SHARE`]
+/// of its ids tracked.
+fn unusable(markers: &[MarkerRecord]) -> Option<String> {
+    let tracked = markers
+        .iter()
+        .filter(|m| m.status == Some(MarkerStatus::Tracked))
+        .count();
+    (!markers.is_empty() && (tracked as f64) < MIN_TRACKED_SHARE * markers.len() as f64).then(|| {
+        format!(
+            "no usable markers: {tracked} of {} tracked, the contact is unknown",
+            markers.len()
+        )
+    })
 }
 
 /// The whole pipeline, built once (models loaded, calibration read), then fed frame by frame.
@@ -363,7 +396,9 @@ impl Pipeline {
                 let reference_right_px = st.right().reference_px().to_vec();
                 let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
                 let contact_region = region(st.ids(), &self.shape, &tracked.contact.in_contact);
-                self.latest_contact = Some(tracked.contact.clone());
+                if unusable(&tracked.markers).is_none() {
+                    self.latest_contact = Some(tracked.contact.clone());
+                }
                 FrameOutput {
                     frame: frame_no,
                     t_s,
@@ -409,6 +444,9 @@ impl Pipeline {
                 )));
             }
         };
+        if let Some(note) = unusable(&out.markers) {
+            out.forget_contact(note);
+        }
         out.log = log;
         out.earlier = earlier;
         Ok(out)

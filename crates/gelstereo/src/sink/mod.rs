@@ -278,12 +278,13 @@ pub fn frame_json(out: &FrameOutput) -> serde_json::Value {
     serde_json::json!({
         "frame": out.frame,
         "t_s": out.t_s,
-        "contact": s.contact,
+        // An unmeasured frame's contact is unknown: null, as its empty cells in frames.csv.
+        "contact": s.measured.then_some(s.contact),
         "contact_area_mm2": s.contact_area_mm2,
         "max_depth_mm": s.max_depth_mm,
         "centroid_X_mm": s.centroid_mm.map(|c| c[0]),
         "centroid_Y_mm": s.centroid_mm.map(|c| c[1]),
-        "slip": s.slip.as_str(),
+        "slip": s.measured.then_some(s.slip.as_str()),
         "force_N": s.force_n,
         "shear_x_N": s.shear_n.map(|v| v[0]),
         "shear_y_N": s.shear_n.map(|v| v[1]),
