@@ -41,6 +41,12 @@ use crate::fit::affine_at;
 /// Marks "nothing" in dense assignment arrays.
 const NONE: u32 = u32::MAX;
 
+/// Two 4-neighbours whose frame-to-frame motions differ by at most this fraction of the local
+/// pitch belong to one coherent patch in the propagation pass: above localization noise, below
+/// the near-pitch jump between a marker and a neighbour that took the detection a lattice step
+/// away.
+const COHERENT_PITCH: f64 = 0.25;
+
 /// Settings of the [`Tracker`]. The defaults were chosen on simulated training recordings and the
 /// GelSight Mini video (see `docs/tracking.md`).
 #[derive(Debug, Clone, PartialEq)]
@@ -86,6 +92,13 @@ pub struct TrackerConfig {
     /// empty cell rather than a position that may be a neighbour's; 0 disables. 0.3: see
     /// `docs/tracking.md`.
     pub lost_near_detection_pitch: f64,
+    /// Gate of the propagation pass, fraction of the local pitch; 0 disables the pass. Where the
+    /// coarse association splits into patches whose motions disagree (a slide starting or stopping
+    /// faster than the constant-velocity prediction follows: a patch of markers took their
+    /// neighbours' detections, a lattice step off), the largest coherent patch is kept and the
+    /// markers around it are associated outward, ring by ring, within this gate of where the
+    /// motion of their associated neighbours (an affine field) puts them. 0.35: the fine gate.
+    pub propagation_gate_pitch: f64,
 }
 
 impl Default for TrackerConfig {
@@ -100,6 +113,7 @@ impl Default for TrackerConfig {
             motion_outlier_pitch: 0.2,
             lattice_outlier_pitch: 0.3,
             lost_near_detection_pitch: 0.3,
+            propagation_gate_pitch: 0.35,
         }
     }
 }
@@ -123,6 +137,7 @@ impl TrackerConfig {
             ("motion_outlier_pitch", self.motion_outlier_pitch),
             ("lattice_outlier_pitch", self.lattice_outlier_pitch),
             ("lost_near_detection_pitch", self.lost_near_detection_pitch),
+            ("propagation_gate_pitch", self.propagation_gate_pitch),
         ] {
             if v != 0.0 {
                 frac(field, v)?;
@@ -394,7 +409,10 @@ impl Tracker {
             })
             .collect();
 
-        let coarse = self.associate(&pred, &grid, self.config.gate_pitch);
+        let mut coarse = self.associate(&pred, &grid, self.config.gate_pitch);
+        if self.config.propagation_gate_pitch > 0.0 {
+            self.propagate(&points, &grid, &mut coarse);
+        }
         // The coarse association is gated wide and has no motion check yet: a weighted mean is
         // enough to re-centre the predictions (the same fine associations as a median on the
         // v1 train / val splits and the seed-505 set) at half the association's cost.
@@ -536,6 +554,128 @@ impl Tracker {
             }
         }
         assign_closest_first(cands, n, points.len())
+    }
+
+    /// The propagation pass (see `propagation_gate_pitch`): re-associates `assoc` outward from its
+    /// largest coherent patch. Unchanged when that patch holds every association.
+    fn propagate(&self, points: &[[f64; 2]], grid: &Buckets, assoc: &mut [u32]) {
+        let mut step = self.steps(points, assoc);
+        let Some(mut anchored) = self.largest_coherent_patch(&step) else {
+            return;
+        };
+        let n = self.ids.len();
+        let mut held = vec![NONE; points.len()];
+        for i in (0..n).filter(|&i| anchored[i]) {
+            held[assoc[i] as usize] = i as u32;
+        }
+        for (i, s) in step.iter_mut().enumerate() {
+            if !anchored[i] {
+                *s = None;
+            }
+        }
+        let mut grown = vec![NONE; n];
+        // Markers whose field prediction was tried: their coarse association is not kept.
+        let mut reached = vec![false; n];
+        let mut frontier: Vec<usize> = (0..n)
+            .filter(|&i| !anchored[i] && self.neighbours[i].iter().any(|&(j, _)| anchored[j as usize]))
+            .collect();
+        let mut nearby = Vec::new();
+        let gate = self.config.propagation_gate_pitch;
+        while !frontier.is_empty() {
+            let mut cands: Vec<(f64, u32, u32)> = Vec::new();
+            for &i in &frontier {
+                let Some(s) = self.field_step(i, &step) else {
+                    continue;
+                };
+                reached[i] = true;
+                let c = self.current_px[i];
+                self.within_gate(grid, i, Point2::new(c.x + s[0], c.y + s[1]), gate, &mut nearby);
+                cands.extend(
+                    nearby
+                        .iter()
+                        .filter(|&&(_, d)| held[d as usize] == NONE)
+                        .map(|&(d2, d)| (d2, i as u32, d)),
+                );
+            }
+            let got = assign_closest_first(cands, n, points.len());
+            let mut next = Vec::new();
+            for &i in &frontier {
+                let d = got[i];
+                if d == NONE {
+                    continue;
+                }
+                (anchored[i], grown[i], held[d as usize]) = (true, d, i as u32);
+                let p = points[d as usize];
+                step[i] = Some([p[0] - self.current_px[i].x, p[1] - self.current_px[i].y]);
+                next.extend(
+                    self.neighbours[i]
+                        .iter()
+                        .map(|&(j, _)| j as usize)
+                        .filter(|&j| !anchored[j]),
+                );
+            }
+            next.sort_unstable();
+            next.dedup();
+            frontier = next;
+        }
+        for i in 0..n {
+            if anchored[i] {
+                assoc[i] = if grown[i] != NONE { grown[i] } else { assoc[i] };
+            } else if reached[i] || (assoc[i] != NONE && held[assoc[i] as usize] != NONE) {
+                // Off the field of its sure neighbours, or its detection went to a marker on it.
+                assoc[i] = NONE;
+            }
+        }
+    }
+
+    /// The largest patch of associated markers connected through 4-neighbours whose motions
+    /// differ by at most [`COHERENT_PITCH`] x the local pitch, as a mask over the slots; `None`
+    /// when it holds every association (nothing to propagate) or there is none.
+    fn largest_coherent_patch(&self, step: &[Option<[f64; 2]>]) -> Option<Vec<bool>> {
+        let n = self.ids.len();
+        let mut label = vec![NONE; n];
+        let (mut best, mut best_size, mut associated) = (NONE, 0usize, 0usize);
+        let mut stack = Vec::new();
+        for seed in 0..n {
+            if step[seed].is_none() || label[seed] != NONE {
+                continue;
+            }
+            let mut size = 0;
+            label[seed] = seed as u32;
+            stack.push(seed);
+            while let Some(i) = stack.pop() {
+                size += 1;
+                let e = step[i].unwrap_or_default();
+                let limit = COHERENT_PITCH * self.pitch_px[i];
+                // Weight 1: the 4-neighbours.
+                for &(j, _) in self.neighbours[i].iter().filter(|&&(_, w)| w == 1.0) {
+                    let j = j as usize;
+                    let coherent = step[j].is_some_and(|m| (e[0] - m[0]).hypot(e[1] - m[1]) <= limit);
+                    if coherent && label[j] == NONE {
+                        label[j] = seed as u32;
+                        stack.push(j);
+                    }
+                }
+            }
+            associated += size;
+            if size > best_size {
+                (best, best_size) = (seed as u32, size);
+            }
+        }
+        (best_size > 0 && best_size < associated).then(|| label.iter().map(|&l| l == best).collect())
+    }
+
+    /// The frame-to-frame motion of `slot` that the motions of its neighbours with a `step`
+    /// predict: their weighted (1/d^2) least-squares affine field over the reference lattice at the
+    /// slot ([`affine_at`]); it carries the field's gradient one step on where a slide's edge makes
+    /// it steep. `None` with fewer than 4 such neighbours or when they do not span both lattice
+    /// directions.
+    fn field_step(&self, slot: usize, step: &[Option<[f64; 2]>]) -> Option<[f64; 2]> {
+        let pairs = self.neighbours[slot].iter().filter_map(|&(j, w)| {
+            let r = self.reference_px[j as usize];
+            Some(([r.x, r.y], step[j as usize]?, w))
+        });
+        affine_at(pairs, self.reference_px[slot], self.pitch_px[slot]).map(|p| [p.x, p.y])
     }
 
     /// One-to-one association, closest pairs first, within `gate` x local pitch of each prediction.
