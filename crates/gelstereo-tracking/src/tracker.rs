@@ -1059,9 +1059,13 @@ mod tests {
     use crate::synthetic::press_then_slide;
 
     fn start(seq: &crate::synthetic::Sequence2) -> Tracker {
+        start_with(seq, TrackerConfig::default())
+    }
+
+    fn start_with(seq: &crate::synthetic::Sequence2, config: TrackerConfig) -> Tracker {
         let reference: Vec<(GridIndex, Point2)> =
             seq.shape.indices().zip(seq.truth[0].iter().copied()).collect();
-        Tracker::new(seq.shape, &reference, TrackerConfig::default()).unwrap()
+        Tracker::new(seq.shape, &reference, config).unwrap()
     }
 
     /// Runs the tracker over `seq` and returns (id swaps, spurious detections taken, worst per-frame
@@ -1123,6 +1127,67 @@ mod tests {
         let (swaps, _, frac, _) = run(&seq, &mut tracker);
         assert_eq!(swaps, 0);
         assert!(frac >= 0.99, "{frac}");
+    }
+
+    /// The tracker before the propagation pass.
+    fn without_propagation() -> TrackerConfig {
+        TrackerConfig {
+            propagation_gate_pitch: 0.0,
+            ..TrackerConfig::default()
+        }
+    }
+
+    /// A contact that slides `steps_px` (px per frame, pitch 20 px) after an 8-frame press: every
+    /// start and stop sudden, like the onset of a slip, with 2 % of the markers missed, 1 %
+    /// spurious detections and 0.4 px of noise.
+    fn sudden_slides(steps_px: &[f64], seed: u64) -> crate::synthetic::Sequence2 {
+        let detector = crate::synthetic::Detector {
+            miss: 0.02,
+            spurious: 0.01,
+            noise_px: 0.4,
+            seed,
+        };
+        crate::synthetic::press_then_steps(8, steps_px, &detector)
+    }
+
+    #[test]
+    fn a_sudden_slide_of_almost_a_pitch_per_frame_keeps_every_id() {
+        // 0.9 pitch per frame for two frames, a rest, the same back.
+        let seq = sudden_slides(&[18.0, 18.0, 0.0, 0.0, -18.0, -18.0], 11);
+        let (swaps, spurious, frac, err) = run(&seq, &mut start(&seq));
+        assert_eq!(swaps, 0, "id swaps");
+        assert!(spurious <= 3, "spurious detections taken: {spurious}");
+        assert!(frac >= 0.99, "worst tracked fraction of detected markers {frac}");
+        assert!(err < 0.25 * seq.pitch_px, "worst position error {err} px");
+        // The tracker before the propagation pass: at the start of the slide the constant-velocity
+        // prediction stays behind, the contact's markers take the detections of the markers
+        // behind them, and their ids are a lattice step off.
+        let (swaps, _, frac, err) = run(&seq, &mut start_with(&seq, without_propagation()));
+        assert!(swaps > 20, "{swaps} id swaps");
+        assert!(frac < 0.95 && err > seq.pitch_px, "{frac} {err}");
+    }
+
+    #[test]
+    fn a_coherent_slide_of_one_and_a_half_pitches_per_frame_and_a_snap_back_keep_every_id() {
+        // 1.5 pitch in one frame and back after a rest; 0.9 pitch twice and a snap back of 1.8.
+        for (steps, seed) in [(&[30.0, 0.0, -30.0][..], 12), (&[18.0, 18.0, 0.0, -36.0][..], 13)] {
+            let seq = sudden_slides(steps, seed);
+            let (swaps, _, frac, _) = run(&seq, &mut start(&seq));
+            assert_eq!(swaps, 0, "{steps:?}: id swaps");
+            assert!(frac >= 0.97, "{steps:?}: worst tracked fraction {frac}");
+        }
+    }
+
+    #[test]
+    fn the_propagation_pass_leaves_slow_motion_as_it_was() {
+        // The slide of `press_then_slide_keeps_every_id_with_missing_and_spurious_points`: the
+        // coarse association is one coherent patch in every frame, so the pass changes nothing.
+        let seq = press_then_slide(60, 0.03, 0.02, 0.6, 30.0, 7);
+        let (mut with, mut without) = (start(&seq), start_with(&seq, without_propagation()));
+        for (f, dets) in seq.detections.iter().enumerate() {
+            let pts: Vec<Point2> = dets.iter().map(|d| d.0).collect();
+            assert_eq!(with.update(&pts), without.update(&pts), "frame {f}");
+        }
     }
 
     #[test]
