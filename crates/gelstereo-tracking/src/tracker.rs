@@ -213,6 +213,8 @@ pub struct Tracker {
     pitch_px: Vec<f64>,
     /// Per slot: lattice neighbours within the support radius (slot, weight 1/d^2), self excluded.
     neighbours: Vec<Vec<(u32, f64)>>,
+    /// Per slot: its 4-neighbours on the lattice (slots; [`NONE`] where there is no marker).
+    four: Vec<[u32; 4]>,
 }
 
 impl Tracker {
@@ -260,6 +262,17 @@ impl Tracker {
                     .collect()
             })
             .collect();
+        let four: Vec<[u32; 4]> = ids
+            .iter()
+            .map(|id| {
+                [(0, 1), (1, 0), (0, -1), (-1, 0)].map(|(dr, dc)| {
+                    let (row, col) = (i32::from(id.row) + dr, i32::from(id.col) + dc);
+                    let at = u16::try_from(row).ok().zip(u16::try_from(col).ok());
+                    at.and_then(|(r, c)| shape.linear(GridIndex::new(r, c)))
+                        .map_or(NONE, |lin| slot_of[lin])
+                })
+            })
+            .collect();
         let pitch_px = local_pitch(&ids, &reference_px, &slot_of, shape)?;
         let n = ids.len();
         Ok(Self {
@@ -273,6 +286,7 @@ impl Tracker {
             status: vec![MarkerStatus::Tracked; n],
             pitch_px,
             neighbours,
+            four,
         })
     }
 
@@ -646,11 +660,18 @@ impl Tracker {
             while let Some(i) = stack.pop() {
                 size += 1;
                 let e = step[i].unwrap_or_default();
-                let limit = COHERENT_PITCH * self.pitch_px[i];
-                // Weight 1: the 4-neighbours.
-                for &(j, _) in self.neighbours[i].iter().filter(|&&(_, w)| w == 1.0) {
-                    let j = j as usize;
-                    let coherent = step[j].is_some_and(|m| (e[0] - m[0]).hypot(e[1] - m[1]) <= limit);
+                for j in self.four[i]
+                    .into_iter()
+                    .filter(|&j| j != NONE)
+                    .map(|j| j as usize)
+                {
+                    // The smaller pitch: the same edges whichever end the fill comes from.
+                    let limit = COHERENT_PITCH * self.pitch_px[i].min(self.pitch_px[j]);
+                    // Squared lengths: no `hypot` on the path every frame takes.
+                    let coherent = step[j].is_some_and(|m| {
+                        let (dx, dy) = (e[0] - m[0], e[1] - m[1]);
+                        dx * dx + dy * dy <= limit * limit
+                    });
                     if coherent && label[j] == NONE {
                         label[j] = seed as u32;
                         stack.push(j);
