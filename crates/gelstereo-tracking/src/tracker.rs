@@ -8,6 +8,15 @@
 //! 2. **Coarse association**: the `k` nearest detections of every prediction within
 //!    `gate_pitch` x the marker's local pitch (a bucket grid over the detections), assigned
 //!    one-to-one, closest pairs first.
+//!    **Propagation**: where these associations split into patches whose motions disagree (two
+//!    4-neighbours more than `COHERENT_PITCH` apart), the constant-velocity prediction has missed
+//!    a sudden start, stop or snap-back and a patch took its neighbours' detections, a lattice step
+//!    off. Only the largest coherent patch is kept; the markers around it are associated outward,
+//!    ring by ring, one-to-one and closest first, within `propagation_gate_pitch` of where the
+//!    affine field of their associated neighbours' motion puts them (markers far from a contact
+//!    barely move and anchor the field; the affine fit carries its gradient across a slide's
+//!    edge). A marker this reaches but finds nothing for loses its coarse association; one it
+//!    never reaches keeps it unless a marker of the field took its detection.
 //! 3. **Neighbour correction**: every marker is re-predicted at its last position plus the weighted
 //!    mean frame-to-frame motion of the markers associated around it (lattice neighbours within
 //!    `support_radius` steps, weights 1/d^2 in lattice steps, its own motion counting 2; the
