@@ -24,21 +24,64 @@ pub(crate) fn press_then_slide(
     slide_px: f64,
     seed: u64,
 ) -> Sequence2 {
+    let press = frames / 3;
+    let slide = |f: usize| {
+        if f > press {
+            slide_px * ((f - press) as f64 / (frames - press - 1).max(1) as f64)
+        } else {
+            0.0
+        }
+    };
+    let detector = Detector {
+        miss,
+        spurious,
+        noise_px,
+        seed,
+    };
+    pressed_lattice(frames, press, slide, &detector)
+}
+
+/// Press over `press` frames, then slides of the contact given as whole steps in x, px, one per
+/// frame after the press (sudden starts and stops), then `press` frames at rest.
+pub(crate) fn press_then_steps(press: usize, steps_px: &[f64], detector: &Detector) -> Sequence2 {
+    let frames = 2 * press + steps_px.len() + 1;
+    let slide = |f: usize| steps_px.iter().take(f.saturating_sub(press + 1)).sum();
+    pressed_lattice(frames, press, slide, detector)
+}
+
+/// How the detections are drawn from the truth: the share of markers missed per frame, spurious
+/// detections per frame as a share of the markers, uniform noise of `noise_px` width, the seed.
+pub(crate) struct Detector {
+    pub miss: f64,
+    pub spurious: f64,
+    pub noise_px: f64,
+    pub seed: u64,
+}
+
+/// The reference lattice (pitch 20 px) under a press growing over frames 0..press and the slide
+/// `slide(frame)` in x (px; 0.2 of it in y) carried by the contact region (a Gaussian of 3 pitches).
+fn pressed_lattice(
+    frames: usize,
+    press: usize,
+    slide: impl Fn(usize) -> f64,
+    detector: &Detector,
+) -> Sequence2 {
+    let Detector {
+        miss,
+        spurious,
+        noise_px,
+        seed,
+    } = *detector;
     let shape = GridShape::REFERENCE;
     let pitch = 20.0;
     let (x0, y0) = (100.0, 40.0);
     let centre = (x0 + 11.0 * pitch, y0 + 11.0 * pitch);
-    let press = frames / 3;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut truth = Vec::new();
     let mut detections = Vec::new();
     for f in 0..frames {
         let a = (f as f64 / press as f64).min(1.0);
-        let s = if f > press {
-            slide_px * ((f - press) as f64 / (frames - press - 1).max(1) as f64)
-        } else {
-            0.0
-        };
+        let s = slide(f);
         let mut pts = Vec::new();
         let mut dets = Vec::new();
         for idx in shape.indices() {
