@@ -283,8 +283,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         match source {
             Source::Image(path) => {
                 let image = images::read_image(path)?;
-                let found = detect_view(localizer.as_mut(), &image)
-                    .with_context(|| format!("{}", path.display()))?;
+                let found =
+                    detect_view(localizer.as_mut(), &image).with_context(|| format!("{}", path.display()))?;
                 sink.emit(&path.display().to_string(), &stem(path), &image, &found)?;
             }
             Source::Stereo(rec) => {
@@ -315,8 +315,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let context = || format!("{name} (frame {index})");
                     if args.side_by_side {
                         let pair: StereoPair<Mat> = video::split_side_by_side(&frame, path)?;
-                        let found =
-                            detect_pair(localizer.as_mut(), &pair).with_context(context)?;
+                        let found = detect_pair(localizer.as_mut(), &pair).with_context(context)?;
                         sink.emit(
                             &format!("{name}:left"),
                             &format!("{}_{index:06}_left", stem(path)),
@@ -330,8 +329,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                             &found.right,
                         )?;
                     } else {
-                        let found =
-                            detect_view(localizer.as_mut(), &frame).with_context(context)?;
+                        let found = detect_view(localizer.as_mut(), &frame).with_context(context)?;
                         sink.emit(&name, &format!("{}_{index:06}", stem(path)), &frame, &found)?;
                     }
                 }

@@ -22,7 +22,9 @@ impl std::str::FromStr for PadBorder {
         }
         match s.parse::<u16>() {
             Ok(px) if px <= MAX_PX => Ok(Self::Px(px)),
-            _ => Err(format!("expected `auto` or a number of pixels in 0..={MAX_PX}, found `{s}`")),
+            _ => Err(format!(
+                "expected `auto` or a number of pixels in 0..={MAX_PX}, found `{s}`"
+            )),
         }
     }
 }

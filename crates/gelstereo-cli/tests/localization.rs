@@ -318,7 +318,14 @@ fn inside_px(p: (f64, f64)) -> f64 {
 #[test]
 fn detect_places_dots_cut_by_the_border_and_reports_none_centred_outside() {
     let (pitch, radius) = (29.0, 5.5);
-    let origins = [(1.5, -2.0), (0.3, 3.0), (-1.0, 1.0), (3.0, 0.6), (-2.0, -1.2), (2.2, 2.0)];
+    let origins = [
+        (1.5, -2.0),
+        (0.3, 3.0),
+        (-1.0, 1.0),
+        (3.0, 0.6),
+        (-2.0, -1.2),
+        (2.2, 2.0),
+    ];
     let dir = tempfile::tempdir().unwrap();
     let mut truth = Vec::new();
     for (k, &(x0, y0)) in origins.iter().enumerate() {
@@ -327,7 +334,8 @@ fn detect_places_dots_cut_by_the_border_and_reports_none_centred_outside() {
             .filter(|&p| inside_px(p) > -radius)
             .collect();
         let mut img =
-            Mat::new_rows_cols_with_default(240, 320, CV_8UC3, Scalar::new(190.0, 180.0, 170.0, 0.0)).unwrap();
+            Mat::new_rows_cols_with_default(240, 320, CV_8UC3, Scalar::new(190.0, 180.0, 170.0, 0.0))
+                .unwrap();
         for &(x, y) in &centres {
             // Drawn at 1/16 px, as the dots of the borders test.
             let at = Point::new((x * 16.0).round() as i32, (y * 16.0).round() as i32);
@@ -348,7 +356,11 @@ fn detect_places_dots_cut_by_the_border_and_reports_none_centred_outside() {
             .skip(1)
             .map(|l| {
                 let f: Vec<&str> = l.split(',').collect();
-                let name = Path::new(f[0]).file_name().unwrap().to_string_lossy().into_owned();
+                let name = Path::new(f[0])
+                    .file_name()
+                    .unwrap()
+                    .to_string_lossy()
+                    .into_owned();
                 (name, f[1].parse().unwrap(), f[2].parse().unwrap())
             })
             .collect()
@@ -393,8 +405,18 @@ fn detect_places_dots_cut_by_the_border_and_reports_none_centred_outside() {
             );
         }
     }
-    assert!(cut >= 60 && outside >= 60, "{cut} cut dots inside, {outside} outside");
-    let old = gelstereo(&["detect", "--threads", "1", "--pad-border", "8", dir.path().to_str().unwrap()]);
+    assert!(
+        cut >= 60 && outside >= 60,
+        "{cut} cut dots inside, {outside} outside"
+    );
+    let old = gelstereo(&[
+        "detect",
+        "--threads",
+        "1",
+        "--pad-border",
+        "8",
+        dir.path().to_str().unwrap(),
+    ]);
     assert!(old.status.success(), "{}", text(&old));
     assert!(text(&old).contains("--pad-border 8 is ignored"), "{}", text(&old));
     let padded = found(&["--pad-border", "8"]);

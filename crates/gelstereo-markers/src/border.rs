@@ -286,7 +286,16 @@ fn fit_cut_dot(grey: &Grey, template: &DotTemplate, p: Point2) -> Option<(Point2
     let mut step = 0.5 * COARSE_STEP_PX;
     while step >= FINEST_STEP_PX {
         let (centre, _) = best?;
-        for (dx, dy) in [(-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0), (-1.0, -1.0), (1.0, 1.0), (-1.0, 1.0), (1.0, -1.0)] {
+        for (dx, dy) in [
+            (-1.0, 0.0),
+            (1.0, 0.0),
+            (0.0, -1.0),
+            (0.0, 1.0),
+            (-1.0, -1.0),
+            (1.0, 1.0),
+            (-1.0, 1.0),
+            (1.0, -1.0),
+        ] {
             consider(Point2::new(centre.x + dx * step, centre.y + dy * step), &mut best);
         }
         if best.is_some_and(|(c, _)| c == centre) {
@@ -360,4 +369,69 @@ pub fn settle_the_border(found: &mut TieredDetections, image: &Mat, pitch_px: Op
     crate::sort_detections(&mut found.accepted);
     crate::sort_detections(&mut found.second_tier);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_8UC3, Point, Scalar};
+    use opencv::imgproc;
+
+    fn det(x: f64, y: f64) -> Detection {
+        Detection {
+            position: Point2::new(x, y),
+            confidence: 1.0,
+        }
+    }
+
+    /// A 320 x 240 gel of dark dots (radius 5.5 px) at `centres`, drawn at 1/16 px.
+    fn gel(centres: &[(f64, f64)]) -> Mat {
+        let mut img =
+            Mat::new_rows_cols_with_default(240, 320, CV_8UC3, Scalar::new(190.0, 180.0, 170.0, 0.0))
+                .unwrap();
+        for &(x, y) in centres {
+            let at = Point::new((x * 16.0).round() as i32, (y * 16.0).round() as i32);
+            imgproc::circle(&mut img, at, 88, Scalar::all(45.0), -1, imgproc::LINE_AA, 4).unwrap();
+        }
+        img
+    }
+
+    /// Dots cut by the left border, reported where the network puts them (the middle of their
+    /// visible part): the one centred 1 px inside is placed within 0.2 px of its centre, the one
+    /// centred 2 px outside goes; whole dots keep their positions.
+    #[test]
+    fn cut_dots_are_placed_at_their_centre_or_dropped_when_it_lies_outside() {
+        let pitch = 29.0;
+        let whole: Vec<(f64, f64)> = (0..6)
+            .flat_map(|r| (1..8).map(move |c| (30.0 + pitch * f64::from(c), 30.0 + pitch * f64::from(r))))
+            .collect();
+        let (inside, outside) = ((1.0, 88.0), (-2.0, 146.0));
+        let mut centres = whole.clone();
+        centres.extend([inside, outside]);
+        let image = gel(&centres);
+        let mut found = TieredDetections {
+            accepted: whole.iter().map(|&(x, y)| det(x, y)).collect(),
+            second_tier: Vec::new(),
+        };
+        // The middle of the visible part: (x + 5.5) / 2 from the edge at -0.5.
+        found.accepted.push(det(0.5 * (inside.0 + 5.5) - 0.25, inside.1));
+        found
+            .accepted
+            .push(det(0.5 * (outside.0 + 5.5) - 0.25, outside.1));
+        settle_the_border(&mut found, &image, Some(pitch)).unwrap();
+        assert_eq!(found.accepted.len(), whole.len() + 1, "{:?}", found.accepted);
+        let placed = found
+            .accepted
+            .iter()
+            .find(|d| d.position.x < 10.0)
+            .expect("the dot centred inside");
+        assert!(
+            (placed.position.x - inside.0).abs() < 0.2 && (placed.position.y - inside.1).abs() < 0.2,
+            "{:?}",
+            placed.position
+        );
+        for &(x, y) in &whole {
+            assert!(found.accepted.contains(&det(x, y)));
+        }
+    }
 }

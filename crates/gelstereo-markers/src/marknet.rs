@@ -18,12 +18,12 @@ use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
+use crate::border::settle_the_border;
 use crate::close_look::{
     Region, SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of,
 };
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::border::settle_the_border;
 use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };

@@ -522,7 +522,11 @@ impl Pipeline {
     /// pipeline's localizer cannot be forked ([`Localizer::fork`]).
     pub fn fork_localizer(&self, intra_threads: usize) -> Option<Result<FrameLocalizer>> {
         let forked = self.localizer.fork(intra_threads)?;
-        Some(forked.map_err(Error::from).map(|localizer| FrameLocalizer { localizer }))
+        Some(
+            forked
+                .map_err(Error::from)
+                .map(|localizer| FrameLocalizer { localizer }),
+        )
     }
 
     /// A frame and its localization (by [`Self::process`], or by a [`FrameLocalizer`] of this
@@ -592,7 +596,10 @@ impl FrameLocalizer {
 
 /// The markers of `images` as the pipeline localizes them: both views in one batch, or the mono
 /// image (markers cut by the border are the localizer's to place).
-fn localize_with(localizer: &mut (dyn Localizer + Send), images: &Images) -> Result<StereoPair<TieredDetections>> {
+fn localize_with(
+    localizer: &mut (dyn Localizer + Send),
+    images: &Images,
+) -> Result<StereoPair<TieredDetections>> {
     Ok(match images {
         Images::Stereo(pair) => localizer.detect_stereo_tiered(pair)?,
         Images::Mono(m) => StereoPair::new(localizer.detect_tiered(m)?, TieredDetections::default()),
