@@ -257,7 +257,7 @@ fn unreadable_and_resized_frames_are_flagged_not_fatal_and_missing_ones_are_name
 }
 
 #[test]
-fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
+fn real_gelsight_mini_video_keeps_its_ids_and_reports_the_hard_slide() {
     let video = repo().join("../shared/real/gelsight-mini-press/mini_example.avi");
     if !video.is_file() {
         eprintln!(
@@ -268,16 +268,9 @@ fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
     }
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("mini");
-    let params = repo().join("data/sample/gelsight-mini-blob.json");
     let (ok, err) = track(&[
-        "--method",
-        "blob",
-        "--blob-params",
-        params.to_str().unwrap(),
         "--grid",
         "8x10",
-        "--pad-border",
-        "8",
         "--overlay-every",
         "0",
         "--out",
@@ -292,13 +285,14 @@ fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
     for m in &rows {
         by_frame.entry(m.frame).or_default().insert(m.index, m);
     }
-    // 80 ids tracked in every frame 0-55 (no contact).
+    // Every marker whose centre lies inside the image tracked in every frame 0-55 (no contact): 74
+    // of the 80; the top row's other six dots show a sliver of themselves, their centres above it.
     for f in 0..=55 {
         let tracked = by_frame[&f]
             .values()
             .filter(|m| m.status == Some(MarkerStatus::Tracked))
             .count();
-        assert_eq!(tracked, 80, "frame {f}");
+        assert_eq!(tracked, 74, "frame {f}");
     }
     // The same ids throughout: no id ever jumps by more than half a pitch (31 px) between frames.
     for f in 1..219u32 {
@@ -338,7 +332,7 @@ fn real_gelsight_mini_video_keeps_80_ids_and_reports_the_hard_slide() {
 }
 
 /// Frames localized ahead of the tracker by worker threads (the default) give the tables of one
-/// frame at a time on a real mono video with a padded border: the workers go on with the remembered
+/// frame at a time on a real mono video: the workers go on with the remembered
 /// pitch of the reference frame's localizer, whose auto layout scales this sensor's image.
 #[test]
 fn real_mono_video_tracks_alike_with_frames_localized_ahead_and_one_at_a_time() {
@@ -355,8 +349,6 @@ fn real_mono_video_tracks_alike_with_frames_localized_ahead_and_one_at_a_time() 
             workers,
             "--grid",
             "8x10",
-            "--pad-border",
-            "8",
             "--max-frames",
             "80",
             "--overlay-every",

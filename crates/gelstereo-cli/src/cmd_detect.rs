@@ -14,6 +14,8 @@ use gelstereo_io::video::{self, VideoFrames};
 use gelstereo_markers::{BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, overlay};
 use opencv::core::Mat;
 
+use crate::pad_border::PadBorder;
+
 use crate::project;
 
 /// How to build the localizers: model files, blob parameters, ONNX Runtime options.
@@ -127,12 +129,10 @@ pub struct Args {
     /// Treat videos as side-by-side stereo (left half, right half).
     #[arg(long)]
     side_by_side: bool,
-    /// Mirror this many pixels around each image border before localizing, so markers cut by the
-    /// border with their centre up to half this outside the image are reported too (as `track
-    /// --pad-border`; their centres are then biased towards the border). Without it no marker whose
-    /// centre lies outside the image is reported.
-    #[arg(long, default_value_t = 0, value_name = "PX", value_parser = clap::value_parser!(i32).range(0..=256))]
-    pad_border: i32,
+    /// Kept for old scripts: markers cut by the image border are found by default, placed at their
+    /// centre, and none whose centre lies outside the image is reported; a number given is ignored.
+    #[arg(long, default_value_t, value_name = "auto|PX")]
+    pad_border: PadBorder,
     #[command(flatten)]
     localizer: LocalizerArgs,
     /// Image files, folders of images, stereo recordings (folders with left/ and right/) or video files.
@@ -248,32 +248,22 @@ fn stem(p: &Path) -> String {
         .unwrap_or_else(|| "image".to_owned())
 }
 
-/// The markers of one view, its border mirrored `pad` px first when `pad > 0`.
-fn detect_view(
-    localizer: &mut (dyn Localizer + Send),
-    image: &Mat,
-    pad: i32,
-) -> anyhow::Result<Vec<Detection>> {
-    Ok(gelstereo::detect_padded(localizer, image, pad)?.accepted)
+/// The markers of one view.
+fn detect_view(localizer: &mut (dyn Localizer + Send), image: &Mat) -> anyhow::Result<Vec<Detection>> {
+    Ok(localizer.detect(image)?)
 }
 
-/// The markers of both views: as one batch, or view by view with their borders mirrored.
+/// The markers of both views, as one batch.
 fn detect_pair(
     localizer: &mut (dyn Localizer + Send),
     pair: &StereoPair<Mat>,
-    pad: i32,
 ) -> anyhow::Result<StereoPair<Vec<Detection>>> {
-    if pad == 0 {
-        return Ok(localizer.detect_stereo(pair)?);
-    }
-    Ok(StereoPair::new(
-        detect_view(localizer, &pair.left, pad)?,
-        detect_view(localizer, &pair.right, pad)?,
-    ))
+    Ok(localizer.detect_stereo(pair)?)
 }
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = expand(&args.inputs)?;
+    args.pad_border.note_if_given();
     let mut localizer = args.localizer.localizer(args.method)?;
     // An existing --out file is replaced only when every input was read (AtomicFile).
     let csv = match &args.out {
@@ -293,8 +283,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         match source {
             Source::Image(path) => {
                 let image = images::read_image(path)?;
-                let found = detect_view(localizer.as_mut(), &image, args.pad_border)
-                    .with_context(|| format!("{}", path.display()))?;
+                let found =
+                    detect_view(localizer.as_mut(), &image).with_context(|| format!("{}", path.display()))?;
                 sink.emit(&path.display().to_string(), &stem(path), &image, &found)?;
             }
             Source::Stereo(rec) => {
@@ -303,7 +293,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         break;
                     };
                     let pair = pair?;
-                    let found = detect_pair(localizer.as_mut(), &pair, args.pad_border)
+                    let found = detect_pair(localizer.as_mut(), &pair)
                         .with_context(|| format!("{} (stereo frame {i})", paths.left.display()))?;
                     for (side, path, image, dets) in [
                         ("left", &paths.left, &pair.left, &found.left),
@@ -325,8 +315,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                     let context = || format!("{name} (frame {index})");
                     if args.side_by_side {
                         let pair: StereoPair<Mat> = video::split_side_by_side(&frame, path)?;
-                        let found =
-                            detect_pair(localizer.as_mut(), &pair, args.pad_border).with_context(context)?;
+                        let found = detect_pair(localizer.as_mut(), &pair).with_context(context)?;
                         sink.emit(
                             &format!("{name}:left"),
                             &format!("{}_{index:06}_left", stem(path)),
@@ -340,8 +329,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                             &found.right,
                         )?;
                     } else {
-                        let found =
-                            detect_view(localizer.as_mut(), &frame, args.pad_border).with_context(context)?;
+                        let found = detect_view(localizer.as_mut(), &frame).with_context(context)?;
                         sink.emit(&name, &format!("{}_{index:06}", stem(path)), &frame, &found)?;
                     }
                 }

@@ -18,6 +18,7 @@ use gelstereo::{Method, Pipeline, PipelineConfig, sim::SensorSpec};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cmd_detect::LocalizerArgs;
+use crate::pad_border::PadBorder;
 
 /// Arguments of `gelstereo track`.
 #[derive(clap::Args, Debug)]
@@ -54,10 +55,10 @@ pub struct Args {
     /// Track a stereo recording's left view only, as a mono sensor.
     #[arg(long)]
     mono: bool,
-    /// Mirror this many pixels around each image border before localizing (mono input), so markers
-    /// cut by the border are found (their centres are then biased towards the border).
-    #[arg(long, default_value_t = 0, value_name = "PX")]
-    pad_border: i32,
+    /// Kept for old scripts: markers cut by the image border are found by default, placed at their
+    /// centre, and none whose centre lies outside the image is reported; a number given is ignored.
+    #[arg(long, default_value_t, value_name = "auto|PX")]
+    pad_border: PadBorder,
     /// Marker pitch, mm: a mono sensor's contact area and centroid in mm; for a stereo grid that
     /// overfills the view without a sensor description, it settles the right view's column offset.
     #[arg(long, value_name = "MM")]
@@ -132,7 +133,6 @@ impl Args {
             localizer: self.localizer.config()?,
             method: self.method,
             mono: self.mono,
-            pad_border_px: self.pad_border,
             ..PipelineConfig::default()
         };
         if let Some(dir) = self.input.as_deref().filter(|p| p.is_dir()) {
@@ -183,6 +183,7 @@ fn open_source(args: &Args) -> anyhow::Result<FrameSource> {
 }
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    args.pad_border.note_if_given();
     if args.bench {
         return bench(args);
     }

@@ -18,6 +18,7 @@ mod cmd_reconstruct;
 mod cmd_simulate;
 mod cmd_track;
 mod gel_args;
+mod pad_border;
 mod project;
 
 /// Stereo visuotactile reconstruction for GelStereo-type tactile sensors.

@@ -145,6 +145,17 @@ fn stays(p: Point2, sides: &[Side; 4], lattice: &Buckets, pitch_px: f64) -> bool
 /// it, judged by the lines of the accepted markers (`pitch_px` apart) and, where no line reaches a
 /// marker, by the edge margin; all of them without a pitch.
 pub fn drop_past_the_edge(found: &mut TieredDetections, size: ImageSize, pitch_px: Option<f64>) {
+    drop_past_the_edge_except(found, size, pitch_px, &[]);
+}
+
+/// [`drop_past_the_edge`], leaving alone the markers at `judged` (already placed inside the image by
+/// [`crate::border`]).
+pub(crate) fn drop_past_the_edge_except(
+    found: &mut TieredDetections,
+    size: ImageSize,
+    pitch_px: Option<f64>,
+    judged: &[Point2],
+) {
     let Some(pitch) = pitch_px.filter(|p| p.is_finite() && *p > 0.0) else {
         return;
     };
@@ -159,10 +170,9 @@ pub fn drop_past_the_edge(found: &mut TieredDetections, size: ImageSize, pitch_p
     }
     let points: Vec<Point2> = found.accepted.iter().map(|d| d.position).collect();
     let grid = Buckets::new(&points, pitch);
-    found.accepted.retain(|d| stays(d.position, &sides, &grid, pitch));
-    found
-        .second_tier
-        .retain(|d| stays(d.position, &sides, &grid, pitch));
+    let keep = |d: &Detection| judged.contains(&d.position) || stays(d.position, &sides, &grid, pitch);
+    found.accepted.retain(keep);
+    found.second_tier.retain(keep);
 }
 
 #[cfg(test)]

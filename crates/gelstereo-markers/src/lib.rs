@@ -19,6 +19,7 @@
 //! - Detections come out sorted by y, then x, so results are deterministic.
 
 pub mod blob;
+pub mod border;
 pub mod close_look;
 pub mod contract;
 pub mod edge;

@@ -18,12 +18,12 @@ use ort::session::builder::GraphOptimizationLevel;
 use ort::value::{TensorRef, ValueType};
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
+use crate::border::settle_the_border;
 use crate::close_look::{
     Region, SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of,
 };
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
-use crate::edge::drop_past_the_edge;
 use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
@@ -1560,7 +1560,7 @@ impl Marknet {
             .into_iter()
             .unzip();
         let finish = |found: TieredDetections, fitted: Option<FittedSet>, frame: Frame| {
-            // The lattice check and the edge margin, both beyond the model contract's steps.
+            // The lattice check, beyond the model contract's steps (the border is settled after it).
             let Some(check) = &post.lattice else {
                 return found;
             };
@@ -1568,9 +1568,7 @@ impl Marknet {
             let fit = fitted
                 .and_then(|f| f.fit_of(&found.accepted, scale))
                 .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
-            let mut found = keep_fitted_lattice(found, fit, check, frame.looked.as_ref(), Some(frame.size));
-            drop_past_the_edge(&mut found, frame.size, frame.pitch_px);
-            found
+            keep_fitted_lattice(found, fit, check, frame.looked.as_ref(), Some(frame.size))
         };
         let pitch_and_spread: Vec<(Option<f64>, bool)> =
             frames.iter().map(|f| (f.pitch_px, f.spread)).collect();
@@ -1612,6 +1610,7 @@ impl Marknet {
             .zip(images)
             .zip(pitch_and_spread)
             .map(|((mut found, image), (pitch, spread))| {
+                settle_the_border(&mut found, image, pitch)?;
                 let before = found.accepted.len();
                 if close_look && !spread {
                     let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;

@@ -170,3 +170,26 @@ def test_processing_releases_the_gil(sample):
     left, right = next(pairs(sample))
     pipeline.process(left, right)  # reference frame
     assert main_thread_share_while(lambda: pipeline.process(left, right)) > 0.05
+
+
+def test_the_pipeline_finds_and_places_dots_cut_by_the_border():
+    """A mono gel whose lattice (pitch 29 px, dots of radius 5.5) the border cuts: its left column
+    centred 1.5 px inside the image, its top row 2 px inside, a column past the right edge centred
+    1.5 px outside. With every default the 9 x 11 dots centred inside are tracked, the cut ones
+    within 0.5 px of their centres, and the column outside is not."""
+    pitch, x0, y0 = 29.0, 1.5, 2.0
+    image = np.full((240, 320, 3), (190, 180, 170), np.uint8)
+    for r in range(9):
+        for c in range(12):
+            centre = (round((x0 + pitch * c) * 16), round((y0 + pitch * r) * 16))
+            cv2.circle(image, centre, 88, (45, 45, 45), -1, cv2.LINE_AA, 4)
+    out = gelstereo.Pipeline(grid=(9, 11)).process(image)
+    m = out.markers
+    tracked = m["status"] == "tracked"
+    assert tracked.sum() == 99
+    rows, cols = m["row"][tracked], m["col"][tracked]
+    truth_x, truth_y = x0 + pitch * cols, y0 + pitch * rows
+    err = np.hypot(m["x_left"][tracked] - truth_x, m["y_left"][tracked] - truth_y)
+    cut = (truth_x < 5.5) | (truth_y < 5.5)
+    assert cut.sum() == 19 and err[cut].max() <= 0.5, err[cut]
+    assert (m["x_left"][tracked] < 318.0).all()

@@ -35,9 +35,6 @@ pub struct PipelineConfig {
     pub recording_sensor: Option<SensorSpec>,
     /// Tracking, contact and slip settings (gel thickness, marker pitch of a mono sensor, ...).
     pub session: SessionConfig,
-    /// Mirror this many pixels around each image border before localizing (mono input), so markers
-    /// cut by the border are found.
-    pub pad_border_px: i32,
     /// Frame rate for timestamps of frames given without one, Hz (30: a typical USB camera).
     pub frame_rate_hz: f64,
 }
@@ -53,7 +50,6 @@ impl Default for PipelineConfig {
             sensor: None,
             recording_sensor: None,
             session: SessionConfig::default(),
-            pad_border_px: 0,
             frame_rate_hz: 30.0,
         }
     }

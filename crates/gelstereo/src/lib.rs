@@ -56,7 +56,6 @@ pub use config::{
 pub use error::{Error, Result};
 pub use gelstereo_tracking::GelFrame;
 pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
-pub use start::detect_padded;
 
 pub use gelstereo_core as core;
 pub use gelstereo_geometry as geometry;

@@ -169,7 +169,6 @@ pub struct Pipeline {
     shape: GridShape,
     session_config: SessionConfig,
     pitch_mm: Option<f64>,
-    pad_border_px: i32,
     mono: bool,
     frame_rate_hz: f64,
     session: Option<Session>,
@@ -226,7 +225,6 @@ impl Pipeline {
             shape,
             session_config,
             pitch_mm,
-            pad_border_px: config.pad_border_px,
             mono: config.mono,
             frame_rate_hz: config.frame_rate_hz,
             session: None,
@@ -529,7 +527,7 @@ impl Pipeline {
     }
 
     fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
-        localize_with(self.localizer.as_mut(), images, self.pad_border_px)
+        localize_with(self.localizer.as_mut(), images)
     }
 
     /// A localizer for a worker thread that localizes frames of this pipeline's stream ahead of it
@@ -537,10 +535,11 @@ impl Pipeline {
     /// pipeline's localizer cannot be forked ([`Localizer::fork`]).
     pub fn fork_localizer(&self, intra_threads: usize) -> Option<Result<FrameLocalizer>> {
         let forked = self.localizer.fork(intra_threads)?;
-        Some(forked.map_err(Error::from).map(|localizer| FrameLocalizer {
-            localizer,
-            pad_border_px: self.pad_border_px,
-        }))
+        Some(
+            forked
+                .map_err(Error::from)
+                .map(|localizer| FrameLocalizer { localizer }),
+        )
     }
 
     /// A frame and its localization (by [`Self::process`], or by a [`FrameLocalizer`] of this
@@ -599,29 +598,24 @@ impl Pipeline {
 /// ([`Pipeline::fork_localizer`]; hand the result to [`Pipeline::process_localized`]).
 pub struct FrameLocalizer {
     localizer: Box<dyn Localizer + Send>,
-    pad_border_px: i32,
 }
 
 impl FrameLocalizer {
-    /// The markers of both views (stereo) or of the padded image (mono).
+    /// The markers of both views (stereo) or of the image (mono).
     pub fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
-        localize_with(self.localizer.as_mut(), images, self.pad_border_px)
+        localize_with(self.localizer.as_mut(), images)
     }
 }
 
-/// The markers of `images` as the pipeline localizes them: both views in one batch, a mono image
-/// with its border padded by `pad_border_px`.
+/// The markers of `images` as the pipeline localizes them: both views in one batch, or the mono
+/// image (markers cut by the border are the localizer's to place).
 fn localize_with(
     localizer: &mut (dyn Localizer + Send),
     images: &Images,
-    pad_border_px: i32,
 ) -> Result<StereoPair<TieredDetections>> {
     Ok(match images {
         Images::Stereo(pair) => localizer.detect_stereo_tiered(pair)?,
-        Images::Mono(m) => StereoPair::new(
-            start::detect_padded(localizer, m, pad_border_px)?,
-            TieredDetections::default(),
-        ),
+        Images::Mono(m) => StereoPair::new(localizer.detect_tiered(m)?, TieredDetections::default()),
     })
 }
 

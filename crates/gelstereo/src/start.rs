@@ -1,14 +1,11 @@
 //! Starting a session on the reference frame: the whole lattice, or the visible part of a grid that
-//! overfills the view (placed by a sensor description, else from the visible top-left marker); and
-//! localization with a mirrored border.
+//! overfills the view (placed by a sensor description, else from the visible top-left marker).
 
 use gelstereo_core::{Detection, GridIndex, GridShape, ImageSize, Point2, StereoPair, TieredDetections};
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
-use gelstereo_markers::Localizer;
 use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
 use gelstereo_sim::SensorSpec;
 use gelstereo_tracking::{MonoSession, SessionConfig, StereoSession};
-use opencv::core::{Mat, MatTraitConst, Scalar};
 
 use crate::{Error, Result};
 
@@ -36,49 +33,6 @@ pub(crate) fn start_whole(
             Session::mono(&lat, shape, config)
         }
     }
-}
-
-/// Localizes `image` (with the localizer's second tier), first mirroring `pad` pixels around its
-/// border when `pad > 0`: markers whose centre lies up to half the pad outside the image are kept.
-pub fn detect_padded(loc: &mut (dyn Localizer + Send), image: &Mat, pad: i32) -> Result<TieredDetections> {
-    if pad <= 0 {
-        return Ok(loc.detect_tiered(image)?);
-    }
-    let mut padded = Mat::default();
-    opencv::core::copy_make_border(
-        image,
-        &mut padded,
-        pad,
-        pad,
-        pad,
-        pad,
-        opencv::core::BORDER_REFLECT,
-        Scalar::all(0.0),
-    )
-    .map_err(|e| Error::from(e).context("padding the image border"))?;
-    let (w, h) = (f64::from(image.cols()), f64::from(image.rows()));
-    let p = f64::from(pad);
-    let unpad = |found: Vec<Detection>| -> Vec<Detection> {
-        found
-            .into_iter()
-            .map(|mut d| {
-                d.position = Point2::new(d.position.x - p, d.position.y - p);
-                d
-            })
-            // Keep markers whose centre lies within half a pad of the image.
-            .filter(|d| {
-                d.position.x > -0.5 * p
-                    && d.position.y > -0.5 * p
-                    && d.position.x < w - 1.0 + 0.5 * p
-                    && d.position.y < h - 1.0 + 0.5 * p
-            })
-            .collect()
-    };
-    let found = loc.detect_tiered(&padded)?;
-    Ok(TieredDetections {
-        accepted: unpad(found.accepted),
-        second_tier: unpad(found.second_tier),
-    })
 }
 
 /// A running session, stereo or mono.
