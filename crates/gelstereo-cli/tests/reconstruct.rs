@@ -72,7 +72,8 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     let mut lines = csv.lines();
     assert_eq!(
         lines.next().unwrap(),
-        "frame,row,col,x_left,y_left,x_right,y_right,X_mm,Y_mm,Z_mm,dX_mm,dY_mm,dZ_mm,status,pressure_kPa,in_contact,slipping"
+        "frame,row,col,x_left,y_left,x_right,y_right,X_mm,Y_mm,Z_mm,dX_mm,dY_mm,dZ_mm,status,pressure_kPa,in_contact,slipping,\
+         X_gel_mm,Y_gel_mm,Z_gel_mm,dX_gel_mm,dY_gel_mm,dZ_gel_mm"
     );
     let rows: Vec<&str> = lines.collect();
     assert_eq!(rows.len(), 6 * 529);
