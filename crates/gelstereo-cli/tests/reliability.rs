@@ -329,7 +329,11 @@ fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
         .lines()
         .skip(1)
         .map(|l| {
-            assert_eq!(l.split(',').count(), 17, "cut row {l}");
+            assert_eq!(
+                l.split(',').count(),
+                gelstereo_core::table::MARKER_COLUMNS.len(),
+                "cut row {l}"
+            );
             l.split(',').next().unwrap().parse().unwrap()
         })
         .collect();
