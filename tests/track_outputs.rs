@@ -397,3 +397,122 @@ fn a_folder_gelstereo_did_not_write_is_refused_and_force_keeps_the_users_files()
     assert!(out.join("markers.csv").is_file());
     assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "keep me");
 }
+
+/// `track` into `out` with tables and plots only.
+fn track_into(out: &Path, input: &Path) -> std::process::Output {
+    gelstereo(&[
+        "track",
+        "--quiet",
+        "--no-ply",
+        "--overlay-every",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+        input.to_str().unwrap(),
+    ])
+}
+
+#[test]
+fn outputs_never_clobber_inputs_linked_folders_special_files_or_a_running_run() {
+    let dir = tempfile::tempdir().unwrap();
+    // A copy of the sample as the recording (its own markers.csv is the truth).
+    let rec = dir.path().join("rec");
+    for sub in ["", "left", "right"] {
+        std::fs::create_dir_all(rec.join(sub)).unwrap();
+        for e in std::fs::read_dir(sample().join(sub)).unwrap().flatten() {
+            if e.path().is_file() {
+                std::fs::copy(e.path(), rec.join(sub).join(e.file_name())).unwrap();
+            }
+        }
+    }
+    let truth = std::fs::read(rec.join("markers.csv")).unwrap();
+    // An output folder that is, or lies inside, the input is refused, even with --force.
+    for out in [rec.clone(), rec.join("track")] {
+        let run = gelstereo(&[
+            "track",
+            "--quiet",
+            "--force",
+            "--out",
+            out.to_str().unwrap(),
+            rec.to_str().unwrap(),
+        ]);
+        assert!(
+            !run.status.success() && text(&run).contains("overlaps the input"),
+            "{}",
+            text(&run)
+        );
+    }
+    assert_eq!(
+        std::fs::read(rec.join("markers.csv")).unwrap(),
+        truth,
+        "the recording is intact"
+    );
+
+    // A folder linked from inside the output folder is not written through, and its files stay.
+    let out = dir.path().join("out");
+    assert!(track_into(&out, &rec).status.success());
+    let elsewhere = dir.path().join("elsewhere");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    std::fs::write(elsewhere.join("slip.png"), "the user's").unwrap();
+    std::fs::remove_dir_all(out.join("plots")).unwrap();
+    std::os::unix::fs::symlink(&elsewhere, out.join("plots")).unwrap();
+    let run = track_into(&out, &rec);
+    assert!(
+        !run.status.success() && text(&run).contains("symbolic link"),
+        "{}",
+        text(&run)
+    );
+    assert_eq!(
+        std::fs::read_to_string(elsewhere.join("slip.png")).unwrap(),
+        "the user's"
+    );
+    std::fs::remove_file(out.join("plots")).unwrap();
+
+    // A second run into a folder another run is writing is refused (the lock is held here as a
+    // running track would hold it).
+    let lock = std::fs::File::open(out.join(".gelstereo-lock")).unwrap();
+    lock.lock().unwrap();
+    let run = track_into(&out, &rec);
+    assert!(
+        !run.status.success() && text(&run).contains("another gelstereo run"),
+        "{}",
+        text(&run)
+    );
+    drop(lock);
+    assert!(
+        track_into(&out, &rec).status.success(),
+        "the lock goes with the run"
+    );
+
+    // A file output that is a device or a link is not replaced; a stream that fails names its file.
+    let link = dir.path().join("detections.csv");
+    std::os::unix::fs::symlink(rec.join("markers.csv"), &link).unwrap();
+    let image = rec.join("left/000000.jpg");
+    for target in [link.as_path(), Path::new("/dev/null")] {
+        let run = gelstereo(&[
+            "detect",
+            "--out",
+            target.to_str().unwrap(),
+            image.to_str().unwrap(),
+        ]);
+        assert!(
+            !run.status.success() && text(&run).contains("not a regular file"),
+            "{}",
+            text(&run)
+        );
+    }
+    assert_eq!(std::fs::read(rec.join("markers.csv")).unwrap(), truth);
+    let run = gelstereo(&[
+        "track",
+        "--quiet",
+        "--no-ply",
+        "--jsonl",
+        "/dev/full",
+        rec.to_str().unwrap(),
+    ]);
+    assert!(
+        !run.status.success() && text(&run).contains("/dev/full"),
+        "{}",
+        text(&run)
+    );
+}

@@ -210,7 +210,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         },
     };
     let folder = match &args.out {
-        Some(dir) => Some(Arc::new(OutputFolder::prepare(dir, args.force)?)),
+        Some(dir) => {
+            let inputs: Vec<&std::path::Path> = args.input.as_deref().into_iter().collect();
+            Some(Arc::new(OutputFolder::prepare_apart_from(
+                dir, args.force, &inputs,
+            )?))
+        }
         None => None,
     };
     let mut sinks: Vec<Box<dyn Sink>> = match &folder {
@@ -218,10 +223,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         None => Vec::new(),
     };
     match args.jsonl.as_deref() {
-        Some(p) if p.as_os_str() == "-" => sinks.push(Box::new(JsonlSink::new(std::io::stdout()))),
+        Some(p) if p.as_os_str() == "-" => sinks.push(Box::new(JsonlSink::new(
+            std::io::stdout(),
+            std::path::Path::new("standard output"),
+        ))),
         Some(p) => {
             let file = std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?;
-            sinks.push(Box::new(JsonlSink::new(file)));
+            sinks.push(Box::new(JsonlSink::new(file, p)));
         }
         None => {}
     }

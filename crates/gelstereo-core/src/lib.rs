@@ -13,6 +13,7 @@
 //!   hash map is sorted first.
 //! - Geometry in f64, network tensors in f32.
 
+pub mod files;
 mod grid;
 pub mod interrupt;
 pub mod limits;

@@ -29,6 +29,7 @@ impl AtomicFile {
             None => PathBuf::from("."),
         };
         std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        gelstereo_core::files::ensure_replaceable(path).map_err(io(path))?;
         let name = path
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())

@@ -211,7 +211,7 @@ fn write_model(path: &Path, camera: &Camera, rt: [f64; 6], note: &str) -> Result
         camera.image_size.width,
         camera.image_size.height
     );
-    std::fs::write(path, s).map_err(|source| Error::Io {
+    gelstereo_core::files::write_whole(path, s.as_bytes()).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,
     })

@@ -435,10 +435,18 @@ impl StereoRig {
                 expected: "the same image size for both cameras (the OpenCV format stores one)",
             });
         }
-        let name = path.to_string_lossy().into_owned();
+        // Into memory first, then whole to the file: a full disk or a kill mid-write never leaves a
+        // cut calibration where a good one was.
+        let name = if format == opencv::core::FileStorage_Mode::FORMAT_XML as i32 {
+            ".xml"
+        } else {
+            ".yaml"
+        };
         let ctx = || format!("writing {}", path.display());
-        let mut fs = FileStorage::new(&name, opencv::core::FileStorage_Mode::WRITE as i32 | format, "")
-            .map_err(cv(ctx()))?;
+        let mode = opencv::core::FileStorage_Mode::WRITE as i32
+            | opencv::core::FileStorage_Mode::MEMORY as i32
+            | format;
+        let mut fs = FileStorage::new(name, mode, "").map_err(cv(ctx()))?;
         if !fs.is_opened().map_err(cv(ctx()))? {
             return Err(Error::Io {
                 path: path.to_path_buf(),
@@ -474,7 +482,10 @@ impl StereoRig {
         })?;
         fs.write_i32("image_width", w).map_err(cv(ctx()))?;
         fs.write_i32("image_height", h).map_err(cv(ctx()))?;
-        fs.release().map_err(cv(ctx()))?;
-        Ok(())
+        let text = fs.release_and_get_string().map_err(cv(ctx()))?;
+        gelstereo_core::files::write_whole(path, text.as_bytes()).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })
     }
 }

@@ -262,12 +262,17 @@ impl Sink for HeightMapSink {
 /// and `note`), flushed per frame: `gelstereo track --jsonl -`.
 pub struct JsonlSink<W: Write> {
     out: W,
+    /// What `out` is, for errors: its path, or `standard output`.
+    name: std::path::PathBuf,
 }
 
 impl<W: Write> JsonlSink<W> {
-    /// Writes to `out` (standard output, a file, ...).
-    pub fn new(out: W) -> Self {
-        Self { out }
+    /// Writes to `out` (standard output, a file, a named pipe...), called `name` in errors.
+    pub fn new(out: W, name: &std::path::Path) -> Self {
+        Self {
+            out,
+            name: name.to_path_buf(),
+        }
     }
 }
 
@@ -326,11 +331,10 @@ impl<W: Write> Sink for JsonlSink<W> {
     fn frame(&mut self, frame: &FrameContext) -> Result<()> {
         let mut line = frame_json(frame.output).to_string();
         line.push('\n');
-        let stdout = std::path::Path::new("standard output");
         self.out
             .write_all(line.as_bytes())
             .and_then(|()| self.out.flush())
-            .map_err(file_err(stdout))
+            .map_err(file_err(&self.name))
     }
 }
 
