@@ -23,6 +23,10 @@ pub struct Args {
     /// but not triangulated, with the reason) and, with --evaluate, evaluation.json.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
+    /// Write into an output folder gelstereo did not write (refused otherwise); only the files
+    /// reconstruct writes are replaced.
+    #[arg(long)]
+    force: bool,
     /// Localization method: blob, marknet or marknet-mre.
     #[arg(long, default_value = "marknet-mre")]
     method: Method,
@@ -88,6 +92,7 @@ impl Args {
     fn job(&self) -> anyhow::Result<ReconstructionJob> {
         let mut job = ReconstructionJob::new(self.calib.clone(), self.inputs.clone(), self.out.clone());
         job.method = self.method;
+        job.force = self.force;
         job.localizer = self.localizer.config()?;
         job.from_ground_truth = self.from_ground_truth.then_some(Perturbation {
             noise_px: self.perturb.gt_noise_px,

@@ -349,3 +349,54 @@ fn reconstruct_reads_a_side_by_side_stereo_video() {
     let cloud = gelstereo_io::ply::read_marker_cloud(&out.join("ply/000002.ply")).unwrap();
     assert!(cloud.len() >= 500, "{} markers", cloud.len());
 }
+
+#[test]
+fn reconstruct_writes_only_into_its_own_folder_apart_from_the_recording() {
+    let tmp = tempfile::tempdir().unwrap();
+    let rec = simulate(tmp.path());
+    let calib = rec.join("calib.yaml");
+    let truth = std::fs::read(rec.join("markers.csv")).unwrap();
+    let run = |out: &Path, force: bool| {
+        let mut args = vec![
+            "reconstruct",
+            "--calib",
+            s(&calib),
+            "--out",
+            s(out),
+            "--from-ground-truth",
+        ];
+        if force {
+            args.push("--force");
+        }
+        args.push(s(&rec));
+        gelstereo(&args)
+    };
+    // The recording itself, or a folder inside it: refused, the recording's truth intact.
+    for out in [rec.clone(), rec.join("reconstructed")] {
+        let r = run(&out, true);
+        assert!(
+            !r.status.success() && text(&r).contains("overlaps the input"),
+            "{}",
+            text(&r)
+        );
+    }
+    assert_eq!(std::fs::read(rec.join("markers.csv")).unwrap(), truth);
+    // A folder holding a user's markers.csv: refused without --force, the file untouched.
+    let mine = tmp.path().join("mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("markers.csv"), "the user's").unwrap();
+    let r = run(&mine, false);
+    assert!(
+        !r.status.success() && text(&r).contains("--force"),
+        "{}",
+        text(&r)
+    );
+    assert_eq!(
+        std::fs::read_to_string(mine.join("markers.csv")).unwrap(),
+        "the user's"
+    );
+    // Its own folder: written again and again without --force.
+    let out = tmp.path().join("out");
+    assert!(run(&out, false).status.success());
+    assert!(run(&out, false).status.success());
+}

@@ -302,6 +302,12 @@ fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
     std::fs::create_dir_all(out.join("ply")).unwrap();
     std::fs::write(out.join("ply/999999.ply"), "stale").unwrap();
     std::fs::write(out.join("evaluation.json"), "{}").unwrap();
+    // As an earlier run left them: listed in the folder's manifest.
+    std::fs::write(
+        out.join(".gelstereo-manifest"),
+        "ply/999999.ply\nevaluation.json\n",
+    )
+    .unwrap();
     let child = gelstereo_command()
         .args([
             "reconstruct",

@@ -39,6 +39,9 @@ pub struct ReconstructionJob {
     pub inputs: Vec<PathBuf>,
     /// The output folder.
     pub out: PathBuf,
+    /// Write into an output folder that gelstereo did not write (only the files it writes are
+    /// replaced).
+    pub force: bool,
     /// Localization method.
     pub method: Method,
     /// Model paths, blob parameters and ONNX Runtime options of the localizer.
@@ -73,6 +76,7 @@ impl ReconstructionJob {
             calibration: calibration.into(),
             inputs,
             out,
+            force: false,
             method: Method::MarknetMre,
             localizer: LocalizerConfig::default(),
             from_ground_truth: None,
@@ -167,7 +171,8 @@ pub fn run(
     let reference = reference_frame(&frames, job.reference)?;
     let (reference_dets, _) = input::detect(reference, &rig, &job.calibration, &mut localizer)?;
     let reconstructor = reference_lattice(job, &rig, shape, reference.frame, &reference_dets)?;
-    let mut files = OutputFiles::create(&job.out, job.write_ply)?;
+    let inputs: Vec<&Path> = job.inputs.iter().map(PathBuf::as_path).collect();
+    let mut files = OutputFiles::create(&job.out, job.write_ply, job.force, &inputs)?;
     let mut summary = ReconstructionSummary {
         frames: frames.len(),
         processed: 0,
@@ -178,7 +183,7 @@ pub fn run(
         match_ms: 0.0,
         markers_csv: job.out.join(MARKERS_FILE),
         rejections_csv: job.out.join(REJECTIONS_FILE),
-        ply_dir: files.ply_dir().map(Path::to_path_buf),
+        ply_dir: files.ply_dir(),
         evaluation: None,
     };
     let r_px = match_radius_px(&reconstructor);
@@ -209,7 +214,7 @@ pub fn run(
         let report = EvaluationReport::new(&evaluation, &r_px, summary.match_ms / frames.len() as f64);
         let text = serde_json::to_string_pretty(&report.json)
             .map_err(|e| Error::Invalid(format!("cannot format the evaluation: {e}")))?;
-        output::write_text(&job.out.join(EVALUATION_FILE), &text)?;
+        files.write_text(EVALUATION_FILE, &text)?;
         summary.evaluation = Some(report);
     }
     Ok(summary)

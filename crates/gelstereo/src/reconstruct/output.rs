@@ -1,6 +1,7 @@
 //! The files a reconstruction writes into its output folder: `markers.csv`, `rejected_pairs.csv`,
 //! `ply/NNNNNN.ply` and `evaluation.json`. Each frame's rows are written after its point cloud, whole
-//! and flushed, so that a run stopped at any point leaves tables that end at a frame boundary.
+//! and flushed, so that a run stopped at any point leaves tables that end at a frame boundary; point
+//! clouds and the evaluation are written whole to a temporary name, then renamed.
 
 use std::fmt::Write as _;
 use std::fs::File;
@@ -8,32 +9,36 @@ use std::io::{BufWriter, Write as _};
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::table::MARKER_COLUMNS;
-use gelstereo_io::images;
 use gelstereo_io::ply::{CoordinateFrame, MarkerPoint, write_marker_cloud};
 use gelstereo_matching::FrameReconstruction;
 
+use crate::sink::OutputFolder;
 use crate::{Error, Result};
 
-/// The output folder's files, opened afresh: the tables are started and the point clouds and
-/// evaluation of an earlier run removed, so that no file of an earlier run looks current.
+/// The output folder's files: an [`OutputFolder`] (apart from the inputs, locked, the files of an
+/// earlier run removed, a folder gelstereo did not write refused without `force`) with the tables
+/// started.
 pub(super) struct OutputFiles {
+    folder: OutputFolder,
     markers: Table,
     rejections: Table,
-    /// Where the point clouds go; `None`: none are written.
-    ply_dir: Option<PathBuf>,
+    /// Whether the point clouds are written (`ply/NNNNNN.ply`).
+    ply: bool,
 }
 
 /// A CSV table written a frame at a time.
 struct Table {
     file: BufWriter<File>,
+    path: PathBuf,
     pending: String,
 }
 
 impl Table {
-    fn create(path: &Path, header: &str) -> Result<Self> {
-        let file = File::create(path).map_err(io_failed("create", path))?;
+    fn create(path: PathBuf, header: &str) -> Result<Self> {
+        let file = File::create(&path).map_err(io_failed("create", &path))?;
         let mut table = Self {
             file: BufWriter::new(file),
+            path,
             pending: format!("{header}\n"),
         };
         table.flush_frame()?;
@@ -45,32 +50,20 @@ impl Table {
         self.file
             .write_all(self.pending.as_bytes())
             .and_then(|()| self.file.flush())
-            .map_err(|e| Error::Invalid(format!("cannot write the output tables: {e}")))?;
+            .map_err(io_failed("write", &self.path))?;
         self.pending.clear();
         Ok(())
     }
 }
 
 impl OutputFiles {
-    pub fn create(out: &Path, ply: bool) -> Result<Self> {
-        create_dir(out)?;
-        let evaluation = out.join(EVALUATION_FILE);
-        if evaluation.exists() {
-            remove(&evaluation)?;
-        }
-        let ply_dir = out.join("ply");
-        if ply_dir.is_dir() {
-            for old in images::list_files_named(&ply_dir, is_frame_ply)? {
-                remove(&old)?;
-            }
-        }
-        if ply {
-            create_dir(&ply_dir)?;
-        }
+    pub fn create(out: &Path, ply: bool, force: bool, inputs: &[&Path]) -> Result<Self> {
+        let folder = OutputFolder::prepare_apart_from(out, force, inputs)?;
         Ok(Self {
-            markers: Table::create(&out.join(MARKERS_FILE), &MARKER_COLUMNS.join(","))?,
-            rejections: Table::create(&out.join(REJECTIONS_FILE), "frame,row,col,reason")?,
-            ply_dir: ply.then_some(ply_dir),
+            markers: Table::create(folder.claim(MARKERS_FILE)?, &MARKER_COLUMNS.join(","))?,
+            rejections: Table::create(folder.claim(REJECTIONS_FILE)?, "frame,row,col,reason")?,
+            folder,
+            ply,
         })
     }
 
@@ -82,8 +75,9 @@ impl OutputFiles {
             self.markers.pending.push('\n');
         }
         let rejected = self.add_rejections(frame, rec);
-        if let Some(dir) = &self.ply_dir {
-            write_cloud(&dir.join(format!("{frame:06}.ply")), frame, rec)?;
+        if self.ply {
+            self.folder
+                .write_atomic(&format!("ply/{frame:06}.ply"), |p| write_cloud(p, frame, rec))?;
         }
         self.markers.flush_frame()?;
         self.rejections.flush_frame()?;
@@ -110,8 +104,15 @@ impl OutputFiles {
     }
 
     /// The point clouds' folder, when they are written.
-    pub fn ply_dir(&self) -> Option<&Path> {
-        self.ply_dir.as_deref()
+    pub fn ply_dir(&self) -> Option<PathBuf> {
+        self.ply.then(|| self.folder.dir().join("ply"))
+    }
+
+    /// Writes `text` and a final newline to `relative` in the folder, whole or not at all.
+    pub fn write_text(&self, relative: &str, text: &str) -> Result<()> {
+        self.folder.write_atomic(relative, |p| {
+            std::fs::write(p, format!("{text}\n")).map_err(io_failed("write", p))
+        })
     }
 }
 
@@ -141,25 +142,6 @@ fn write_cloud(path: &Path, frame: u32, rec: &FrameReconstruction) -> Result<()>
         CoordinateFrame::LeftCamera,
         &format!("frame {frame}"),
     )?)
-}
-
-/// Whether `name` is a point cloud of this module: six digits and `.ply`.
-fn is_frame_ply(name: &str) -> bool {
-    name.strip_suffix(".ply")
-        .is_some_and(|stem| stem.len() == 6 && stem.bytes().all(|b| b.is_ascii_digit()))
-}
-
-fn create_dir(dir: &Path) -> Result<()> {
-    std::fs::create_dir_all(dir).map_err(io_failed("create", dir))
-}
-
-fn remove(path: &Path) -> Result<()> {
-    std::fs::remove_file(path).map_err(io_failed("remove", path))
-}
-
-/// Writes `text` and a final newline to `path`.
-pub(super) fn write_text(path: &Path, text: &str) -> Result<()> {
-    std::fs::write(path, format!("{text}\n")).map_err(io_failed("write", path))
 }
 
 /// The error of a file operation: `cannot VERB PATH: why`.
