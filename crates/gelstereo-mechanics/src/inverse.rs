@@ -91,8 +91,8 @@ pub struct InverseSolver {
     work: Workspace,
     /// ADMM's penalty, (mm / kPa)².
     rho: f64,
-    /// Per frequency: `(C² + ρ)⁻¹` and `(C² + ρ)⁻¹ C`.
-    solve: Vec<Matrix3>,
+    /// Per frequency: `ρ (C² + ρ)⁻¹` and `(C² + ρ)⁻¹ C`.
+    solve: Vec<Hermitian3>,
     project_data: Vec<Matrix3>,
     /// The last frame's tractions and scaled dual (the next frame's start).
     previous: Vec<Vec3>,
@@ -122,7 +122,7 @@ impl InverseSolver {
         let eye = Matrix3(std::array::from_fn(|r| {
             std::array::from_fn(|c| Complex64::new(if r == c { rho } else { 0.0 }, 0.0))
         }));
-        let (solve, project_data): (Vec<Matrix3>, Vec<Matrix3>) = op
+        let (solve, project_data): (Vec<Hermitian3>, Vec<Matrix3>) = op
             .matrices()
             .map(|m| {
                 let mut sq = m.mul_matrix(&m);
@@ -130,7 +130,7 @@ impl InverseSolver {
                     row[r] += eye.0[r][r];
                 }
                 let inv = sq.inverse();
-                (inv, inv.mul_matrix(&m))
+                (Hermitian3::scaled(&inv, rho), inv.mul_matrix(&m))
             })
             .unzip();
         Ok(Self {
@@ -233,9 +233,9 @@ impl InverseSolver {
                 let [px, py, pn] = &mut self.work.planes;
                 for (k, a) in self.solve.iter().enumerate() {
                     let s = a.mul([px[k], py[k], pn[k]]);
-                    px[k] = data[0][k] + s[0] * rho;
-                    py[k] = data[1][k] + s[1] * rho;
-                    pn[k] = data[2][k] + s[2] * rho;
+                    px[k] = data[0][k] + s[0];
+                    py[k] = data[1][k] + s[1];
+                    pn[k] = data[2][k] + s[2];
                 }
             }
             self.op.untransform(&mut self.work, &mut x);
@@ -396,9 +396,36 @@ impl ContactLoad {
     }
 }
 
+/// A Hermitian 3 x 3 matrix: its real diagonal and the upper triangle `[01, 02, 12]`.
+#[derive(Debug, Clone, Copy)]
+struct Hermitian3 {
+    diagonal: [f64; 3],
+    upper: [Complex64; 3],
+}
+
+impl Hermitian3 {
+    /// `scale · m` of a matrix `m` that is Hermitian up to rounding (its upper triangle).
+    fn scaled(m: &Matrix3, scale: f64) -> Self {
+        let m = &m.0;
+        Self {
+            diagonal: [m[0][0].re, m[1][1].re, m[2][2].re].map(|v| v * scale),
+            upper: [m[0][1], m[0][2], m[1][2]].map(|v| v * scale),
+        }
+    }
+
+    fn mul(&self, v: [Complex64; 3]) -> [Complex64; 3] {
+        let ([d0, d1, d2], [a, b, c]) = (self.diagonal, self.upper);
+        [
+            v[0] * d0 + a * v[1] + b * v[2],
+            a.conj() * v[0] + v[1] * d1 + c * v[2],
+            b.conj() * v[0] + c.conj() * v[1] + v[2] * d2,
+        ]
+    }
+}
+
 /// Euclidean projection of `[τx, τy, p]` onto the cone `|τ| <= m p`.
 fn project(t: Vec3, m: f64) -> Vec3 {
-    let s = t[0].hypot(t[1]);
+    let s = (t[0] * t[0] + t[1] * t[1]).sqrt();
     let p = t[2];
     if s <= m * p {
         return t;
