@@ -83,6 +83,11 @@ const CONTACT_NOISE: f64 = 1.0;
 /// pressure is thin (Hertz: the outer half percent of the radius).
 const CONTACT_FLOOR: f64 = 0.1;
 
+/// ADMM's over-relaxation (Boyd et al. 2011, § 3.4.3): the cone's projection and the dual
+/// update see `α x + (1 − α) z` in place of `x`, which takes fewer iterations to the same
+/// solution.
+const RELAXATION: f64 = 1.8;
+
 /// Solves the inverse problem frame after frame on one lattice.
 #[derive(Debug, Clone)]
 pub struct InverseSolver {
@@ -241,7 +246,9 @@ impl InverseSolver {
             self.op.untransform(&mut self.work, &mut x);
             let (mut primal, mut dual, mut size, mut dual_size) = (0.0, 0.0, 0.0, 0.0);
             for k in 0..n {
-                let mut shifted: Vec3 = std::array::from_fn(|c| x[k][c] + w[k][c]);
+                let relaxed: Vec3 =
+                    std::array::from_fn(|c| RELAXATION * x[k][c] + (1.0 - RELAXATION) * z[k][c]);
+                let mut shifted: Vec3 = std::array::from_fn(|c| relaxed[c] + w[k][c]);
                 shifted[2] -= lambda / rho;
                 let next = if support.is_none_or(|s| s[k]) {
                     project(shifted, m)
@@ -253,7 +260,7 @@ impl InverseSolver {
                     z[k][c] = next[c];
                     let r = x[k][c] - next[c];
                     primal += r * r;
-                    w[k][c] += r;
+                    w[k][c] += relaxed[c] - next[c];
                     size += x[k][c].powi(2).max(next[c].powi(2));
                     dual_size += w[k][c].powi(2);
                 }
@@ -425,11 +432,12 @@ impl Hermitian3 {
 
 /// Euclidean projection of `[τx, τy, p]` onto the cone `|τ| <= m p`.
 fn project(t: Vec3, m: f64) -> Vec3 {
-    let s = (t[0] * t[0] + t[1] * t[1]).sqrt();
-    let p = t[2];
-    if s <= m * p {
+    let (s2, p) = (t[0] * t[0] + t[1] * t[1], t[2]);
+    // Inside the cone (compared squared: a cell inside needs no square root).
+    if p >= 0.0 && s2 <= m * m * p * p {
         return t;
     }
+    let s = s2.sqrt();
     // Onto the cone's surface ray (m, 1) in the (|τ|, p) plane, or the apex.
     let along = (m * s + p) / (1.0 + m * m);
     if along <= 0.0 {
