@@ -13,6 +13,7 @@
 
 use std::sync::Arc;
 
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use rustfft::num_complex::Complex64;
 use rustfft::{Fft, FftPlanner};
 
@@ -31,22 +32,28 @@ const MAX_RADIUS: usize = 96;
 const ENTRIES: usize = 6;
 
 /// The influence operator of a layer on a `rows x cols` lattice of spacing `spacing_mm`.
+///
+/// The fields are real, so only half of each spectrum is kept: the padded rows go through
+/// real-to-complex FFTs (`nc / 2 + 1` frequencies of `nc`), then the columns through complex ones.
+/// The spectra are stored column by column (index `j * nr + i` for column frequency `j` and row
+/// frequency `i`) so that every column FFT runs on contiguous memory.
 #[derive(Clone)]
 pub struct Influence {
     rows: usize,
     cols: usize,
     spacing_mm: f64,
     radius: usize,
-    /// Padded FFT size (rows, cols).
+    /// Padded FFT size (rows, cols); the columns' count is even (a real FFT of even length is
+    /// a complex one of half the length).
     size: (usize, usize),
-    /// Transformed stencils per frequency, transposed layout (column-major over the padded grid).
+    /// Transformed stencils per frequency of the half spectrum.
     spectrum: Vec<[Complex64; ENTRIES]>,
     /// The largest eigenvalue of the operator over all frequencies, mm / kPa.
     norm: f64,
-    /// Per frequency (transposed layout), the index of its negative.
-    mirror: Vec<usize>,
-    row_fft: Arc<dyn Fft<f64>>,
-    row_ifft: Arc<dyn Fft<f64>>,
+    /// See [`Influence::pressure_row_norms`].
+    pressure_row_norms: (f64, f64),
+    row_fft: Arc<dyn RealToComplex<f64>>,
+    row_ifft: Arc<dyn ComplexToReal<f64>>,
     col_fft: Arc<dyn Fft<f64>>,
     col_ifft: Arc<dyn Fft<f64>>,
 }
@@ -93,8 +100,14 @@ impl Influence {
             .zip(&coarse)
             .map(|(f, c)| std::array::from_fn(|e| 2.0 * f[e] - c[e]))
             .collect();
-        let size = (fft_size(rows + radius + 1), fft_size(cols + radius + 1));
+        // The circular convolution equals the linear one on the lattice when the period exceeds
+        // the lattice by the stencil's radius.
+        let size = (
+            fft_size(rows + radius + 1, false),
+            fft_size(cols + radius + 1, true),
+        );
         let mut planner = FftPlanner::new();
+        let mut real_planner = RealFftPlanner::new();
         let mut op = Self {
             rows,
             cols,
@@ -103,18 +116,15 @@ impl Influence {
             size,
             spectrum: Vec::new(),
             norm: 0.0,
-            mirror: (0..size.1)
-                .flat_map(|c| {
-                    (0..size.0).map(move |r| ((size.1 - c) % size.1) * size.0 + (size.0 - r) % size.0)
-                })
-                .collect(),
-            row_fft: planner.plan_fft_forward(size.1),
-            row_ifft: planner.plan_fft_inverse(size.1),
+            pressure_row_norms: (0.0, 0.0),
+            row_fft: real_planner.plan_fft_forward(size.1),
+            row_ifft: real_planner.plan_fft_inverse(size.1),
             col_fft: planner.plan_fft_forward(size.0),
             col_ifft: planner.plan_fft_inverse(size.0),
         };
         op.spectrum = op.transform_stencil(&stencil);
         op.norm = op.spectrum.iter().map(largest_eigenvalue).fold(0.0, f64::max);
+        op.pressure_row_norms = op.mean_pressure_rows();
         Ok(op)
     }
 
@@ -148,10 +158,26 @@ impl Influence {
     /// normal (tangential) displacements reaches the pressure's gradient `(C u)_p` with standard
     /// deviation σ times the first (second).
     pub fn pressure_row_norms(&self) -> (f64, f64) {
-        let count = self.spectrum.len() as f64;
-        let (normal, tangential) = self.spectrum.iter().fold((0.0, 0.0), |(n, t), s| {
-            (n + s[3].norm_sqr(), t + s[4].norm_sqr() + s[5].norm_sqr())
-        });
+        self.pressure_row_norms
+    }
+
+    /// The means over the full spectrum behind [`pressure_row_norms`](Self::pressure_row_norms):
+    /// a column frequency of the half spectrum stands for itself and its negative, except the
+    /// zero and (even size) Nyquist ones, which are their own negatives.
+    fn mean_pressure_rows(&self) -> (f64, f64) {
+        let (nr, nc) = self.size;
+        let (normal, tangential) =
+            self.spectrum
+                .chunks(nr)
+                .enumerate()
+                .fold((0.0, 0.0), |(n, t), (j, column)| {
+                    let weight = if j == 0 || 2 * j == nc { 1.0 } else { 2.0 };
+                    let (cn, ct) = column.iter().fold((0.0, 0.0), |(n, t), s| {
+                        (n + s[3].norm_sqr(), t + s[4].norm_sqr() + s[5].norm_sqr())
+                    });
+                    (n + weight * cn, t + weight * ct)
+                });
+        let count = (nr * nc) as f64;
         ((normal / count).sqrt(), (tangential / count).sqrt())
     }
 
@@ -167,40 +193,36 @@ impl Influence {
         self.untransform(work, out);
     }
 
-    /// The operator's 3 x 3 matrix at each frequency of the padded grid (transposed layout),
-    /// acting on `[τx, τy, p]`.
+    /// The operator's 3 x 3 matrix at each frequency of the half spectrum, acting on
+    /// `[τx, τy, p]`.
     pub(crate) fn matrices(&self) -> impl Iterator<Item = Matrix3> + '_ {
         self.spectrum.iter().map(operator)
     }
 
     /// Zero-pads the three components of `t` and transforms them into `work`'s planes.
     pub(crate) fn transform(&self, t: &[Vec3], work: &mut Workspace) {
-        let n = self.rows * self.cols;
-        assert!(t.len() == n, "fields must cover the lattice");
-        let (nr, nc) = self.size;
-        work.resize(nr * nc);
-        // Two real fields in one complex FFT: x + i y, split by the symmetry of real spectra.
-        let [px, py, pn] = &mut work.planes;
-        px.fill(Complex64::new(0.0, 0.0));
-        pn.fill(Complex64::new(0.0, 0.0));
-        for r in 0..self.rows {
-            for q in 0..self.cols {
-                let v = t[r * self.cols + q];
-                px[r * nc + q] = Complex64::new(v[0], v[1]);
-                pn[r * nc + q] = Complex64::new(v[2], 0.0);
-            }
+        assert!(t.len() == self.rows * self.cols, "fields must cover the lattice");
+        work.resize(self);
+        let Workspace {
+            planes,
+            row,
+            row_spectrum,
+            scratch,
+        } = work;
+        for (c, plane) in planes.iter_mut().enumerate() {
+            self.forward(
+                (self.rows, self.cols),
+                |k| t[k][c],
+                plane,
+                row,
+                row_spectrum,
+                scratch,
+            );
         }
-        self.forward(px, &mut work.scratch);
-        self.forward(pn, &mut work.scratch);
-        for (k, &m) in self.mirror.iter().enumerate() {
-            let (z, zm) = (px[k], px[m].conj());
-            py[k] = (z - zm) * Complex64::new(0.0, -0.5);
-            work.scratch[k] = (z + zm) * 0.5;
-        }
-        px.copy_from_slice(&work.scratch[..nr * nc]);
     }
 
-    /// Inverse of [`transform`](Self::transform): `work`'s planes back to the lattice.
+    /// Inverse of [`transform`](Self::transform): `work`'s planes back to the lattice (the
+    /// planes are left as scratch).
     pub(crate) fn untransform(&self, work: &mut Workspace, out: &mut [Vec3]) {
         assert!(
             out.len() == self.rows * self.cols,
@@ -208,70 +230,109 @@ impl Influence {
         );
         let (nr, nc) = self.size;
         let scale = 1.0 / (nr * nc) as f64;
-        // The fields are real: x + i y comes back from one inverse FFT of X + i Y.
-        let [px, py, pn] = &mut work.planes;
-        for (x, y) in px.iter_mut().zip(py.iter()) {
-            *x += y * Complex64::new(0.0, 1.0);
-        }
-        self.inverse(px, &mut work.scratch);
-        self.inverse(pn, &mut work.scratch);
-        for r in 0..self.rows {
-            for q in 0..self.cols {
-                let (xy, p) = (px[r * nc + q], pn[r * nc + q]);
-                out[r * self.cols + q] = [xy.re * scale, xy.im * scale, p.re * scale];
+        let Workspace {
+            planes,
+            row,
+            row_spectrum,
+            scratch,
+        } = work;
+        for (c, plane) in planes.iter_mut().enumerate() {
+            run_fft(&*self.col_ifft, plane, scratch);
+            for r in 0..self.rows {
+                for (j, z) in row_spectrum.iter_mut().enumerate() {
+                    *z = plane[j * nr + r];
+                }
+                // The field is real: the zero and Nyquist frequencies' imaginary parts are
+                // rounding only.
+                row_spectrum[0].im = 0.0;
+                if let Some(last) = row_spectrum.last_mut() {
+                    last.im = 0.0;
+                }
+                self.row_ifft
+                    .process_with_scratch(row_spectrum, row, scratch)
+                    .unwrap_or_else(|e| unreachable!("buffers sized by the plan: {e}"));
+                for (q, v) in row[..self.cols].iter().enumerate() {
+                    out[r * self.cols + q][c] = v * scale;
+                }
             }
         }
     }
 
-    /// 2-D forward FFT of a padded row-major plane, leaving it transposed (column-major).
-    fn forward(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
-        let (nr, nc) = self.size;
-        run_fft(&*self.row_fft, buf, scratch);
-        transpose(buf, nr, nc, scratch);
-        buf.copy_from_slice(&scratch[..nr * nc]);
-        run_fft(&*self.col_fft, buf, scratch);
+    /// The half spectrum of the real field `value` (row-major over `height x width`, zero-padded
+    /// to the FFT size) into `plane`.
+    fn forward(
+        &self,
+        (height, width): (usize, usize),
+        value: impl Fn(usize) -> f64,
+        plane: &mut [Complex64],
+        row: &mut [f64],
+        row_spectrum: &mut [Complex64],
+        scratch: &mut Vec<Complex64>,
+    ) {
+        let nr = self.size.0;
+        for r in 0..height {
+            for (q, v) in row.iter_mut().enumerate() {
+                *v = if q < width { value(r * width + q) } else { 0.0 };
+            }
+            self.row_fft
+                .process_with_scratch(row, row_spectrum, scratch)
+                .unwrap_or_else(|e| unreachable!("buffers sized by the plan: {e}"));
+            for (j, z) in row_spectrum.iter().enumerate() {
+                plane[j * nr + r] = *z;
+            }
+        }
+        for column in plane.chunks_mut(nr) {
+            column[height..].fill(Complex64::new(0.0, 0.0));
+        }
+        run_fft(&*self.col_fft, plane, scratch);
     }
 
-    /// Inverse of [`forward`](Self::forward) without the 1 / size scale: column-major in,
-    /// row-major out.
-    fn inverse(&self, buf: &mut [Complex64], scratch: &mut Vec<Complex64>) {
-        let (nr, nc) = self.size;
-        run_fft(&*self.col_ifft, buf, scratch);
-        transpose(buf, nc, nr, scratch);
-        buf.copy_from_slice(&scratch[..nr * nc]);
-        run_fft(&*self.row_ifft, buf, scratch);
-    }
-
-    /// The padded grid's transform of the stencils (offsets wrapped around), transposed layout.
+    /// The half spectrum of the stencils (offsets wrapped around the padded grid).
     fn transform_stencil(&self, stencil: &[[f64; ENTRIES]]) -> Vec<[Complex64; ENTRIES]> {
         let (nr, nc) = self.size;
         let r = self.radius as isize;
         let side = 2 * self.radius + 1;
-        let mut planes = vec![vec![Complex64::new(0.0, 0.0); nr * nc]; ENTRIES];
+        let mut wrapped = vec![[0.0; ENTRIES]; nr * nc];
         for dy in -r..=r {
             for dx in -r..=r {
-                let s = stencil[(dy + r) as usize * side + (dx + r) as usize];
                 let at = dy.rem_euclid(nr as isize) as usize * nc + dx.rem_euclid(nc as isize) as usize;
-                for (e, plane) in planes.iter_mut().enumerate() {
-                    plane[at] = Complex64::new(s[e], 0.0);
-                }
+                wrapped[at] = stencil[(dy + r) as usize * side + (dx + r) as usize];
             }
         }
-        let mut scratch = Vec::new();
-        for plane in &mut planes {
-            self.forward(plane, &mut scratch);
+        let mut work = Workspace::default();
+        work.resize(self);
+        let Workspace {
+            planes,
+            row,
+            row_spectrum,
+            scratch,
+        } = &mut work;
+        let mut spectra = vec![[Complex64::new(0.0, 0.0); ENTRIES]; planes[0].len()];
+        for e in 0..ENTRIES {
+            self.forward(
+                (nr, nc),
+                |k| wrapped[k][e],
+                &mut planes[0],
+                row,
+                row_spectrum,
+                scratch,
+            );
+            for (s, z) in spectra.iter_mut().zip(&planes[0]) {
+                s[e] = *z;
+            }
         }
-        (0..nr * nc)
-            .map(|k| std::array::from_fn(|e| planes[e][k]))
-            .collect()
+        spectra
     }
 }
 
 /// Scratch buffers of [`Influence::apply`].
 #[derive(Debug, Clone, Default)]
 pub struct Workspace {
-    /// The three components' transforms.
+    /// The three components' half spectra.
     pub(crate) planes: [Vec<Complex64>; 3],
+    /// One padded row and its half spectrum.
+    row: Vec<f64>,
+    row_spectrum: Vec<Complex64>,
     scratch: Vec<Complex64>,
 }
 
@@ -311,11 +372,26 @@ fn operator(s: &[Complex64; ENTRIES]) -> Matrix3 {
 }
 
 impl Workspace {
-    fn resize(&mut self, n: usize) {
+    fn resize(&mut self, op: &Influence) {
+        let (nr, nc) = op.size;
+        let half = nc / 2 + 1;
         for p in &mut self.planes {
-            p.resize(n, Complex64::new(0.0, 0.0));
+            p.resize(nr * half, Complex64::new(0.0, 0.0));
         }
-        self.scratch.resize(n, Complex64::new(0.0, 0.0));
+        self.row.resize(nc, 0.0);
+        self.row_spectrum.resize(half, Complex64::new(0.0, 0.0));
+        let need = [
+            op.row_fft.get_scratch_len(),
+            op.row_ifft.get_scratch_len(),
+            op.col_fft.get_inplace_scratch_len(),
+            op.col_ifft.get_inplace_scratch_len(),
+        ]
+        .into_iter()
+        .max()
+        .unwrap_or(0);
+        if self.scratch.len() < need {
+            self.scratch.resize(need, Complex64::new(0.0, 0.0));
+        }
     }
 }
 
@@ -330,10 +406,13 @@ fn largest_eigenvalue(s: &[Complex64; ENTRIES]) -> f64 {
     rows.into_iter().fold(0.0, f64::max)
 }
 
-/// The smallest size >= `n` with no prime factor above 5 (fast FFT sizes).
-fn fft_size(n: usize) -> usize {
+/// The smallest size >= `n` with no prime factor above 5 (fast FFT sizes), even if `even`.
+fn fft_size(n: usize, even: bool) -> usize {
     (n..)
         .find(|&m| {
+            if even && m % 2 == 1 {
+                return false;
+            }
             let mut m = m;
             for p in [2, 3, 5] {
                 while m % p == 0 {

@@ -83,6 +83,11 @@ const CONTACT_NOISE: f64 = 1.0;
 /// pressure is thin (Hertz: the outer half percent of the radius).
 const CONTACT_FLOOR: f64 = 0.1;
 
+/// ADMM's over-relaxation (Boyd et al. 2011, § 3.4.3): the cone's projection and the dual
+/// update see `α x + (1 − α) z` in place of `x`, which takes fewer iterations to the same
+/// solution.
+const RELAXATION: f64 = 1.8;
+
 /// Solves the inverse problem frame after frame on one lattice.
 #[derive(Debug, Clone)]
 pub struct InverseSolver {
@@ -91,8 +96,8 @@ pub struct InverseSolver {
     work: Workspace,
     /// ADMM's penalty, (mm / kPa)².
     rho: f64,
-    /// Per frequency: `(C² + ρ)⁻¹` and `(C² + ρ)⁻¹ C`.
-    solve: Vec<Matrix3>,
+    /// Per frequency: `ρ (C² + ρ)⁻¹` and `(C² + ρ)⁻¹ C`.
+    solve: Vec<Hermitian3>,
     project_data: Vec<Matrix3>,
     /// The last frame's tractions and scaled dual (the next frame's start).
     previous: Vec<Vec3>,
@@ -122,7 +127,7 @@ impl InverseSolver {
         let eye = Matrix3(std::array::from_fn(|r| {
             std::array::from_fn(|c| Complex64::new(if r == c { rho } else { 0.0 }, 0.0))
         }));
-        let (solve, project_data): (Vec<Matrix3>, Vec<Matrix3>) = op
+        let (solve, project_data): (Vec<Hermitian3>, Vec<Matrix3>) = op
             .matrices()
             .map(|m| {
                 let mut sq = m.mul_matrix(&m);
@@ -130,7 +135,7 @@ impl InverseSolver {
                     row[r] += eye.0[r][r];
                 }
                 let inv = sq.inverse();
-                (inv, inv.mul_matrix(&m))
+                (Hermitian3::scaled(&inv, rho), inv.mul_matrix(&m))
             })
             .unzip();
         Ok(Self {
@@ -233,15 +238,17 @@ impl InverseSolver {
                 let [px, py, pn] = &mut self.work.planes;
                 for (k, a) in self.solve.iter().enumerate() {
                     let s = a.mul([px[k], py[k], pn[k]]);
-                    px[k] = data[0][k] + s[0] * rho;
-                    py[k] = data[1][k] + s[1] * rho;
-                    pn[k] = data[2][k] + s[2] * rho;
+                    px[k] = data[0][k] + s[0];
+                    py[k] = data[1][k] + s[1];
+                    pn[k] = data[2][k] + s[2];
                 }
             }
             self.op.untransform(&mut self.work, &mut x);
             let (mut primal, mut dual, mut size, mut dual_size) = (0.0, 0.0, 0.0, 0.0);
             for k in 0..n {
-                let mut shifted: Vec3 = std::array::from_fn(|c| x[k][c] + w[k][c]);
+                let relaxed: Vec3 =
+                    std::array::from_fn(|c| RELAXATION * x[k][c] + (1.0 - RELAXATION) * z[k][c]);
+                let mut shifted: Vec3 = std::array::from_fn(|c| relaxed[c] + w[k][c]);
                 shifted[2] -= lambda / rho;
                 let next = if support.is_none_or(|s| s[k]) {
                     project(shifted, m)
@@ -253,7 +260,7 @@ impl InverseSolver {
                     z[k][c] = next[c];
                     let r = x[k][c] - next[c];
                     primal += r * r;
-                    w[k][c] += r;
+                    w[k][c] += relaxed[c] - next[c];
                     size += x[k][c].powi(2).max(next[c].powi(2));
                     dual_size += w[k][c].powi(2);
                 }
@@ -396,13 +403,41 @@ impl ContactLoad {
     }
 }
 
+/// A Hermitian 3 x 3 matrix: its real diagonal and the upper triangle `[01, 02, 12]`.
+#[derive(Debug, Clone, Copy)]
+struct Hermitian3 {
+    diagonal: [f64; 3],
+    upper: [Complex64; 3],
+}
+
+impl Hermitian3 {
+    /// `scale · m` of a matrix `m` that is Hermitian up to rounding (its upper triangle).
+    fn scaled(m: &Matrix3, scale: f64) -> Self {
+        let m = &m.0;
+        Self {
+            diagonal: [m[0][0].re, m[1][1].re, m[2][2].re].map(|v| v * scale),
+            upper: [m[0][1], m[0][2], m[1][2]].map(|v| v * scale),
+        }
+    }
+
+    fn mul(&self, v: [Complex64; 3]) -> [Complex64; 3] {
+        let ([d0, d1, d2], [a, b, c]) = (self.diagonal, self.upper);
+        [
+            v[0] * d0 + a * v[1] + b * v[2],
+            a.conj() * v[0] + v[1] * d1 + c * v[2],
+            b.conj() * v[0] + c.conj() * v[1] + v[2] * d2,
+        ]
+    }
+}
+
 /// Euclidean projection of `[τx, τy, p]` onto the cone `|τ| <= m p`.
 fn project(t: Vec3, m: f64) -> Vec3 {
-    let s = t[0].hypot(t[1]);
-    let p = t[2];
-    if s <= m * p {
+    let (s2, p) = (t[0] * t[0] + t[1] * t[1], t[2]);
+    // Inside the cone (compared squared: a cell inside needs no square root).
+    if p >= 0.0 && s2 <= m * m * p * p {
         return t;
     }
+    let s = s2.sqrt();
     // Onto the cone's surface ray (m, 1) in the (|τ|, p) plane, or the apex.
     let along = (m * s + p) / (1.0 + m * m);
     if along <= 0.0 {
