@@ -54,6 +54,12 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
     };
     let force = within(&|s| s.force_n.unwrap(), 0.1);
     let area = within(&|s| s.contact_area_mm2.unwrap(), 0.2);
+    let area_close = within(&|s| s.contact_area_mm2.unwrap(), 0.1);
+    assert!(
+        area_close >= 0.8,
+        "area within 10 % in {:.0} % of the frames",
+        100.0 * area_close
+    );
     assert!(
         force >= 0.8,
         "force within 10 % in {:.0} % of the frames",

@@ -461,6 +461,19 @@ fn carried(
     (along.max(0.0), turn.max(0.0))
 }
 
+/// Rounds of the alternation between the normal and the tangential contact problem in a moving
+/// contact (the first solve neglects the shear's normal motion).
+const COUPLING_ROUNDS: usize = 2;
+
+/// The normal displacement (mm, into the gel positive as the pressure's) that the tangential
+/// tractions `traction` (kPa) alone cause.
+fn normal_motion_of_shear(layer: &Layer, traction: &[[f64; 2]]) -> Vec<f64> {
+    let t: Vec<Vec3> = traction.iter().map(|t| [t[0], t[1], 0.0]).collect();
+    let mut u = vec![[0.0; 3]; t.len()];
+    layer.op.apply(&t, &mut u, &mut Workspace::default());
+    u.iter().map(|u| u[2]).collect()
+}
+
 /// Solves the gel's deformation for one pose of a script.
 pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Deformation {
     let grid = layer.grid;
@@ -523,12 +536,21 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
             slide.y + s * dx + (c - 1.0) * dy,
         ]
     };
-    let sol = drag(
-        layer,
-        gel.friction,
-        normal,
-        moving.then_some(&required as &dyn Fn(usize) -> [f64; 2]),
-    );
+    let required = moving.then_some(&required as &dyn Fn(usize) -> [f64; 2]);
+    let mut sol = drag(layer, gel.friction, normal, required);
+    // The shear also moves the surface along its normal (the layer's normal–tangential coupling),
+    // which lifts the surface into the indenter on one side and away on the other: press again with
+    // that motion taken from the overlap, then drag again, so that pressure and shear are solved
+    // together (alternating the normal and the tangential problem, as Kalker's Panagiotopoulos
+    // process does).
+    if moving {
+        let overlap_now = overlap(c_mat, mat_angle);
+        for _ in 0..COUPLING_ROUNDS {
+            let lift = normal_motion_of_shear(layer, &sol.traction);
+            let pen: Vec<f64> = overlap_now.iter().zip(&lift).map(|(o, l)| o - l).collect();
+            sol = drag(layer, gel.friction, press(layer, &pen), required);
+        }
+    }
 
     // Fields and summary.
     let cell = grid.spacing_mm * grid.spacing_mm;
