@@ -41,7 +41,7 @@ impl Default for InverseConfig {
             friction_bound: 2.0,
             max_iterations: 300,
             penalty: 0.03,
-            tolerance: 3e-3,
+            tolerance: 5e-3,
             sparsity: 4.0,
         }
     }
