@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use gelstereo_core::limits::{MAX_DESCRIPTION_BYTES, MAX_GRID_SIDE, read_text_at_most};
 use gelstereo_core::{GridShape, ImageSize};
 use serde::Deserialize;
 
@@ -40,7 +41,7 @@ impl DatasetManifest {
     /// Reads `DIR/dataset.json`.
     pub fn read(dataset: &Path) -> Result<Self> {
         let path = dataset.join("dataset.json");
-        let text = std::fs::read_to_string(&path).map_err(crate::error::io_err(&path))?;
+        let text = read_text_at_most(&path, MAX_DESCRIPTION_BYTES).map_err(crate::error::io_err(&path))?;
         Self::parse(&path, &text)
     }
 
@@ -98,7 +99,7 @@ impl RecordingMeta {
     /// Reads `DIR/meta.json`; `Ok(None)` when the recording has none (a real recording).
     pub fn read(dir: &Path) -> Result<Option<Self>> {
         let path = dir.join("meta.json");
-        match std::fs::read_to_string(&path) {
+        match read_text_at_most(&path, MAX_DESCRIPTION_BYTES) {
             Ok(text) => Self::parse(&path, &text).map(Some),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
             Err(e) => Err(Error::Io { path, error: e }),
@@ -109,11 +110,11 @@ impl RecordingMeta {
     pub fn parse(path: &Path, text: &str) -> Result<Self> {
         let raw: RawMeta = serde_json::from_str(text).map_err(|e| syntax(path, &e))?;
         let grid = match raw.grid {
-            Some(g) if g.rows < 2 || g.cols < 2 => {
+            Some(g) if !(2..=MAX_GRID_SIDE).contains(&g.rows) || !(2..=MAX_GRID_SIDE).contains(&g.cols) => {
                 return Err(field(
                     path,
                     "grid",
-                    "at least 2 rows and 2 columns",
+                    &format!("2 to {MAX_GRID_SIDE} rows and columns"),
                     &format!("{} x {}", g.rows, g.cols),
                 ));
             }
