@@ -118,7 +118,7 @@ class Pipeline:
         sensor: Optional[Union[str, os.PathLike[str]]] = None,
     ) -> None: ...
     def process(self, left: Image, right: Optional[Image] = None, timestamp: Optional[float] = None) -> Frame:
-        """Processes one frame (stereo when `right` is given); timestamp in s, None: frame number / 30 Hz.
+        """Processes one frame (stereo when `right` is given); timestamp in s (finite, each later than the last), None: frame number / 30 Hz.
 
         A frame that cannot be read, localized or indexed comes back flagged (`Frame.note`). The GIL
         is released while processing; threads sharing a pipeline take turns.
