@@ -458,11 +458,15 @@ const MRE_PROBE_ROWS: [[f32; MRE_FEATURES]; 3] = {
     [[0.0; MRE_FEATURES], [1.0; MRE_FEATURES], ramp]
 };
 
-/// Runs Marknet once on a mid-grey input of its declared size and checks every output is finite:
-/// NaN or infinite weights make a model useless on every frame, so they are an error at load (naming
-/// the model) rather than a flag on each frame.
+/// Runs Marknet once on a mid-grey input and checks every output is finite: NaN or infinite
+/// weights make a model useless on every frame, so they are an error at load (naming the model)
+/// rather than a flag on each frame. The input is the smallest a dynamic-input model takes (two of
+/// its size multiples a side, so the probe costs little), else the declared size.
 fn probe_marknet(path: &Path, session: &mut Session, contract: &MarknetContract) -> Result<()> {
-    let (w, h) = (contract.input_width as usize, contract.input_height as usize);
+    let (w, h) = match contract.auto_fit {
+        Some(fit) => (2 * fit.multiple as usize, 2 * fit.multiple as usize),
+        None => (contract.input_width as usize, contract.input_height as usize),
+    };
     let grey = vec![0.5f32; 3 * w * h];
     let run = onnx_err(path, "a check run at load");
     let input =
