@@ -111,6 +111,29 @@ proptest! {
         read_as(name, &bytes)?;
     }
 
+    /// Arbitrary bytes given as an OpenCV YAML or XML calibration or as a mrcal model.
+    #[test]
+    fn arbitrary_bytes_read_or_name_the_file(
+        kind in 0usize..3,
+        bytes in proptest::collection::vec(any::<u8>(), 0..512),
+    ) {
+        match kind {
+            0 => read_as("calib.yaml", &bytes)?,
+            1 => read_as("calib.xml", &bytes)?,
+            _ => {
+                let dir = tempfile::tempdir().unwrap();
+                let left = dir.path().join("left.cameramodel");
+                std::fs::write(&left, &bytes).unwrap();
+                let right = dir.path().join("right.cameramodel");
+                std::fs::copy(data("opencv5_right.cameramodel"), &right).unwrap();
+                if let Err(e) = StereoRig::read_mrcal(&left, &right) {
+                    let message = e.to_string();
+                    prop_assert!(message.contains("left.cameramodel"), "{}", message);
+                }
+            }
+        }
+    }
+
     /// The committed mrcal pair with the left model's bytes replaced, inserted or cut.
     #[test]
     fn mutated_mrcal_models_read_or_name_the_file(
