@@ -107,7 +107,8 @@ class Pipeline:
     pair), None for a mono sensor; `models`: folder with marknet.onnx and mre.onnx (default: the
     shipped ones); `grid`: "ROWSxCOLS" or (rows, cols) (default 23x23); `sensor`: sensor description
     JSON of a grid that overfills the view. Every other setting is `gelstereo track`'s default.
-    Raises GelstereoError when the calibration, models or sensor description cannot be used.
+    Raises GelstereoError when the calibration, models or sensor description cannot be used,
+    ValueError when RAYON_NUM_THREADS or OMP_NUM_THREADS asks for more than 256 threads.
     """
 
     def __init__(

@@ -252,6 +252,10 @@ fn malformed_meta_json_is_an_error_naming_the_file() {
             vec!["meta.json", "'grid'", "2 to 1000", "1 x 23"],
         ),
         (
+            r#"{"fps": -5}"#.to_owned(),
+            vec!["meta.json", "'fps'", "frame rate", "-5"],
+        ),
+        (
             bad_poisson.to_string(),
             vec!["meta.json", "gel.poisson", "[0, 0.5)", "0.7"],
         ),

@@ -42,6 +42,7 @@ use crate::image::to_mat;
 ///
 /// Raises:
 ///     GelstereoError: the calibration, models or sensor description cannot be used.
+///     ValueError: RAYON_NUM_THREADS or OMP_NUM_THREADS asks for more than 256 threads.
 #[pyclass(module = "gelstereo", name = "Pipeline", frozen)]
 pub struct PyPipeline {
     /// Locked per call: Python threads sharing a pipeline take turns, frame by frame.
@@ -67,6 +68,9 @@ impl PyPipeline {
         poisson: Option<f64>,
         friction: Option<f64>,
     ) -> PyResult<Self> {
+        // The thread pools start with the first pipeline; a huge count from the environment would
+        // start thousands of threads.
+        gelstereo::core::limits::check_thread_env().map_err(PyValueError::new_err)?;
         let mut config = PipelineConfig {
             calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
             grid: grid.map(grid_shape).transpose()?,

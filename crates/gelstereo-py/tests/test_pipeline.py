@@ -175,6 +175,12 @@ def test_timestamps_must_be_finite_and_increase(sample):
     assert pipeline.process(left, timestamp=5.5).timestamp == pytest.approx(0.5)
 
 
+def test_thread_counts_from_the_environment_are_bounded(monkeypatch):
+    monkeypatch.setenv("RAYON_NUM_THREADS", "100000")
+    with pytest.raises(ValueError, match="RAYON_NUM_THREADS='100000'.*to 256"):
+        gelstereo.Pipeline()
+
+
 def test_processing_releases_the_gil(sample):
     pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
     left, right = next(pairs(sample))

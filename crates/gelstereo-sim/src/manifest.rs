@@ -79,6 +79,8 @@ pub struct RecordingMeta {
     pub image_size: Option<ImageSize>,
     /// The sensor description (`sensor`), validated.
     pub sensor: Option<SensorSpec>,
+    /// The frame rate (`fps`, or `frame_rate_hz`), Hz.
+    pub frame_rate_hz: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -93,7 +95,12 @@ struct RawMeta {
     image_width: Option<u32>,
     image_height: Option<u32>,
     sensor: Option<serde_json::Value>,
+    fps: Option<f64>,
+    frame_rate_hz: Option<f64>,
 }
+
+/// Highest frame rate a recording may state, Hz (high-speed cameras reach tens of kHz).
+pub const MAX_FRAME_RATE_HZ: f64 = 1e6;
 
 impl RecordingMeta {
     /// Reads `DIR/meta.json`; `Ok(None)` when the recording has none (a real recording).
@@ -157,11 +164,24 @@ impl RecordingMeta {
             }
             None => None,
         };
+        let frame_rate_hz = match (raw.fps, raw.frame_rate_hz) {
+            (Some(v), _) | (None, Some(v)) if !(v.is_finite() && v > 0.0 && v <= MAX_FRAME_RATE_HZ) => {
+                let name = if raw.fps.is_some() { "fps" } else { "frame_rate_hz" };
+                return Err(field(
+                    path,
+                    name,
+                    &format!("a frame rate above 0 and at most {MAX_FRAME_RATE_HZ} Hz"),
+                    &v.to_string(),
+                ));
+            }
+            (fps, rate) => fps.or(rate),
+        };
         Ok(Self {
             path: path.to_owned(),
             grid,
             image_size,
             sensor,
+            frame_rate_hz,
         })
     }
 
@@ -221,6 +241,22 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("'grid'"), "{err}");
+        for bad in [r#"{"fps": -5}"#, r#"{"frame_rate_hz": 0}"#, r#"{"fps": 1e300}"#] {
+            let err = RecordingMeta::parse(p, bad).unwrap_err().to_string();
+            assert!(
+                err.contains("rec/meta.json") && err.contains("frame rate"),
+                "{bad}: {err}"
+            );
+        }
+        let err = RecordingMeta::parse(p, r#"{"fps": "fast"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("rec/meta.json") && err.contains("invalid type"),
+            "{err}"
+        );
+        let meta = RecordingMeta::parse(p, r#"{"fps": 60}"#).unwrap();
+        assert_eq!(meta.frame_rate_hz, Some(60.0));
         let meta = RecordingMeta::parse(p, r#"{"grid": {"rows": 23, "cols": 23}}"#).unwrap();
         let err = meta
             .check_grid(GridShape { rows: 10, cols: 10 })
