@@ -108,7 +108,8 @@ class Pipeline:
     pair), None for a mono sensor; `models`: folder with marknet.onnx and mre.onnx (default: the
     shipped ones); `grid`: "ROWSxCOLS" or (rows, cols) (default 23x23); `sensor`: sensor description
     JSON of a grid that overfills the view. Every other setting is `gelstereo track`'s default.
-    Raises GelstereoError when the calibration, models or sensor description cannot be used.
+    Raises GelstereoError when the calibration, models or sensor description cannot be used,
+    ValueError when RAYON_NUM_THREADS or OMP_NUM_THREADS asks for more than 256 threads.
     """
 
     def __init__(
@@ -119,7 +120,7 @@ class Pipeline:
         sensor: Optional[Union[str, os.PathLike[str]]] = None,
     ) -> None: ...
     def process(self, left: Image, right: Optional[Image] = None, timestamp: Optional[float] = None) -> Frame:
-        """Processes one frame (stereo when `right` is given); timestamp in s, None: frame number / 30 Hz.
+        """Processes one frame (stereo when `right` is given); timestamp in s (finite, each later than the last), None: frame number / 30 Hz.
 
         A frame that cannot be read, localized or indexed comes back flagged (`Frame.note`). The GIL
         is released while processing; threads sharing a pipeline take turns.

@@ -130,7 +130,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
 
 /// The pipeline the options describe on `recording` (its own calibration unless --calib).
 fn pipeline_config(args: &Args, recording: &Path) -> anyhow::Result<PipelineConfig> {
-    let mut config = PipelineConfig::for_recording(recording);
+    let mut config = PipelineConfig::for_recording(recording)?;
     config.calibration = args.calib.clone().or(config.calibration);
     config.method = Some(args.method);
     config.localizer = args.localizer.config()?;

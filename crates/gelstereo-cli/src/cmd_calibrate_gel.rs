@@ -49,7 +49,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         bail!("{} exists: give --force to replace it", args.out.display());
     }
     let known = known_forces(args)?;
-    let mut config = PipelineConfig::for_recording(&args.recording);
+    let mut config = PipelineConfig::for_recording(&args.recording)?;
     config.calibration = args.calib.clone().or(config.calibration);
     args.gel.apply(&mut config, None)?;
     if config.calibration.is_none() {

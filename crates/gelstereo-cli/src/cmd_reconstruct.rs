@@ -75,11 +75,13 @@ pub struct Args {
 /// indexing and pairing hold up under a localizer's noise, misses and false detections.
 #[derive(clap::Args, Debug, Clone, Copy)]
 struct GroundTruthPerturbation {
-    /// Gaussian noise added to each ground-truth coordinate, px (standard deviation).
-    #[arg(long, default_value_t = 0.0)]
+    /// Gaussian noise added to each ground-truth coordinate, px (standard deviation, 0 to 1000).
+    #[arg(long, default_value_t = 0.0,
+          value_parser = |s: &str| limits::parse_number_in(s, 0.0, 1000.0))]
     gt_noise_px: f64,
-    /// Fraction of ground-truth markers dropped at random in each view.
-    #[arg(long, default_value_t = 0.0)]
+    /// Fraction of ground-truth markers dropped at random in each view (0 to 1).
+    #[arg(long, default_value_t = 0.0,
+          value_parser = |s: &str| limits::parse_number_in(s, 0.0, 1.0))]
     gt_missing: f64,
     /// Spurious detections added per view, uniformly over the markers' bounding box (at most 100000).
     #[arg(long, default_value_t = 0,

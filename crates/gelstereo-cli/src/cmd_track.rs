@@ -97,8 +97,9 @@ pub struct Args {
     /// camera's frame, as markers.csv's X_mm, Y_mm, Z_mm).
     #[arg(long, default_value = "gel", value_name = "FRAME")]
     ply_frame: gelstereo_io::ply::CoordinateFrame,
-    /// Length factor of the displacement arrows in the overlays.
-    #[arg(long, default_value_t = 3.0)]
+    /// Length factor of the displacement arrows in the overlays (0 to 1000).
+    #[arg(long, default_value_t = 3.0,
+          value_parser = |s: &str| gelstereo::core::limits::parse_number_in(s, 0.0, 1000.0))]
     arrow_scale: f64,
     /// No progress bar.
     #[arg(long)]
@@ -136,7 +137,7 @@ impl Args {
             ..PipelineConfig::default()
         };
         if let Some(dir) = self.input.as_deref().filter(|p| p.is_dir()) {
-            config.apply_recording(dir);
+            config.apply_recording(dir)?;
         }
         if let Some(c) = &self.calib {
             config.calibration = Some(c.clone());

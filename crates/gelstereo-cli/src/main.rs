@@ -73,6 +73,11 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };
+    // Before any thread pool exists: rayon and OpenMP read these when their first pool starts.
+    if let Err(e) = gelstereo_core::limits::check_thread_env() {
+        eprintln!("error: {e}");
+        return ExitCode::FAILURE;
+    }
     if matches!(
         cli.command,
         Command::Simulate(_)
@@ -99,7 +104,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", one_line(&e));
             if interrupt::requested() {
                 ExitCode::from(interrupt::EXIT_INTERRUPTED)
             } else {
@@ -107,6 +112,20 @@ fn main() -> ExitCode {
             }
         }
     }
+}
+
+/// `error` and its causes in one line, each said once: many errors repeat their cause's text in
+/// their own message ("FILE: No such file or directory"), and anyhow's `{:#}` would print it again.
+fn one_line(error: &anyhow::Error) -> String {
+    let mut text = error.to_string();
+    for cause in error.chain().skip(1) {
+        let more = cause.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
+    }
+    text
 }
 
 /// SIGINT, SIGTERM and SIGHUP ask the running command to stop at its next frame boundary (its outputs

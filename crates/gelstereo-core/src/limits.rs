@@ -21,8 +21,48 @@ pub const MAX_CALIBRATION_DEPTH: usize = 32;
 /// Largest calibration file read, bytes (a stereo calibration is a few kB).
 pub const MAX_CALIBRATION_BYTES: u64 = 4 * 1024 * 1024;
 
+/// Most inner corners along either side of a checkerboard (`--board`, `--checkerboard`): OpenCV's
+/// detectors need several pixels per square, so even a 4K image holds boards far smaller; the
+/// simulator allocates per corner and per pose.
+pub const MAX_BOARD_CORNERS_PER_SIDE: u32 = 200;
+
+/// Most markers along either side of a lattice (`--grid`, a recording's `meta.json`): every
+/// tracking table is sized rows x cols, and a sensor with 8 px between markers in a 1920 px image
+/// has 240.
+pub const MAX_GRID_SIDE: u16 = 1000;
+
+/// Largest JSON description read (a sensor file, a recording's `meta.json`, a dataset's
+/// `dataset.json`): a sensor description is a few kB, a manifest of ten thousand experiments about
+/// a megabyte.
+pub const MAX_DESCRIPTION_BYTES: u64 = 16 * 1024 * 1024;
+
 /// Most spurious detections `reconstruct --gt-dust` adds per view (a 23x23 sensor has 529 markers).
 pub const MAX_GT_DUST: usize = 100_000;
+
+/// Reads the text file `path`, refusing it (an `InvalidData` error) once it is past `max_bytes`,
+/// before more is read, or when it is not UTF-8.
+pub fn read_text_at_most(path: &std::path::Path, max_bytes: u64) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)?
+        .take(max_bytes + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("larger than {max_bytes} bytes, more than such a file holds"),
+        ));
+    }
+    String::from_utf8(bytes).map_err(|e| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!(
+                "not UTF-8 text (an invalid byte at offset {})",
+                e.utf8_error().valid_up_to()
+            ),
+        )
+    })
+}
 
 /// Parses a thread or worker count for a command-line option: `0` (one per core) to [`MAX_THREADS`].
 /// Usable directly as a clap `value_parser`.
@@ -39,6 +79,62 @@ pub fn parse_count_at_most(text: &str, max: usize) -> Result<usize, String> {
     match text.trim().parse::<usize>() {
         Ok(n) if n <= max => Ok(n),
         _ => Err(format!("'{text}': expected a whole number from 0 to {max}")),
+    }
+}
+
+/// Environment variables that size thread pools gelstereo starts or that its libraries read: rayon's
+/// global pool, and OpenMP (OpenCV, ONNX Runtime, PyTorch in `adapt`).
+pub const THREAD_ENV_VARS: [&str; 2] = ["RAYON_NUM_THREADS", "OMP_NUM_THREADS"];
+
+/// Checks the thread counts of [`THREAD_ENV_VARS`] against [`MAX_THREADS`] before any pool reads
+/// them: a huge count starts thousands of threads that load the machine and ignore signals. An
+/// empty variable is ignored (as rayon does); OpenMP's nested form `4,2` is checked item by item.
+pub fn check_thread_env() -> Result<(), String> {
+    for name in THREAD_ENV_VARS {
+        let Some(value) = std::env::var_os(name) else {
+            continue;
+        };
+        let text = value.to_string_lossy();
+        if text.trim().is_empty() {
+            continue;
+        }
+        for item in text.split(',') {
+            parse_thread_count(item).map_err(|e| {
+                format!(
+                    "environment variable {name}='{}': {e}; unset it or set a smaller count",
+                    shorten(&text, ECHO_CHARS)
+                )
+            })?;
+        }
+    }
+    Ok(())
+}
+
+/// Most characters of a user's text repeated in an error message; the rest is cut (a file or a
+/// variable may hold megabytes in one string).
+pub const ECHO_CHARS: usize = 80;
+
+/// `text` cut to its first `max_chars` characters, with "..." and the full length when cut.
+pub fn shorten(text: &str, max_chars: usize) -> std::borrow::Cow<'_, str> {
+    match text.char_indices().nth(max_chars) {
+        None => std::borrow::Cow::Borrowed(text),
+        Some((end, _)) => std::borrow::Cow::Owned(format!(
+            "{}... ({} characters in all)",
+            &text[..end],
+            text.chars().count()
+        )),
+    }
+}
+
+/// Parses a finite number from `lo` to `hi` for a command-line option (NaN and infinities are
+/// refused: they pass every comparison-free path silently).
+pub fn parse_number_in(text: &str, lo: f64, hi: f64) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && (lo..=hi).contains(&v) => Ok(v),
+        _ => Err(format!(
+            "'{}': expected a number from {lo} to {hi}",
+            shorten(text, ECHO_CHARS)
+        )),
     }
 }
 
@@ -78,6 +174,25 @@ mod tests {
         assert_eq!(parse_count_at_most("7", 7), Ok(7));
         let err = parse_count_at_most("1e10", MAX_GT_DUST).unwrap_err();
         assert!(err.contains("1e10") && err.contains("100000"), "{err}");
+    }
+
+    #[test]
+    fn numbers_are_finite_and_in_range() {
+        assert_eq!(parse_number_in("0.5", 0.0, 1.0), Ok(0.5));
+        assert_eq!(parse_number_in("1", 0.0, 1.0), Ok(1.0));
+        for bad in ["2", "-0.1", "NaN", "nan", "inf", "x", ""] {
+            let err = parse_number_in(bad, 0.0, 1.0).unwrap_err();
+            assert!(err.contains("from 0 to 1"), "{bad}: {err}");
+        }
+    }
+
+    #[test]
+    fn long_text_is_cut_short() {
+        assert_eq!(shorten("abc", 3), "abc");
+        assert_eq!(shorten("abcd", 3), "abc... (4 characters in all)");
+        let long = "é".repeat(1_000_000);
+        let cut = shorten(&long, ECHO_CHARS);
+        assert!(cut.len() < 200 && cut.contains("1000000 characters"), "{cut}");
     }
 
     #[test]

@@ -7,6 +7,7 @@
 //! [`render_view`] draws a board as a camera sees it (exact projection with the lens model,
 //! 4 x 4 super-sampling); the tests use it to check the calibration against a known rig.
 
+use gelstereo_core::limits::MAX_BOARD_CORNERS_PER_SIDE;
 use gelstereo_core::{ImageSize, Point2};
 use nalgebra::{Isometry3, Point3, Vector2, Vector3};
 use opencv::core::{Mat, MatTraitConst, Point2f, Point3f, Size, TermCriteria, TermCriteria_Type, Vector};
@@ -30,34 +31,23 @@ pub struct Board {
 impl Board {
     /// A board from `"COLSxROWS"` (inner corners, e.g. `"9x6"`) and the square size in mm.
     pub fn parse(spec: &str, square_mm: f64) -> Result<Board> {
-        let bad = |value: f64, expected| Error::InvalidParameter {
-            name: "board".to_owned(),
-            value,
-            expected,
-        };
         let (c, r) = spec.split_once(['x', 'X']).ok_or_else(|| {
             Error::Calibration(format!(
                 "board '{spec}': expected COLSxROWS inner corners, e.g. 9x6"
             ))
         })?;
-        let parse = |s: &str| {
-            s.trim().parse::<u32>().map_err(|_| {
-                Error::Calibration(format!(
-                    "board '{spec}': '{s}' is not a whole number of inner corners"
-                ))
-            })
+        let parse = |s: &str| match s.trim().parse::<u32>() {
+            Ok(n) if (2..=MAX_BOARD_CORNERS_PER_SIDE).contains(&n) => Ok(n),
+            _ => Err(Error::Calibration(format!(
+                "board '{spec}': '{s}' inner corners: expected a whole number from 2 to \
+                 {MAX_BOARD_CORNERS_PER_SIDE}"
+            ))),
         };
         let board = Board {
             inner_cols: parse(c)?,
             inner_rows: parse(r)?,
             square_mm,
         };
-        if board.inner_cols < 2 || board.inner_rows < 2 {
-            return Err(bad(
-                f64::from(board.inner_cols.min(board.inner_rows)),
-                "at least 2x2 inner corners",
-            ));
-        }
         if !(square_mm.is_finite() && square_mm > 0.0 && square_mm <= MAX_SQUARE_MM) {
             return Err(Error::InvalidParameter {
                 name: "square_mm (--square-mm)".to_owned(),

@@ -42,7 +42,7 @@ pub enum Error {
         source: std::io::Error,
     },
     /// A calibration file could not be parsed at all (syntax).
-    #[error("{}: line {line}: {message}", path.display())]
+    #[error("{}: {}{message}", path.display(), at_line(*line))]
     Syntax {
         /// The file.
         path: PathBuf,
@@ -134,3 +134,12 @@ pub enum Error {
 
 /// Result with this crate's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// `line N: ` for a known 1-based line, nothing when it is unknown (0).
+fn at_line(line: usize) -> String {
+    if line == 0 {
+        String::new()
+    } else {
+        format!("line {line}: ")
+    }
+}

@@ -237,6 +237,10 @@ fn corner_detectors_are_accurate() {
 fn bad_inputs_are_named() {
     assert!(Board::parse("9by6", 1.0).is_err());
     assert!(Board::parse("1x6", 1.0).is_err());
+    assert!(Board::parse("200x200", 1.0).is_ok());
+    // Issue 43 case 12: a board that would allocate gigabytes is refused before anything is built.
+    let e = Board::parse("100000x100000", 1.0).unwrap_err().to_string();
+    assert!(e.contains("100000") && e.contains("2 to 200"), "{e}");
     assert!(Board::parse("9x6", 0.0).is_err());
     let board = Board::parse("9x6", 1.5).unwrap();
     let truth = rig();

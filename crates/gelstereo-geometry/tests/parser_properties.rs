@@ -24,6 +24,8 @@ fn yaml_value() -> impl Strategy<Value = String> {
         any::<f64>().prop_map(|v| v.to_string()),
         any::<i32>().prop_map(|v| v.to_string()),
         Just("!!opencv-matrix".to_owned()),
+        Just("&a 1".to_owned()),
+        Just("*a".to_owned()),
         "[a-z\"' :#]{0,6}",
     ];
     leaf.prop_recursive(40, 200, 4, |inner| {
@@ -109,6 +111,29 @@ proptest! {
         read_as(name, &bytes)?;
     }
 
+    /// Arbitrary bytes given as an OpenCV YAML or XML calibration or as a mrcal model.
+    #[test]
+    fn arbitrary_bytes_read_or_name_the_file(
+        kind in 0usize..3,
+        bytes in proptest::collection::vec(any::<u8>(), 0..512),
+    ) {
+        match kind {
+            0 => read_as("calib.yaml", &bytes)?,
+            1 => read_as("calib.xml", &bytes)?,
+            _ => {
+                let dir = tempfile::tempdir().unwrap();
+                let left = dir.path().join("left.cameramodel");
+                std::fs::write(&left, &bytes).unwrap();
+                let right = dir.path().join("right.cameramodel");
+                std::fs::copy(data("opencv5_right.cameramodel"), &right).unwrap();
+                if let Err(e) = StereoRig::read_mrcal(&left, &right) {
+                    let message = e.to_string();
+                    prop_assert!(message.contains("left.cameramodel"), "{}", message);
+                }
+            }
+        }
+    }
+
     /// The committed mrcal pair with the left model's bytes replaced, inserted or cut.
     #[test]
     fn mutated_mrcal_models_read_or_name_the_file(
@@ -146,4 +171,48 @@ fn deeply_nested_calibrations_are_refused_before_they_are_parsed() {
             "{err}"
         );
     }
+}
+
+/// Issue 43 case 1: nested aliases (10 levels of 9 copies, a few hundred bytes that a loader would
+/// expand to 9^10 values) are refused before anything is expanded.
+#[test]
+fn yaml_aliases_are_refused_before_they_expand() {
+    let mut yaml = String::from("%YAML:1.0\n---\na0: &a0 [1, 2, 3, 4, 5, 6, 7, 8, 9]\n");
+    for k in 1..=10 {
+        let p = k - 1;
+        yaml.push_str(&format!(
+            "a{k}: &a{k} [*a{p}, *a{p}, *a{p}, *a{p}, *a{p}, *a{p}, *a{p}, *a{p}, *a{p}]\n"
+        ));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("laughs.yaml");
+    std::fs::write(&path, &yaml).unwrap();
+    let err = StereoRig::load(path.to_str().unwrap()).unwrap_err().to_string();
+    assert!(
+        err.contains("laughs.yaml") && err.contains("line 4") && err.contains("alias"),
+        "{err}"
+    );
+    // One alias is refused as well: the calibration keys are written out.
+    let calib = std::fs::read_to_string(data("opencv8.yaml")).unwrap();
+    let aliased = calib
+        .replacen("K2:", "K2: *k1\nunused:", 1)
+        .replacen("K1:", "K1: &k1", 1);
+    std::fs::write(&path, aliased).unwrap();
+    let err = StereoRig::load(path.to_str().unwrap()).unwrap_err().to_string();
+    assert!(err.contains("laughs.yaml") && err.contains("alias"), "{err}");
+}
+
+/// A binary file given as a calibration says so, with no "line 0".
+#[test]
+fn binary_calibrations_are_named_as_binary() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("calib.yaml");
+    let mut bytes = b"\x7fELF\x02\x01\x01".to_vec();
+    bytes.extend((0..=255u8).cycle().take(4096));
+    std::fs::write(&path, &bytes).unwrap();
+    let err = StereoRig::load(path.to_str().unwrap()).unwrap_err().to_string();
+    assert!(
+        err.contains("calib.yaml") && err.contains("binary") && !err.contains("line 0"),
+        "{err}"
+    );
 }

@@ -429,16 +429,55 @@ pub(crate) fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String
     }
 }
 
-/// An error message when a model's output holds NaN: broken weights (or a broken export) would
-/// otherwise give no markers and no word.
-pub(crate) fn check_no_nan(data: &[f32], output: &str) -> std::result::Result<(), String> {
-    match data.iter().position(|v| v.is_nan()) {
+/// An error message when a model's output holds NaN or an infinity: broken weights (or a broken
+/// export) would otherwise give no markers and no word, or infinite candidates that later stages
+/// cannot place.
+pub(crate) fn check_finite(data: &[f32], output: &str) -> std::result::Result<(), String> {
+    match data.iter().position(|v| !v.is_finite()) {
         Some(i) => Err(format!(
-            "output '{output}' holds NaN (value {i} of {}): the model's weights or export are broken",
+            "output '{output}' holds {} (value {i} of {}): expected finite numbers; the model's \
+             weights or export are broken",
+            data[i],
             data.len()
         )),
         None => Ok(()),
     }
+}
+
+/// Feature rows every healthy MRE scores with finite numbers (all zeros, all ones, a ramp): run at
+/// load, they catch broken weights before any frame, since the MRE only sees the candidates Marknet
+/// is unsure of and a clear image may never reach it.
+#[allow(clippy::cast_precision_loss)]
+const MRE_PROBE_ROWS: [[f32; MRE_FEATURES]; 3] = {
+    let mut ramp = [0.0; MRE_FEATURES];
+    let mut k = 0;
+    while k < MRE_FEATURES {
+        ramp[k] = k as f32 / MRE_FEATURES as f32;
+        k += 1;
+    }
+    [[0.0; MRE_FEATURES], [1.0; MRE_FEATURES], ramp]
+};
+
+/// Runs Marknet once on a mid-grey input and checks every output is finite: NaN or infinite
+/// weights make a model useless on every frame, so they are an error at load (naming the model)
+/// rather than a flag on each frame. The input is the smallest a dynamic-input model takes (two of
+/// its size multiples a side, so the probe costs little), else the declared size.
+fn probe_marknet(path: &Path, session: &mut Session, contract: &MarknetContract) -> Result<()> {
+    let (w, h) = match contract.auto_fit {
+        Some(fit) => (2 * fit.multiple as usize, 2 * fit.multiple as usize),
+        None => (contract.input_width as usize, contract.input_height as usize),
+    };
+    let grey = vec![0.5f32; 3 * w * h];
+    let run = onnx_err(path, "a check run at load");
+    let input =
+        TensorRef::from_array_view(([1, 3, h, w], grey.as_slice())).map_err(|e| run(e.to_string()))?;
+    let outputs = session
+        .run(ort::inputs![MARKNET_INPUT => input])
+        .map_err(|e| run(e.to_string()))?;
+    let (_, raw) = outputs[MARKNET_OUTPUT]
+        .try_extract_tensor::<f32>()
+        .map_err(|e| run(e.to_string()))?;
+    check_finite(raw, MARKNET_OUTPUT).map_err(|m| run(format!("{m} (on a grey image)")))
 }
 
 /// A loaded model: its session, `metadata_props`, and input / output signatures.
@@ -683,12 +722,14 @@ impl Mre {
             outputs,
         } = open_session(path, options)?;
         let contract = MreContract::from_model(path, &meta, &inputs, &outputs)?;
-        Ok(Self {
+        let mut mre = Self {
             path: path.to_path_buf(),
             session,
             contract,
             buffer: Vec::new(),
-        })
+        };
+        mre.score(&MRE_PROBE_ROWS)?;
+        Ok(mre)
     }
 
     /// The model's declared contract.
@@ -719,7 +760,7 @@ impl Mre {
                 features.len()
             )));
         }
-        check_no_nan(data, MRE_OUTPUT).map_err(run)?;
+        check_finite(data, MRE_OUTPUT).map_err(run)?;
         Ok(data.to_vec())
     }
 }
@@ -772,12 +813,13 @@ impl Marknet {
     /// Loads `path` and checks its contract; the localizer is `marknet` until [`with_mre`](Self::with_mre).
     pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
         let Opened {
-            session,
+            mut session,
             metadata: meta,
             inputs,
             outputs,
         } = open_session(path, options)?;
         let contract = MarknetContract::from_model(path, &meta, &inputs, &outputs)?;
+        probe_marknet(path, &mut session, &contract)?;
         Ok(Self {
             path: path.to_path_buf(),
             options: *options,
@@ -1003,7 +1045,7 @@ impl Marknet {
                 c.candidates
             )));
         }
-        check_no_nan(raw, MARKNET_OUTPUT).map_err(run)?;
+        check_finite(raw, MARKNET_OUTPUT).map_err(run)?;
         let raw = raw.to_vec();
         self.times.preprocess_ms += (t1 - t0).as_secs_f64() * 1e3;
         self.times.network_ms += t1.elapsed().as_secs_f64() * 1e3;

@@ -37,17 +37,29 @@ pub fn dot_grid() -> Result<Mat> {
     Ok(image)
 }
 
-/// Runs `localizer` once on [`dot_grid`]; an output with NaN is an error (from the localizer), and
-/// so is an image in which it finds no marker at all.
+/// Runs `localizer` once on [`dot_grid`]; an output with NaN or an infinity is an error (from the
+/// localizer), and so is an image in which it finds no marker at all.
 pub fn run(localizer: &mut dyn Localizer) -> Result<SelfTest> {
     let image = dot_grid()?;
-    let found = localizer.detect(&image)?.len();
     let drawn = (SELF_TEST_GRID * SELF_TEST_GRID) as usize;
+    let found = run_on(
+        localizer,
+        &image,
+        &format!("a synthetic image of {drawn} clear markers"),
+    )?;
+    Ok(SelfTest { drawn, found })
+}
+
+/// Runs `localizer` once on `image` (described by `what` in errors) and returns the number of
+/// markers found: a non-finite network output is an error (from the localizer), and so is no
+/// marker at all.
+pub fn run_on(localizer: &mut dyn Localizer, image: &Mat, what: &str) -> Result<usize> {
+    let found = localizer.detect(image)?.len();
     if found == 0 {
         return Err(Error::SelfTest(format!(
-            "{} found no marker in a synthetic image of {drawn} clear markers",
+            "{} found no marker in {what}",
             localizer.name()
         )));
     }
-    Ok(SelfTest { drawn, found })
+    Ok(found)
 }

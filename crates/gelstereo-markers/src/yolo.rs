@@ -504,7 +504,7 @@ impl YoloLocalizer {
                 self.contract.rows()
             )));
         }
-        crate::marknet::check_no_nan(raw, YOLO_OUTPUT).map_err(run)?;
+        crate::marknet::check_finite(raw, YOLO_OUTPUT).map_err(run)?;
         let c = &self.contract;
         Ok(sizes
             .iter()

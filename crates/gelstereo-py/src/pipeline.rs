@@ -13,7 +13,7 @@ use gelstereo::{
 };
 use numpy::ndarray::Array2;
 use numpy::{PyArray1, PyArray2};
-use pyo3::exceptions::PyTypeError;
+use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyString};
 
@@ -42,10 +42,13 @@ use crate::image::to_mat;
 ///
 /// Raises:
 ///     GelstereoError: the calibration, models or sensor description cannot be used.
+///     ValueError: RAYON_NUM_THREADS or OMP_NUM_THREADS asks for more than 256 threads.
 #[pyclass(module = "gelstereo", name = "Pipeline", frozen)]
 pub struct PyPipeline {
     /// Locked per call: Python threads sharing a pipeline take turns, frame by frame.
     inner: Mutex<Pipeline>,
+    /// The last `timestamp=` given to `process`: the next must be later.
+    last_timestamp_s: Mutex<Option<f64>>,
 }
 
 #[pymethods]
@@ -65,6 +68,9 @@ impl PyPipeline {
         poisson: Option<f64>,
         friction: Option<f64>,
     ) -> PyResult<Self> {
+        // The thread pools start with the first pipeline; a huge count from the environment would
+        // start thousands of threads.
+        gelstereo::core::limits::check_thread_env().map_err(PyValueError::new_err)?;
         let mut config = PipelineConfig {
             calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
             grid: grid.map(grid_shape).transpose()?,
@@ -96,6 +102,7 @@ impl PyPipeline {
         let inner = py.detach(|| Pipeline::new(&config).map_err(|e| to_py(&e)))?;
         Ok(Self {
             inner: Mutex::new(inner),
+            last_timestamp_s: Mutex::new(None),
         })
     }
 
@@ -104,13 +111,15 @@ impl PyPipeline {
     /// Args:
     ///     left: the left (or only) view, numpy uint8 HxWx3 BGR (as OpenCV reads) or HxW grey.
     ///     right: the right view of a stereo sensor (same size and kind); None for mono.
-    ///     timestamp: capture time in seconds (any origin); None: frame number / 30 Hz.
+    ///     timestamp: capture time in seconds (any origin), finite and later than the last one
+    ///         given; None: frame number / 30 Hz.
     ///
     /// A frame that cannot be read, localized or indexed comes back flagged (`Frame.note`) with
     /// every marker lost, rather than raising, so a live loop goes on.
     ///
     /// Raises:
-    ///     TypeError, ValueError: an image is not such an array.
+    ///     TypeError, ValueError: an image is not such an array, or the timestamp is not finite or
+    ///         not after the previous one.
     ///     GelstereoError: the pipeline itself failed.
     #[pyo3(signature = (left, right = None, timestamp = None))]
     fn process(
@@ -120,6 +129,7 @@ impl PyPipeline {
         right: Option<&Bound<'_, PyAny>>,
         timestamp: Option<f64>,
     ) -> PyResult<PyFrame> {
+        self.check_timestamp(timestamp)?;
         let left = to_mat("left", left)?;
         let images = match right {
             Some(right) => Images::Stereo(StereoPair::new(left, to_mat("right", right)?)),
@@ -174,6 +184,32 @@ impl PyPipeline {
 }
 
 impl PyPipeline {
+    /// Refuses a `timestamp=` that is not finite or not after the last one given: speeds, slip and
+    /// the frame times written out all assume time goes forward.
+    fn check_timestamp(&self, timestamp: Option<f64>) -> PyResult<()> {
+        let Some(t) = timestamp else {
+            return Ok(());
+        };
+        if !t.is_finite() {
+            return Err(PyValueError::new_err(format!(
+                "timestamp={t}: expected a finite number of seconds"
+            )));
+        }
+        let mut last = self
+            .last_timestamp_s
+            .lock()
+            .map_err(|_| GelstereoError::new_err("the pipeline failed in another thread"))?;
+        if let Some(previous) = *last
+            && t <= previous
+        {
+            return Err(PyValueError::new_err(format!(
+                "timestamp={t}: expected a time after the previous frame's {previous} s (timestamps must increase)"
+            )));
+        }
+        *last = Some(t);
+        Ok(())
+    }
+
     fn lock(&self) -> PyResult<MutexGuard<'_, Pipeline>> {
         self.inner
             .lock()

@@ -165,6 +165,25 @@ def test_unusable_images_raise(sample):
         pipeline.process(left[:, :, :2], right)
 
 
+def test_timestamps_must_be_finite_and_increase(sample):
+    pipeline = gelstereo.Pipeline()
+    left, _ = next(pairs(sample))
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="timestamp=.*finite"):
+            pipeline.process(left, timestamp=bad)
+    assert pipeline.process(left, timestamp=5.0).timestamp == pytest.approx(0.0)
+    for earlier in (5.0, 4.0):
+        with pytest.raises(ValueError, match="after the previous frame's 5"):
+            pipeline.process(left, timestamp=earlier)
+    assert pipeline.process(left, timestamp=5.5).timestamp == pytest.approx(0.5)
+
+
+def test_thread_counts_from_the_environment_are_bounded(monkeypatch):
+    monkeypatch.setenv("RAYON_NUM_THREADS", "100000")
+    with pytest.raises(ValueError, match="RAYON_NUM_THREADS='100000'.*to 256"):
+        gelstereo.Pipeline()
+
+
 def test_processing_releases_the_gil(sample):
     pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
     left, right = next(pairs(sample))

@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use gelstereo_core::limits::{MAX_DESCRIPTION_BYTES, MAX_GRID_SIDE, read_text_at_most};
 use gelstereo_core::{GridShape, ImageSize};
 use serde::Deserialize;
 
@@ -40,7 +41,7 @@ impl DatasetManifest {
     /// Reads `DIR/dataset.json`.
     pub fn read(dataset: &Path) -> Result<Self> {
         let path = dataset.join("dataset.json");
-        let text = std::fs::read_to_string(&path).map_err(crate::error::io_err(&path))?;
+        let text = read_text_at_most(&path, MAX_DESCRIPTION_BYTES).map_err(crate::error::io_err(&path))?;
         Self::parse(&path, &text)
     }
 
@@ -78,6 +79,8 @@ pub struct RecordingMeta {
     pub image_size: Option<ImageSize>,
     /// The sensor description (`sensor`), validated.
     pub sensor: Option<SensorSpec>,
+    /// The frame rate (`fps`, or `frame_rate_hz`), Hz.
+    pub frame_rate_hz: Option<f64>,
 }
 
 #[derive(Deserialize)]
@@ -92,13 +95,18 @@ struct RawMeta {
     image_width: Option<u32>,
     image_height: Option<u32>,
     sensor: Option<serde_json::Value>,
+    fps: Option<f64>,
+    frame_rate_hz: Option<f64>,
 }
+
+/// Highest frame rate a recording may state, Hz (high-speed cameras reach tens of kHz).
+pub const MAX_FRAME_RATE_HZ: f64 = 1e6;
 
 impl RecordingMeta {
     /// Reads `DIR/meta.json`; `Ok(None)` when the recording has none (a real recording).
     pub fn read(dir: &Path) -> Result<Option<Self>> {
         let path = dir.join("meta.json");
-        match std::fs::read_to_string(&path) {
+        match read_text_at_most(&path, MAX_DESCRIPTION_BYTES) {
             Ok(text) => Self::parse(&path, &text).map(Some),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
             Err(e) => Err(Error::Io { path, error: e }),
@@ -109,11 +117,11 @@ impl RecordingMeta {
     pub fn parse(path: &Path, text: &str) -> Result<Self> {
         let raw: RawMeta = serde_json::from_str(text).map_err(|e| syntax(path, &e))?;
         let grid = match raw.grid {
-            Some(g) if g.rows < 2 || g.cols < 2 => {
+            Some(g) if !(2..=MAX_GRID_SIDE).contains(&g.rows) || !(2..=MAX_GRID_SIDE).contains(&g.cols) => {
                 return Err(field(
                     path,
                     "grid",
-                    "at least 2 rows and 2 columns",
+                    &format!("2 to {MAX_GRID_SIDE} rows and columns"),
                     &format!("{} x {}", g.rows, g.cols),
                 ));
             }
@@ -156,11 +164,24 @@ impl RecordingMeta {
             }
             None => None,
         };
+        let frame_rate_hz = match (raw.fps, raw.frame_rate_hz) {
+            (Some(v), _) | (None, Some(v)) if !(v.is_finite() && v > 0.0 && v <= MAX_FRAME_RATE_HZ) => {
+                let name = if raw.fps.is_some() { "fps" } else { "frame_rate_hz" };
+                return Err(field(
+                    path,
+                    name,
+                    &format!("a frame rate above 0 and at most {MAX_FRAME_RATE_HZ} Hz"),
+                    &v.to_string(),
+                ));
+            }
+            (fps, rate) => fps.or(rate),
+        };
         Ok(Self {
             path: path.to_owned(),
             grid,
             image_size,
             sensor,
+            frame_rate_hz,
         })
     }
 
@@ -220,6 +241,22 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("'grid'"), "{err}");
+        for bad in [r#"{"fps": -5}"#, r#"{"frame_rate_hz": 0}"#, r#"{"fps": 1e300}"#] {
+            let err = RecordingMeta::parse(p, bad).unwrap_err().to_string();
+            assert!(
+                err.contains("rec/meta.json") && err.contains("frame rate"),
+                "{bad}: {err}"
+            );
+        }
+        let err = RecordingMeta::parse(p, r#"{"fps": "fast"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("rec/meta.json") && err.contains("invalid type"),
+            "{err}"
+        );
+        let meta = RecordingMeta::parse(p, r#"{"fps": 60}"#).unwrap();
+        assert_eq!(meta.frame_rate_hz, Some(60.0));
         let meta = RecordingMeta::parse(p, r#"{"grid": {"rows": 23, "cols": 23}}"#).unwrap();
         let err = meta
             .check_grid(GridShape { rows: 10, cols: 10 })

@@ -285,7 +285,9 @@ pub struct Sensor {
 impl SensorSpec {
     /// Reads and validates a sensor description (JSON). Errors name the file and the field.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(crate::error::io_err(path))?;
+        let text =
+            gelstereo_core::limits::read_text_at_most(path, gelstereo_core::limits::MAX_DESCRIPTION_BYTES)
+                .map_err(crate::error::io_err(path))?;
         let spec: SensorSpec = serde_json::from_str(&text).map_err(|e| Error::SensorSyntax {
             path: path.to_owned(),
             message: e.to_string(),

@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::GridShape;
+use gelstereo_core::limits::{ECHO_CHARS, MAX_GRID_SIDE, shorten};
 use gelstereo_markers::{Localizer, LocalizerConfig, Method};
 use gelstereo_sim::SensorSpec;
 use gelstereo_tracking::SessionConfig;
@@ -30,8 +31,8 @@ pub struct PipelineConfig {
     /// the calibration, places the visible markers on the sensor's own grid indices. An error building
     /// it is reported.
     pub sensor: Option<SensorSpec>,
-    /// A recording's own sensor description (its `meta.json`): used like [`Self::sensor`] when it
-    /// builds, ignored when it does not.
+    /// A recording's own sensor description (its `meta.json`, validated when read): used like
+    /// [`Self::sensor`] when it builds, ignored when it does not.
     pub recording_sensor: Option<SensorSpec>,
     /// Tracking, contact and slip settings (gel thickness, marker pitch of a mono sensor, ...).
     pub session: SessionConfig,
@@ -57,21 +58,21 @@ impl Default for PipelineConfig {
 
 impl PipelineConfig {
     /// The defaults plus what the recording folder `dir` describes: its `calib.yaml`, and from its
-    /// `meta.json` the grid, the gel's facts and the sensor description (each only when present
-    /// and readable: older recordings lack them).
-    pub fn for_recording(dir: &Path) -> Self {
+    /// `meta.json` the grid, the gel's facts and the sensor description (each only when present:
+    /// real recordings lack them). A malformed `meta.json` is an error naming it and the field.
+    pub fn for_recording(dir: &Path) -> Result<Self> {
         let mut config = Self::default();
-        config.apply_recording(dir);
-        config
+        config.apply_recording(dir)?;
+        Ok(config)
     }
 
     /// Fills what [`Self::for_recording`] reads from `dir` into `self`.
-    pub fn apply_recording(&mut self, dir: &Path) {
+    pub fn apply_recording(&mut self, dir: &Path) -> Result<()> {
         let calib = dir.join("calib.yaml");
         if calib.is_file() {
             self.calibration = Some(calib.display().to_string());
         }
-        let meta = RecordingMeta::read(dir);
+        let meta = RecordingMeta::read(dir)?;
         self.grid = meta.grid;
         let layer = &mut self.session.contact.layer;
         for (value, fact) in [
@@ -84,6 +85,7 @@ impl PipelineConfig {
             }
         }
         self.recording_sensor = meta.sensor;
+        Ok(())
     }
 
     /// The method [`Self::method`] names, else Marknet-MRE when both its models exist, else blob.
@@ -185,41 +187,26 @@ pub struct RecordingMeta {
     pub gel_modulus_kpa: Option<f64>,
     /// `sensor.gel.poisson`.
     pub gel_poisson: Option<f64>,
-    /// `sensor`, when it parses and validates.
+    /// `sensor`, validated.
     pub sensor: Option<SensorSpec>,
 }
 
 impl RecordingMeta {
-    /// Reads `dir/meta.json`; a missing or unreadable file gives nothing (older recordings).
-    pub fn read(dir: &Path) -> Self {
-        let Ok(text) = std::fs::read_to_string(dir.join("meta.json")) else {
-            return Self::default();
+    /// Reads `dir/meta.json`; a recording without one (a real recording) gives nothing. A file
+    /// that is present but malformed is an error naming the file and the field (one parser with
+    /// `reconstruct`: [`gelstereo_sim::manifest::RecordingMeta`]).
+    pub fn read(dir: &Path) -> Result<Self> {
+        let Some(meta) = gelstereo_sim::manifest::RecordingMeta::read(dir)? else {
+            return Ok(Self::default());
         };
-        let Ok(v) = serde_json::from_str::<serde_json::Value>(&text) else {
-            return Self::default();
-        };
-        let grid = (|| {
-            let rows = u16::try_from(v.get("grid")?.get("rows")?.as_u64()?).ok()?;
-            let cols = u16::try_from(v.get("grid")?.get("cols")?.as_u64()?).ok()?;
-            Some(GridShape { rows, cols })
-        })();
-        let gel = |field: &str| {
-            v.get("sensor")
-                .and_then(|s| s.get("gel"))
-                .and_then(|g| g.get(field))
-                .and_then(|t| t.as_f64())
-        };
-        let sensor = v
-            .get("sensor")
-            .and_then(|s| serde_json::from_value::<SensorSpec>(s.clone()).ok())
-            .filter(|s| s.validate("meta.json sensor").is_ok());
-        Self {
-            grid,
-            gel_thickness_mm: gel("thickness_mm"),
-            gel_modulus_kpa: gel("modulus_kpa"),
-            gel_poisson: gel("poisson"),
-            sensor,
-        }
+        let gel = meta.sensor.as_ref().map(|s| &s.gel);
+        Ok(Self {
+            grid: meta.grid,
+            gel_thickness_mm: gel.map(|g| g.thickness_mm),
+            gel_modulus_kpa: gel.map(|g| g.modulus_kpa),
+            gel_poisson: gel.map(|g| g.poisson),
+            sensor: meta.sensor,
+        })
     }
 }
 
@@ -237,19 +224,21 @@ pub fn localizer(method: Method, config: &LocalizerConfig) -> Result<Box<dyn Loc
 
 /// Parses a lattice `ROWSxCOLS` (e.g. `23x23`); `what` names the option in errors.
 pub fn parse_grid(text: &str, what: &str) -> Result<GridShape> {
-    let invalid = |why: &str| Error::Invalid(format!("{what} '{text}': {why}"));
+    let invalid = |why: &str| Error::Invalid(format!("{what} '{}': {why}", shorten(text, ECHO_CHARS)));
     let (r, c) = text
         .split_once(['x', 'X'])
         .ok_or_else(|| invalid("expected ROWSxCOLS, e.g. 23x23"))?;
-    let rows: u16 = r.trim().parse().map_err(|_| invalid("rows must be a number"))?;
-    let cols: u16 = c
-        .trim()
-        .parse()
-        .map_err(|_| invalid("columns must be a number"))?;
-    if rows < 2 || cols < 2 {
-        return Err(invalid("expected at least 2x2 markers"));
-    }
-    Ok(GridShape { rows, cols })
+    let side = |s: &str, name: &str| match s.trim().parse::<u16>() {
+        Ok(n) if (2..=MAX_GRID_SIDE).contains(&n) => Ok(n),
+        _ => Err(invalid(&format!(
+            "{name} '{}': expected a whole number from 2 to {MAX_GRID_SIDE} (at least 2x2 markers)",
+            shorten(s.trim(), ECHO_CHARS)
+        ))),
+    };
+    Ok(GridShape {
+        rows: side(r, "rows")?,
+        cols: side(c, "columns")?,
+    })
 }
 
 /// The folder holding the shipped `data/` and `calib/`: `GELSTEREO_HOME` when set, else the checkout

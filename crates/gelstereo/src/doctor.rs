@@ -60,8 +60,8 @@ pub fn checks(home: &Path, models: &Path) -> Vec<Check> {
         Check {
             name: "Marknet-MRE run",
             need: Need::Required,
-            outcome: self_test(models),
-            fix: "the model files are broken (NaN or untrained weights): restore data/models/ from git or retrain",
+            outcome: self_test(home, models),
+            fix: "the model files are broken (NaN, infinite or untrained weights): restore data/models/ from git or retrain",
         },
         Check {
             name: "Calibration files",
@@ -94,8 +94,14 @@ fn model_summary(path: &Path) -> Result<String, String> {
     Ok(format!("{} [{}]", path.display(), props.join(", ")))
 }
 
-/// Runs Marknet-MRE from `models` once on a synthetic marker image.
-fn self_test(models: &Path) -> Result<String, String> {
+/// The real frame the models are tried on: the bundled sample's first left view.
+pub const SAMPLE_FRAME: &str = "data/sample/press-slide/left/000000.jpg";
+
+/// Loads Marknet-MRE from `models` (each network is run once at load on a fixed input and must
+/// give finite outputs), then runs it once on the sample's first left view ([`SAMPLE_FRAME`] in
+/// `home`; a synthetic marker image where the checkout has no sample): a non-finite output, or no
+/// marker found, is the error.
+fn self_test(home: &Path, models: &Path) -> Result<String, String> {
     let config = gelstereo_markers::LocalizerConfig {
         marknet_path: models.join("marknet.onnx"),
         mre_path: models.join("mre.onnx"),
@@ -108,11 +114,21 @@ fn self_test(models: &Path) -> Result<String, String> {
     };
     let mut localizer = gelstereo_markers::create_localizer(gelstereo_markers::Method::MarknetMre, &config)
         .map_err(|e| format!("{e:#}"))?;
-    let run = gelstereo_markers::self_test::run(localizer.as_mut()).map_err(|e| format!("{e:#}"))?;
-    Ok(format!(
-        "{} of {} markers found on a synthetic marker image",
-        run.found, run.drawn
-    ))
+    let frame = home.join(SAMPLE_FRAME);
+    let found = if frame.is_file() {
+        let image = gelstereo_io::images::read_image(&frame).map_err(|e| format!("{e:#}"))?;
+        let what = frame.display().to_string();
+        let n = gelstereo_markers::self_test::run_on(localizer.as_mut(), &image, &what)
+            .map_err(|e| format!("{e:#}"))?;
+        format!("{n} markers found on {what}")
+    } else {
+        let run = gelstereo_markers::self_test::run(localizer.as_mut()).map_err(|e| format!("{e:#}"))?;
+        format!(
+            "{} of {} markers found on a synthetic marker image",
+            run.found, run.drawn
+        )
+    };
+    Ok(found)
 }
 
 /// Loads every calibration in `dir` (OpenCV YAML/XML files and a `left/right.cameramodel` mrcal pair)

@@ -122,7 +122,12 @@ fn experiments(job: &LocalizationEval) -> Result<Vec<PathBuf>> {
             None
         }
         Err(e) => {
-            return Err(Error::from(e).context("reading the dataset's manifest (needed by --sensor)"));
+            let why = if job.sensor.is_some() {
+                "reading the dataset's manifest (needed by --sensor)"
+            } else {
+                "reading the dataset's manifest"
+            };
+            return Err(Error::from(e).context(why));
         }
     };
     if let (Some(sensor), Some(manifest)) = (&job.sensor, &manifest) {

@@ -21,7 +21,7 @@
 //! ```no_run
 //! use gelstereo::{Pipeline, PipelineConfig, source::FrameSource};
 //! let dir = std::path::Path::new("data/sample/press-slide");
-//! let mut pipeline = Pipeline::new(&PipelineConfig::for_recording(dir))?;
+//! let mut pipeline = Pipeline::new(&PipelineConfig::for_recording(dir)?)?;
 //! for frame in FrameSource::open_path(dir, false)? {
 //!     let out = pipeline.process(&frame.into_frame()?)?;
 //!     println!("{:.3} s: {} markers, {}", out.t_s, out.markers.len(), out.slip().as_str());

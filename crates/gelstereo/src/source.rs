@@ -173,7 +173,7 @@ impl FrameSource {
                     recording: StereoRecording::open(input)?,
                     left_only: false,
                     next: 0,
-                    frame_rate_hz: recording_frame_rate_hz(input),
+                    frame_rate_hz: recording_frame_rate_hz(input)?,
                 });
             }
             let files = images::list_images(input)?;
@@ -187,7 +187,7 @@ impl FrameSource {
             return Ok(FrameSource::Images {
                 files,
                 next: 0,
-                frame_rate_hz: recording_frame_rate_hz(input),
+                frame_rate_hz: recording_frame_rate_hz(input)?,
             });
         }
         if !input.exists() {
@@ -454,18 +454,12 @@ fn split(m: Mat, side_by_side: bool, source: &Path) -> Result<Images> {
 }
 
 /// A recording's frame rate: `meta.json` `fps` (or `frame_rate_hz`), else
-/// [`DEFAULT_FRAME_RATE_HZ`].
-pub fn recording_frame_rate_hz(dir: &Path) -> f64 {
-    std::fs::read_to_string(dir.join("meta.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| {
-            v.get("fps")
-                .or_else(|| v.get("frame_rate_hz"))
-                .and_then(|f| f.as_f64())
-        })
-        .filter(|f| f.is_finite() && *f > 0.0)
-        .unwrap_or(DEFAULT_FRAME_RATE_HZ)
+/// [`DEFAULT_FRAME_RATE_HZ`]; a malformed `meta.json` is an error naming it and the field.
+pub fn recording_frame_rate_hz(dir: &Path) -> Result<f64> {
+    let meta = gelstereo_sim::manifest::RecordingMeta::read(dir)?;
+    Ok(meta
+        .and_then(|m| m.frame_rate_hz)
+        .unwrap_or(DEFAULT_FRAME_RATE_HZ))
 }
 
 /// Frames of a [`FrameSource`] read and decoded on a thread of its own, at most `depth` ahead of the

@@ -21,7 +21,7 @@ fn pipeline_and_output_move_to_other_threads() {
 
 #[test]
 fn sample_recording_tracks_with_3d_markers_slip_and_timestamps() {
-    let mut config = PipelineConfig::for_recording(&sample());
+    let mut config = PipelineConfig::for_recording(&sample()).unwrap();
     config.method = Some(Method::Blob);
     let mut pipeline = Pipeline::new(&config).unwrap();
     let mut outs = Vec::new();
@@ -49,7 +49,7 @@ fn sample_recording_tracks_with_3d_markers_slip_and_timestamps() {
 
 #[test]
 fn unreadable_frames_come_back_flagged_and_the_first_good_frame_is_the_reference() {
-    let mut config = PipelineConfig::for_recording(&sample());
+    let mut config = PipelineConfig::for_recording(&sample()).unwrap();
     config.method = Some(Method::Blob);
     let mut pipeline = Pipeline::new(&config).unwrap();
     let early = pipeline.flag(None, "left/000000.png: cannot decode".into());

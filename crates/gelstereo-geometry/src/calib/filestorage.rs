@@ -13,7 +13,10 @@
 
 use std::path::Path;
 
+use gelstereo_core::limits::{ECHO_CHARS, shorten};
 use roxmltree::{Document, ParsingOptions};
+use yaml_rust2::parser::{Event, MarkedEventReceiver, Parser};
+use yaml_rust2::scanner::{Marker, ScanError};
 use yaml_rust2::{Yaml, YamlLoader};
 
 use super::structure::syntax;
@@ -50,7 +53,7 @@ impl Value {
     pub(crate) fn describe(&self) -> String {
         match self {
             Value::Number(v) => format!("the number {v}"),
-            Value::Text(s) => format!("the string '{}'", s.chars().take(40).collect::<String>()),
+            Value::Text(s) => format!("the string '{}'", shorten(s, ECHO_CHARS)),
             Value::Empty => "an empty value".to_owned(),
             Value::Seq(items) => format!("a sequence of {} items", items.len()),
             Value::Map(entries) => format!("a map with {} keys", entries.len()),
@@ -75,10 +78,14 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Value> {
         Some(rest) => format!("\n{}", rest.split_once('\n').map_or("", |(_, tail)| tail)),
         None => text.to_owned(),
     };
-    let docs = YamlLoader::load_from_str(&body)
-        .map_err(|e| syntax(path, e.marker().line(), format!("not valid YAML: {}", e.info())))?;
+    refuse_aliases(path, &body)?;
+    let docs = YamlLoader::load_from_str(&body).map_err(|e| not_yaml(path, &e))?;
     let Some(root) = docs.into_iter().next() else {
-        return Err(syntax(path, 0, "empty: expected a map of calibration keys"));
+        return Err(syntax(
+            path,
+            0,
+            "no YAML document (the file is empty or only comments): expected a map of calibration keys",
+        ));
     };
     match from_yaml(path, root)? {
         map @ Value::Map(_) => Ok(map),
@@ -91,6 +98,40 @@ fn parse_yaml(path: &Path, text: &str) -> Result<Value> {
             ),
         )),
     }
+}
+
+/// Notes the first alias (`*name`) of a YAML event stream.
+#[derive(Default)]
+struct FirstAlias(Option<Marker>);
+
+impl MarkedEventReceiver for FirstAlias {
+    fn on_event(&mut self, event: Event, mark: Marker) {
+        if self.0.is_none() && matches!(event, Event::Alias(_)) {
+            self.0 = Some(mark);
+        }
+    }
+}
+
+/// Refuses a file that uses YAML aliases, before it is loaded: the loader copies the anchored value
+/// at every alias, so a few hundred bytes of aliases of aliases expand to gigabytes. OpenCV never
+/// writes aliases, and a calibration has nothing to repeat.
+fn refuse_aliases(path: &Path, body: &str) -> Result<()> {
+    let mut first = FirstAlias::default();
+    Parser::new_from_str(body)
+        .load(&mut first, true)
+        .map_err(|e| not_yaml(path, &e))?;
+    match first.0 {
+        Some(mark) => Err(syntax(
+            path,
+            mark.line(),
+            "a YAML alias (*name): a calibration's values are written out, aliases are not read",
+        )),
+        None => Ok(()),
+    }
+}
+
+fn not_yaml(path: &Path, e: &ScanError) -> crate::error::Error {
+    syntax(path, e.marker().line(), format!("not valid YAML: {}", e.info()))
 }
 
 fn from_yaml(path: &Path, y: Yaml) -> Result<Value> {

@@ -15,6 +15,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use gelstereo_core::ImageSize;
+use gelstereo_core::limits::{ECHO_CHARS, shorten};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use super::pyliteral::{self, Value};
@@ -61,9 +62,14 @@ fn numbers(
 }
 
 fn read_model(path: &Path) -> Result<Model> {
-    let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+    let bytes = super::structure::read_at_most(path)?;
+    let text = String::from_utf8(bytes).map_err(|e| Error::Syntax {
         path: path.to_path_buf(),
-        source,
+        line: 0,
+        message: format!(
+            "not UTF-8 text (an invalid byte at offset {}): expected a mrcal .cameramodel",
+            e.utf8_error().valid_up_to()
+        ),
     })?;
     let value = pyliteral::parse(&text).map_err(|e| Error::Syntax {
         path: path.to_path_buf(),
@@ -114,7 +120,7 @@ fn read_model(path: &Path) -> Result<Model> {
         _ => {
             return Err(Error::UnsupportedLensModel {
                 path: path.to_path_buf(),
-                model,
+                model: shorten(&model, ECHO_CHARS).into_owned(),
             });
         }
     };

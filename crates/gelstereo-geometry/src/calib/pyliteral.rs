@@ -2,6 +2,8 @@
 //! `ast.literal_eval` accepts, minus sets and complex numbers): dicts, lists, tuples, strings and
 //! byte strings (with implicit concatenation), ints, floats, `True`, `False`, `None`, `#` comments.
 
+use gelstereo_core::limits::{ECHO_CHARS, shorten};
+
 /// A parsed Python literal.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum Value {
@@ -31,7 +33,7 @@ impl Value {
             Value::Bool(b) => format!("the bool {}", if *b { "True" } else { "False" }),
             Value::Int(i) => format!("the integer {i}"),
             Value::Float(f) => format!("the number {f}"),
-            Value::Str(s) => format!("the string '{s}'"),
+            Value::Str(s) => format!("the string '{}'", shorten(s, ECHO_CHARS)),
             Value::Bytes(n) => format!("a byte string of {n} bytes"),
             Value::List(items) => {
                 if items.iter().all(|v| v.as_f64().is_some()) {
@@ -284,7 +286,7 @@ impl Parser<'_> {
             Ok(f) if is_float_syntax && f.is_finite() => Ok(Value::Float(f)),
             _ => {
                 self.pos = start;
-                Err(self.err(&format!("'{text}' is not a number")))
+                Err(self.err(&format!("'{}' is not a number", shorten(&text, ECHO_CHARS))))
             }
         }
     }
@@ -305,7 +307,7 @@ impl Parser<'_> {
             w => {
                 let w = String::from_utf8_lossy(w).into_owned();
                 self.pos = start;
-                Err(self.err(&format!("'{w}' is not a Python literal")))
+                Err(self.err(&format!("'{}' is not a Python literal", shorten(&w, ECHO_CHARS))))
             }
         }
     }

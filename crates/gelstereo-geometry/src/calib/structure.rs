@@ -24,20 +24,13 @@ pub(crate) struct CheckedText {
 
 /// Reads `path` (at most [`MAX_CALIBRATION_BYTES`]) and checks its nesting depth.
 pub(crate) fn read_calibration_file(path: &Path) -> Result<CheckedText> {
-    let io = |source| Error::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut bytes = Vec::new();
-    file.take(MAX_CALIBRATION_BYTES + 1)
-        .read_to_end(&mut bytes)
-        .map_err(io)?;
-    if bytes.len() as u64 > MAX_CALIBRATION_BYTES {
+    let bytes = read_at_most(path)?;
+    if let Some(at) = bytes.iter().position(|&b| b == 0) {
+        let line = 1 + bytes[..at].iter().filter(|&&b| b == b'\n').count();
         return Err(syntax(
             path,
-            0,
-            format!("larger than {MAX_CALIBRATION_BYTES} bytes: not a calibration file"),
+            line,
+            format!("binary data (a NUL byte at offset {at}): expected a text file, OpenCV YAML or XML"),
         ));
     }
     let text = String::from_utf8_lossy(&bytes).into_owned();
@@ -59,6 +52,28 @@ pub(crate) fn read_calibration_file(path: &Path) -> Result<CheckedText> {
         )),
         _ => Ok(CheckedText { text, xml: is_xml }),
     }
+}
+
+/// The bytes of the calibration file `path` (an OpenCV file or a mrcal `.cameramodel`), refused
+/// past [`MAX_CALIBRATION_BYTES`] before more is read.
+pub(crate) fn read_at_most(path: &Path) -> Result<Vec<u8>> {
+    let io = |source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut bytes = Vec::new();
+    file.take(MAX_CALIBRATION_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > MAX_CALIBRATION_BYTES {
+        return Err(syntax(
+            path,
+            0,
+            format!("larger than {MAX_CALIBRATION_BYTES} bytes: not a calibration file"),
+        ));
+    }
+    Ok(bytes)
 }
 
 /// A syntax error of the calibration file `path` at 1-based `line` (0 when unknown).
