@@ -90,8 +90,10 @@ def test_frames_convert_every_output(tracked):
     assert "indexed" in reference.log[0]
     assert pressed.contact.in_contact and pressed.contact.max_depth_mm > 0.5
     assert len(pressed.contact.centroid_mm) == 2 and pressed.contact.region.shape[1] == 2
-    # Pressed markers move towards the cameras (z forward).
-    assert np.nanmin(pressed.markers["dZ_mm"]) < -0.5
+    # Pressed markers move towards the cameras (z forward), into the gel along its normal as deep
+    # as the contact.
+    assert np.nanmin(pressed.markers["dZ_mm"]) < -0.3
+    assert np.nanmin(pressed.markers["dZ_gel_mm"]) < -0.9 * pressed.contact.max_depth_mm
     # Timestamps: frame number / 30 Hz when none is given.
     assert [f.timestamp for f in tracked[:3]] == pytest.approx([0.0, 1 / 30, 2 / 30])
 
