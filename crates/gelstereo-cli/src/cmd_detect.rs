@@ -218,6 +218,14 @@ impl Sink {
         image: &Mat,
         detections: &[Detection],
     ) -> anyhow::Result<()> {
+        // Ctrl-C or SIGTERM: stop between images; the CSV's temporary file goes with the error and
+        // an existing --out file stays as it was.
+        if gelstereo_core::interrupt::requested() {
+            bail!(
+                "interrupted after {} images; an existing --out file is left as it was",
+                self.images
+            );
+        }
         for d in detections {
             writeln!(
                 self.csv,

@@ -81,6 +81,7 @@ fn main() -> ExitCode {
     if matches!(
         cli.command,
         Command::Simulate(_)
+            | Command::Detect(_)
             | Command::Reconstruct(_)
             | Command::Track(_)
             | Command::Capture(_)

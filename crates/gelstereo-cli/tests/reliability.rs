@@ -609,3 +609,56 @@ fn huge_images_are_refused_from_their_header() {
         &["huge.png", "20000x20000", "16384"],
     );
 }
+
+/// Issue 43 case 22: `detect` stopped by SIGTERM leaves the existing --out file as it was and no
+/// temporary file; one killed outright (SIGKILL runs no destructor) leaves a temporary file that the
+/// next run into the same place removes.
+#[test]
+fn a_stopped_or_killed_detect_leaves_no_temporary_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let rec = long_recording(dir.path(), 4);
+    let out = dir.path().join("det.csv");
+    std::fs::write(&out, "image,x,y,confidence\n").unwrap();
+    let overlays = dir.path().join("overlays");
+    std::fs::create_dir_all(&overlays).unwrap();
+    let child = gelstereo_command()
+        .args([
+            "detect",
+            "--method",
+            "blob",
+            "--out",
+            s(&out),
+            "--overlay",
+            s(&overlays),
+        ])
+        .arg(rec.join("left"))
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (code, err) = signal_when(child, "TERM", || {
+        std::fs::read_dir(&overlays).map_or(0, |d| d.count()) >= 3
+    });
+    assert_eq!(code, 130, "{err}");
+    assert!(err.contains("interrupted"), "{err}");
+    assert_eq!(std::fs::read_to_string(&out).unwrap(), "image,x,y,confidence\n");
+    let leftovers = |dir: &Path| -> Vec<String> {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".partial"))
+            .collect()
+    };
+    assert!(leftovers(dir.path()).is_empty(), "{:?}", leftovers(dir.path()));
+    // What a killed run leaves (its process id is no running process's), removed by the next run.
+    let stale = dir.path().join(".det.csv.4194303.a1b2c3.partial");
+    std::fs::write(&stale, "cut").unwrap();
+    let image = rec.join("left/000000.jpg");
+    let run = gelstereo_command()
+        .args(["detect", "--method", "blob", "--out", s(&out)])
+        .arg(&image)
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", text(&run));
+    assert!(leftovers(dir.path()).is_empty(), "{:?}", leftovers(dir.path()));
+}
