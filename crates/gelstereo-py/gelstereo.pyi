@@ -107,9 +107,14 @@ class Pipeline:
     `calibration`: stereo calibration (OpenCV YAML/XML, mrcal folder or "left,right" .cameramodel
     pair), None for a mono sensor; `models`: folder with marknet.onnx and mre.onnx (default: the
     shipped ones); `grid`: "ROWSxCOLS" or (rows, cols) (default 23x23); `sensor`: sensor description
-    JSON of a grid that overfills the view. Every other setting is `gelstereo track`'s default.
-    Raises GelstereoError when the calibration, models or sensor description cannot be used,
-    ValueError when RAYON_NUM_THREADS or OMP_NUM_THREADS asks for more than 256 threads.
+    JSON (its gel's facts, and the indices of a grid that overfills the view). The keywords mirror
+    `gelstereo track`'s flags: `gel` (a gel file), `gel_thickness_mm`, `gel_modulus_kpa`, `poisson`,
+    `friction`; `method` ("marknet-mre", "marknet", "blob", "yolo"); `pitch_mm` (a mono sensor's
+    marker pitch, for its area in mm²); `threads` (0: one per core); `mono` (track the left view
+    only). Every other setting is `gelstereo track`'s default.
+    Raises GelstereoError when the calibration, models, sensor description or a setting cannot be
+    used, ValueError for an unknown method or more than 256 threads (also from RAYON_NUM_THREADS or
+    OMP_NUM_THREADS).
     """
 
     def __init__(
@@ -118,6 +123,16 @@ class Pipeline:
         models: Optional[Union[str, os.PathLike[str]]] = None,
         grid: Optional[Union[str, Tuple[int, int]]] = None,
         sensor: Optional[Union[str, os.PathLike[str]]] = None,
+        *,
+        gel: Optional[Union[str, os.PathLike[str]]] = None,
+        gel_thickness_mm: Optional[float] = None,
+        gel_modulus_kpa: Optional[float] = None,
+        poisson: Optional[float] = None,
+        friction: Optional[float] = None,
+        method: Optional[str] = None,
+        pitch_mm: Optional[float] = None,
+        threads: int = 0,
+        mono: bool = False,
     ) -> None: ...
     def process(self, left: Image, right: Optional[Image] = None, timestamp: Optional[float] = None) -> Frame:
         """Processes one frame (stereo when `right` is given); timestamp in s (finite, each later than the last), None: frame number / 30 Hz.

@@ -36,6 +36,12 @@ use crate::image::to_mat;
 ///     gel_thickness_mm, gel_modulus_kpa, poisson, friction: the gel's facts and the friction
 ///         coefficient of the contact mechanics, as `gelstereo track`'s flags of the same names
 ///         (default: the reference sensor's 2.5 mm, 150 kPa, 0.45 and 0.6).
+///     method: "marknet-mre", "marknet", "blob" or "yolo", as `gelstereo track --method`
+///         (default: Marknet-MRE where its models are installed, else the blob detector).
+///     pitch_mm: the marker pitch of a mono sensor, mm, so that its contact area is in mm²
+///         (`--pitch-mm`); None: the area of a mono sensor is unknown (NaN).
+///     threads: ONNX Runtime intra-op threads, 0 (default) one per core (`--threads`).
+///     mono: track only the left view given to `process` (`--mono`).
 ///
 /// Every other setting is `gelstereo track`'s default. The first frame that can be indexed is the
 /// reference (no contact): marker ids are its grid indices, displacement is measured against it.
@@ -49,12 +55,14 @@ pub struct PyPipeline {
     inner: Mutex<Pipeline>,
     /// The last `timestamp=` given to `process`: the next must be later.
     last_timestamp_s: Mutex<Option<f64>>,
+    /// Track the left view only (`mono=True`): a right view given to `process` is not used.
+    mono: bool,
 }
 
 #[pymethods]
 impl PyPipeline {
     #[new]
-    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel = None, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None))]
+    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel = None, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None, method = None, pitch_mm = None, threads = 0, mono = false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -67,6 +75,10 @@ impl PyPipeline {
         gel_modulus_kpa: Option<f64>,
         poisson: Option<f64>,
         friction: Option<f64>,
+        method: Option<&str>,
+        pitch_mm: Option<f64>,
+        threads: usize,
+        mono: bool,
     ) -> PyResult<Self> {
         // The thread pools start with the first pipeline; a huge count from the environment would
         // start thousands of threads.
@@ -74,8 +86,17 @@ impl PyPipeline {
         let mut config = PipelineConfig {
             calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
             grid: grid.map(grid_shape).transpose()?,
+            method: method
+                .map(str::parse::<Method>)
+                .transpose()
+                .map_err(|e| PyValueError::new_err(e.to_string()))?,
+            mono,
             ..PipelineConfig::default()
         };
+        let threads = gelstereo::core::limits::parse_thread_count(&threads.to_string())
+            .map_err(|e| PyValueError::new_err(format!("threads: {e}")))?;
+        config.localizer.session.intra_threads = threads;
+        config.session.planar.pitch_mm = pitch_mm;
         let mut facts = GelFacts {
             thickness_mm: gel_thickness_mm,
             modulus_kpa: gel_modulus_kpa,
@@ -97,12 +118,13 @@ impl PyPipeline {
         if let Some(dir) = models {
             // Models named explicitly are used or reported, never replaced by the blob detector.
             config = config.with_models(&dir);
-            config.method = Some(Method::MarknetMre);
+            config.method = config.method.or(Some(Method::MarknetMre));
         }
         let inner = py.detach(|| Pipeline::new(&config).map_err(|e| to_py(&e)))?;
         Ok(Self {
             inner: Mutex::new(inner),
             last_timestamp_s: Mutex::new(None),
+            mono,
         })
     }
 
@@ -131,7 +153,7 @@ impl PyPipeline {
     ) -> PyResult<PyFrame> {
         self.check_timestamp(timestamp)?;
         let left = to_mat("left", left)?;
-        let images = match right {
+        let images = match right.filter(|_| !self.mono) {
             Some(right) => Images::Stereo(StereoPair::new(left, to_mat("right", right)?)),
             None => Images::Mono(left),
         };

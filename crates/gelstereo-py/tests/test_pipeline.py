@@ -98,6 +98,36 @@ def test_frames_convert_every_output(tracked):
     assert [f.timestamp for f in tracked[:3]] == pytest.approx([0.0, 1 / 30, 2 / 30])
 
 
+def test_keywords_match_the_command_line_flags(sample, gelstereo_bin, tmp_path):
+    """`method`, `pitch_mm`, `threads` and `mono` do what `track`'s flags of the same names do."""
+    out = tmp_path / "mono"
+    subprocess.run([str(gelstereo_bin), "track", "--quiet", "--no-ply", "--overlay-every", "0", "--mono",
+                    "--method", "blob", "--pitch-mm", "0.8", "--threads", "1", "--out", str(out), str(sample)],
+                   check=True)
+    with open(out / "frames.csv") as f:
+        rows = list(csv.DictReader(f))
+    pipeline = gelstereo.Pipeline(method="blob", pitch_mm=0.8, threads=1, mono=True)
+    frames = [pipeline.process(left, right) for left, right in pairs(sample)]
+    assert not pipeline.is_stereo
+    areas = [f.contact.area_mm2 for f in frames]
+    assert all(math.isfinite(a) for a in areas) and max(areas) > 10.0
+    assert areas == pytest.approx([float(r["contact_area_mm2"]) for r in rows], abs=1e-6)
+    assert [f.slip for f in frames] == [r["slip"] for r in rows]
+    # Without the pitch a mono sensor's area is unknown, as the command line leaves it empty.
+    left, _ = next(pairs(sample))
+    assert math.isnan(gelstereo.Pipeline(method="blob").process(left).contact.area_mm2)
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [({"method": "sift"}, ["sift"]), ({"threads": 100000}, ["threads", "256"]), ({"pitch_mm": -1.0}, ["pitch_mm"])],
+)
+def test_bad_keywords_are_refused_by_name(kwargs, words):
+    with pytest.raises((ValueError, gelstereo.GelstereoError)) as caught:
+        gelstereo.Pipeline(**kwargs)
+    assert all(w in str(caught.value) for w in words), caught.value
+
+
 def test_grey_and_bgr_give_the_same_mono_tracking(sample):
     bgr = [left for left, _ in pairs(sample)][:6]
     from_bgr, from_grey = gelstereo.Pipeline(), gelstereo.Pipeline()

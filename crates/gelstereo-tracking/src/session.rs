@@ -65,6 +65,17 @@ impl Default for SessionConfig {
     }
 }
 
+impl SessionConfig {
+    /// Checks the settings of every stage (tracker, contact, slip, mono sensors), so that a bad one
+    /// is reported when the pipeline is built, not when its first frame is indexed.
+    pub fn validate(&self) -> Result<()> {
+        self.tracker.validate()?;
+        self.contact.validate()?;
+        self.slip.validate()?;
+        self.planar.validate()
+    }
+}
+
 /// One tracked stereo frame.
 #[derive(Debug, Clone)]
 pub struct StereoFrame {

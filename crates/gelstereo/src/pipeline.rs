@@ -191,6 +191,7 @@ impl Pipeline {
     /// Builds the pipeline around a localizer built elsewhere (`config.method` and
     /// `config.localizer` are then not used).
     pub fn with_localizer(config: &PipelineConfig, mut localizer: Box<dyn Localizer + Send>) -> Result<Self> {
+        config.session.validate()?;
         let method = config.chosen_method();
         let rig = match &config.calibration {
             Some(spec) => match StereoRig::load(spec) {
