@@ -123,15 +123,17 @@ fn jsonl_to_standard_output_parses_line_by_line_and_out_dash_is_refused() {
     for (k, line) in lines.iter().enumerate() {
         let v: serde_json::Value = serde_json::from_str(line).unwrap();
         assert_eq!(v["frame"], k);
-        assert!((v["t_s"].as_f64().unwrap() - k as f64 / 30.0).abs() < 1e-9);
+        // `t_s` keeps 6 decimals, as frames.csv.
+        assert!((v["t_s"].as_f64().unwrap() - k as f64 / 30.0).abs() <= 5e-7);
         assert_eq!(v["slip"], slips[k].as_str());
-        let markers = v["markers"].as_array().unwrap();
-        assert_eq!(markers.len(), 529);
-        assert!(markers[0]["X_mm"].is_f64() && markers[0]["status"].is_string());
+        assert_eq!(v["schema"], "gelstereo-frame/1");
+        let markers = &v["markers"];
+        assert_eq!(markers["row"].as_array().unwrap().len(), 529);
+        assert!(markers["X_mm"][0].is_number() && markers["status"][0].is_string());
         assert!(
-            v["force_N"].is_f64()
-                && markers[0]["pressure_kPa"].is_f64()
-                && markers[0]["in_contact"].is_boolean()
+            v["force_N"].is_number()
+                && markers["pressure_kPa"][0].is_number()
+                && markers["in_contact"][0].is_boolean()
         );
     }
     // Nothing written beside the stream; `--out -` is refused without creating a folder `-`.
@@ -148,6 +150,112 @@ fn jsonl_to_standard_output_parses_line_by_line_and_out_dash_is_refused() {
         text(&refused)
     );
     assert!(!cwd.path().join("-").exists());
+}
+
+/// The stream's schema, compiled.
+fn frame_schema() -> jsonschema::Validator {
+    let text = std::fs::read_to_string(repo().join("docs/schema/frame-v1.json")).unwrap();
+    let schema: serde_json::Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(schema["properties"]["schema"]["const"], "gelstereo-frame/1");
+    jsonschema::draft202012::new(&schema).unwrap()
+}
+
+/// Decimals the stream keeps in a `markers.csv` column (px 2, mm 3, kPa 2).
+fn stream_decimals(column: &str) -> i32 {
+    match column {
+        c if c.starts_with("x_") || c.starts_with("y_") => 2,
+        c if c.ends_with("_mm") => 3,
+        "pressure_kPa" => 2,
+        c => panic!("{c} is not a number column"),
+    }
+}
+
+/// The most bytes a line of the sample's stream may take (529 markers).
+const MAX_LINE_BYTES: usize = 75_000;
+
+#[test]
+fn jsonl_stream_of_the_sample_follows_its_schema_and_holds_the_tables_rounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let (out, stream) = (dir.path().join("out"), dir.path().join("stream.jsonl"));
+    track_ok(&[
+        "--no-ply",
+        "--overlay-every",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+        "--jsonl",
+        stream.to_str().unwrap(),
+        sample().to_str().unwrap(),
+    ]);
+    let schema = frame_schema();
+    let markers = std::fs::read_to_string(out.join("markers.csv")).unwrap();
+    let mut rows = markers.lines().skip(1);
+    let lines: Vec<String> = std::fs::read_to_string(&stream)
+        .unwrap()
+        .lines()
+        .map(str::to_owned)
+        .collect();
+    assert_eq!(lines.len(), 40);
+    for (k, line) in lines.iter().enumerate() {
+        assert!(line.len() <= MAX_LINE_BYTES, "frame {k}: {} bytes", line.len());
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        let errors: Vec<String> = schema.iter_errors(&v).map(|e| e.to_string()).collect();
+        assert!(errors.is_empty(), "frame {k}: {errors:?}");
+        // Every cell of markers.csv is in the stream, to the stream's decimals.
+        for m in 0..529 {
+            let cells: Vec<&str> = rows.next().unwrap().split(',').collect();
+            assert_eq!(cells[0], k.to_string());
+            for (name, cell) in MARKER_COLUMNS.iter().zip(&cells).skip(1) {
+                let got = &v["markers"][*name][m];
+                match *name {
+                    "row" | "col" => assert_eq!(got.to_string(), *cell),
+                    "status" => assert_eq!(got.as_str().unwrap_or(""), *cell),
+                    "in_contact" | "slipping" => {
+                        assert_eq!(got.as_bool().map_or("", |b| if b { "1" } else { "0" }), *cell)
+                    }
+                    _ if cell.is_empty() => assert!(got.is_null(), "{name} {got}"),
+                    _ => {
+                        let csv: f64 = cell.parse().unwrap();
+                        let step = 10f64.powi(-stream_decimals(name));
+                        let diff = (got.as_f64().unwrap() - csv).abs();
+                        assert!(
+                            diff <= 0.5 * step + 1e-9,
+                            "frame {k} marker {m} {name}: {got} vs {csv}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+    assert!(rows.next().is_none());
+}
+
+#[test]
+fn jsonl_stream_read_by_head_ends_the_run_quietly() {
+    use std::io::BufRead;
+    let mut child = gelstereo_command()
+        .args(["track", "--quiet", "--method", "blob", "--jsonl", "-"])
+        .arg(sample())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    {
+        let mut reader = std::io::BufReader::new(child.stdout.take().unwrap());
+        reader.read_line(&mut first).unwrap();
+    }
+    // The reader is gone, as `| head -1` is after its line.
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        !stderr.contains("error") && !stderr.contains("Broken pipe"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("reader closed"), "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(&first).unwrap();
+    assert_eq!(v["frame"], 0);
 }
 
 /// Writes the sample's `side` view as an MJPG video (a camera's stand-in).

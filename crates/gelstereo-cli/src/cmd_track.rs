@@ -34,8 +34,9 @@ pub struct Args {
     /// Write into a non-empty output folder gelstereo did not write (only its own files are replaced).
     #[arg(long)]
     force: bool,
-    /// Stream one JSON object per frame (both tables' columns, markers nested, t_s) to standard output
-    /// (`-`) or a file, flushed per frame.
+    /// Stream one JSON object per frame (schema docs/schema/frame-v1.json: both tables' columns,
+    /// markers as column arrays, t_s, note) to standard output (`-`) or a file, flushed per frame. A
+    /// reader that closes the stream ends the run quietly.
     #[arg(long, value_name = "FILE|-")]
     jsonl: Option<PathBuf>,
     /// Localization method: blob, marknet or marknet-mre (default: marknet-mre when its models are
@@ -279,7 +280,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let secs = started.elapsed().as_secs_f64();
     eprintln!(
         "{}{} frames in {secs:.1} s ({:.1} frames/s): {:.2} % of marker-frames tracked in the left view, {} frames in contact, {} slipping, {} flagged; outputs in {}",
-        if summary.interrupted { "interrupted: " } else { "" },
+        match (summary.interrupted, summary.reader_closed) {
+            (true, _) => "interrupted: ",
+            (false, true) => "the stream's reader closed it: ",
+            (false, false) => "",
+        },
         summary.frames,
         summary.frames as f64 / secs.max(1e-9),
         100.0 * summary.tracked_fraction,

@@ -34,6 +34,13 @@ pub enum Error {
         /// The OS error.
         source: std::io::Error,
     },
+    /// The reader of a stream closed it (`gelstereo track --jsonl - | head -1`): not a failure, the
+    /// end of the run.
+    #[error("{}: the reader closed the stream", name.display())]
+    ReaderClosed {
+        /// The stream: its path, or `standard output`.
+        name: PathBuf,
+    },
     /// An input that does not fit what the pipeline expects (named, with what was expected).
     #[error("{0}")]
     Invalid(String),

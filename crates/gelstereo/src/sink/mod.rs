@@ -8,19 +8,21 @@
 
 mod draw;
 mod folder;
+mod jsonl;
 
 use std::fs::File;
 use std::io::Write;
 use std::sync::Arc;
 
 use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
-use gelstereo_core::{FrameSummary, GridShape, MarkerRecord};
+use gelstereo_core::{FrameSummary, GridShape};
 use gelstereo_io::figures::{self, ColourScale, Curve, OverlayView, TimeSeries, Timeline};
 use gelstereo_io::images;
 use gelstereo_io::ply::CoordinateFrame;
 use gelstereo_tracking::{TrackFrame, interpolate};
 
 pub use folder::{MANIFEST, OutputFolder};
+pub use jsonl::{FRAME_SCHEMA, JsonlSink, frame_line};
 
 use crate::error::file_err;
 use crate::{FrameOutput, Images, Pipeline, Result, Stages};
@@ -255,86 +257,6 @@ impl Sink for HeightMapSink {
             .write_atomic(&format!("heightmap/{:06}.npy", out.frame), |p| {
                 Ok(images::write_npy_f32(p, map.rows, map.cols, map.z_mm.clone())?)
             })
-    }
-}
-
-/// One JSON object per frame and line (the columns of both tables, markers nested, plus `t_s`
-/// and `note`), flushed per frame: `gelstereo track --jsonl -`.
-pub struct JsonlSink<W: Write> {
-    out: W,
-    /// What `out` is, for errors: its path, or `standard output`.
-    name: std::path::PathBuf,
-}
-
-impl<W: Write> JsonlSink<W> {
-    /// Writes to `out` (standard output, a file, a named pipe...), called `name` in errors.
-    pub fn new(out: W, name: &std::path::Path) -> Self {
-        Self {
-            out,
-            name: name.to_path_buf(),
-        }
-    }
-}
-
-/// The JSON object of one frame.
-pub fn frame_json(out: &FrameOutput) -> serde_json::Value {
-    let s = &out.summary;
-    let markers: Vec<serde_json::Value> = out.markers.iter().map(marker_json).collect();
-    serde_json::json!({
-        "frame": out.frame,
-        "t_s": out.t_s,
-        // An unmeasured frame's contact is unknown: null, as its empty cells in frames.csv.
-        "contact": s.measured.then_some(s.contact),
-        "contact_area_mm2": s.contact_area_mm2,
-        "max_depth_mm": s.max_depth_mm,
-        "centroid_X_mm": s.centroid_mm.map(|c| c[0]),
-        "centroid_Y_mm": s.centroid_mm.map(|c| c[1]),
-        "slip": s.measured.then_some(s.slip.as_str()),
-        "force_N": s.force_n,
-        "shear_x_N": s.shear_n.map(|v| v[0]),
-        "shear_y_N": s.shear_n.map(|v| v[1]),
-        "torque_Nmm": s.torque_nmm,
-        "note": out.note,
-        "markers": markers,
-    })
-}
-
-fn marker_json(m: &MarkerRecord) -> serde_json::Value {
-    let xyz = |v: Option<[f64; 3]>, k: usize| v.map(|v| v[k]);
-    serde_json::json!({
-        "row": m.index.row,
-        "col": m.index.col,
-        "x_left": m.left_px.map(|p| p.x),
-        "y_left": m.left_px.map(|p| p.y),
-        "x_right": m.right_px.map(|p| p.x),
-        "y_right": m.right_px.map(|p| p.y),
-        "X_mm": xyz(m.position_mm, 0),
-        "Y_mm": xyz(m.position_mm, 1),
-        "Z_mm": xyz(m.position_mm, 2),
-        "dX_mm": xyz(m.displacement_mm, 0),
-        "dY_mm": xyz(m.displacement_mm, 1),
-        "dZ_mm": xyz(m.displacement_mm, 2),
-        "status": m.status.map(|s| s.as_str()),
-        "pressure_kPa": m.pressure_kpa,
-        "in_contact": m.in_contact,
-        "slipping": m.slipping,
-        "X_gel_mm": xyz(m.gel_position_mm, 0),
-        "Y_gel_mm": xyz(m.gel_position_mm, 1),
-        "Z_gel_mm": xyz(m.gel_position_mm, 2),
-        "dX_gel_mm": xyz(m.gel_displacement_mm, 0),
-        "dY_gel_mm": xyz(m.gel_displacement_mm, 1),
-        "dZ_gel_mm": xyz(m.gel_displacement_mm, 2),
-    })
-}
-
-impl<W: Write> Sink for JsonlSink<W> {
-    fn frame(&mut self, frame: &FrameContext) -> Result<()> {
-        let mut line = frame_json(frame.output).to_string();
-        line.push('\n');
-        self.out
-            .write_all(line.as_bytes())
-            .and_then(|()| self.out.flush())
-            .map_err(file_err(&self.name))
     }
 }
 

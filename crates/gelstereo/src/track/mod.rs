@@ -1,6 +1,7 @@
 //! [`run`]: frames from a source through the [`Pipeline`] into sinks, what `gelstereo track` does
 //! (and what its benchmark times). Stops early, cleanly, when the `stop` flag is raised (a signal
-//! handler sets it): the sinks are finished with what was processed.
+//! handler sets it), or when the reader of a stream sink closes it (`--jsonl - | head -1`): the
+//! sinks are finished with what was processed.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -52,13 +53,17 @@ pub struct TrackSummary {
     pub slipping_frames: usize,
     /// Whether the run stopped on the `stop` flag before the source ended.
     pub interrupted: bool,
+    /// Whether the run stopped because the reader of a stream sink closed it: the frames it read
+    /// are whole, and the other sinks hold the frames processed.
+    pub reader_closed: bool,
     /// Whether a reference lattice was indexed.
     pub started: bool,
 }
 
 /// Runs `frames` through `pipeline` into `sinks`, calling `on_frame` after each frame (progress,
-/// warnings). Stops at the end of the source, after `options.max_frames`, or when `stop` is raised;
-/// the sinks are finished in every case but an error. Frames up to the reference frame are
+/// warnings). Stops at the end of the source, after `options.max_frames`, when `stop` is raised, or
+/// when a sink's reader closes its stream ([`Error::ReaderClosed`], not an error of the run); the
+/// sinks are finished in every case but an error. Frames up to the reference frame are
 /// localized in turn; the later ones ahead of the tracker by `options.workers` threads when the
 /// pipeline's localizer can be forked ([`Pipeline::fork_localizer`]).
 pub fn run(
@@ -87,8 +92,12 @@ pub fn run(
             break;
         }
         run.frame(frame, None)?;
+        if run.summary.reader_closed {
+            break;
+        }
     }
-    let workers = if interrupted || !run.pipeline.is_started() || options.detections.is_some() {
+    let ended = interrupted || run.summary.reader_closed;
+    let workers = if ended || !run.pipeline.is_started() || options.detections.is_some() {
         Vec::new()
     } else {
         fork_workers(run.pipeline, options.localization_threads())?
@@ -100,16 +109,19 @@ pub fn run(
                 return Ok(false);
             }
             run.frame(frame, found)?;
-            Ok(true)
+            Ok(!run.summary.reader_closed)
         })?;
         interrupted |= stop.load(Ordering::SeqCst);
-    } else if !interrupted {
+    } else if !ended {
         for frame in frames {
             if stop.load(Ordering::SeqCst) {
                 interrupted = true;
                 break;
             }
             run.frame(frame, None)?;
+            if run.summary.reader_closed {
+                break;
+            }
         }
     }
     run.finish(interrupted)
@@ -170,7 +182,7 @@ impl Run<'_, '_> {
                 images: None,
                 pipeline,
             };
-            self.sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+            write(self.sinks, &ctx, &mut self.summary.reader_closed)?;
         }
         let summary = &mut self.summary;
         if !pipeline.is_started() {
@@ -185,7 +197,7 @@ impl Run<'_, '_> {
             images: frame.as_ref().map(|f| &f.images),
             pipeline,
         };
-        self.sinks.iter_mut().try_for_each(|s| s.frame(&ctx))?;
+        write(self.sinks, &ctx, &mut summary.reader_closed)?;
         summary.frames += 1;
         summary.flagged.extend(out.note.clone());
         summary.contact_frames += usize::from(out.summary.contact);
@@ -224,6 +236,18 @@ impl Run<'_, '_> {
         summary.tracked_fraction = self.tracked as f64 / self.visible.max(1) as f64;
         Ok(summary)
     }
+}
+
+/// Gives `frame` to every sink. A sink whose reader closed its stream sets `reader_closed` and the
+/// others still take the frame, so that they end on the same frame.
+fn write(sinks: &mut [Box<dyn Sink + '_>], frame: &FrameContext, reader_closed: &mut bool) -> Result<()> {
+    for sink in sinks.iter_mut() {
+        match sink.frame(frame) {
+            Err(Error::ReaderClosed { .. }) => *reader_closed = true,
+            written => written?,
+        }
+    }
+    Ok(())
 }
 
 /// Frames read and decoded ahead of the pipeline by [`crate::source::Prefetch`] (bounded: memory
