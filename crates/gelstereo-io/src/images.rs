@@ -259,7 +259,7 @@ pub fn write_image(path: &Path, image: &Mat) -> Result<()> {
     }
 }
 
-/// The image files directly inside `dir`, sorted by file name. An entry with an image extension that
+/// The image files directly inside `dir`, in the natural order of their names ([`sort_naturally`]). An entry with an image extension that
 /// cannot be followed (a symbolic link in a loop or to a missing file) is an error naming it.
 pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(dir).map_err(|source| Error::Io {
@@ -283,11 +283,18 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
             Err(source) => return Err(Error::Io { path, source }),
         }
     }
-    files.sort();
+    sort_naturally(&mut files);
     Ok(files)
 }
 
-/// The regular files directly inside `dir` whose names `keep` accepts, sorted.
+/// Sorts paths by name in natural order: runs of digits compare as numbers, so `frame_2.png` comes
+/// before `frame_10.png` (byte order would put it after); of names equal as numbers, fewer leading
+/// zeros come first (`1.png`, then `01.png`). The order is the same on every machine.
+pub fn sort_naturally(files: &mut [PathBuf]) {
+    files.sort_by(|a, b| alphanumeric_sort::compare_path(a, b).then_with(|| a.cmp(b)));
+}
+
+/// The regular files directly inside `dir` whose names `keep` accepts, sorted naturally.
 pub fn list_files_named(dir: &Path, keep: impl Fn(&str) -> bool) -> Result<Vec<PathBuf>> {
     let io = |source| Error::Io {
         path: dir.to_path_buf(),
@@ -301,7 +308,7 @@ pub fn list_files_named(dir: &Path, keep: impl Fn(&str) -> bool) -> Result<Vec<P
             files.push(entry.path());
         }
     }
-    files.sort();
+    sort_naturally(&mut files);
     Ok(files)
 }
 
@@ -392,6 +399,34 @@ impl StereoRecording {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frame_files_come_in_natural_order() {
+        let mut files: Vec<PathBuf> = [
+            "sample_10.jpg",
+            "sample_2.jpg",
+            "sample_1.jpg",
+            "01.png",
+            "1.png",
+            "b.png",
+        ]
+        .iter()
+        .map(PathBuf::from)
+        .collect();
+        sort_naturally(&mut files);
+        let names: Vec<&str> = files.iter().map(|p| p.to_str().unwrap()).collect();
+        assert_eq!(
+            names,
+            [
+                "1.png",
+                "01.png",
+                "b.png",
+                "sample_1.jpg",
+                "sample_2.jpg",
+                "sample_10.jpg"
+            ]
+        );
+    }
     use opencv::prelude::MatTraitConstManual;
 
     #[test]
