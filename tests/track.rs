@@ -496,8 +496,8 @@ fn a_fast_press_then_slide_keeps_every_id_and_flags_gross_slip_in_time() {
             );
         }
     }
-    // The tracker before the propagation pass tracked 89 % of the marker-frames here (and put 205
-    // of them on another marker).
+    // Slides of more than half a pitch per frame lose markers, or hand them to a neighbour, unless
+    // the association follows the contact's motion outward from the still lattice.
     assert!(tracked >= 12 * 529 * 97 / 100, "{tracked} marker-frames tracked");
     let est = frames(&out_dir.join("frames.csv"));
     let truth = frames(&rec.join("frames.csv"));
