@@ -395,9 +395,6 @@ impl Pipeline {
                 let reference_right_px = st.right().reference_px().to_vec();
                 let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
                 let contact_region = region(st.ids(), &self.shape, &tracked.contact.in_contact);
-                if unusable(&tracked.markers).is_none() {
-                    self.latest_contact = Some(tracked.contact.clone());
-                }
                 FrameOutput {
                     frame: frame_no,
                     t_s,
@@ -445,6 +442,11 @@ impl Pipeline {
         };
         if let Some(note) = unusable(&out.markers) {
             out.forget_contact(note);
+        }
+        // The contact a re-zero starts from: the last stereo frame whose markers could be used
+        // (an unusable frame's stages are gone).
+        if let Some(Stages::Stereo(st)) = &out.stages {
+            self.latest_contact = Some(st.contact.clone());
         }
         out.log = log;
         out.earlier = earlier;
