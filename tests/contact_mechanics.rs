@@ -6,16 +6,10 @@
 // A test helper may panic: that is how a test reports failure.
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
-use std::path::PathBuf;
-
 use gelstereo_core::{CsvTable, FrameSummary};
 
 mod common;
-use common::{gelstereo, repo, text};
-
-fn sample() -> PathBuf {
-    repo().join("data/sample/press-slide")
-}
+use common::{gelstereo, sample, text};
 
 fn frames(path: &std::path::Path) -> Vec<FrameSummary> {
     let t = CsvTable::read(path).unwrap();

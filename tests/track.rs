@@ -12,7 +12,7 @@ use gelstereo_core::{CsvTable, FrameSummary, GridIndex, MarkerRecord, MarkerStat
 use opencv::prelude::MatTraitConst;
 
 mod common;
-use common::{gelstereo_command, repo};
+use common::{gelstereo_command, repo, sample_copy};
 
 fn track(args: &[&str]) -> (bool, String) {
     let out = gelstereo_command()
@@ -126,17 +126,8 @@ fn sample_recording_gives_tables_meshes_overlays_plots_and_the_slip_of_the_truth
 
 #[test]
 fn unreadable_and_resized_frames_are_flagged_not_fatal_and_missing_ones_are_named() {
-    let sample = repo().join("data/sample/press-slide");
     let dir = tempfile::tempdir().unwrap();
-    let rec = dir.path().join("rec");
-    for side in ["left", "right"] {
-        std::fs::create_dir_all(rec.join(side)).unwrap();
-        for k in 0..8 {
-            let name = format!("{k:06}.jpg");
-            std::fs::copy(sample.join(side).join(&name), rec.join(side).join(&name)).unwrap();
-        }
-    }
-    std::fs::copy(sample.join("calib.yaml"), rec.join("calib.yaml")).unwrap();
+    let rec = sample_copy(dir.path(), 8);
     std::fs::write(rec.join("left/000003.jpg"), b"not a jpeg").unwrap();
     // A frame of another size: the left image of frame 5 cropped to 320x240.
     let img = opencv::imgcodecs::imread(

@@ -12,12 +12,8 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use common::{gelstereo, gelstereo_command, repo, text};
+use common::{gelstereo, gelstereo_command, repo, sample, sample_copy, text};
 use sha2::Digest;
-
-fn sample() -> PathBuf {
-    repo().join("data/sample/press-slide")
-}
 
 fn sha256(path: &Path) -> String {
     let bytes = std::fs::read(path).unwrap();
@@ -523,16 +519,9 @@ fn track_into(out: &Path, input: &Path) -> std::process::Output {
 #[test]
 fn outputs_never_clobber_inputs_linked_folders_special_files_or_a_running_run() {
     let dir = tempfile::tempdir().unwrap();
-    // A copy of the sample as the recording (its own markers.csv is the truth).
-    let rec = dir.path().join("rec");
-    for sub in ["", "left", "right"] {
-        std::fs::create_dir_all(rec.join(sub)).unwrap();
-        for e in std::fs::read_dir(sample().join(sub)).unwrap().flatten() {
-            if e.path().is_file() {
-                std::fs::copy(e.path(), rec.join(sub).join(e.file_name())).unwrap();
-            }
-        }
-    }
+    // A copy of the sample as the recording, with its truth table (a file outputs must not touch).
+    let rec = sample_copy(dir.path(), 40);
+    std::fs::copy(sample().join("markers.csv"), rec.join("markers.csv")).unwrap();
     let truth = std::fs::read(rec.join("markers.csv")).unwrap();
     // An output folder that is, or lies inside, the input is refused, even with --force.
     for out in [rec.clone(), rec.join("track")] {

@@ -2,7 +2,7 @@
 //! `crates/gelstereo-cli/tests/*.rs`). Each test file uses only some of them.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// The `gelstereo` binary cargo built for these tests, ready for arguments.
@@ -27,6 +27,26 @@ pub fn text(out: &Output) -> String {
 /// The repository root (the test binaries are built for the `gelstereo-cli` crate).
 pub fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The bundled sample recording (`data/sample/press-slide`).
+pub fn sample() -> PathBuf {
+    repo().join("data/sample/press-slide")
+}
+
+/// A copy of the sample's first `frames` stereo frames and its calibration in `dir/rec`, for tests
+/// that spoil or overwrite a recording.
+pub fn sample_copy(dir: &Path, frames: usize) -> PathBuf {
+    let rec = dir.join("rec");
+    for side in ["left", "right"] {
+        std::fs::create_dir_all(rec.join(side)).expect("create the copy's views");
+        for k in 0..frames {
+            let name = format!("{k:06}.jpg");
+            std::fs::copy(sample().join(side).join(&name), rec.join(side).join(&name)).expect("copy a frame");
+        }
+    }
+    std::fs::copy(sample().join("calib.yaml"), rec.join("calib.yaml")).expect("copy the calibration");
+    rec
 }
 
 /// Runs `gelstereo ARGS...`, which must fail, print every one of `needles` and not panic.

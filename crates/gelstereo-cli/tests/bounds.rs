@@ -14,11 +14,7 @@ use std::time::{Duration, Instant};
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
-use common::{fails_with, gelstereo_command, repo, text};
-
-fn sample() -> PathBuf {
-    repo().join("data/sample/press-slide")
-}
+use common::{fails_with, gelstereo_command, repo, sample, sample_copy, text};
 
 fn fixtures() -> PathBuf {
     repo().join("data/fixtures/onnx")
@@ -62,21 +58,6 @@ fn fails_within(args: &[&str], env: &[(&str, &str)], limit: Duration, needles: &
 }
 
 const MINUTE: Duration = Duration::from_secs(60);
-
-/// A copy of the sample's first stereo frame and calibration in `dir/rec`.
-fn one_frame_recording(dir: &Path) -> PathBuf {
-    let rec = dir.join("rec");
-    for side in ["left", "right"] {
-        std::fs::create_dir_all(rec.join(side)).unwrap();
-        std::fs::copy(
-            sample().join(side).join("000000.jpg"),
-            rec.join(side).join("000000.jpg"),
-        )
-        .unwrap();
-    }
-    std::fs::copy(sample().join("calib.yaml"), rec.join("calib.yaml")).unwrap();
-    rec
-}
 
 /// Issue 43 case 1: a calibration of nested YAML aliases (10 levels of 9 copies in a few hundred
 /// bytes) is refused by name, before anything expands.
@@ -231,7 +212,7 @@ fn thread_counts_from_the_environment_are_bounded() {
 #[test]
 fn malformed_meta_json_is_an_error_naming_the_file() {
     let dir = tempfile::tempdir().unwrap();
-    let rec = one_frame_recording(dir.path());
+    let rec = sample_copy(dir.path(), 1);
     let meta = rec.join("meta.json");
     let good: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(sample().join("meta.json")).unwrap()).unwrap();

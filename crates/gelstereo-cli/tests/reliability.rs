@@ -11,14 +11,10 @@ use std::time::{Duration, Instant};
 
 #[path = "../../../tests/common/mod.rs"]
 mod common;
-use common::{fails_with, gelstereo, gelstereo_command, repo, text};
+use common::{fails_with, gelstereo, gelstereo_command, repo, sample, text};
 
 use opencv::core::{CV_8UC3, Mat, Point, Scalar, Vector};
 use opencv::{imgcodecs, imgproc, videoio};
-
-fn sample() -> PathBuf {
-    repo().join("data/sample/press-slide")
-}
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
