@@ -160,7 +160,7 @@ fn allocation_and_thread_counts_are_bounded() {
     );
 }
 
-/// Issue 18 case 5: `simulate --force` replaces only a folder gelstereo-sim wrote.
+/// `simulate --force` replaces only a folder gelstereo-sim wrote, checked at every depth.
 #[test]
 fn simulate_force_never_removes_what_it_did_not_write() {
     let dir = tempfile::tempdir().unwrap();
@@ -209,6 +209,36 @@ fn simulate_force_never_removes_what_it_did_not_write() {
         text(&out)
     );
     assert!(d.join("ds/notes.txt").is_file());
+    // Nor one with a file of the user's any number of folders down, or a link inside it.
+    std::fs::remove_file(d.join("ds/notes.txt")).unwrap();
+    for (nested, what) in [
+        (
+            "ds/train/exp_0000/left/notes.txt",
+            "train/exp_0000/left/notes.txt",
+        ),
+        ("ds/train/exp_0000/analysis.csv", "train/exp_0000/analysis.csv"),
+        ("ds/train/mine", "train/mine"),
+    ] {
+        std::fs::write(d.join(nested), "mine").unwrap();
+        let out = sim("ds");
+        assert!(
+            !out.status.success() && text(&out).contains(what),
+            "{}",
+            text(&out)
+        );
+        assert_eq!(std::fs::read_to_string(d.join(nested)).unwrap(), "mine");
+        std::fs::remove_file(d.join(nested)).unwrap();
+    }
+    std::os::unix::fs::symlink(d.join("mine.txt"), d.join("ds/train/exp_0000/left/000002.png")).unwrap();
+    let out = sim("ds");
+    assert!(
+        !out.status.success() && text(&out).contains("000002.png"),
+        "{}",
+        text(&out)
+    );
+    assert_eq!(std::fs::read_to_string(d.join("mine.txt")).unwrap(), "keep");
+    std::fs::remove_file(d.join("ds/train/exp_0000/left/000002.png")).unwrap();
+    assert!(sim("ds").status.success());
     // A temporary folder left by a killed run (a process that no longer exists) is cleaned up.
     std::fs::create_dir(d.join(".fresh.partial-999999999")).unwrap();
     assert!(sim("fresh").status.success());

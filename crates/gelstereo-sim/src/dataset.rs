@@ -661,21 +661,68 @@ pub struct DatasetSummary {
     pub frames: u64,
 }
 
-/// The top-level entries of a dataset and of a checkerboard set, each with its manifest first: the
-/// only folders `--force` replaces are those holding a manifest that gelstereo-sim wrote and nothing
-/// but these entries.
-const OUTPUT_LAYOUTS: [&[&str]; 2] = [
-    &["dataset.json", "train", "val", "test"],
-    &[
-        "poses.json",
-        "left",
-        "right",
-        "corners.csv",
-        "calib.yaml",
-        "left.cameramodel",
-        "right.cameramodel",
-    ],
+/// What gelstereo-sim writes, as a tree: a dataset is `dataset.json` and `SPLIT/exp_NNNN/` folders
+/// (each with `left/` and `right/` frames and the experiment's tables, calibration and meta.json); a
+/// checkerboard set is `poses.json`, `left/`, `right/`, its corners and calibration. The first file
+/// is the manifest. `--force` replaces only a folder whose manifest gelstereo-sim wrote and whose
+/// every entry, at every depth, is one of these: a file of the user's anywhere inside is kept.
+#[derive(Clone, Copy)]
+enum OutputLayout {
+    Dataset,
+    Checkerboard,
+}
+
+/// The files of one experiment folder beside its `left/` and `right/` frames.
+const EXPERIMENT_FILES: [&str; 6] = [
+    "markers.csv",
+    "frames.csv",
+    "meta.json",
+    "calib.yaml",
+    "left.cameramodel",
+    "right.cameramodel",
 ];
+
+impl OutputLayout {
+    const ALL: [OutputLayout; 2] = [OutputLayout::Dataset, OutputLayout::Checkerboard];
+
+    fn manifest(self) -> &'static str {
+        match self {
+            OutputLayout::Dataset => "dataset.json",
+            OutputLayout::Checkerboard => "poses.json",
+        }
+    }
+
+    /// Whether an entry at `rel` (path components below the output folder) is one this layout
+    /// writes; `is_dir` says whether the entry is a folder.
+    fn holds(self, rel: &[&str], is_dir: bool) -> bool {
+        let frame = |name: &str| {
+            name.strip_suffix(".png")
+                .is_some_and(|n| n.len() == 6 && n.bytes().all(|b| b.is_ascii_digit()))
+        };
+        let view = |name: &str| name == "left" || name == "right";
+        match (self, rel, is_dir) {
+            (OutputLayout::Dataset, [m], false) => *m == "dataset.json",
+            (OutputLayout::Dataset, [split], true) => ["train", "val", "test"].contains(split),
+            (OutputLayout::Dataset, [_, exp], true) => exp
+                .strip_prefix("exp_")
+                .is_some_and(|n| n.len() >= 4 && n.bytes().all(|b| b.is_ascii_digit())),
+            (OutputLayout::Dataset, [_, _, v], true) => view(v),
+            (OutputLayout::Dataset, [_, _, f], false) => EXPERIMENT_FILES.contains(f),
+            (OutputLayout::Dataset, [_, _, _, f], false) => frame(f),
+            (OutputLayout::Checkerboard, [v], true) => view(v),
+            (OutputLayout::Checkerboard, [f], false) => [
+                "poses.json",
+                "corners.csv",
+                "calib.yaml",
+                "left.cameramodel",
+                "right.cameramodel",
+            ]
+            .contains(f),
+            (OutputLayout::Checkerboard, [_, f], false) => frame(f),
+            _ => false,
+        }
+    }
+}
 
 /// Prepares an output folder: refuses a non-empty one unless `force`, and with `force` refuses
 /// anything gelstereo-sim did not write (a regular file, a link, the current folder, a folder
@@ -763,14 +810,11 @@ impl Drop for PendingOutput {
     }
 }
 
-/// Whether `dir` holds a gelstereo-sim manifest and only the entries of its layout; `Err(why)` if not.
+/// Whether `dir` holds a gelstereo-sim manifest and, at every depth, only the entries of its
+/// layout; `Err(why)` naming the first entry that is not.
 fn check_written_by_us(dir: &Path) -> std::result::Result<(), String> {
-    let entries: Vec<String> = std::fs::read_dir(dir)
-        .map_err(|e| e.to_string())?
-        .filter_map(|e| e.ok().map(|e| e.file_name().to_string_lossy().into_owned()))
-        .collect();
-    for layout in OUTPUT_LAYOUTS {
-        let manifest = dir.join(layout[0]);
+    for layout in OutputLayout::ALL {
+        let manifest = dir.join(layout.manifest());
         let ours = std::fs::read_to_string(&manifest)
             .ok()
             .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
@@ -780,15 +824,35 @@ fn check_written_by_us(dir: &Path) -> std::result::Result<(), String> {
                     .map(|g| g.starts_with("gelstereo-sim "))
             })
             .unwrap_or(false);
-        if !ours {
-            continue;
+        if ours {
+            return check_tree(dir, &mut Vec::new(), layout);
         }
-        return match entries.iter().find(|e| !layout.contains(&e.as_str())) {
-            Some(other) => Err(format!("holds '{other}', which gelstereo-sim does not write")),
-            None => Ok(()),
-        };
     }
     Err("holds no dataset.json or poses.json written by gelstereo-sim".to_owned())
+}
+
+/// Walks the folder at `dir` (`rel` below the output folder) and refuses the first entry the
+/// layout does not write: a link, a special file, or a file or folder of another name or depth.
+fn check_tree(dir: &Path, rel: &mut Vec<String>, layout: OutputLayout) -> std::result::Result<(), String> {
+    let entries = std::fs::read_dir(dir).map_err(|e| format!("cannot be read ({e})"))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| format!("cannot be read ({e})"))?;
+        rel.push(entry.file_name().to_string_lossy().into_owned());
+        let kind = entry.file_type().map_err(|e| format!("cannot be read ({e})"))?;
+        let parts: Vec<&str> = rel.iter().map(String::as_str).collect();
+        let written = (kind.is_dir() || kind.is_file()) && layout.holds(&parts, kind.is_dir());
+        if !written {
+            return Err(format!(
+                "holds '{}', which gelstereo-sim does not write",
+                rel.join("/")
+            ));
+        }
+        if kind.is_dir() {
+            check_tree(&entry.path(), rel, layout)?;
+        }
+        rel.pop();
+    }
+    Ok(())
 }
 
 /// Removes `.NAME.partial-PID` folders in `parent` whose process no longer runs (left by a run that
