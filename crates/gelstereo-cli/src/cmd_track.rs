@@ -246,9 +246,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     let started = std::time::Instant::now();
     let mut warnings = 0usize;
-    let summary = gelstereo::track::run(
+    let mut frames = source.prefetch(PREFETCH_FRAMES);
+    let result = gelstereo::track::run(
         &mut pipeline,
-        source.prefetch(PREFETCH_FRAMES),
+        &mut frames,
         &mut sinks,
         &options,
         gelstereo_core::interrupt::flag(),
@@ -269,8 +270,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 }
             }
         },
-    )?;
+    );
     progress.finish_and_clear();
+    // Said even when the run failed: a truncated video may be why.
+    if let Some(shortfall) = frames.finish() {
+        eprintln!("warning: {shortfall}");
+    }
+    let summary = result?;
     if warnings > MAX_WARNINGS {
         eprintln!(
             "warning: {} more warnings of the same kind not shown",

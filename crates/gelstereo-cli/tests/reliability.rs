@@ -412,7 +412,8 @@ fn detect_keeps_the_previous_csv_when_it_fails() {
     assert!(!std::fs::read_to_string(&csv).unwrap().contains("previous"));
 }
 
-/// Issue 18 case 8: truncated images and videos, and links that cannot be followed, are named.
+/// Truncated images and videos, and links that cannot be followed, are named (`detect` and
+/// `track` warn of a video that ends before its declared length).
 #[test]
 fn truncated_files_and_link_loops_are_reported_with_the_file() {
     let dir = tempfile::tempdir().unwrap();
@@ -443,12 +444,26 @@ fn truncated_files_and_link_loops_are_reported_with_the_file() {
     drop(writer);
     let bytes = std::fs::read(&video).unwrap();
     std::fs::write(&video, &bytes[..bytes.len() / 2]).unwrap();
-    let out = gelstereo(&["detect", "--method", "blob", s(&video)]);
-    let t = text(&out);
-    assert!(
-        t.contains("cut.avi: only") && t.contains("of the 40 frames"),
-        "{t}"
-    );
+    let stream = dir.path().join("cut.jsonl");
+    for args in [
+        vec!["detect", "--method", "blob", s(&video)],
+        vec![
+            "track",
+            "--quiet",
+            "--method",
+            "blob",
+            "--jsonl",
+            s(&stream),
+            s(&video),
+        ],
+    ] {
+        let out = gelstereo(&args);
+        let t = text(&out);
+        assert!(
+            t.contains("cut.avi: only") && t.contains("of the 40 frames"),
+            "{args:?}: {t}"
+        );
+    }
 
     // A link looping onto itself inside an input folder.
     let folder = dir.path().join("frames");

@@ -409,6 +409,16 @@ impl FrameSource {
         }
     }
 
+    /// After the source has ended: a warning when it ended before its declared length (a video
+    /// whose container declares more frames than could be decoded: a truncated or damaged file),
+    /// naming the file and both counts; `None` for a source that ended whole or declares nothing.
+    pub fn end_warning(&self) -> Option<String> {
+        match self {
+            FrameSource::Video { frames, .. } => frames.shortfall_warning(),
+            _ => None,
+        }
+    }
+
     /// Reads and decodes the frames on a thread of its own, at most `depth` ahead of the consumer.
     pub fn prefetch(self, depth: usize) -> Prefetch {
         Prefetch::spawn(self, depth)
@@ -467,7 +477,9 @@ pub fn recording_frame_rate_hz(dir: &Path) -> Result<f64> {
 /// thread after the frame it is reading.
 pub struct Prefetch {
     frames: Option<Receiver<SourceFrame>>,
-    thread: Option<JoinHandle<()>>,
+    /// The reading thread; it returns the source's [`FrameSource::end_warning`] when the source
+    /// ended (not when the consumer stopped early).
+    thread: Option<JoinHandle<Option<String>>>,
     stereo: bool,
     len_hint: Option<usize>,
 }
@@ -481,9 +493,10 @@ impl Prefetch {
             .spawn(move || {
                 while let Some(f) = source.next_frame() {
                     if tx.send(f).is_err() {
-                        break;
+                        return None;
                     }
                 }
+                source.end_warning()
             })
             .ok();
         Self {
@@ -502,6 +515,13 @@ impl Prefetch {
     /// The number of frames, when known in advance.
     pub fn len_hint(&self) -> Option<usize> {
         self.len_hint
+    }
+
+    /// Stops reading and returns the source's [`FrameSource::end_warning`] if it had ended
+    /// (a truncated video); `None` when it ended whole or the consumer stopped first.
+    pub fn finish(mut self) -> Option<String> {
+        self.frames = None;
+        self.thread.take().and_then(|t| t.join().ok().flatten())
     }
 }
 
