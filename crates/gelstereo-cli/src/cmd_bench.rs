@@ -42,7 +42,7 @@ pub struct Args {
     /// Pipeline benchmark: the stereo calibration (OpenCV YAML/XML, or a folder / pair of mrcal
     /// .cameramodel files). With it, INPUT is one stereo recording and the whole pipeline is timed.
     #[arg(long, value_name = "FILE")]
-    calib: Option<String>,
+    calib: Option<std::path::PathBuf>,
     /// Pipeline benchmark with the recording's own calib.yaml (as --calib RECORDING/calib.yaml).
     #[arg(long)]
     pipeline: bool,

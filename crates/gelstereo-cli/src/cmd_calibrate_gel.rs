@@ -35,7 +35,7 @@ pub struct Args {
     force: bool,
     /// Stereo calibration (default: the recording's calib.yaml).
     #[arg(long, value_name = "FILE")]
-    calib: Option<String>,
+    calib: Option<std::path::PathBuf>,
     /// The gel's thickness and Poisson ratio (and the modulus to start from: any value gives the
     /// same fit, the layer being linear).
     #[command(flatten)]

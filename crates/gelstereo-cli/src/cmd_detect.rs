@@ -7,6 +7,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use gelstereo::sink::OutputFolder;
+use gelstereo_core::files::escaped;
 use gelstereo_core::{Detection, StereoPair};
 use gelstereo_io::AtomicFile;
 use gelstereo_io::images::{self, StereoRecording};
@@ -126,6 +128,11 @@ pub struct Args {
     /// green = 1; a cross marks markers MRE accepted).
     #[arg(long, value_name = "DIR")]
     overlay: Option<PathBuf>,
+    /// Write overlays into a non-empty --overlay folder that gelstereo did not write (same-named
+    /// files there are replaced). A folder an earlier run wrote is emptied of that run's files
+    /// without it.
+    #[arg(long)]
+    force: bool,
     /// Treat videos as side-by-side stereo (left half, right half).
     #[arg(long)]
     side_by_side: bool,
@@ -203,7 +210,7 @@ impl Write for CsvOut {
 /// Where the CSV rows and overlays go.
 struct Sink {
     csv: CsvOut,
-    overlay: Option<PathBuf>,
+    overlay: Option<OutputFolder>,
     used_names: HashSet<String>,
     mre_band_top: Option<f32>,
     images: usize,
@@ -236,7 +243,7 @@ impl Sink {
         }
         self.images += 1;
         self.markers += detections.len();
-        if let Some(dir) = &self.overlay {
+        if let Some(folder) = &self.overlay {
             let mut file = format!("{overlay_stem}.png");
             let mut k = 1;
             while !self.used_names.insert(file.clone()) {
@@ -244,16 +251,20 @@ impl Sink {
                 k += 1;
             }
             let drawn = overlay::draw(image, detections, self.mre_band_top, 6)?;
-            images::write_image(&dir.join(&file), &drawn)?;
+            folder.write_atomic(&file, |path| Ok(images::write_image(path, &drawn)?))?;
         }
         Ok(())
     }
 }
 
+/// An image's name for its overlay file: distinct for names that are not UTF-8.
 fn stem(p: &Path) -> String {
-    p.file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "image".to_owned())
+    p.file_stem().map(escaped).unwrap_or_else(|| "image".to_owned())
+}
+
+/// An image's path for the CSV's `image` column: distinct for names that are not UTF-8.
+fn shown(p: &Path) -> String {
+    escaped(p.as_os_str())
 }
 
 /// The markers of one view.
@@ -280,7 +291,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let mut sink = Sink {
         csv,
-        overlay: args.overlay.clone(),
+        overlay: match &args.overlay {
+            Some(dir) => {
+                let inputs: Vec<&Path> = args.inputs.iter().map(PathBuf::as_path).collect();
+                Some(OutputFolder::prepare_apart_from(dir, args.force, &inputs)?)
+            }
+            None => None,
+        },
         used_names: HashSet::new(),
         mre_band_top: localizer.mre_band_top(),
         images: 0,
@@ -293,7 +310,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 let image = images::read_image(path)?;
                 let found =
                     detect_view(localizer.as_mut(), &image).with_context(|| format!("{}", path.display()))?;
-                sink.emit(&path.display().to_string(), &stem(path), &image, &found)?;
+                sink.emit(&shown(path), &stem(path), &image, &found)?;
             }
             Source::Stereo(rec) => {
                 for i in 0..rec.len() {
@@ -307,19 +324,14 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                         ("left", &paths.left, &pair.left, &found.left),
                         ("right", &paths.right, &pair.right, &found.right),
                     ] {
-                        sink.emit(
-                            &path.display().to_string(),
-                            &format!("{side}_{}", stem(path)),
-                            image,
-                            dets,
-                        )?;
+                        sink.emit(&shown(path), &format!("{side}_{}", stem(path)), image, dets)?;
                     }
                 }
             }
             Source::Video(path) => {
                 let mut frames = VideoFrames::open(path)?;
                 while let Some((index, frame)) = frames.next_frame()? {
-                    let name = format!("{}#{index}", path.display());
+                    let name = format!("{}#{index}", shown(path));
                     let context = || format!("{name} (frame {index})");
                     if args.side_by_side {
                         let pair: StereoPair<Mat> = video::split_side_by_side(&frame, path)?;

@@ -18,7 +18,7 @@ pub struct Args {
     /// Stereo calibration: OpenCV YAML/XML (K1 D1 K2 D2 R T), or a folder / comma-separated pair of
     /// mrcal .cameramodel files.
     #[arg(long, value_name = "FILE")]
-    calib: String,
+    calib: std::path::PathBuf,
     /// Output folder: markers.csv, ply/NNNNNN.ply, rejected_pairs.csv (markers seen in both views
     /// but not triangulated, with the reason) and, with --evaluate, evaluation.json.
     #[arg(long, value_name = "DIR")]

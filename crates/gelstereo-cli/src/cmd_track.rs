@@ -26,7 +26,7 @@ pub struct Args {
     /// Stereo calibration (OpenCV YAML/XML, or a folder / pair of mrcal .cameramodel files); default:
     /// the recording's calib.yaml. Needed for stereo input, ignored for mono.
     #[arg(long, value_name = "FILE")]
-    calib: Option<String>,
+    calib: Option<std::path::PathBuf>,
     /// Output folder: markers.csv, frames.csv, ply/, overlays/, plots/. A folder an earlier run wrote
     /// is emptied of that run's files first; any other non-empty folder needs --force.
     #[arg(long, value_name = "DIR")]

@@ -703,3 +703,85 @@ fn a_stopped_or_killed_detect_leaves_no_temporary_file() {
     assert!(run.status.success(), "{}", text(&run));
     assert!(leftovers(dir.path()).is_empty(), "{:?}", leftovers(dir.path()));
 }
+
+/// `detect` keeps names that are not UTF-8 apart (in the CSV and in overlay names), and writes
+/// overlays only into a folder of its own: a folder of the user's needs --force, and files there
+/// that detect does not write are never touched.
+#[test]
+fn detect_keeps_odd_names_apart_and_overlays_only_its_own_folder() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let inputs = dir.path().join("in");
+    std::fs::create_dir(&inputs).unwrap();
+    for byte in [0xffu8, 0xfe] {
+        let name = [b'a', byte, b'.', b'p', b'n', b'g'];
+        write(&inputs.join(std::ffi::OsStr::from_bytes(&name)), &dots());
+    }
+    let csv = dir.path().join("found.csv");
+    let overlays = dir.path().join("overlays");
+    let detect = |overlay: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "detect",
+            "--method",
+            "blob",
+            "--out",
+            s(&csv),
+            "--overlay",
+            s(overlay),
+        ];
+        args.extend_from_slice(extra);
+        args.push(s(&inputs));
+        gelstereo(&args)
+    };
+    let out = detect(&overlays, &[]);
+    assert!(out.status.success(), "{}", text(&out));
+    let table = std::fs::read_to_string(&csv).unwrap();
+    assert!(
+        table.contains("a\\xff.png,") && table.contains("a\\xfe.png,"),
+        "{table}"
+    );
+    assert!(overlays.join("a\\xff.png").is_file() && overlays.join("a\\xfe.png").is_file());
+
+    // A folder of the user's: refused without --force; with it, only detect's own names are written.
+    let user = dir.path().join("user");
+    std::fs::create_dir(&user).unwrap();
+    std::fs::write(user.join("a\\xff.png"), "mine").unwrap();
+    std::fs::write(user.join("notes.txt"), "mine").unwrap();
+    let out = detect(&user, &[]);
+    assert!(
+        !out.status.success() && text(&out).contains("--force"),
+        "{}",
+        text(&out)
+    );
+    assert_eq!(std::fs::read_to_string(user.join("a\\xff.png")).unwrap(), "mine");
+    assert!(detect(&user, &["--force"]).status.success());
+    assert_eq!(std::fs::read_to_string(user.join("notes.txt")).unwrap(), "mine");
+    // detect's own folder is reused without --force; an overlay folder inside the input is refused.
+    assert!(detect(&overlays, &[]).status.success());
+    let out = detect(&inputs.join("ov"), &["--force"]);
+    assert!(!out.status.success(), "{}", text(&out));
+    assert!(!inputs.join("ov").exists());
+}
+
+/// A recording whose folder name is not UTF-8 is tracked with its own calib.yaml, and its outputs
+/// go where asked.
+#[test]
+fn a_recording_named_in_bytes_that_are_not_utf8_is_tracked() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join(std::ffi::OsStr::from_bytes(b"rec\xff"));
+    std::fs::rename(common::sample_copy(dir.path(), 3), &rec).unwrap();
+    let out = gelstereo_command()
+        .arg("track")
+        .arg("--quiet")
+        .arg(&rec)
+        .arg("--out")
+        .arg(dir.path().join(std::ffi::OsStr::from_bytes(b"out\xfe")))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    let frames = dir
+        .path()
+        .join(std::ffi::OsStr::from_bytes(b"out\xfe/frames.csv"));
+    assert_eq!(std::fs::read_to_string(frames).unwrap().lines().count(), 4);
+}

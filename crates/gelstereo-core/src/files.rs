@@ -68,9 +68,34 @@ fn temporary_beside(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.{}.partial", std::process::id()))
 }
 
+/// `name` as text that tells every name apart: valid UTF-8 as it is, each byte that is not as
+/// `\xNN` (as Python's `backslashreplace` writes it). `Path::display` would turn every such byte
+/// into U+FFFD, so `a\xff.jpg` and `a\xfe.jpg` would read, and be written, as one name.
+pub fn escaped(name: &std::ffi::OsStr) -> String {
+    let bytes = name.as_encoded_bytes();
+    let mut text = String::with_capacity(bytes.len());
+    for chunk in bytes.utf8_chunks() {
+        text.push_str(chunk.valid());
+        for b in chunk.invalid() {
+            text.push_str(&format!("\\x{b:02x}"));
+        }
+    }
+    text
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(unix)]
+    #[test]
+    fn names_that_are_not_utf8_stay_apart() {
+        use std::os::unix::ffi::OsStrExt;
+        let name = |b: &[u8]| escaped(std::ffi::OsStr::from_bytes(b));
+        assert_eq!(name(b"a\xff.jpg"), "a\\xff.jpg");
+        assert_ne!(name(b"a\xff.jpg"), name(b"a\xfe.jpg"));
+        assert_eq!(name("äb.png".as_bytes()), "äb.png");
+    }
 
     #[test]
     fn only_regular_files_are_replaced_and_a_failed_write_keeps_the_old_file() {

@@ -64,7 +64,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             None => vec![
                 (
                     "calib.yaml".to_owned(),
-                    StereoRig::load(&format!("{dir}/calib.yaml"))?,
+                    StereoRig::load(format!("{dir}/calib.yaml"))?,
                 ),
                 ("mrcal".to_owned(), StereoRig::load(&dir)?),
             ],

@@ -91,7 +91,7 @@ fn stereo_calib_sample_files() {
     let dir = tempfile::tempdir().unwrap();
     let size = dir.path().join("size.yml");
     std::fs::write(&size, "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n").unwrap();
-    let rig = StereoRig::load(&format!("{spec},{}", size.display())).unwrap();
+    let rig = StereoRig::load(format!("{spec},{}", size.display())).unwrap();
     let yaml = StereoRig::read_opencv(data("opencv8.yaml")).unwrap();
     assert_eq!(intrinsics(&rig.left), K1);
     assert_eq!(rig.right.distortion.coeffs, D8_2[..5]);

@@ -84,7 +84,7 @@ impl PyPipeline {
         // start thousands of threads.
         gelstereo::core::limits::check_thread_env().map_err(PyValueError::new_err)?;
         let mut config = PipelineConfig {
-            calibration: calibration.map(|p| p.to_string_lossy().into_owned()),
+            calibration,
             grid: grid.map(grid_shape).transpose()?,
             method: method
                 .map(str::parse::<Method>)

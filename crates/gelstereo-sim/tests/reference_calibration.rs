@@ -50,8 +50,8 @@ fn assert_same_rig(shipped: &StereoRig, truth: &StereoRig, what: &str) {
 fn shipped_calibration_files_are_the_reference_sensors() {
     let spec = SensorSpec::load(&calib_dir().join("reference-sensor.json")).unwrap();
     let truth = spec.build().unwrap().rig;
-    let yaml = StereoRig::load(&calib_dir().join("reference.yaml").display().to_string()).unwrap();
+    let yaml = StereoRig::load(calib_dir().join("reference.yaml")).unwrap();
     assert_same_rig(&yaml, &truth, "calib/reference.yaml");
-    let mrcal = StereoRig::load(&calib_dir().display().to_string()).unwrap();
+    let mrcal = StereoRig::load(calib_dir()).unwrap();
     assert_same_rig(&mrcal, &truth, "calib/{left,right}.cameramodel");
 }

@@ -17,7 +17,7 @@ use crate::{Error, Result};
 pub struct PipelineConfig {
     /// Stereo calibration: an OpenCV YAML/XML file, a folder holding a mrcal pair, or
     /// `left.cameramodel,right.cameramodel`. Stereo frames need one; `None` for a mono sensor.
-    pub calibration: Option<String>,
+    pub calibration: Option<PathBuf>,
     /// Track the left view only (a mono sensor, or a stereo recording's left camera). A calibration
     /// then only projects a sensor description's grid, and one that cannot be loaded is ignored.
     pub mono: bool,
@@ -70,7 +70,7 @@ impl PipelineConfig {
     pub fn apply_recording(&mut self, dir: &Path) -> Result<()> {
         let calib = dir.join("calib.yaml");
         if calib.is_file() {
-            self.calibration = Some(calib.display().to_string());
+            self.calibration = Some(calib);
         }
         let meta = RecordingMeta::read(dir)?;
         self.grid = meta.grid;

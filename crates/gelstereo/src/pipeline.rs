@@ -197,7 +197,11 @@ impl Pipeline {
             Some(spec) => match StereoRig::load(spec) {
                 Ok(rig) => Some(rig),
                 Err(_) if config.mono => None,
-                Err(e) => return Err(Error::from(e).context(format!("cannot load the calibration {spec}"))),
+                Err(e) => {
+                    return Err(
+                        Error::from(e).context(format!("cannot load the calibration {}", spec.display()))
+                    );
+                }
             },
             None => None,
         };

@@ -9,7 +9,7 @@ fn main() -> gelstereo::Result<()> {
     let mut args = std::env::args().skip(1);
     let input = args.next().unwrap_or_else(|| "data/sample/press-slide".into());
     let mut config = PipelineConfig::for_recording(input.as_ref())?;
-    config.calibration = args.next().or(config.calibration);
+    config.calibration = args.next().map(Into::into).or(config.calibration);
     let mut pipeline = Pipeline::new(&config)?;
     pipeline.for_each(FrameSource::open(&input)?.prefetch(4), |out| {
         let in_3d = out.markers.iter().filter(|m| m.position_mm.is_some()).count();

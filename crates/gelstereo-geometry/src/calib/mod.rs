@@ -13,6 +13,7 @@ pub mod opencv;
 pub(crate) mod pyliteral;
 pub(crate) mod structure;
 
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 
 use crate::camera::StereoRig;
@@ -41,9 +42,12 @@ impl CalibrationPath {
     /// both are `.cameramodel`, several OpenCV files when all are `.yaml`/`.yml`/`.xml`; an existing
     /// directory, or a path without an extension, is a directory holding `left.cameramodel` and
     /// `right.cameramodel`.
-    pub fn parse(spec: &str) -> Result<Self> {
-        if spec.contains(',') {
-            let parts: Vec<PathBuf> = spec.split(',').map(|p| PathBuf::from(p.trim())).collect();
+    pub fn parse(spec: impl AsRef<Path>) -> Result<Self> {
+        let spec = spec.as_ref();
+        let unknown = || Error::UnknownFormat {
+            path: spec.display().to_string(),
+        };
+        if let Some(parts) = comma_separated(spec.as_os_str()) {
             let has_ext = |p: &Path, exts: &[&str]| {
                 p.extension()
                     .is_some_and(|e| exts.iter().any(|x| e.eq_ignore_ascii_case(x)))
@@ -60,11 +64,9 @@ impl CalibrationPath {
             if parts.iter().all(|p| has_ext(p, &["yaml", "yml", "xml"])) {
                 return Ok(Self::OpenCvFiles(parts));
             }
-            return Err(Error::UnknownFormat {
-                path: spec.to_owned(),
-            });
+            return Err(unknown());
         }
-        let path = PathBuf::from(spec);
+        let path = spec.to_path_buf();
         let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
         match ext.as_deref() {
             Some("yaml" | "yml") => Ok(Self::OpenCvYaml(path)),
@@ -73,16 +75,37 @@ impl CalibrationPath {
                 left: path.join("left.cameramodel"),
                 right: path.join("right.cameramodel"),
             }),
-            _ => Err(Error::UnknownFormat {
-                path: spec.to_owned(),
-            }),
+            _ => Err(unknown()),
         }
+    }
+}
+
+/// The parts of a comma-separated spec, each trimmed of spaces; `None` without a comma. On Unix the
+/// spec is split as bytes, so a part whose name is not UTF-8 keeps its name.
+fn comma_separated(spec: &OsStr) -> Option<Vec<PathBuf>> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::ffi::OsStrExt;
+        let bytes = spec.as_bytes();
+        bytes.contains(&b',').then(|| {
+            bytes
+                .split(|b| *b == b',')
+                .map(|part| PathBuf::from(OsStr::from_bytes(part.trim_ascii())))
+                .collect()
+        })
+    }
+    #[cfg(not(unix))]
+    {
+        let text = spec.to_string_lossy();
+        text.contains(',')
+            .then(|| text.split(',').map(|p| PathBuf::from(p.trim())).collect())
     }
 }
 
 impl StereoRig {
     /// Reads a calibration, choosing the format from the path (see [`CalibrationPath::parse`]).
-    pub fn load(spec: &str) -> Result<StereoRig> {
+    pub fn load(spec: impl AsRef<Path>) -> Result<StereoRig> {
+        let spec = spec.as_ref();
         match CalibrationPath::parse(spec)? {
             CalibrationPath::OpenCvYaml(p) | CalibrationPath::OpenCvXml(p) => StereoRig::read_opencv(p),
             CalibrationPath::OpenCvFiles(files) => {
@@ -95,12 +118,16 @@ impl StereoRig {
 
     /// Writes the calibration, choosing the format from the path (see [`CalibrationPath::parse`]); a
     /// directory for a mrcal pair is created if needed.
-    pub fn save(&self, spec: &str) -> Result<()> {
+    pub fn save(&self, spec: impl AsRef<Path>) -> Result<()> {
+        let spec = spec.as_ref();
         match CalibrationPath::parse(spec)? {
             CalibrationPath::OpenCvYaml(p) => self.write_opencv_yaml(p),
             CalibrationPath::OpenCvXml(p) => self.write_opencv_xml(p),
             CalibrationPath::OpenCvFiles(_) => Err(Error::UnknownFormat {
-                path: format!("{spec} (several OpenCV files are for reading only; write one .yaml)"),
+                path: format!(
+                    "{} (several OpenCV files are for reading only; write one .yaml)",
+                    spec.display()
+                ),
             }),
             CalibrationPath::Mrcal { left, right } => {
                 for p in [&left, &right] {

@@ -523,11 +523,12 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     let mut text = String::new();
     let _ = writeln!(
         text,
-        "stereo pipeline, {}: {n} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {method} (models {models}); calibration {spec}",
+        "stereo pipeline, {}: {n} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {method} (models {models}); calibration {}",
         input.display(),
         size.0,
         size.1,
         n.saturating_sub(1),
+        spec.display(),
     );
     let intra = b.config.localizer.session.intra_threads;
     let threads = if intra == 0 {
@@ -615,7 +616,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     );
     let json = json!({
         "recording": input.display().to_string(),
-        "calibration": spec,
+        "calibration": spec.display().to_string(),
         "method": method.as_str(),
         "models": models,
         "frames": n,

@@ -220,7 +220,7 @@ fn paired_folders(left: &Path, right: &Path) -> Result<Vec<StereoPair<PathBuf>>>
 pub(super) fn localized_video(
     path: &Path,
     rig: &StereoRig,
-    calibration: &str,
+    calibration: &Path,
     localizer: &mut LazyLocalizer<'_>,
     localize_ms: &mut f64,
 ) -> Result<(Vec<FrameInput>, Option<String>)> {
@@ -232,8 +232,9 @@ pub(super) fn localized_video(
         rig.check_image_sizes(size_of(&pair.left), size_of(&pair.right))
             .map_err(|e| {
                 Error::from(e).context(format!(
-                    "{} frame {index}: the halves do not match the calibration '{calibration}'",
-                    path.display()
+                    "{} frame {index}: the halves do not match the calibration '{}'",
+                    path.display(),
+                    calibration.display()
                 ))
             })?;
         let t = Instant::now();
@@ -253,7 +254,7 @@ pub(super) fn localized_video(
 pub(super) fn detect(
     input: &FrameInput,
     rig: &StereoRig,
-    calibration: &str,
+    calibration: &Path,
     localizer: &mut LazyLocalizer<'_>,
 ) -> Result<(StereoPair<Vec<Detection>>, f64)> {
     let paths = match &input.markers {
@@ -268,8 +269,9 @@ pub(super) fn detect(
     rig.check_image_sizes(size_of(&pair.left), size_of(&pair.right))
         .map_err(|e| {
             Error::from(e).context(format!(
-                "{}: the images do not match the calibration '{calibration}'",
-                paths.left.display()
+                "{}: the images do not match the calibration '{}'",
+                paths.left.display(),
+                calibration.display()
             ))
         })?;
     let t = Instant::now();

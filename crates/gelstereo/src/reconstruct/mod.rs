@@ -33,7 +33,7 @@ use output::{EVALUATION_FILE, MARKERS_FILE, OutputFiles, REJECTIONS_FILE};
 #[derive(Debug, Clone)]
 pub struct ReconstructionJob {
     /// Stereo calibration: OpenCV YAML/XML, or a folder / comma-separated pair of mrcal files.
-    pub calibration: String,
+    pub calibration: PathBuf,
     /// A stereo recording (folder with `left/` and `right/`), a side-by-side stereo video, or
     /// `[LEFT, RIGHT]`: two images (one stereo frame) or two folders of images with matching names.
     pub inputs: Vec<PathBuf>,
@@ -71,7 +71,7 @@ impl ReconstructionJob {
     /// Reconstructs `inputs` with `calibration` into `out`: Marknet-MRE with the shipped models,
     /// frame 0 as the reference, each frame seeded by the previous one, pairs within 3 px of their
     /// epipolar line and points within 2 px of reprojection error, point clouds written.
-    pub fn new(calibration: impl Into<String>, inputs: Vec<PathBuf>, out: PathBuf) -> Self {
+    pub fn new(calibration: impl Into<PathBuf>, inputs: Vec<PathBuf>, out: PathBuf) -> Self {
         Self {
             calibration: calibration.into(),
             inputs,
@@ -161,8 +161,12 @@ pub fn run(
     stop: &AtomicBool,
     warn: &mut dyn FnMut(String),
 ) -> Result<ReconstructionSummary> {
-    let rig = StereoRig::load(&job.calibration)
-        .map_err(|e| Error::from(e).context(format!("cannot load the calibration '{}'", job.calibration)))?;
+    let rig = StereoRig::load(&job.calibration).map_err(|e| {
+        Error::from(e).context(format!(
+            "cannot load the calibration '{}'",
+            job.calibration.display()
+        ))
+    })?;
     let shape = lattice_shape(job, &rig)?;
     let truth = ground_truth(job)?;
     let mut localizer = LazyLocalizer::new(job.method, &job.localizer);
