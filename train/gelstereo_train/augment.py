@@ -42,7 +42,8 @@ class AugConfig:
     input_size: tuple[int, int] = (416, 416)  # (height, width) of the canonical network input
     p_canonical: float = 0.5  # share of crops sampled exactly as at inference
     # Share of crops centred near a marker in contact (where the image has one; else anywhere): contact
-    # markers are ~4 % of the training markers, and the tracker's contact and slip figures rest on them.
+    # markers are a small share of the training markers, and the tracker's contact and slip figures
+    # rest on them.
     p_contact: float = 0.0
     # Share of crops laid across an image edge (one or both axes), overhanging it by up to half a pitch
     # plus one input multiple (32 px), the outside filled with the image's median colour: what the auto

@@ -18,13 +18,13 @@ import torch.nn.functional as F
 
 STRIDE_FOR_GRID_416 = {13: 32, 26: 16, 52: 8}
 # Stems: "s2" = 3x3 stride-2 convolution + residual block, then stride 4 (the first shipped model);
-# "s4" = one 5x5 stride-4 convolution + residual block (about 2x faster on a CPU than "s2");
-# "s4-bare" = the same convolution without the residual block: the block's 104 x 80 maps (reference
-# sensor) are memory-bound and cost about a quarter of the network's CPU time for ~12 % of its FLOPs.
+# "s4" = one 5x5 stride-4 convolution + residual block (skips the stride-2 stage's large maps);
+# "s4-bare" = the same convolution without the residual block: the block's stride-4 maps are few
+# channels at the largest size, memory-bound, and cost far more CPU time than their share of the FLOPs
+# (figures: docs/experiments/localization-input-and-speed.md, "Where the network's time goes").
 STEMS = ("s2", "s4", "s4-bare")
-# The second fusing convolution of each top-down step: 3x3 (YOLOv3's), or 1x1, which with "s4-bare"
-# takes the network from ~2.9 to ~2.4 ms of CPU per stereo pair of 2 x 320 x 288 (one thread); the
-# backbone's 3x3 convolutions still give every cell its neighbourhood.
+# The second fusing convolution of each top-down step: 3x3 (YOLOv3's), or 1x1, which is cheaper
+# (the same figures); the backbone's 3x3 convolutions still give every cell its neighbourhood.
 FUSE_KERNELS = (1, 3)
 
 
@@ -111,8 +111,8 @@ class Marknet(nn.Module):
             self.stem = nn.Sequential(conv_bn(3, w, 3, 2), Residual(w))
             self.s4 = nn.Sequential(conv_bn(w, 2 * w, 3, 2), Residual(2 * w))
         else:
-            # One 5x5 stride-4 convolution straight to stride 4: the stride-2 stage with its 8-channel
-            # 208 x 208 maps was ~45 % of the CPU time (memory-bound), for ~15 % of the FLOPs.
+            # One 5x5 stride-4 convolution straight to stride 4: the stride-2 stage's few-channel maps
+            # at half the input size are memory-bound, far costlier than their share of the FLOPs.
             self.stem = nn.Identity()
             residual = [] if stem == "s4-bare" else [Residual(2 * w)]
             self.s4 = nn.Sequential(conv_bn(3, 2 * w, 5, 4), *residual)

@@ -6,7 +6,7 @@
 #
 #   train/scripts/ablation.sh DATA_DIR OUT_DIR [STEPS] [TEST_IMAGES]
 #
-# STEM (default s2) and FIT (default stretch) pin the tables of docs/results.md, which were run with the
+# STEM (default s2) and FIT (default stretch) pin Tables II and III of docs/training.md, which were run with the
 # first model's stride-2 stem and the whole-image stretch; STEM=s4 FIT=auto gives the shipped design.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"

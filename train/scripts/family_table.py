@@ -1,5 +1,5 @@
 """Precision / recall per model and family from `gelstereo eval` reports: one markdown table over all
-markers and one over the markers in contact (as in docs/localization.md, "Leave one family out").
+markers and one over the markers in contact (as in docs/experiments/localization-families.md, "Leave one family out").
 
     python scripts/family_table.py --eval EVAL --models with no_hue --views marker_hue all
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Leave one family out: Marknets of the default's shape trained from random weights side by side on
 # the same widened-sensor data, one with every family (`with`) and one without each held-out family,
-# then each scored on every family's test experiments (docs/localization.md, "Leave one family out").
+# then each scored on every family's test experiments (docs/experiments/localization-families.md, "Leave one family out").
 #
 #   train/scripts/leave_one_family_out.sh train OUT          # on a GPU machine with 16 cores, ~9 min
 #   train/scripts/leave_one_family_out.sh score OUT VIEWS    # anywhere: export, evaluate, print the table

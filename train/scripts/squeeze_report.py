@@ -4,7 +4,7 @@ experiment's rest-frame median), as quantiles and the shares below 0.5 and 0.6 p
 
     cd train && ../.venv/bin/python scripts/squeeze_report.py ../V1 ../INDREF --frame-step 10
 
-Used in docs/localization.md ("An independent renderer") to compare the simulator's rims with the
+Used in docs/experiments/localization-independent-renderer.md to compare the simulator's rims with the
 independent renderer's.
 """
 

@@ -9,9 +9,8 @@
 //! There the lattice check keeps markers off the lattice lines from a lower confidence
 //! ([`crate::lattice::LatticeCheck::looked_min_confidence`]).
 //!
-//! On the independent renderer's reference layout (docs/localization.md, "A closer look at squeezed
-//! dots") the markers in contact found go from 88.9 to 95.9 % and the false ones among them from
-//! 1.3 to 0.06 %; frames without contact show no squeezed candidates, so they never pay for it.
+//! Frames without contact show no squeezed candidates, so they never pay for it. What it gains:
+//! `docs/experiments/localization-squeezed-dots.md`.
 
 use gelstereo_core::{Detection, ImageSize, Point2};
 
@@ -21,25 +20,23 @@ use crate::window::{Window, window_of_span};
 
 /// A candidate whose nearest other candidate lies closer than this share of the pitch is squeezed.
 /// An undisturbed lattice's nearest neighbours lie a pitch apart and a sphere's press moves them by
-/// a tenth or two; a flat rim squeezes them to half a pitch. On the independent renderer no frame
-/// without contact has a candidate this close, and 94 % of the markers the first pass misses in
-/// contact lie within 1.5 pitches of one.
+/// a tenth or two; a flat rim squeezes them to half a pitch. So a candidate this close marks a
+/// squeeze, not an undisturbed lattice, and the markers the first pass misses in contact lie mostly
+/// near such candidates.
 pub const SQUEEZED_NN_PITCH: f64 = 0.8;
 
 /// ... and the network is less sure of it than this. A pair the network resolved, both sure, needs no
-/// second look: on the bundled press-and-slide sample this bound leaves 9 of 11 looks (48 views),
-/// on windows of 25,000 instead of 40,000 input px, and the reference layout's markers in contact
-/// found stay at 94.7 %.
+/// second look, so the bound saves looks and window area without losing squeezed dots.
 pub const SQUEEZED_MAX_CONFIDENCE: f32 = 0.9;
 
-/// Scale of the close look relative to the first pass's. At 1.5 x the squeezed dots the first pass
-/// misses on the independent renderer drop from 761 to 143; at 2 x to 77, while more of what it finds
-/// fails the checks that follow, so the two find as many markers and 1.5 x costs half as much.
+/// Scale of the close look relative to the first pass's: enough to resolve squeezed dots as two;
+/// a larger zoom resolves a few more, but more of what it finds then fails the checks that follow,
+/// so it ends with the same markers for more pixels.
 pub const CLOSE_LOOK_ZOOM: f64 = 1.5;
 
 /// The close look's zoom stops where it would put the marker pitch beyond this at the network input,
 /// px: well inside the 9-24 px the network was trained on. Zoomed past its range on scan lines and
-/// glints, it found dots in the texture (on one widened experiment 432 false markers against 73).
+/// glints, it finds dots in the texture.
 pub const CLOSE_LOOK_MAX_INPUT_PITCH_PX: f64 = 20.0;
 
 /// A zoom below this is not worth a pass (the first pass already ran the pitch near the top of the

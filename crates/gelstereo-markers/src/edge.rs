@@ -7,11 +7,11 @@
 //! Its own position cannot tell the two apart; the lattice can. The markers one and two steps
 //! inwards along a lattice line through the detection put its centre where equal spacing does
 //! (`2 p1 - p2`), unbiased by what the border cut off. A detection whose extrapolated centre lies
-//! outside the image (more than [`IMAGE_SPAN_PX`] beyond its outermost pixel centres) goes. On the
-//! independent renderer (`gelstereo eval`, 192 views) this leaves 530 of the margin's 1,386 false
-//! markers and finds 76 more true ones. A straight line ignores lens distortion, which on the
-//! simulator's wide-angle sensors puts a few dots cut close to their centre 0.5-2 px too far out:
-//! v1's test split (every 10th frame) loses 33 of its 234,841 markers to it.
+//! outside the image (more than [`IMAGE_SPAN_PX`] beyond its outermost pixel centres) goes: a margin
+//! alone cannot tell a cut dot centred just inside from one centred just outside, the lattice can.
+//! A straight line ignores lens distortion, which on wide-angle sensors puts a few dots cut close to
+//! their centre slightly too far out, so those few are lost (figures:
+//! `docs/experiments/localization-borders.md`).
 //!
 //! A detection near the edge without such a line (an isolated marker, a lattice too small) falls back
 //! to the margin rule: it goes when it is reported closer than [`EDGE_MARGIN_PITCH`] to the edge.

@@ -294,9 +294,9 @@ pub(crate) fn fit_lattice_with_distances(
 
 /// Cell side of the neighbourhood's grid, in median nearest-neighbour distances. The searches reach
 /// `reach_frac` (1.6) x that median; cells of one median (about a point each on a lattice) let a
-/// search look at ~16 points instead of ~23 with cells of the reach, for a row of cells more, and the
-/// lattice fit takes 7-18 % less time (the same members: every search's finds are sorted, counted or
-/// joined in a way that does not depend on the order the cells give them).
+/// search look at fewer points than cells of the reach would, for a row of cells more (the same
+/// members: every search's finds are sorted, counted or joined in a way that does not depend on the
+/// order the cells give them).
 const CELL_MEDIANS: f64 = 1.0;
 
 /// Each point's nearest-neighbour distance, their median, and the points bucketed (cells of
@@ -432,14 +432,14 @@ fn lined_members(points: &[Point2], hood: &Neighbourhood, check: &LatticeCheck) 
 }
 
 /// Share of the sure detections the lines must leave out before the spacing rule is asked: on a
-/// regular lattice the lines hold nearly all (pile-ups at an indenter's rim leave some out, and the
-/// spacing rule there changed which of them were kept: 23 instead of 21 id swaps on the tracking
-/// split at one in 20); on an irregular one they leave most out.
+/// regular lattice the lines hold nearly all (pile-ups at an indenter's rim leave some out, and
+/// asking the spacing rule there changes which of them are kept, which the tracker feels); on an
+/// irregular one they leave most out.
 const SPACING_LEFT_OUT: f64 = 0.2;
 
 /// Nearest-neighbour distance of a member by the spacing rule, in medians of them: printed dots keep
 /// their distance (an irregular lattice's dots, moved up to 0.25 pitch per axis, stay 0.5 pitch apart),
-/// where points strewn at random are closer than 0.6 median to their nearest in 22 % of cases.
+/// where points strewn at random are often closer than 0.6 median to their nearest.
 const SPACED_NN: (f64, f64) = (0.6, 1.6);
 
 /// Neighbours of a point by spacing are searched within this many medians of the nearest-neighbour
@@ -449,7 +449,7 @@ const SPACED_REACH: f64 = 2.0;
 
 /// Largest angle between the directions to consecutive neighbours of a point inside a lattice,
 /// degrees: the six to eight neighbours of an inner dot surround it with gaps under 90, where the
-/// neighbours of a point strewn at random do so only 4 % of the time.
+/// neighbours of a point strewn at random rarely do.
 pub(crate) const SURROUNDED_GAP_DEG: f64 = 120.0;
 
 /// Members by spacing: points whose nearest neighbour lies within [`SPACED_NN`] of the median, in

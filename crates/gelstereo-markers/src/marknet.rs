@@ -92,15 +92,15 @@ pub const RELAYOUT_SCALE_CHANGE: f64 = 0.1;
 /// 1280 x 720 gel of bright 25 px dots at a 90 px pitch under scan-line banding, run at 0.13 x: 54 of
 /// its 64 dots with bilinear sampling, all 64 and nothing else with area averaging;
 /// `bright_dots_under_scan_lines_reduced_a_lot_are_found_and_the_banding_is_not`). Milder reductions
-/// stay bilinear, as the network's training crops are (with the threshold at 0.5, the GelSight Mini,
-/// run at 0.39 x, lost markers in 5 contact frames).
+/// stay bilinear, as the network's training crops are: area averaging blurs small dots that
+/// bilinear sampling keeps sharp (a higher threshold cost a real sensor markers in contact).
 pub const AREA_BELOW_SCALE: f64 = 0.34;
 
 /// Passes at the layout of a measured pitch, at most, with the lattice check on (one without it;
 /// `MAX_RELAYOUTS` in the trainer). A lattice the network resolves only in part at one scale shows a
 /// pitch that overstates the true one (its few finds lie apart), so one step leaves it still too
-/// small; each pass brings the pitch closer. A 960 x 540 sensor of 6.2 px pitch: 18, 11, 7, then
-/// 6.2 px, 311 then 2,404 finds.
+/// small; each pass brings the pitch closer (a fine sensor measured in steps:
+/// `docs/experiments/localization-input-and-speed.md`).
 pub const MAX_RELAYOUTS: usize = 3;
 
 /// Confident candidates (c > `conf_keep`) needed before a measured pitch may change the layout
@@ -1233,9 +1233,8 @@ impl Marknet {
         for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
             // The fine and coarse probes only where no pass so far found a lattice; the fine one also
             // where the lattice found (with the lattice check) lies below the network's range at its
-            // input: its dots barely resolved, it may be a thinned-out part of a finer lattice (a
-            // 6.2 px pitch at 960 x 540 showed 119 of its 3,001 dots at 19 px, 8.2 px at the input,
-            // at the nominal fit).
+            // input: its dots barely resolved, it may be a thinned-out part of a finer lattice, whose
+            // few finds lie a multiple of its pitch apart.
             let with_lattice = self.post.lattice.is_some();
             let probes: Vec<(usize, InputLayout)> = unknown
                 .iter()
@@ -1386,7 +1385,7 @@ impl Marknet {
         // With the pitch remembered, every image of a size runs under the layout the next one gets,
         // including the first (measured under the layout without a pitch, a few % off in scale): a
         // tracker's reference frame localized at another scale than the frames compared with it
-        // carries a per-marker bias (~0.15 px for the fast model) into every displacement.
+        // carries a per-marker bias into every displacement.
         let mut redo = Vec::new();
         for &i in todo {
             let target = if self.remember_pitch && self.pitch_memory.contains_key(&sizes[i]) {

@@ -10,10 +10,11 @@
 //! streaks. Against the median colour, the gel's background on a marker sensor, a cut dot stays a cut
 //! dot, which the network was trained to see at the edges of its training crops.
 //!
-//! Why: OpenCV's resize, its border copy and a separate conversion pass cost 0.55 ms per 640 x 480
-//! view, a sixth of the fast model's whole pipeline; one pass over the output rows with planar
-//! intermediate rows costs about a third of that with SSE kernels, and less with AVX-512 ones that
-//! read the interleaved row directly (no split into channel rows). Bit for bit: the same fixed-point arithmetic as
+//! Why: OpenCV's resize, its border copy and a separate conversion pass each walk the whole image,
+//! and together they were a large share of the pipeline's CPU time; one pass over the output rows
+//! with planar intermediate rows reads and writes each pixel once, and the AVX-512 kernels read the
+//! interleaved row directly (no split into channel rows). Figures:
+//! `docs/experiments/localization-input-and-speed.md`. Bit for bit: the same fixed-point arithmetic as
 //! OpenCV 4's `cv::hal::resize` for 8-bit images (`resizeGeneric_` with `HResizeLinear<uchar, int,
 //! short>` and `VResizeLinear<uchar, int, short>`, whose scalar and SIMD paths agree):
 //!

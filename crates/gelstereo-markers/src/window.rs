@@ -5,7 +5,7 @@
 //! around it ([`window_around`]): the image is resized into its usual layout, and the window's corners
 //! lie on multiples of the input multiple (the network's coarsest stride), so every convolution sees
 //! the same pixels on the same grid as on the whole input, and the markers come out as they would
-//! there (on the bundled sample, 0.0003 px apart for the median marker). A frame whose markers come
+//! there, up to the context cut at the window's edges. A frame whose markers come
 //! near an edge of the window that lies inside the input, or that shows far fewer markers than the
 //! first, is run whole instead ([`LatticeWindow::holds`]): a lattice that slid out of the window, a
 //! column the first frame missed, another scene. The window never changes after the first frame, so

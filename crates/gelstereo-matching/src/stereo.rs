@@ -80,8 +80,7 @@ pub struct StereoConfig {
     /// reprojection error per view (which allows up to ~4 px of epipolar distance), so correct but
     /// noisy detections (1-2.5 px off, as a pilot Marknet at the image edges or blobs under contact)
     /// are kept, and far below the offset of a neighbouring row's marker (about a pitch, 14-30 px).
-    /// Measured on the v1 test split (`docs/results.md`): 2 px lost 0.3% of the markers a pilot
-    /// Marknet-MRE found in both views, 3 px 0.01%, with the same wrong pairs.
+    /// A tighter bound drops correct pairs without removing wrong ones (docs/matching.md).
     pub max_epipolar_px: f64,
     /// Indexing of each view.
     pub indexing: IndexingConfig,

@@ -1,5 +1,5 @@
 //! The Python package `gelstereo`: numpy arrays in and out over the gelstereo libraries, with no
-//! logic of its own (DESIGN.md, "crates/gelstereo-py").
+//! logic of its own (docs/design.md, "Layout (workspace)").
 //!
 //! - [`image`]: numpy `HxW` grey / `HxWx3` BGR `uint8` arrays to OpenCV images (one copy).
 //! - [`detect`]: `gelstereo.detect(image, method="marknet-mre")`, markers as an `(N, 3)` array.

@@ -1,5 +1,5 @@
 //! Scores `gelstereo track` outputs against simulated ground truth (the figures of
-//! `docs/results.md`): id swaps (docs/design.md: ids that ever map to more than one ground-truth marker),
+//! `docs/tracking.md`, "Accuracy"): id swaps (docs/design.md: ids that ever map to more than one ground-truth marker),
 //! the share of visible markers tracked per frame, wrong associations (a marker written `tracked`
 //! more than 0.25 pitch from its own true position in either view), contact area / largest depth / centroid errors,
 //! gross-slip F1 per frame, onset delay, and slip reported before contact.
