@@ -16,9 +16,9 @@ PATH (or at --gelstereo PATH). A recording that fails is a row with its error; t
 Exit status: 0 when every recording has its tables, 1 when one or more failed, 2 for a usage error.
 
 Re-running skips a recording whose OUT/NAME/batch.json records a finished run of the same recording
-and TRACK ARGS (another binary's outputs are not noticed: give --force). --force tracks it again;
-like `gelstereo track`, it never writes into a folder gelstereo did not write (give `-- --force` for
-that).
+and TRACK ARGS (another binary's outputs are not noticed: give --force). --force tracks it again.
+An OUT/NAME that gelstereo did not write is refused, as `gelstereo track` refuses it (that recording
+fails; `-- --force` passes track's own --force).
 """
 
 import argparse
@@ -185,7 +185,8 @@ def parse_args(argv: Sequence[str]) -> Tuple[argparse.Namespace, List[str]]:
     own, track_args = split_track_args(list(argv))
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("root", type=Path, help="a recording, or a folder with recordings at any depth")
-    parser.add_argument("--out", type=Path, required=True, help="output folder: OUT/NAME per recording, OUT/summary.csv")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output folder: OUT/NAME per recording, OUT/summary.csv")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--scheduler", metavar="ADDRESS", help="a running Dask scheduler, e.g. tcp://host:8786")
     where.add_argument("--workers", type=int, default=2, metavar="N",
