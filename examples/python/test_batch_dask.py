@@ -1,6 +1,7 @@
 """examples/python/batch_dask.py on a local Dask cluster of 2 workers: its tables are byte for byte
 those of `gelstereo track` on each recording, a failing recording is a row and an exit status, and a
-re-run reuses finished outputs without touching them or a folder gelstereo did not write.
+re-run reuses finished outputs without touching them or a folder gelstereo did not write; recordings
+are found at any depth, not inside a recording, the output or a link cycle.
 
     GELSTEREO=target/debug/gelstereo .venv/bin/python -m pytest -q examples/python/test_batch_dask.py
 
@@ -140,3 +141,23 @@ def test_a_folder_gelstereo_did_not_write_is_left_alone(root, gelstereo, tmp_pat
     assert "no gelstereo manifest" in summary(tmp_path / "out")["press-slide"]["error"]
     assert sorted(p.name for p in mine.parent.iterdir()) == ["my-notes.txt"]
     assert mine.read_text() == "keep me\n"
+
+
+def test_recordings_are_found_at_any_depth_but_not_inside_the_output_or_a_link_cycle(tmp_path):
+    sys.path.insert(0, str(HERE))
+    try:
+        import batch_dask
+    finally:
+        sys.path.remove(str(HERE))
+    root = tmp_path / "root"
+    # b/extra lies inside a recording, .hidden/c in a hidden folder, out/d in the output folder.
+    for rec in ("a", "deep/er/b", "deep/er/b/extra", ".hidden/c", "out/d"):
+        for side in ("left", "right"):
+            (root / rec / side).mkdir(parents=True, exist_ok=True)
+    (root / "deep" / "loop").symlink_to(root)
+    (root / "deep" / "clip.MP4").write_bytes(b"")
+    names = [r.name for r in batch_dask.find_recordings(root, root / "out", videos=False)]
+    assert names == ["a", "deep/er/b"]
+    names = [r.name for r in batch_dask.find_recordings(root, root / "out", videos=True)]
+    assert names == ["a", "deep/clip.MP4", "deep/er/b"]
+    assert [r.name for r in batch_dask.find_recordings(root / "a", root / "out", videos=False)] == ["a"]
