@@ -8,7 +8,8 @@
 #     extras (maturin, matplotlib for examples/python) in a per-user cache keyed by the requirements'
 #     hash, so a fresh clone on the same machine does not reinstall PyTorch; on top of it the
 #     checkout's own .venv, whose site-packages come first and load the cached ones (a .pth file).
-#     `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for examples/python/stream_rerun.py.
+#     `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for examples/python/stream_rerun.py;
+#     dask.distributed (a few MB) for examples/python/batch_dask.py is always installed (CI runs it).
 #  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin and
 #     installed into the checkout's .venv, so each clone imports its own build; skipped when the
 #     installed build's source hash matches.
@@ -109,6 +110,7 @@ install_extra() {
 }
 install_extra crates/gelstereo-py/requirements-build.txt
 install_extra examples/python/requirements.txt
+install_extra examples/python/requirements-batch.txt
 if ((WITH_RERUN)); then install_extra examples/python/requirements-rerun.txt; fi
 flock -u 9
 

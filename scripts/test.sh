@@ -26,3 +26,7 @@ trap 'rm -rf "$examples_out"' EXIT
 test -s "$examples_out/depth-slip.png"
 "$ROOT/.venv/bin/python" examples/python/stream_rerun.py data/sample/press-slide --rrd "$examples_out/sample.rrd"
 test -s "$examples_out/sample.rrd"
+step "examples/python/batch_dask.py: recordings on a local Dask cluster, tables as gelstereo track's"
+# The CLI binary `cargo test` built above for crates/gelstereo-cli/tests.
+GELSTEREO="${CARGO_TARGET_DIR:-target}/debug/gelstereo" \
+  "$ROOT/.venv/bin/python" -m pytest -q examples/python/test_batch_dask.py
