@@ -4,7 +4,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
-bash scripts/setup.sh --with-rerun
+bash scripts/setup.sh --with-rerun --with-ros
 
 step() { printf '\n=== %s\n' "$*"; }
 step "cargo fmt --check"
@@ -26,3 +26,5 @@ trap 'rm -rf "$examples_out"' EXIT
 test -s "$examples_out/depth-slip.png"
 "$ROOT/.venv/bin/python" examples/python/stream_rerun.py data/sample/press-slide --rrd "$examples_out/sample.rrd"
 test -s "$examples_out/sample.rrd"
+step "examples/ros2: the ROS 2 node on the sample recording, against gelstereo track"
+"$ROOT/.venv-ros/bin/python" -m pytest -q -W ignore::DeprecationWarning examples/ros2
