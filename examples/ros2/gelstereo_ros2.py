@@ -3,7 +3,8 @@
     .venv-ros/bin/python examples/ros2/gelstereo_ros2.py --ros-args -p recording:=data/sample/press-slide
 
 Frames come from a recording folder (`source:=recording`, the default), two cameras
-(`source:=cameras`, OpenCV VideoCapture indices `camera_left`, `camera_right`) or two
+(`source:=cameras`, OpenCV VideoCapture sources `camera_left`, `camera_right`: device indices,
+`/dev/videoN`, a video file or an image sequence such as `left/%06d.jpg`; -1 for none) or two
 sensor_msgs/Image topics (`source:=topics`, `left_image`, `right_image`). Per frame it publishes, under
 the node's namespace:
 
@@ -110,6 +111,14 @@ def read_image(path: Path) -> np.ndarray:
     return image
 
 
+def open_camera(source):
+    """An OpenCV capture; an image sequence (`left/%06d.jpg`) through OpenCV's image reader, which
+    decodes as a recording's images are read, rather than FFmpeg's, whose JPEG pixels differ."""
+    if isinstance(source, str) and "%" in source:
+        return cv2.VideoCapture(source, cv2.CAP_IMAGES)
+    return cv2.VideoCapture(source)
+
+
 def image_from_msg(msg: Image) -> np.ndarray:
     """A sensor_msgs/Image as the pipeline takes it: grey or BGR uint8 (cv_bridge has no wheel)."""
     channels = {"mono8": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}.get(msg.encoding)
@@ -184,6 +193,8 @@ class GelstereoNode(Node):
         super().__init__("gelstereo")
         p = self.declare
         self.source = p("source", "recording").value
+        if self.source not in ("recording", "cameras", "topics"):
+            raise ValueError(f"source {self.source!r}: expected recording, cameras or topics")
         self.recording = p("recording", "").value
         self.fps = float(p("fps", 30.0).value)
         self.realtime = p("realtime", True).value
@@ -231,15 +242,13 @@ class GelstereoNode(Node):
         if self.source == "recording":
             return (Path(self.recording) / "right").is_dir()
         if self.source == "cameras":
-            return self.camera_right >= 0
+            return self.camera_right not in (-1, "")
         return bool(self.right_image)
 
     def frames(self) -> Iterator[StereoImages]:
         if self.source == "recording":
             return self.recording_frames()
-        if self.source == "cameras":
-            return self.camera_frames()
-        raise ValueError(f"source {self.source!r}: expected recording, cameras or topics")
+        return self.camera_frames()
 
     def recording_frames(self) -> Iterator[StereoImages]:
         if cv2 is None:
@@ -254,11 +263,11 @@ class GelstereoNode(Node):
     def camera_frames(self) -> Iterator[StereoImages]:
         if cv2 is None:
             raise ValueError("source cameras needs OpenCV's Python package (cv2): run scripts/setup.sh")
-        indices = [i for i in (self.camera_left, self.camera_right) if i >= 0]
-        cameras = [cv2.VideoCapture(i) for i in indices]
-        for index, camera in zip(indices, cameras):
+        sources = [c for c in (self.camera_left, self.camera_right) if c not in (-1, "")]
+        cameras = [open_camera(c) for c in sources]
+        for source, camera in zip(sources, cameras):
             if not camera.isOpened():
-                raise ValueError(f"camera {index}: cannot be opened")
+                raise ValueError(f"camera {source!r}: cannot be opened")
         start = time.monotonic()
         while rclpy.ok():
             # Both grabs first, then the decoding, so the two views are as close in time as they can be.
@@ -266,7 +275,8 @@ class GelstereoNode(Node):
             stamp, seconds = self.get_clock().now().to_msg(), time.monotonic() - start
             images = [camera.retrieve()[1] for camera in cameras]
             if not all(grabbed) or any(image is None for image in images):
-                raise ValueError(f"cameras {indices}: a frame could not be read")
+                self.get_logger().warning(f"cameras {sources}: no more frames (a file's end, or unplugged)")
+                return
             yield StereoImages(images[0], images[1] if len(images) > 1 else None, stamp, seconds)
 
     def subscribe_to_images(self):
@@ -351,7 +361,7 @@ class GelstereoNode(Node):
             count += 1
         for publisher in (self.pub_markers, self.pub_wrench, self.pub_slip_state, self.pub_slipping):
             publisher.wait_for_all_acked(Duration(seconds=5))
-        self.get_logger().info(f"{count} frames of {self.recording} published")
+        self.get_logger().info(f"{count} frames published")
 
 
 def main() -> int:

@@ -148,10 +148,19 @@ def rotation_of(q) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def test_the_node_publishes_the_sample_as_gelstereo_track_tracks_it(tables):
+SOURCES = {
+    "recording": [f"recording:={SAMPLE}"],
+    # OpenCV reads an image sequence as it reads a camera: the cameras' loop on the sample's frames.
+    "cameras": ["source:=cameras", f"camera_left:={SAMPLE}/left/%06d.jpg", f"camera_right:={SAMPLE}/right/%06d.jpg",
+                f"calibration:={SAMPLE / 'calib.yaml'}"],
+}
+
+
+@pytest.mark.parametrize("source", SOURCES)
+def test_the_node_publishes_the_sample_as_gelstereo_track_tracks_it(tables, source):
     markers, frames, gel = tables
     listener = Listener()
-    node = launch_node(f"recording:={SAMPLE}", "wait_for_subscribers:=1", "camera_frame:=left_optical",
+    node = launch_node(*SOURCES[source], "wait_for_subscribers:=1", "camera_frame:=left_optical",
                        "gel_frame:=gel")
     try:
         listener.spin_until(lambda: node.poll() is not None and len(listener.got["markers"]) >= len(frames),
