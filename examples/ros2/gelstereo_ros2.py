@@ -1,32 +1,9 @@
-"""A ROS 2 node that tracks a GelStereo-type sensor with gelstereo and publishes what it measures.
+"""A ROS 2 node that tracks a GelStereo-type sensor with gelstereo and publishes what it measures:
+the markers as a PointCloud2 in the gel frame, the contact wrench, the slip state and the transform
+from the left camera to the gel frame, in SI units. Topics, parameters and conventions: README.md
+beside this file.
 
     .venv-ros/bin/python examples/ros2/gelstereo_ros2.py --ros-args -p recording:=data/sample/press-slide
-
-Frames come from a recording folder (`source:=recording`, the default), two cameras
-(`source:=cameras`, OpenCV VideoCapture sources `camera_left`, `camera_right`: device indices,
-`/dev/videoN`, a video file or an image sequence such as `left/%06d.jpg`; -1 for none) or two
-sensor_msgs/Image topics (`source:=topics`, `left_image`, `right_image`). Per frame it publishes, under
-the node's namespace:
-
-- `markers` (sensor_msgs/PointCloud2, frame `gel_frame`): one point per marker, fields x, y, z
-  (float32, m), id, row, col, dx, dy, dz (float32, m, the displacement from the reference), pressure
-  (float32, Pa), in_contact, slip (uint8: 0 / 1, 255 where the frame's contact is unknown) and status
-  (uint8: 0 tracked, 1 predicted, 2 lost). Lost markers and a mono sensor have NaN coordinates.
-- `wrench` (geometry_msgs/WrenchStamped, frame `gel_frame`): the force the contact applies to the gel
-  in N, (shear_x, shear_y, -normal force) since the gel frame's z points away from the cameras, and
-  torque.z, the shear's torque about the normal through the pressure centroid, in N m (x and y are 0:
-  the pipeline estimates that component only). Not sent for a frame whose contact is unknown.
-- `slip_state` (std_msgs/String): no_contact, stick, partial_slip, gross_slip, or unknown; and
-  `slipping` (std_msgs/Bool): partial or gross slip, the cue for a grasp controller to tighten
-  (not sent when unknown).
-- `camera_to_gel` (geometry_msgs/TransformStamped, latched): the gel frame in the left camera's
-  (`camera_frame`, x right, y down, z forward: an optical frame), also on /tf_static when the
-  tf2_msgs package can be imported (a ROS distribution's install; the package index has no wheel).
-
-Parameters mirror gelstereo.Pipeline's keywords (calibration, models, grid, sensor, gel,
-gel_thickness_mm, gel_modulus_kpa, poisson, friction, method, pitch_mm, threads, mono); an empty
-string or NaN keeps the pipeline's default. Positions and displacements are the pipeline's gel-frame
-columns converted from mm to m, as ROS messages are in SI units.
 """
 
 import math
