@@ -65,8 +65,10 @@ class StereoImages:
 
 
 def natural_key(path: Path):
-    """File names in natural order (frame_2 before frame_10), as `gelstereo track` reads them."""
-    return [(0, int(part), part) if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", path.name)]
+    """File names in natural order as `gelstereo track` reads them: frame_2 before frame_10, and of
+    names equal as numbers the one with fewer leading zeros first."""
+    return [(0, int(part), len(part), "") if part.isdigit() else (1, 0, 0, part)
+            for part in re.split(r"(\d+)", path.name)]
 
 
 def recording_files(folder: Path) -> list:
