@@ -10,17 +10,26 @@
 #     checkout's own .venv, whose site-packages come first and load the cached ones (a .pth file).
 #     `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for examples/python/stream_rerun.py;
 #     dask.distributed (a few MB) for examples/python/batch_dask.py is always installed (CI runs it).
+#     `--with-ros` adds the checkout's .venv-ros for the ROS 2 node (step 5).
 #  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin and
 #     installed into the checkout's .venv, so each clone imports its own build; skipped when the
 #     installed build's source hash matches.
+#  5. With `--with-ros`: the checkout's .venv-ros, a Python environment with the ROS 2 wheels of
+#     examples/ros2/requirements.txt (~60 MB download) that also loads the checkout's .venv (gelstereo,
+#     then the shared packages). The ROS wheels cannot go into the shared environment: they put their
+#     libraries under the environment's own prefix and re-execute its Python with them on
+#     LD_LIBRARY_PATH, which would restart every Python of the shared environment and still miss
+#     those libraries from .venv.
 # Re-running it does only what is missing.
 set -euo pipefail
 
 WITH_RERUN=0
+WITH_ROS=0
 for arg in "$@"; do
   case "$arg" in
     --with-rerun) WITH_RERUN=1 ;;
-    *) echo "usage: scripts/setup.sh [--with-rerun]" >&2; exit 2 ;;
+    --with-ros) WITH_ROS=1 ;;
+    *) echo "usage: scripts/setup.sh [--with-rerun] [--with-ros]" >&2; exit 2 ;;
   esac
 done
 
@@ -160,5 +169,27 @@ else
   "$local_venv/bin/python" -c 'import gelstereo'
   echo "$source_hash" >"$stamp"
   say "Python package gelstereo installed into $local_venv"
+fi
+
+# --- 5. The ROS 2 environment (--with-ros) -------------------------------------------------------
+if ((WITH_ROS)); then
+  ros_venv="$ROOT/.venv-ros"
+  ros_req="examples/ros2/requirements.txt"
+  ros_stamp="$ros_venv/.requirements-$(cat "$ROOT/$ros_req" "$req" | sha256sum | cut -c1-16)"
+  if [ -f "$ros_stamp" ] && "$ros_venv/bin/python" -c 'import rclpy, gelstereo' 2>/dev/null; then
+    say "ROS 2 environment present ($ros_venv)"
+  else
+    say "creating the ROS 2 environment $ros_venv from $ros_req"
+    rm -rf "$ros_venv"
+    "$PYTHON" -m venv "$ros_venv"
+    "$ros_venv/bin/python" -m pip install --quiet --upgrade pip
+    "$ros_venv/bin/python" -m pip install --quiet -r "$ROOT/$ros_req" -c "$req"
+    # After the install, so pip never sees (nor touches) the packages of the other environments.
+    echo "import site; site.addsitedir('$("$local_venv/bin/python" -c "$purelib")')" \
+      >"$("$ros_venv/bin/python" -c "$purelib")/gelstereo-checkout-env.pth"
+    "$ros_venv/bin/python" -c 'import rclpy, gelstereo, cv2'
+    touch "$ros_stamp"
+    say "ROS 2 environment ready ($ros_venv)"
+  fi
 fi
 say "done"

@@ -4,7 +4,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
-bash scripts/setup.sh --with-rerun
+bash scripts/setup.sh --with-rerun --with-ros
 
 step() { printf '\n=== %s\n' "$*"; }
 step "cargo fmt --check"
@@ -30,3 +30,5 @@ step "examples/python/batch_dask.py: recordings on a local Dask cluster, tables 
 # The CLI binary `cargo test` built above for crates/gelstereo-cli/tests.
 GELSTEREO="${CARGO_TARGET_DIR:-target}/debug/gelstereo" \
   "$ROOT/.venv/bin/python" -m pytest -q examples/python/test_batch_dask.py
+step "examples/ros2: the ROS 2 node on the sample recording, against gelstereo track"
+"$ROOT/.venv-ros/bin/python" -m pytest -q -W ignore::DeprecationWarning examples/ros2
