@@ -12,6 +12,7 @@
 
 use std::path::Path;
 
+use gelstereo_core::limits::{ECHO_CHARS, shorten};
 use gelstereo_mechanics::Layer;
 use serde_json::Value;
 
@@ -72,11 +73,11 @@ impl GelFile {
         layer.validate().map_err(|e| invalid(format!("gel.{e}")))?;
         let friction = match v.get("friction") {
             None | Some(Value::Null) => None,
-            Some(f) => Some(
-                f.as_f64()
-                    .filter(|f| f.is_finite() && *f > 0.0)
-                    .ok_or_else(|| invalid(format!("friction: expected a positive number, found {f}")))?,
-            ),
+            Some(f) => Some(f.as_f64().filter(|f| f.is_finite() && *f > 0.0).ok_or_else(|| {
+                let found = f.to_string();
+                let found = shorten(&found, ECHO_CHARS);
+                invalid(format!("friction: expected a positive number, found {found}"))
+            })?),
         };
         Ok(Self { layer, friction })
     }
@@ -141,6 +142,45 @@ pub fn fit_modulus(assumed_kpa: f64, pairs: &[(f64, f64)]) -> Result<ModulusFit>
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(128))]
+
+        /// A gel file with bytes replaced, inserted or cut: facts or an error naming the file,
+        /// never a panic, and never a whole long value echoed back.
+        #[test]
+        fn mutated_gel_files_read_or_name_the_file(
+            edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>(), 0u8..3), 1..6),
+            long in proptest::option::of("[a-z]{200,400}"),
+        ) {
+            let good = GelFile {
+                layer: Layer { thickness_mm: 1.5, modulus_kpa: 150.0, poisson: 0.49 },
+                friction: Some(0.8),
+            };
+            let mut text = good.to_json(serde_json::Map::new()).to_string();
+            if let Some(long) = &long {
+                text = text.replace("0.8", &format!("\"{long}\""));
+            }
+            let mut bytes = text.into_bytes();
+            for (at, byte, kind) in edits {
+                let i = at.index(bytes.len().max(1)).min(bytes.len());
+                match kind {
+                    0 if i < bytes.len() => bytes[i] = byte,
+                    1 => bytes.insert(i, byte),
+                    _ => bytes.truncate(i),
+                }
+            }
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("gel.json");
+            std::fs::write(&path, &bytes).unwrap();
+            if let Err(e) = GelFile::read(&path) {
+                let message = e.to_string();
+                prop_assert!(message.contains("gel.json"), "{}", message);
+                prop_assert!(message.len() < 400, "{}", message);
+            }
+        }
+    }
 
     #[test]
     fn the_modulus_scales_the_force() {

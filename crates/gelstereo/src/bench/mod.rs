@@ -455,6 +455,12 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     pipeline.localizer_mut().set_cpu_clock(process_cpu_clock_ns);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let workers = if b.workers == 0 { cores } else { b.workers };
+    let max = gelstereo_core::limits::MAX_THREADS;
+    if workers > max {
+        return Err(Error::Invalid(format!(
+            "workers: at most {max} threads, got {workers}"
+        )));
+    }
     let load_start = load_average();
     eprintln!(
         "pipeline benchmark: {} ({n} frames of {}x{}, {method}), {} warm-up + {} timed frame-runs per mode; {cores} cores, load average {load_start}",
