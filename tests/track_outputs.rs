@@ -125,11 +125,12 @@ fn jsonl_to_standard_output_parses_line_by_line_and_out_dash_is_refused() {
         assert_eq!(v["schema"], "gelstereo-frame/1");
         let markers = &v["markers"];
         assert_eq!(markers["row"].as_array().unwrap().len(), 529);
-        assert!(markers["X_mm"][0].is_number() && markers["status"][0].is_string());
+        assert!(markers["X_gel_um"][0].is_i64() && markers["lost"].is_array());
         assert!(
             v["force_N"].is_number()
                 && markers["pressure_kPa"][0].is_number()
-                && markers["in_contact"][0].is_boolean()
+                && markers["in_contact"].is_array()
+                && v["gel"]["axes"].is_array()
         );
     }
     // Nothing written beside the stream; `--out -` is refused without creating a folder `-`.
@@ -156,21 +157,20 @@ fn frame_schema() -> jsonschema::Validator {
     jsonschema::draft202012::new(&schema).unwrap()
 }
 
-/// Decimals the stream keeps in a `markers.csv` column (px 2, mm 3, kPa 2).
-fn stream_decimals(column: &str) -> i32 {
-    match column {
-        c if c.starts_with("x_") || c.starts_with("y_") => 2,
-        c if c.ends_with("_mm") => 3,
-        "pressure_kPa" => 2,
-        c => panic!("{c} is not a number column"),
+/// The most bytes a line of the sample's stream may take (529 markers).
+const MAX_LINE_BYTES: usize = 40_000;
+
+/// Whether `a` and `b` agree to `tolerance` (both absent counts as agreeing).
+fn close<const N: usize>(a: Option<[f64; N]>, b: Option<[f64; N]>, tolerance: f64) -> bool {
+    match (a, b) {
+        (None, None) => true,
+        (Some(a), Some(b)) => a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tolerance),
+        _ => false,
     }
 }
 
-/// The most bytes a line of the sample's stream may take (529 markers).
-const MAX_LINE_BYTES: usize = 75_000;
-
 #[test]
-fn jsonl_stream_of_the_sample_follows_its_schema_and_holds_the_tables_rounded() {
+fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() {
     let dir = tempfile::tempdir().unwrap();
     let (out, stream) = (dir.path().join("out"), dir.path().join("stream.jsonl"));
     track_ok(&[
@@ -184,46 +184,70 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_holds_the_tables_rounded() 
         sample().to_str().unwrap(),
     ]);
     let schema = frame_schema();
-    let markers = std::fs::read_to_string(out.join("markers.csv")).unwrap();
-    let mut rows = markers.lines().skip(1);
-    let lines: Vec<String> = std::fs::read_to_string(&stream)
-        .unwrap()
-        .lines()
-        .map(str::to_owned)
-        .collect();
-    assert_eq!(lines.len(), 40);
-    for (k, line) in lines.iter().enumerate() {
+    let text = std::fs::read_to_string(&stream).unwrap();
+    for (k, line) in text.lines().enumerate() {
         assert!(line.len() <= MAX_LINE_BYTES, "frame {k}: {} bytes", line.len());
         let v: serde_json::Value = serde_json::from_str(line).unwrap();
         let errors: Vec<String> = schema.iter_errors(&v).map(|e| e.to_string()).collect();
         assert!(errors.is_empty(), "frame {k}: {errors:?}");
-        // Every cell of markers.csv is in the stream, to the stream's decimals.
-        for m in 0..529 {
-            let cells: Vec<&str> = rows.next().unwrap().split(',').collect();
-            assert_eq!(cells[0], k.to_string());
-            for (name, cell) in MARKER_COLUMNS.iter().zip(&cells).skip(1) {
-                let got = &v["markers"][*name][m];
-                match *name {
-                    "row" | "col" => assert_eq!(got.to_string(), *cell),
-                    "status" => assert_eq!(got.as_str().unwrap_or(""), *cell),
-                    "in_contact" | "slipping" => {
-                        assert_eq!(got.as_bool().map_or("", |b| if b { "1" } else { "0" }), *cell)
-                    }
-                    _ if cell.is_empty() => assert!(got.is_null(), "{name} {got}"),
-                    _ => {
-                        let csv: f64 = cell.parse().unwrap();
-                        let step = 10f64.powi(-stream_decimals(name));
-                        let diff = (got.as_f64().unwrap() - csv).abs();
-                        assert!(
-                            diff <= 0.5 * step + 1e-9,
-                            "frame {k} marker {m} {name}: {got} vs {csv}"
-                        );
-                    }
-                }
-            }
+    }
+    // Read back, every cell of markers.csv and frames.csv is there to the stream's precision:
+    // px to 0.005, gel-frame mm to half a micrometre, camera-frame mm (through the gel frame) to
+    // one micrometre, kPa to 0.005; words and flags exactly.
+    let table = gelstereo_core::table::CsvTable::read(&out.join("markers.csv")).unwrap();
+    let frames = gelstereo_core::table::CsvTable::read(&out.join("frames.csv")).unwrap();
+    let read: Vec<_> = gelstereo::sink::read_frames(text.as_bytes(), "stream.jsonl")
+        .collect::<Result<_, _>>()
+        .unwrap();
+    assert_eq!(read.len(), 40);
+    let mut row = 0;
+    for (k, (frame, gel)) in read.iter().enumerate() {
+        assert!(gel.is_some(), "frame {k} names its gel frame");
+        let summary = gelstereo_core::FrameSummary::from_table(&frames, k).unwrap();
+        assert_eq!(
+            (frame.summary.slip, frame.summary.contact),
+            (summary.slip, summary.contact)
+        );
+        assert!(close(
+            frame.summary.force_n.map(|f| [f]),
+            summary.force_n.map(|f| [f]),
+            5e-5
+        ));
+        for m in &frame.markers {
+            let truth = gelstereo_core::MarkerRecord::from_table(&table, row).unwrap();
+            row += 1;
+            let at = format!("frame {k} marker {:?}", m.index);
+            assert_eq!(
+                (m.frame, m.index, m.status),
+                (truth.frame, truth.index, truth.status),
+                "{at}"
+            );
+            assert_eq!(
+                (m.in_contact, m.slipping),
+                (truth.in_contact, truth.slipping),
+                "{at}"
+            );
+            let px = |p: Option<gelstereo_core::Point2>| p.map(|p| [p.x, p.y]);
+            assert!(close(px(m.left_px), px(truth.left_px), 0.005 + 1e-9), "{at}");
+            assert!(close(px(m.right_px), px(truth.right_px), 0.005 + 1e-9), "{at}");
+            assert!(
+                close(m.gel_position_mm, truth.gel_position_mm, 5e-4 + 1e-9),
+                "{at}"
+            );
+            assert!(
+                close(m.gel_displacement_mm, truth.gel_displacement_mm, 5e-4 + 1e-9),
+                "{at}"
+            );
+            assert!(close(m.position_mm, truth.position_mm, 1e-3), "{at}");
+            assert!(close(m.displacement_mm, truth.displacement_mm, 1e-3), "{at}");
+            let kpa = |v: Option<f64>| v.map(|v| [v]);
+            assert!(
+                close(kpa(m.pressure_kpa), kpa(truth.pressure_kpa), 0.005 + 1e-9),
+                "{at}"
+            );
         }
     }
-    assert!(rows.next().is_none());
+    assert_eq!(row, table.len());
 }
 
 #[test]

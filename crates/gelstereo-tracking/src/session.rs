@@ -808,14 +808,17 @@ impl MonoSession {
             .skip_frames(frames_skipped(&mut self.last_frame, frame));
         let track = self.tracker.update_tiered(detections, second_tier);
         let planar = self.detector.update(&self.tracker, &track)?;
+        // The contact region is per marker in tracker order, as the track's markers.
         let markers = track
             .markers
             .iter()
-            .map(|m| MarkerRecord {
+            .enumerate()
+            .map(|(k, m)| MarkerRecord {
                 frame,
                 index: m.index,
                 left_px: m.position_px,
                 status: Some(m.status),
+                in_contact: planar.in_contact.get(k).copied(),
                 ..Default::default()
             })
             .collect();

@@ -1,14 +1,26 @@
 //! The frame stream, `gelstereo track --jsonl`: one JSON object per frame and line, described by
-//! the JSON Schema `docs/schema/frame-v1.json` and named in every line's `schema` field.
+//! the JSON Schema `docs/schema/frame-v1.json` and named in every line's `schema` field; and
+//! [`parse_frame_line`], which reads a line back into the [`FrameOutput`] it was written from.
 //!
-//! A line holds the `frames.csv` columns, then `markers`: one array per `markers.csv` column
-//! (`frame` aside), each in marker order. Column arrays name each column once per frame instead of
-//! once per marker, and numbers keep the decimals the measurement supports, so a frame of a
-//! 23 x 23 lattice stays a few tens of kB.
+//! A line holds the `frames.csv` columns, the gel frame (`gel`: its origin and axes in the left
+//! camera frame), then `markers`:
+//! - one array per per-marker number, in marker order (row-major lattice ids): `row`, `col`, the
+//!   pixel positions, the 3-D positions and displacements in the gel frame in integer micrometres
+//!   (`X_gel_um` ...), and `pressure_kPa`;
+//! - the few markers that differ from the rest as lists of their indices into those arrays:
+//!   `predicted` and `lost` (every other marker is tracked), `in_contact` and `slipping` (`null`
+//!   when the frame's contact is unknown).
+//!
+//! The camera-frame positions of `markers.csv` are not repeated: they are the gel-frame ones
+//! through `gel`, which the reader applies. Each number keeps the decimals its measurement
+//! supports and no more, so a frame of a 23 x 23 lattice stays under 40 kB.
 
-use std::io::Write;
+use std::io::{BufRead, Read, Write};
 
-use gelstereo_core::MarkerRecord;
+use gelstereo_core::{FrameSummary, GridIndex, MarkerRecord, MarkerStatus, Point2, SlipState};
+use gelstereo_tracking::GelFrame;
+use nalgebra::{Point3, Vector3};
+use serde_json::Value;
 
 use crate::{Error, FrameOutput, Result};
 
@@ -18,8 +30,6 @@ pub const FRAME_SCHEMA: &str = "gelstereo-frame/1";
 
 /// Pixels: a hundredth of a pixel, below the frame-to-frame jitter of a tracked marker.
 const PX_DECIMALS: usize = 2;
-/// A marker's position and displacement, mm: one micrometre, at the stereo noise of a still gel.
-const MARKER_MM_DECIMALS: usize = 3;
 /// Pressure, kPa.
 const KPA_DECIMALS: usize = 2;
 /// A frame's depth and centroid, mm (a few numbers per frame: one digit beyond the markers').
@@ -30,6 +40,14 @@ const AREA_DECIMALS: usize = 3;
 const FORCE_DECIMALS: usize = 4;
 /// Time, s, as in `frames.csv`.
 const TIME_DECIMALS: usize = 6;
+/// The gel frame's origin, mm: a tenth of a micrometre, below the markers' micrometre.
+const ORIGIN_DECIMALS: usize = 4;
+/// The gel frame's axes (unit vectors): a turn of 1e-7 rad moves a point 30 mm away by 3 nm.
+const AXIS_DECIMALS: usize = 7;
+
+/// The longest line [`read_frames`] reads (a 23 x 23 frame is a few tens of kB; this allows a
+/// lattice of a hundred times as many markers).
+pub const MAX_LINE_BYTES: u64 = 16 * 1024 * 1024;
 
 /// One JSON value of a line.
 enum Cell {
@@ -41,42 +59,47 @@ enum Cell {
 
 type MarkerField = (&'static str, fn(&MarkerRecord) -> Cell);
 
-/// `markers.csv`'s columns after `frame`, in its order, and how each is read from a marker.
-const MARKER_FIELDS: [MarkerField; 22] = [
+/// The per-marker number arrays, in their order in a line.
+const MARKER_ARRAYS: [MarkerField; 13] = [
     ("row", |m| Cell::Int(u32::from(m.index.row))),
     ("col", |m| Cell::Int(u32::from(m.index.col))),
     ("x_left", |m| px(m.left_px.map(|p| p.x))),
     ("y_left", |m| px(m.left_px.map(|p| p.y))),
     ("x_right", |m| px(m.right_px.map(|p| p.x))),
     ("y_right", |m| px(m.right_px.map(|p| p.y))),
-    ("X_mm", |m| mm(m.position_mm, 0)),
-    ("Y_mm", |m| mm(m.position_mm, 1)),
-    ("Z_mm", |m| mm(m.position_mm, 2)),
-    ("dX_mm", |m| mm(m.displacement_mm, 0)),
-    ("dY_mm", |m| mm(m.displacement_mm, 1)),
-    ("dZ_mm", |m| mm(m.displacement_mm, 2)),
-    ("status", |m| Cell::Word(m.status.map(|s| s.as_str()))),
+    ("X_gel_um", |m| um(m.gel_position_mm, 0)),
+    ("Y_gel_um", |m| um(m.gel_position_mm, 1)),
+    ("Z_gel_um", |m| um(m.gel_position_mm, 2)),
+    ("dX_gel_um", |m| um(m.gel_displacement_mm, 0)),
+    ("dY_gel_um", |m| um(m.gel_displacement_mm, 1)),
+    ("dZ_gel_um", |m| um(m.gel_displacement_mm, 2)),
     ("pressure_kPa", |m| Cell::Num(m.pressure_kpa, KPA_DECIMALS)),
-    ("in_contact", |m| Cell::Flag(m.in_contact)),
-    ("slipping", |m| Cell::Flag(m.slipping)),
-    ("X_gel_mm", |m| mm(m.gel_position_mm, 0)),
-    ("Y_gel_mm", |m| mm(m.gel_position_mm, 1)),
-    ("Z_gel_mm", |m| mm(m.gel_position_mm, 2)),
-    ("dX_gel_mm", |m| mm(m.gel_displacement_mm, 0)),
-    ("dY_gel_mm", |m| mm(m.gel_displacement_mm, 1)),
-    ("dZ_gel_mm", |m| mm(m.gel_displacement_mm, 2)),
+];
+
+type MarkerSet = (&'static str, fn(&MarkerRecord) -> Option<bool>);
+
+/// The per-marker index lists: the markers for which the test holds. `in_contact` and
+/// `slipping` are `null` when no marker's value is known (a flagged frame, a mono sensor).
+const MARKER_SETS: [MarkerSet; 4] = [
+    ("predicted", |m| Some(m.status == Some(MarkerStatus::Predicted))),
+    ("lost", |m| Some(m.status == Some(MarkerStatus::Lost))),
+    ("in_contact", |m| m.in_contact),
+    ("slipping", |m| m.slipping),
 ];
 
 fn px(v: Option<f64>) -> Cell {
     Cell::Num(v, PX_DECIMALS)
 }
 
-fn mm(v: Option<[f64; 3]>, k: usize) -> Cell {
-    Cell::Num(v.map(|v| v[k]), MARKER_MM_DECIMALS)
+/// A gel-frame coordinate, mm, as integer micrometres: the stereo noise of a still gel.
+fn um(v: Option<[f64; 3]>, k: usize) -> Cell {
+    Cell::Num(v.map(|v| 1000.0 * v[k]), 0)
 }
 
-/// The line of one frame (no newline), valid against `docs/schema/frame-v1.json`.
-pub fn frame_line(out: &FrameOutput) -> String {
+/// The line of one frame (no newline), valid against `docs/schema/frame-v1.json`. `gel` is the
+/// pipeline's gel frame ([`crate::Pipeline::gel_frame`]); `None` for a mono sensor or before the
+/// reference frame.
+pub fn frame_line(out: &FrameOutput, gel: Option<&GelFrame>) -> String {
     let s = &out.summary;
     // An unmeasured frame's contact is unknown: null, as its empty cells in frames.csv.
     let known = |v: Option<f64>| v.filter(|_| s.measured);
@@ -95,7 +118,7 @@ pub fn frame_line(out: &FrameOutput) -> String {
         ("shear_y_N", n(s.shear_n.map(|v| v[1]), FORCE_DECIMALS)),
         ("torque_Nmm", n(s.torque_nmm, FORCE_DECIMALS)),
     ];
-    let mut line = String::with_capacity(64 + out.markers.len() * 128);
+    let mut line = String::with_capacity(256 + out.markers.len() * 72);
     line.push('{');
     push_key(&mut line, "schema");
     push_text(&mut line, Some(FRAME_SCHEMA));
@@ -105,21 +128,60 @@ pub fn frame_line(out: &FrameOutput) -> String {
     }
     push_key(&mut line, "note");
     push_text(&mut line, out.note.as_deref());
+    push_key(&mut line, "gel");
+    push_gel(&mut line, gel);
     push_key(&mut line, "markers");
     line.push('{');
-    for (name, field) in MARKER_FIELDS {
+    for (name, field) in MARKER_ARRAYS {
         push_key(&mut line, name);
-        line.push('[');
-        for (k, m) in out.markers.iter().enumerate() {
-            if k > 0 {
-                line.push(',');
-            }
-            push_cell(&mut line, &field(m));
+        push_list(&mut line, out.markers.iter().map(field));
+    }
+    for (name, test) in MARKER_SETS {
+        push_key(&mut line, name);
+        if out.markers.iter().all(|m| test(m).is_none()) {
+            line.push_str("null");
+        } else {
+            let members = out.markers.iter().enumerate();
+            let indices = members.filter(|(_, m)| test(m) == Some(true));
+            push_list(&mut line, indices.map(|(k, _)| Cell::Int(k as u32)));
         }
-        line.push(']');
     }
     line.push_str("}}");
     line
+}
+
+/// `{"origin_mm":[x,y,z],"axes":[[..],[..],[..]]}`, or `null`.
+fn push_gel(line: &mut String, gel: Option<&GelFrame>) {
+    let Some(gel) = gel else {
+        line.push_str("null");
+        return;
+    };
+    line.push('{');
+    push_key(line, "origin_mm");
+    push_list(
+        line,
+        gel.origin_mm.iter().map(|v| Cell::Num(Some(*v), ORIGIN_DECIMALS)),
+    );
+    push_key(line, "axes");
+    line.push('[');
+    for (k, axis) in gel.axes.iter().enumerate() {
+        if k > 0 {
+            line.push(',');
+        }
+        push_list(line, axis.iter().map(|v| Cell::Num(Some(*v), AXIS_DECIMALS)));
+    }
+    line.push_str("]}");
+}
+
+fn push_list(line: &mut String, cells: impl Iterator<Item = Cell>) {
+    line.push('[');
+    for (k, cell) in cells.enumerate() {
+        if k > 0 {
+            line.push(',');
+        }
+        push_cell(line, &cell);
+    }
+    line.push(']');
 }
 
 /// `"name":`, after a comma unless it opens its object.
@@ -186,7 +248,7 @@ impl<W: Write> JsonlSink<W> {
 
 impl<W: Write> super::Sink for JsonlSink<W> {
     fn frame(&mut self, frame: &super::FrameContext) -> Result<()> {
-        let mut line = frame_line(frame.output);
+        let mut line = frame_line(frame.output, frame.pipeline.gel_frame().as_ref());
         line.push('\n');
         self.out
             .write_all(line.as_bytes())
@@ -203,15 +265,449 @@ impl<W: Write> super::Sink for JsonlSink<W> {
     }
 }
 
+/// Reads one line of the stream back into the [`FrameOutput`] it was written from, and the gel
+/// frame the line carries. The camera-frame positions and displacements are the gel-frame ones
+/// through that gel frame (so they agree with `markers.csv` to about a micrometre); the contact
+/// region is the `in_contact` markers. What the stream does not carry comes back empty: the
+/// stages' results, the log, the reference positions and earlier frames (each is a line of its
+/// own). `name` (the stream and line) starts every error, which names the field and what was
+/// expected.
+pub fn parse_frame_line(line: &str, name: &str) -> Result<(FrameOutput, Option<GelFrame>)> {
+    let v: Value = serde_json::from_str(line)
+        .map_err(|e| Error::Invalid(format!("{name}: expected a JSON object: {e}")))?;
+    let fields = Fields { v: &v, name };
+    let schema = fields.get("schema")?;
+    if schema.as_str() != Some(FRAME_SCHEMA) {
+        return Err(fields.bad("schema", &format!("\"{FRAME_SCHEMA}\""), schema));
+    }
+    let gel = fields.gel()?;
+    let frame = fields.integer(&v, "frame", u32::MAX.into())? as u32;
+    let summary = fields.summary(frame)?;
+    let markers = fields.markers(frame, gel.as_ref())?;
+    let contact_region = markers
+        .iter()
+        .filter(|m| m.in_contact == Some(true))
+        .map(|m| m.index)
+        .collect();
+    let note = match fields.get("note")? {
+        Value::Null => None,
+        Value::String(t) => Some(t.clone()),
+        other => return Err(fields.bad("note", "a string or null", other)),
+    };
+    let t_s = fields
+        .number(&v, "t_s")?
+        .ok_or_else(|| fields.bad("t_s", "a number", &Value::Null))?;
+    let output = FrameOutput {
+        frame,
+        t_s,
+        markers,
+        summary,
+        contact_region,
+        note,
+        log: Vec::new(),
+        earlier: Vec::new(),
+        reference_left_px: Vec::new(),
+        reference_right_px: Vec::new(),
+        stages: None,
+    };
+    Ok((output, gel))
+}
+
+/// Reads a whole stream: one [`parse_frame_line`] per non-blank line, named `name:LINE` in errors.
+/// A line longer than [`MAX_LINE_BYTES`] is an error before it is held in memory whole.
+pub fn read_frames<R: BufRead>(
+    reader: R,
+    name: &str,
+) -> impl Iterator<Item = Result<(FrameOutput, Option<GelFrame>)>> {
+    let name = name.to_owned();
+    let mut reader = reader;
+    let mut number = 0usize;
+    std::iter::from_fn(move || {
+        loop {
+            number += 1;
+            let mut line = String::new();
+            let read = reader.by_ref().take(MAX_LINE_BYTES + 1).read_line(&mut line);
+            let at = format!("{name}:{number}");
+            match read {
+                Err(e) => return Some(Err(Error::Invalid(format!("{at}: cannot read: {e}")))),
+                Ok(0) => return None,
+                Ok(n) if n as u64 > MAX_LINE_BYTES => {
+                    return Some(Err(Error::Invalid(format!(
+                        "{at}: expected a line of at most {MAX_LINE_BYTES} bytes"
+                    ))));
+                }
+                Ok(_) if line.trim().is_empty() => continue,
+                Ok(_) => return Some(parse_frame_line(line.trim_end(), &at)),
+            }
+        }
+    })
+}
+
+/// The fields of one parsed line, with errors that name the line and the field.
+struct Fields<'a> {
+    v: &'a Value,
+    name: &'a str,
+}
+
+impl Fields<'_> {
+    fn bad(&self, field: &str, expected: &str, found: &Value) -> Error {
+        let found = found.to_string();
+        let found = gelstereo_core::limits::shorten(&found, gelstereo_core::limits::ECHO_CHARS);
+        Error::Invalid(format!(
+            "{}: {field}: expected {expected}, found {found}",
+            self.name
+        ))
+    }
+
+    fn get(&self, field: &str) -> Result<&Value> {
+        self.v
+            .get(field)
+            .ok_or_else(|| Error::Invalid(format!("{}: {field}: missing", self.name)))
+    }
+
+    /// `object[field]`: a finite number or null.
+    fn number(&self, object: &Value, field: &str) -> Result<Option<f64>> {
+        match object.get(field) {
+            None => Err(Error::Invalid(format!("{}: {field}: missing", self.name))),
+            Some(Value::Null) => Ok(None),
+            Some(n) => match n.as_f64().filter(|x| x.is_finite()) {
+                Some(x) => Ok(Some(x)),
+                None => Err(self.bad(field, "a number or null", n)),
+            },
+        }
+    }
+
+    /// `object[field]`: an integer from 0 to `max`.
+    fn integer(&self, object: &Value, field: &str, max: u64) -> Result<u64> {
+        let n = object
+            .get(field)
+            .ok_or_else(|| Error::Invalid(format!("{}: {field}: missing", self.name)))?;
+        n.as_u64()
+            .filter(|x| *x <= max)
+            .ok_or_else(|| self.bad(field, &format!("an integer from 0 to {max}"), n))
+    }
+
+    fn summary(&self, frame: u32) -> Result<FrameSummary> {
+        let v = self.v;
+        let contact = match self.get("contact")? {
+            Value::Null => None,
+            Value::Bool(b) => Some(*b),
+            other => return Err(self.bad("contact", "true, false or null", other)),
+        };
+        let pair = |a: &str, b: &str| -> Result<Option<[f64; 2]>> {
+            Ok(match (self.number(v, a)?, self.number(v, b)?) {
+                (Some(x), Some(y)) => Some([x, y]),
+                _ => None,
+            })
+        };
+        let slip = match self.get("slip")? {
+            Value::Null => SlipState::NoContact,
+            Value::String(word) => word.parse().map_err(|_| {
+                self.bad(
+                    "slip",
+                    "a slip state (no_contact, stick, partial_slip, gross_slip)",
+                    &v["slip"],
+                )
+            })?,
+            other => return Err(self.bad("slip", "a string or null", other)),
+        };
+        Ok(FrameSummary {
+            frame,
+            contact: contact.unwrap_or(false),
+            contact_area_mm2: self.number(v, "contact_area_mm2")?,
+            max_depth_mm: self.number(v, "max_depth_mm")?,
+            centroid_mm: pair("centroid_X_mm", "centroid_Y_mm")?,
+            slip,
+            force_n: self.number(v, "force_N")?,
+            shear_n: pair("shear_x_N", "shear_y_N")?,
+            torque_nmm: self.number(v, "torque_Nmm")?,
+            measured: contact.is_some(),
+        })
+    }
+
+    fn gel(&self) -> Result<Option<GelFrame>> {
+        let gel = self.get("gel")?;
+        if gel.is_null() {
+            return Ok(None);
+        }
+        let triple = |v: Option<&Value>, what: &str| -> Result<Vector3<f64>> {
+            let found = v.unwrap_or(&Value::Null);
+            let numbers: Option<Vec<f64>> = found
+                .as_array()
+                .filter(|a| a.len() == 3)
+                .and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.is_finite())).collect());
+            numbers
+                .map(|n| Vector3::new(n[0], n[1], n[2]))
+                .ok_or_else(|| self.bad(what, "3 numbers", found))
+        };
+        let origin = triple(gel.get("origin_mm"), "gel.origin_mm")?;
+        let axes = gel.get("axes").and_then(Value::as_array).filter(|a| a.len() == 3);
+        let axes = axes.ok_or_else(|| self.bad("gel.axes", "3 axes of 3 numbers", gel))?;
+        let axes = [
+            triple(axes.first(), "gel.axes")?,
+            triple(axes.get(1), "gel.axes")?,
+            triple(axes.get(2), "gel.axes")?,
+        ];
+        for axis in &axes {
+            if (axis.norm() - 1.0).abs() > 1e-4 {
+                return Err(self.bad("gel.axes", "unit vectors", &gel["axes"]));
+            }
+        }
+        Ok(Some(GelFrame {
+            origin_mm: Point3::from(origin),
+            axes,
+            pitch_mm: f64::NAN,
+        }))
+    }
+
+    fn markers(&self, frame: u32, gel: Option<&GelFrame>) -> Result<Vec<MarkerRecord>> {
+        let markers = self.get("markers")?;
+        let count = markers.get("row").and_then(Value::as_array).map_or(0, Vec::len);
+        let mut arrays = Vec::with_capacity(MARKER_ARRAYS.len());
+        for (field, _) in MARKER_ARRAYS {
+            let found = markers.get(field).unwrap_or(&Value::Null);
+            match found.as_array() {
+                Some(a) if a.len() == count => arrays.push(a),
+                _ => {
+                    let expected = format!("an array of {count} values (one per marker)");
+                    return Err(self.bad(&format!("markers.{field}"), &expected, found));
+                }
+            }
+        }
+        let mut sets = Vec::with_capacity(MARKER_SETS.len());
+        for (field, _) in MARKER_SETS {
+            sets.push(self.index_set(markers, field, count)?);
+        }
+        let number = |k: usize, m: usize| -> Result<Option<f64>> {
+            let (field, _) = MARKER_ARRAYS[k];
+            match &arrays[k][m] {
+                Value::Null => Ok(None),
+                n => n
+                    .as_f64()
+                    .filter(|x| x.is_finite())
+                    .map(Some)
+                    .ok_or_else(|| self.bad(&format!("markers.{field}[{m}]"), "a number or null", n)),
+            }
+        };
+        let id = |k: usize, m: usize| -> Result<u16> {
+            let (field, _) = MARKER_ARRAYS[k];
+            let n = &arrays[k][m];
+            n.as_u64()
+                .and_then(|x| u16::try_from(x).ok())
+                .ok_or_else(|| self.bad(&format!("markers.{field}[{m}]"), "a lattice index", n))
+        };
+        let point = |kx: usize, m: usize| -> Result<Option<Point2>> {
+            Ok(match (number(kx, m)?, number(kx + 1, m)?) {
+                (Some(x), Some(y)) => Some(Point2::new(x, y)),
+                _ => None,
+            })
+        };
+        let vector = |k0: usize, m: usize| -> Result<Option<[f64; 3]>> {
+            Ok(match (number(k0, m)?, number(k0 + 1, m)?, number(k0 + 2, m)?) {
+                (Some(x), Some(y), Some(z)) => Some([x / 1000.0, y / 1000.0, z / 1000.0]),
+                _ => None,
+            })
+        };
+        let member = |set: &Option<Vec<bool>>, m: usize| set.as_ref().map(|s| s[m]);
+        let mut rows = Vec::with_capacity(count);
+        for m in 0..count {
+            let gel_position_mm = vector(6, m)?;
+            let gel_displacement_mm = vector(9, m)?;
+            let status = match (member(&sets[0], m), member(&sets[1], m)) {
+                (_, Some(true)) => MarkerStatus::Lost,
+                (Some(true), _) => MarkerStatus::Predicted,
+                _ => MarkerStatus::Tracked,
+            };
+            rows.push(MarkerRecord {
+                frame,
+                index: GridIndex::new(id(0, m)?, id(1, m)?),
+                left_px: point(2, m)?,
+                right_px: point(4, m)?,
+                position_mm: gel.zip(gel_position_mm).map(|(g, p)| camera_point(g, p)),
+                displacement_mm: gel.zip(gel_displacement_mm).map(|(g, d)| camera_vector(g, d)),
+                status: Some(status),
+                pressure_kpa: number(12, m)?,
+                in_contact: member(&sets[2], m),
+                slipping: member(&sets[3], m),
+                gel_position_mm,
+                gel_displacement_mm,
+            });
+        }
+        Ok(rows)
+    }
+
+    /// An index list as one flag per marker; `None` for `null`.
+    fn index_set(&self, markers: &Value, field: &str, count: usize) -> Result<Option<Vec<bool>>> {
+        let found = markers.get(field).unwrap_or(&Value::Null);
+        if found.is_null() {
+            return Ok(None);
+        }
+        let expected = format!("an array of marker indices below {count}");
+        let indices = found
+            .as_array()
+            .ok_or_else(|| self.bad(&format!("markers.{field}"), &expected, found))?;
+        let mut flags = vec![false; count];
+        for index in indices {
+            let k = index
+                .as_u64()
+                .and_then(|k| usize::try_from(k).ok())
+                .filter(|k| *k < count)
+                .ok_or_else(|| self.bad(&format!("markers.{field}"), &expected, index))?;
+            flags[k] = true;
+        }
+        Ok(Some(flags))
+    }
+}
+
+/// A gel-frame point in the left camera frame, mm (the axes are orthonormal: the inverse of
+/// [`GelFrame::to_gel`]).
+fn camera_point(gel: &GelFrame, p: [f64; 3]) -> [f64; 3] {
+    let v = camera_vector(gel, p);
+    [
+        v[0] + gel.origin_mm.x,
+        v[1] + gel.origin_mm.y,
+        v[2] + gel.origin_mm.z,
+    ]
+}
+
+fn camera_vector(gel: &GelFrame, v: [f64; 3]) -> [f64; 3] {
+    let c = gel.axes[0] * v[0] + gel.axes[1] * v[1] + gel.axes[2] * v[2];
+    [c.x, c.y, c.z]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use gelstereo_core::table::MARKER_COLUMNS;
+    use proptest::prelude::*;
 
-    #[test]
-    fn marker_arrays_are_the_marker_table_columns_after_frame() {
-        let names: Vec<&str> = MARKER_FIELDS.iter().map(|(n, _)| *n).collect();
-        assert_eq!(names, MARKER_COLUMNS[1..]);
+    /// A frame of `n` markers with values from `seed` values, some missing, and a tilted gel frame.
+    fn frame_of(values: &[(f64, f64, f64, u8)], measured: bool) -> (FrameOutput, GelFrame) {
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let gel = GelFrame {
+            origin_mm: Point3::new(0.5, -0.25, 24.0),
+            axes: [
+                Vector3::new(c, 0.0, s),
+                Vector3::new(0.0, 1.0, 0.0),
+                Vector3::new(-s, 0.0, c),
+            ],
+            pitch_mm: 0.8,
+        };
+        let markers = values
+            .iter()
+            .enumerate()
+            .map(|(k, &(a, b, z, kind))| {
+                let gel_position_mm = (kind % 5 != 0).then_some([a, b, z]);
+                let gel_displacement_mm = gel_position_mm.map(|_| [b / 100.0, a / 100.0, -z / 50.0]);
+                let status = [MarkerStatus::Tracked, MarkerStatus::Predicted, MarkerStatus::Lost]
+                    [usize::from(kind % 3)];
+                MarkerRecord {
+                    frame: 7,
+                    index: GridIndex::new((k / 23) as u16, (k % 23) as u16),
+                    left_px: Some(Point2::new(a * 10.0, b * 10.0)),
+                    right_px: (kind % 2 == 0).then(|| Point2::new(b, a)),
+                    position_mm: gel_position_mm.map(|p| camera_point(&gel, p)),
+                    displacement_mm: gel_displacement_mm.map(|d| camera_vector(&gel, d)),
+                    status: Some(status),
+                    pressure_kpa: measured.then_some(z.abs()),
+                    in_contact: measured.then_some(kind % 4 == 1),
+                    slipping: measured.then_some(kind % 7 == 3),
+                    gel_position_mm,
+                    gel_displacement_mm,
+                }
+            })
+            .collect();
+        let mut summary = FrameSummary::unmeasured(7);
+        if measured {
+            summary = FrameSummary {
+                contact: true,
+                contact_area_mm2: Some(3.5),
+                max_depth_mm: Some(0.25),
+                centroid_mm: Some([1.0, -2.0]),
+                slip: SlipState::PartialSlip,
+                force_n: Some(1.25),
+                shear_n: Some([0.1, -0.2]),
+                torque_nmm: Some(0.05),
+                measured: true,
+                frame: 7,
+            };
+        }
+        let output = FrameOutput {
+            frame: 7,
+            t_s: 0.25,
+            markers,
+            summary,
+            contact_region: Vec::new(),
+            note: (!measured).then(|| "cannot read \"x\"".to_owned()),
+            log: Vec::new(),
+            earlier: Vec::new(),
+            reference_left_px: Vec::new(),
+            reference_right_px: Vec::new(),
+            stages: None,
+        };
+        (output, gel)
+    }
+
+    fn within<const N: usize>(a: Option<[f64; N]>, b: Option<[f64; N]>, tolerance: f64) -> bool {
+        match (a, b) {
+            (None, None) => true,
+            (Some(a), Some(b)) => a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= tolerance),
+            _ => false,
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// A written line reads back as the frame, to the stream's precision.
+        #[test]
+        fn lines_read_back_as_the_frame_they_were_written_from(
+            values in proptest::collection::vec((-20.0f64..20.0, -20.0f64..20.0, -2.0f64..2.0, any::<u8>()), 0..60),
+            measured in any::<bool>(),
+        ) {
+            let (frame, gel) = frame_of(&values, measured);
+            let line = frame_line(&frame, Some(&gel));
+            let (back, back_gel) = parse_frame_line(&line, "s.jsonl:1").unwrap();
+            prop_assert!(back_gel.is_some());
+            prop_assert_eq!(&back.summary, &frame.summary);
+            prop_assert_eq!(back.note, frame.note);
+            prop_assert_eq!(back.markers.len(), frame.markers.len());
+            for (m, truth) in back.markers.iter().zip(&frame.markers) {
+                prop_assert_eq!((m.index, m.status, m.in_contact, m.slipping), (truth.index, truth.status, truth.in_contact, truth.slipping));
+                prop_assert!(within(m.gel_position_mm, truth.gel_position_mm, 5e-4 + 1e-9));
+                prop_assert!(within(m.gel_displacement_mm, truth.gel_displacement_mm, 5e-4 + 1e-9));
+                prop_assert!(within(m.position_mm, truth.position_mm, 1e-3));
+                prop_assert!(within(m.left_px.map(|p| [p.x, p.y]), truth.left_px.map(|p| [p.x, p.y]), 0.005 + 1e-9));
+            }
+            let region: Vec<GridIndex> = frame.markers.iter().filter(|m| m.in_contact == Some(true)).map(|m| m.index).collect();
+            prop_assert_eq!(back.contact_region, region);
+        }
+
+        /// A line with bytes replaced, inserted or cut: a frame or an error naming the stream and
+        /// line, never a panic.
+        #[test]
+        fn mutated_lines_read_or_name_the_line(
+            values in proptest::collection::vec((-20.0f64..20.0, -20.0f64..20.0, -2.0f64..2.0, any::<u8>()), 1..8),
+            edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>(), 0u8..3), 1..6),
+        ) {
+            let (frame, gel) = frame_of(&values, true);
+            let mut bytes = frame_line(&frame, Some(&gel)).into_bytes();
+            for (at, byte, kind) in edits {
+                let i = at.index(bytes.len().max(1)).min(bytes.len());
+                match kind {
+                    0 if i < bytes.len() => bytes[i] = byte,
+                    1 => bytes.insert(i, byte),
+                    _ => bytes.truncate(i),
+                }
+            }
+            let text = String::from_utf8_lossy(&bytes);
+            for result in read_frames(text.as_bytes(), "s.jsonl") {
+                if let Err(e) = result {
+                    let message = e.to_string();
+                    prop_assert!(message.starts_with("s.jsonl:"), "{}", message);
+                    prop_assert!(message.len() < 600, "{}", message);
+                }
+            }
+        }
     }
 
     #[test]
