@@ -100,6 +100,25 @@ class Frame:
     """Informational lines (how the reference lattice was indexed, re-zeroing)."""
     earlier: List["Frame"]
     """Frames flagged before the reference was indexed, returned again with a lost row per marker."""
+    camera_from_gel: Optional[npt.NDArray[np.float64]]
+    """(4, 4) transform taking gel-frame points (mm) to the left camera frame (the gel's axes as
+    columns, its origin as the translation); None for a mono sensor or before the reference."""
+
+def parse_frame(line: str) -> Frame:
+    """One line of a `gelstereo track --jsonl` stream as the Frame `Pipeline.process` returned for it,
+    to the stream's precision (camera-frame values through the line's gel frame); `log` and `earlier`
+    are not in the stream and come back empty. Raises ValueError naming the field of a bad line."""
+
+class StreamReader:
+    """The frames of a stream file, read one at a time."""
+
+    def __iter__(self) -> "StreamReader": ...
+    def __next__(self) -> Frame: ...
+
+def read_stream(path: Union[str, os.PathLike[str]]) -> StreamReader:
+    """Reads a `gelstereo track --jsonl` file frame by frame (`for frame in read_stream(path)`), each
+    as `parse_frame` gives it; blank lines are skipped. Raises GelstereoError when the file cannot be
+    opened, ValueError (while iterating) naming the file and line of a bad line."""
 
 class Pipeline:
     """The tracking pipeline: built once (models loaded, calibration read), then fed frame by frame.

@@ -5,6 +5,8 @@
 //! - [`detect`]: `gelstereo.detect(image, method="marknet-mre")`, markers as an `(N, 3)` array.
 //! - [`pipeline`]: `gelstereo.Pipeline` over the facade's `Pipeline`; `process` gives a
 //!   `gelstereo.Frame` (markers as a dict of numpy arrays, `Contact`, slip state, timestamp).
+//! - [`stream`]: `gelstereo.read_stream(path)` / `parse_frame(line)`, the `--jsonl` stream read
+//!   back into `gelstereo.Frame`s.
 //!
 //! Every Rust error becomes a `gelstereo.GelstereoError` carrying the Rust message with its causes;
 //! arrays of the wrong type or shape raise `TypeError` / `ValueError`. Work on images runs with the
@@ -17,6 +19,7 @@ mod detect;
 mod error;
 mod image;
 mod pipeline;
+mod stream;
 
 use pyo3::prelude::*;
 
@@ -30,5 +33,8 @@ fn gelstereo_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<pipeline::PyPipeline>()?;
     m.add_class::<pipeline::PyFrame>()?;
     m.add_class::<pipeline::PyContact>()?;
+    m.add_function(wrap_pyfunction!(stream::parse_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(stream::read_stream, m)?)?;
+    m.add_class::<stream::StreamReader>()?;
     Ok(())
 }

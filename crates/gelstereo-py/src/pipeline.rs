@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::sync::{Mutex, MutexGuard};
 
-use gelstereo::GelFacts;
+use gelstereo::{GelFacts, GelFrame};
 use gelstereo::core::StereoPair;
 use gelstereo::gel::GelFile;
 use gelstereo::sim::SensorSpec;
@@ -161,8 +161,12 @@ impl PyPipeline {
             images,
             time_s: timestamp,
         };
-        let output = py.detach(|| self.lock()?.process(&frame).map_err(|e| to_py(&e)))?;
-        PyFrame::new(py, output)
+        let (output, gel) = py.detach(|| {
+            let mut pipeline = self.lock()?;
+            let output = pipeline.process(&frame).map_err(|e| to_py(&e))?;
+            PyResult::Ok((output, pipeline.gel_frame()))
+        })?;
+        PyFrame::new(py, output, gel.as_ref())
     }
 
     /// Makes the current shape of the gel the reference from the next frame on (drift correction):
@@ -272,6 +276,9 @@ fn grid_shape(grid: &Bound<'_, PyAny>) -> PyResult<GridShape> {
 ///     log: informational lines (how the reference lattice was indexed, re-zeroing).
 ///     earlier: frames flagged before the reference was indexed, returned again now with a lost
 ///         row per marker (they precede this frame).
+///     camera_from_gel: (4, 4) float64 homogeneous transform taking gel-frame points (mm) to the
+///         left camera frame (the gel's x, y, z axes as columns, its origin as the translation);
+///         None for a mono sensor or before the reference frame.
 #[pyclass(module = "gelstereo", name = "Frame", frozen)]
 pub struct PyFrame {
     #[pyo3(get)]
@@ -290,10 +297,14 @@ pub struct PyFrame {
     log: Vec<String>,
     #[pyo3(get)]
     earlier: Vec<Py<PyFrame>>,
+    #[pyo3(get)]
+    camera_from_gel: Option<Py<PyArray2<f64>>>,
 }
 
 impl PyFrame {
-    fn new(py: Python<'_>, output: FrameOutput) -> PyResult<Self> {
+    /// The frame of `output`; `gel` is the pipeline's gel frame (`None` for a mono sensor or
+    /// before the reference frame).
+    pub(crate) fn new(py: Python<'_>, output: FrameOutput, gel: Option<&GelFrame>) -> PyResult<Self> {
         let summary = &output.summary;
         let region: Vec<[i64; 2]> = output
             .contact_region
@@ -313,7 +324,7 @@ impl PyFrame {
         let earlier = output
             .earlier
             .into_iter()
-            .map(|f| Py::new(py, PyFrame::new(py, f)?))
+            .map(|f| Py::new(py, PyFrame::new(py, f, gel)?))
             .collect::<PyResult<Vec<_>>>()?;
         Ok(Self {
             frame: output.frame,
@@ -324,8 +335,24 @@ impl PyFrame {
             note: output.note,
             log: output.log,
             earlier,
+            camera_from_gel: gel.map(|g| PyArray2::from_owned_array(py, camera_from_gel(g)).unbind()),
         })
     }
+}
+
+/// The 4 x 4 homogeneous transform taking gel-frame points (mm) to the left camera frame: the
+/// axes as columns, the origin as the translation.
+fn camera_from_gel(gel: &GelFrame) -> Array2<f64> {
+    let mut m = Array2::eye(4);
+    for (c, axis) in gel.axes.iter().enumerate() {
+        for r in 0..3 {
+            m[[r, c]] = axis[r];
+        }
+    }
+    for r in 0..3 {
+        m[[r, 3]] = gel.origin_mm[r];
+    }
+    m
 }
 
 #[pymethods]

@@ -244,3 +244,45 @@ def test_the_pipeline_finds_and_places_dots_cut_by_the_border():
     cut = (truth_x < 5.5) | (truth_y < 5.5)
     assert cut.sum() == 19 and err[cut].max() <= 0.5, err[cut]
     assert (m["x_left"][tracked] < 318.0).all()
+
+
+def test_the_stream_reads_back_as_the_frames_process_returns(tracked, sample, gelstereo_bin, tmp_path):
+    stream = tmp_path / "stream.jsonl"
+    subprocess.run([str(gelstereo_bin), "track", "--quiet", "--jsonl", str(stream), str(sample)], check=True)
+    read = list(gelstereo.read_stream(stream))
+    assert len(read) == len(tracked) == 40
+    lines = stream.read_text().splitlines()
+    for k, (back, live) in enumerate(zip(read, tracked)):
+        assert (back.frame, back.slip, back.note) == (live.frame, live.slip, live.note), k
+        assert back.timestamp == pytest.approx(live.timestamp, abs=1e-6)
+        assert back.contact.force_n == pytest.approx(live.contact.force_n, abs=1e-4)
+        assert back.contact.area_mm2 == pytest.approx(live.contact.area_mm2, abs=1e-3)
+        np.testing.assert_array_equal(back.contact.region, live.contact.region)
+        assert list(back.markers) == MARKER_KEYS
+        for key in ("row", "col", "status", "in_contact", "slipping"):
+            np.testing.assert_array_equal(back.markers[key], live.markers[key], err_msg=f"{k} {key}")
+        # The stream's precision: px to 0.005, gel-frame mm to half a micrometre, camera-frame mm
+        # (through the line's gel frame) to a micrometre.
+        for key, tolerance in (("x_left", 0.005), ("y_right", 0.005), ("X_gel_mm", 5e-4),
+                               ("dZ_gel_mm", 5e-4), ("Z_mm", 1e-3), ("dX_mm", 1e-3), ("pressure_kPa", 0.005)):
+            np.testing.assert_allclose(back.markers[key], live.markers[key], atol=tolerance + 1e-9,
+                                       equal_nan=True, err_msg=f"{k} {key}")
+        np.testing.assert_allclose(back.camera_from_gel, live.camera_from_gel, atol=1e-4)
+        assert gelstereo.parse_frame(lines[k]).frame == k
+    # The transform maps the gel-frame positions onto the camera-frame ones.
+    live = tracked[-1]
+    gel = np.stack([live.markers[c] for c in ("X_gel_mm", "Y_gel_mm", "Z_gel_mm", )] + [np.ones(529)])
+    camera = (live.camera_from_gel @ gel)[:3]
+    np.testing.assert_allclose(camera, np.stack([live.markers[c] for c in ("X_mm", "Y_mm", "Z_mm")]),
+                               atol=1e-9, equal_nan=True)
+
+
+def test_a_bad_stream_line_names_the_file_line_and_field(tmp_path):
+    stream = tmp_path / "bad.jsonl"
+    stream.write_text('{"schema": "gelstereo-frame/1", "frame": -1}\n')
+    with pytest.raises(ValueError, match="bad.jsonl:1"):
+        list(gelstereo.read_stream(stream))
+    with pytest.raises(ValueError, match="schema"):
+        gelstereo.parse_frame('{"schema": "other/2"}')
+    with pytest.raises(gelstereo.GelstereoError, match="missing.jsonl"):
+        gelstereo.read_stream(tmp_path / "missing.jsonl")

@@ -318,7 +318,7 @@ pub fn parse_frame_line(line: &str, name: &str) -> Result<(FrameOutput, Option<G
 pub fn read_frames<R: BufRead>(
     reader: R,
     name: &str,
-) -> impl Iterator<Item = Result<(FrameOutput, Option<GelFrame>)>> {
+) -> impl Iterator<Item = Result<(FrameOutput, Option<GelFrame>)>> + use<R> {
     let name = name.to_owned();
     let mut reader = reader;
     let mut number = 0usize;
