@@ -195,6 +195,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         )
     }
     let source = open_source(args)?;
+    if let Some(warning) = source.order_warning() {
+        eprintln!("warning: {warning}");
+    }
     let stereo = source.is_stereo();
     let config = args.pipeline_config()?;
     if stereo && config.calibration.is_none() {

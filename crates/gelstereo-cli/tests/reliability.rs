@@ -785,3 +785,38 @@ fn a_recording_named_in_bytes_that_are_not_utf8_is_tracked() {
         .join(std::ffi::OsStr::from_bytes(b"out\xfe/frames.csv"));
     assert_eq!(std::fs::read_to_string(frames).unwrap().lines().count(), 4);
 }
+
+/// Frame files read in natural order (`2` before `10`), with a warning where two names carry the
+/// same number written differently (`1.png` and `01.png`).
+#[test]
+fn frame_names_that_do_not_settle_their_order_are_warned_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    for name in ["1.png", "01.png", "2.png", "10.png"] {
+        write(&frames.join(name), &dots());
+    }
+    let stream = dir.path().join("s.jsonl");
+    let out = gelstereo(&[
+        "track",
+        "--quiet",
+        "--method",
+        "blob",
+        "--jsonl",
+        s(&stream),
+        s(&frames),
+    ]);
+    let t = text(&out);
+    assert!(t.contains("1.png and 01.png") && t.contains("same number"), "{t}");
+    std::fs::remove_file(frames.join("01.png")).unwrap();
+    let out = gelstereo(&[
+        "track",
+        "--quiet",
+        "--method",
+        "blob",
+        "--jsonl",
+        s(&stream),
+        s(&frames),
+    ]);
+    assert!(!text(&out).contains("same number"), "{}", text(&out));
+}

@@ -294,6 +294,53 @@ pub fn sort_naturally(files: &mut [PathBuf]) {
     files.sort_by(|a, b| alphanumeric_sort::compare_path(a, b).then_with(|| a.cmp(b)));
 }
 
+/// For names sorted by [`sort_naturally`]: a warning when two of them carry the same number
+/// written differently (`1.png` and `01.png`), whose order the names alone do not settle; `None`
+/// when the order is clear.
+pub fn ambiguous_order<P: AsRef<Path>>(sorted: &[P]) -> Option<String> {
+    let name = |p: &P| {
+        p.as_ref()
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned())
+    };
+    let mut by_number: std::collections::BTreeMap<String, Vec<String>> = Default::default();
+    for p in sorted {
+        by_number
+            .entry(without_leading_zeros(&name(p)))
+            .or_default()
+            .push(name(p));
+    }
+    let ties: Vec<String> = by_number
+        .values()
+        .filter(|names| names.len() > 1)
+        .map(|names| names.join(" and "))
+        .collect();
+    let first = ties.first()?;
+    let more = match ties.len() {
+        1 => String::new(),
+        n => format!(" (and {} more pairs)", n - 1),
+    };
+    Some(format!(
+        "frame files {first}{more} carry the same number written differently and are read in that order (rename them to settle it)"
+    ))
+}
+
+/// `name` with the leading zeros of each of its numbers dropped (`f007.png` -> `f7.png`).
+fn without_leading_zeros(name: &str) -> String {
+    let mut out = String::with_capacity(name.len());
+    let mut in_number = false;
+    let chars: Vec<char> = name.chars().collect();
+    for (k, c) in chars.iter().enumerate() {
+        let digit_follows = chars.get(k + 1).is_some_and(char::is_ascii_digit);
+        if *c == '0' && !in_number && digit_follows {
+            continue;
+        }
+        in_number = c.is_ascii_digit();
+        out.push(*c);
+    }
+    out
+}
+
 /// The regular files directly inside `dir` whose names `keep` accepts, sorted naturally.
 pub fn list_files_named(dir: &Path, keep: impl Fn(&str) -> bool) -> Result<Vec<PathBuf>> {
     let io = |source| Error::Io {
@@ -399,6 +446,20 @@ impl StereoRecording {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_same_number_written_two_ways_is_an_ambiguous_order() {
+        let mut names: Vec<PathBuf> = ["10.png", "2.png", "01.png", "1.png"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        sort_naturally(&mut names);
+        assert_eq!(names[3], PathBuf::from("10.png"));
+        let warning = ambiguous_order(&names).unwrap();
+        assert!(warning.contains("1.png and 01.png"), "{warning}");
+        names.retain(|n| n != Path::new("01.png"));
+        assert_eq!(ambiguous_order(&names), None);
+    }
 
     #[test]
     fn frame_files_come_in_natural_order() {

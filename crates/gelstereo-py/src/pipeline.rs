@@ -4,13 +4,13 @@
 use std::path::PathBuf;
 use std::sync::{Mutex, MutexGuard};
 
-use gelstereo::{GelFacts, GelFrame};
 use gelstereo::core::StereoPair;
 use gelstereo::gel::GelFile;
 use gelstereo::sim::SensorSpec;
 use gelstereo::{
     Frame, FrameOutput, GridShape, Images, MarkerRecord, Method, Pipeline, PipelineConfig, parse_grid,
 };
+use gelstereo::{GelFacts, GelFrame};
 use numpy::ndarray::Array2;
 use numpy::{PyArray1, PyArray2};
 use pyo3::exceptions::{PyTypeError, PyValueError};

@@ -409,6 +409,16 @@ impl FrameSource {
         }
     }
 
+    /// A warning when the frame files' names do not settle their order (the same number written
+    /// two ways: [`images::ambiguous_order`]); `None` for a clear order, videos and cameras.
+    pub fn order_warning(&self) -> Option<String> {
+        match self {
+            FrameSource::Recording { recording, .. } => images::ambiguous_order(&recording.names),
+            FrameSource::Images { files, .. } => images::ambiguous_order(files),
+            _ => None,
+        }
+    }
+
     /// After the source has ended: a warning when it ended before its declared length (a video
     /// whose container declares more frames than could be decoded: a truncated or damaged file),
     /// naming the file and both counts; `None` for a source that ended whole or declares nothing.
