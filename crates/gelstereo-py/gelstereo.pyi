@@ -167,3 +167,36 @@ class Pipeline:
     def is_stereo(self) -> bool: ...
     @property
     def grid(self) -> Tuple[int, int]: ...
+
+class InputFrame:
+    """One frame of a source: its images as numpy uint8 arrays (BGR, as OpenCV reads)."""
+
+    index: int
+    """Frame number in the source, from 0."""
+    timestamp: float
+    """Capture time, s (frame number / frame rate for files)."""
+    left: Optional[Image]
+    """The left view (a mono sensor's view); None when the frame could not be read."""
+    right: Optional[Image]
+    """The right view; None for a mono source or an unreadable frame."""
+    error: Optional[str]
+    """Why the frame could not be read; None for a frame read whole."""
+
+class FrameReader:
+    """The frames of a source, in order, read ahead on a thread of their own."""
+
+    is_stereo: bool
+    frames: Optional[int]
+    """The number of frames when the source declares it (a folder, a video), else None."""
+    def __iter__(self) -> "FrameReader": ...
+    def __next__(self) -> InputFrame: ...
+
+def open(
+    source: Union[str, os.PathLike[str], int, Tuple[int, int]], *, side_by_side: bool = False, mono: bool = False
+) -> FrameReader:
+    """Opens frames for `Pipeline.process`: a stereo recording folder, a folder of images (mono), a
+    video file, a camera index, a (left, right) pair of camera indices, or the same as text ("0",
+    "0,1"). `side_by_side`: a video or camera holding both views side by side; `mono`: a stereo
+    recording's left view only. Frame files are read in natural order (2 before 10), with a
+    UserWarning where names do not settle it (1.png and 01.png) or a video ends before its declared
+    length. Raises GelstereoError when the source cannot be opened, TypeError for another type."""

@@ -54,3 +54,32 @@ fn type_name(object: &Bound<'_, PyAny>) -> String {
         .map(|n| n.to_string())
         .unwrap_or_else(|_| "value".into())
 }
+
+/// Copies an 8-bit OpenCV image into a numpy array: `HxW` for one channel, `HxWxC` otherwise (BGR
+/// for three, as OpenCV reads).
+pub fn to_numpy<'py>(py: Python<'py>, mat: &Mat) -> PyResult<Bound<'py, PyArrayDyn<u8>>> {
+    use opencv::core::{MatTraitConst, MatTraitConstManual};
+    if mat.depth() != opencv::core::CV_8U {
+        return Err(PyValueError::new_err(format!(
+            "expected an 8-bit image, found OpenCV depth {}",
+            mat.depth()
+        )));
+    }
+    let (rows, cols, channels) = (mat.rows() as usize, mat.cols() as usize, mat.channels() as usize);
+    let shape = if channels == 1 {
+        vec![rows, cols]
+    } else {
+        vec![rows, cols, channels]
+    };
+    let contiguous;
+    let mat = if mat.is_continuous() {
+        mat
+    } else {
+        contiguous = mat.try_clone().map_err(|e| crate::error::to_py(&e))?;
+        &contiguous
+    };
+    let bytes = mat.data_bytes().map_err(|e| crate::error::to_py(&e))?.to_vec();
+    let array = numpy::ndarray::ArrayD::from_shape_vec(shape, bytes)
+        .map_err(|e| PyValueError::new_err(format!("image of unexpected layout: {e}")))?;
+    Ok(numpy::PyArrayDyn::from_owned_array(py, array))
+}

@@ -5,6 +5,8 @@
 //! - [`detect`]: `gelstereo.detect(image, method="marknet-mre")`, markers as an `(N, 3)` array.
 //! - [`pipeline`]: `gelstereo.Pipeline` over the facade's `Pipeline`; `process` gives a
 //!   `gelstereo.Frame` (markers as a dict of numpy arrays, `Contact`, slip state, timestamp).
+//! - [`source`]: `gelstereo.open(source)`, the frames of a recording, video or cameras as numpy
+//!   images.
 //! - [`stream`]: `gelstereo.read_stream(path)` / `parse_frame(line)`, the `--jsonl` stream read
 //!   back into `gelstereo.Frame`s.
 //!
@@ -19,6 +21,7 @@ mod detect;
 mod error;
 mod image;
 mod pipeline;
+mod source;
 mod stream;
 
 use pyo3::prelude::*;
@@ -36,5 +39,8 @@ fn gelstereo_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(stream::parse_frame, m)?)?;
     m.add_function(wrap_pyfunction!(stream::read_stream, m)?)?;
     m.add_class::<stream::StreamReader>()?;
+    m.add_function(wrap_pyfunction!(source::open, m)?)?;
+    m.add_class::<source::FrameReader>()?;
+    m.add_class::<source::InputFrame>()?;
     Ok(())
 }

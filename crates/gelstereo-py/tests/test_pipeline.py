@@ -286,3 +286,50 @@ def test_a_bad_stream_line_names_the_file_line_and_field(tmp_path):
         gelstereo.parse_frame('{"schema": "other/2"}')
     with pytest.raises(gelstereo.GelstereoError, match="missing.jsonl"):
         gelstereo.read_stream(tmp_path / "missing.jsonl")
+
+
+def test_open_reads_a_recording_as_process_wants_it(sample, tracked):
+    reader = gelstereo.open(sample)
+    assert reader.is_stereo and reader.frames == 40
+    frames = list(reader)
+    assert [f.index for f in frames] == list(range(40))
+    first = frames[0]
+    assert first.error is None and first.timestamp == 0.0 and frames[3].timestamp == pytest.approx(0.1)
+    np.testing.assert_array_equal(first.left, cv2.imread(str(sample / "left" / "000000.jpg")))
+    np.testing.assert_array_equal(first.right, cv2.imread(str(sample / "right" / "000000.jpg")))
+    pipeline = gelstereo.Pipeline(calibration=sample / "calib.yaml")
+    for f, live in zip(frames[:12], tracked):
+        out = pipeline.process(f.left, f.right, f.timestamp)
+        assert out.slip == live.slip
+        np.testing.assert_array_equal(out.markers["Z_mm"], live.markers["Z_mm"])
+    left_only = list(gelstereo.open(str(sample), mono=True))
+    assert len(left_only) == 40 and left_only[0].right is None
+    np.testing.assert_array_equal(left_only[5].left, frames[5].left)
+
+
+def test_open_reads_videos_side_by_side_and_says_what_it_cannot_open(sample, tmp_path):
+    video = tmp_path / "both.avi"
+    left = cv2.imread(str(sample / "left" / "000000.jpg"))
+    right = cv2.imread(str(sample / "right" / "000000.jpg"))
+    h, w = left.shape[:2]
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (2 * w, h))
+    for _ in range(3):
+        writer.write(np.hstack([left, right]))
+    writer.release()
+    frames = list(gelstereo.open(video, side_by_side=True))
+    assert len(frames) == 3 and frames[1].timestamp == pytest.approx(0.1)
+    assert frames[0].left.shape == left.shape == frames[0].right.shape
+    mono = list(gelstereo.open(video))
+    assert mono[0].right is None and mono[0].left.shape == (h, 2 * w, 3)
+    with pytest.raises(gelstereo.GelstereoError, match="missing"):
+        gelstereo.open(tmp_path / "missing")
+    with pytest.raises(TypeError, match="source"):
+        gelstereo.open(1.5)
+
+
+def test_open_warns_where_frame_names_do_not_settle_the_order(left_bgr, tmp_path):
+    for name in ("1.png", "01.png", "2.png", "10.png"):
+        cv2.imwrite(str(tmp_path / name), left_bgr)
+    with pytest.warns(UserWarning, match="1.png and 01.png"):
+        reader = gelstereo.open(tmp_path)
+    assert reader.frames == 4 and not reader.is_stereo
