@@ -33,6 +33,11 @@ pub struct Args {
     /// more robust to blur and noise).
     #[arg(long, default_value = "classic")]
     detector: String,
+    /// The sensor's design baseline, mm (the distance between the cameras' centres): the printed
+    /// baseline is checked against it. A wrong --square-mm leaves the RMS error as it is and scales
+    /// the baseline and every 3-D figure, so this is the check that catches it.
+    #[arg(long, value_name = "MM", value_parser = parse_baseline)]
+    design_baseline_mm: Option<f64>,
     /// Also write the figures (errors, pairs used, rejected images) as JSON to this file.
     #[arg(long, value_name = "FILE.json")]
     report: Option<PathBuf>,
@@ -120,11 +125,59 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         t.z,
         rig.right_from_left.rotation.angle().to_degrees()
     );
+    println!(
+        "{}",
+        baseline_check(rig.baseline_mm(), args.design_baseline_mm, args.square_mm)
+    );
     println!("wrote {}", args.out);
     if let Some(path) = &args.report {
         let json = calibration.to_json(&args.out);
-        std::fs::write(path, serde_json::to_string_pretty(&json)?)
+        gelstereo_core::files::write_whole(path, serde_json::to_string_pretty(&json)?.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
+}
+
+/// Largest relative difference between the measured and the design baseline taken as agreement.
+const BASELINE_TOLERANCE: f64 = 0.05;
+
+/// What the measured baseline says of the square size: with a design baseline, whether they
+/// agree (and the square size that would make them agree when not); without one, what to compare.
+fn baseline_check(measured_mm: f64, design_mm: Option<f64>, square_mm: f64) -> String {
+    let Some(design) = design_mm else {
+        return format!(
+            "CHECK the baseline ({measured_mm:.3} mm) against your sensor's design: the RMS cannot reveal a \
+             wrong --square-mm, which scales the baseline and every 3-D figure (--design-baseline-mm MM checks it)"
+        );
+    };
+    let ratio = measured_mm / design;
+    if (ratio - 1.0).abs() <= BASELINE_TOLERANCE {
+        format!("baseline agrees with the design's {design} mm (ratio {ratio:.3})")
+    } else {
+        format!(
+            "WARNING: the baseline is {ratio:.3} x the design's {design} mm: is --square-mm {square_mm} right? \
+             Squares of {:.4} mm would give the design baseline (every 3-D figure scales with it)",
+            square_mm / ratio
+        )
+    }
+}
+
+fn parse_baseline(text: &str) -> Result<f64, String> {
+    gelstereo_core::limits::parse_number_in(text, 0.1, 1000.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_baseline_off_the_design_names_the_square_size_that_fits() {
+        let warning = baseline_check(12.0, Some(10.0), 1.8);
+        assert!(
+            warning.contains("1.200 x") && warning.contains("1.5000 mm"),
+            "{warning}"
+        );
+        assert!(baseline_check(10.2, Some(10.0), 1.5).contains("agrees"));
+        assert!(baseline_check(10.2, None, 1.5).contains("CHECK the baseline (10.200 mm)"));
+    }
 }
