@@ -16,7 +16,9 @@ levels. `n` counts matched markers. The standard error is that of a mean over ex
 markers of one experiment share its look, so they are not independent draws): the sd of the
 per-experiment means over the square root of the number of experiments. `|mean| > 0.3` counts the
 experiments whose own bias exceeds 0.3 px on either axis (at least 20 matched markers).
-WORK/errors.csv holds every matched marker's error.
+WORK/errors.csv holds every matched marker's error. `--replace outline` (or `membership`,
+`membership-filled`) re-places each detection from the pixels first: placements tried and not
+shipped (`placement_refine.py`).
 
 A glint's direction (`appearance.glint.offset`) and a band's phase are fixed for a recording, so
 their pull can cancel in a family's mean while every marker of one sensor moves the same way. The
@@ -35,10 +37,12 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gelstereo_train.metrics import match, radius_for  # noqa: E402
+from placement_refine import PLACEMENTS  # noqa: E402
 
 SEED = 333
 STRONG_GRADIENT = 60.0
@@ -87,14 +91,17 @@ def read_truth(path: Path) -> dict[tuple[str, int], tuple[np.ndarray, np.ndarray
     return {k: (np.asarray([v[:2] for v in vs]), np.asarray([v[2] for v in vs])) for k, vs in rows.items()}
 
 
-def experiment_errors(experiment: Path, detections: Path) -> list[tuple]:
+def experiment_errors(experiment: Path, detections: Path, frame_step: int, replace: str | None) -> list[tuple]:
     """(view, frame, x, y, dx, dy, in_contact) of every matched true marker."""
     dets = read_detections(detections)
     rows = []
     for (view, frame), (gt, contact) in sorted(read_truth(experiment / "markers.csv").items()):
-        if len(gt) < 2:
+        if len(gt) < 2 or frame % frame_step:
             continue
         det = dets.get((view, frame), np.zeros((0, 2)))
+        if replace and len(det):
+            image = cv2.imread(str(experiment / view / f"{frame:06d}.png"), cv2.IMREAD_COLOR)
+            det = PLACEMENTS[replace](image, det)
         pi, gi, _ = match(det, gt, radius_for(gt))
         for p, g in zip(pi, gi):
             dx, dy = det[p] - gt[g]
@@ -162,6 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, required=True, help="folder for data/, detections/, errors.csv")
     p.add_argument("--detect-arg", action="append", default=[], help="passed on to gelstereo detect")
     p.add_argument("--contact", action="store_true", help="only the markers in contact")
+    p.add_argument("--frame-step", type=int, default=1, help="only frames 0, N, 2N, ...")
+    p.add_argument("--replace", choices=sorted(PLACEMENTS),
+                   help="re-place each detection from the pixels (tried, not shipped; placement_refine.py)")
     args = p.parse_args(argv)
     data = args.work / "data"
     if not (data / "test").is_dir():
@@ -180,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             dets = args.work / "detections" / f"{exp.name}.csv"
             if not dets.is_file():
                 detect(args.gelstereo, exp, dets, args.detect_arg)
-            rows = experiment_errors(exp, dets)
+            rows = experiment_errors(exp, dets, args.frame_step, args.replace)
             meta = json.loads((exp / "meta.json").read_text())
             fams = families_of(meta)
             mine: dict[str, list[float]] = defaultdict(list)
