@@ -32,16 +32,10 @@ except ImportError as error:
 import gelstereo
 
 try:
-    import cv2
-except ImportError:
-    cv2 = None
-
-try:
     from tf2_msgs.msg import TFMessage
 except ImportError:
     TFMessage = None
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 STATUS_CODES = {"tracked": 0, "predicted": 1, "lost": 2}
 UNKNOWN_FLAG = 255
 MM = 1e-3
@@ -64,38 +58,15 @@ class StereoImages:
     seconds: float  # from the first frame
 
 
-def natural_key(path: Path):
-    """File names in natural order as `gelstereo track` reads them: frame_2 before frame_10, and of
-    names equal as numbers the one with fewer leading zeros first."""
-    return [(0, int(part), len(part), "") if part.isdigit() else (1, 0, 0, part)
-            for part in re.split(r"(\d+)", path.name)]
-
-
-def recording_files(folder: Path) -> list:
-    """(left, right or None) image paths of a stereo recording (left/, right/) or a mono folder."""
-    if not folder.is_dir():
-        raise ValueError(f"recording {folder}: no such folder")
-    stereo = (folder / "left").is_dir() and (folder / "right").is_dir()
-    images = folder / "left" if stereo else folder
-    lefts = sorted((p for p in images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
-    if not lefts:
-        raise ValueError(f"recording {folder}: no images in {images} (expected left/ and right/, or images)")
-    return [(p, folder / "right" / p.name if stereo else None) for p in lefts]
-
-
-def read_image(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise ValueError(f"cannot read the image {path}")
-    return image
-
-
-def open_camera(source):
-    """An OpenCV capture; an image sequence (`left/%06d.jpg`) through OpenCV's image reader, which
-    decodes as a recording's images are read, rather than FFmpeg's, whose JPEG pixels differ."""
-    if isinstance(source, str) and "%" in source:
-        return cv2.VideoCapture(source, cv2.CAP_IMAGES)
-    return cv2.VideoCapture(source)
+def camera_index(name: str, value) -> Optional[int]:
+    """A camera parameter's device index (`2`, `'2'` or `/dev/video2`); None for -1 or ''."""
+    if value in (-1, "", "-1"):
+        return None
+    match = re.fullmatch(r"(?:/dev/video)?(\d+)", str(value).strip())
+    if match is None:
+        raise ValueError(f"{name} {value!r}: expected a camera index (N or /dev/videoN); "
+                         "a video file goes to recording:=")
+    return int(match.group(1))
 
 
 def image_from_msg(msg: Image) -> np.ndarray:
@@ -108,15 +79,6 @@ def image_from_msg(msg: Image) -> np.ndarray:
     if msg.encoding.startswith("rgb"):
         image = image[..., [2, 1, 0]]
     return np.ascontiguousarray(image[..., 0] if channels == 1 else image[..., :3])
-
-
-def rigid_fit(camera_mm: np.ndarray, gel_mm: np.ndarray):
-    """(rotation R, origin o in mm) with gel = R (camera - o), from the same points in both frames."""
-    pc, qc = camera_mm.mean(axis=0), gel_mm.mean(axis=0)
-    u, _, vt = np.linalg.svd((camera_mm - pc).T @ (gel_mm - qc))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return rotation, pc - rotation.T @ qc
 
 
 def quaternion(m: np.ndarray):
@@ -175,15 +137,18 @@ class GelstereoNode(Node):
         if self.source not in ("recording", "cameras", "topics"):
             raise ValueError(f"source {self.source!r}: expected recording, cameras or topics")
         self.recording = p("recording", "").value
-        self.fps = float(p("fps", 30.0).value)
+        self.side_by_side = p("side_by_side", False).value
         self.realtime = p("realtime", True).value
-        self.camera_left = p("camera_left", 0).value
-        self.camera_right = p("camera_right", 1).value
+        cameras = {name: p(name, default).value for name, default in (("camera_left", 0), ("camera_right", 1))}
+        self.cameras = self.camera_indices(**cameras) if self.source == "cameras" else None
         self.left_image = p("left_image", "left/image_raw").value
         self.right_image = p("right_image", "right/image_raw").value
         self.camera_frame = p("camera_frame", "gelstereo_left_camera_optical_frame").value
         self.gel_frame = p("gel_frame", "gelstereo_gel").value
         self.wait_for_subscribers = p("wait_for_subscribers", 0).value
+        # A file is opened at once (a bad path fails the start); cameras once subscribers are there,
+        # so that the first frames are not ones read ahead while waiting.
+        self.reader = self.open_recording() if self.source == "recording" else None
         self.pipeline = self.make_pipeline()
         if self.stereo_input() and not self.pipeline.is_stereo and not self.get_parameter("mono").value:
             raise ValueError("stereo input needs the parameter calibration (or mono:=true to track the left view)")
@@ -200,7 +165,7 @@ class GelstereoNode(Node):
         self.pub_tf_static = TFMessage and self.create_publisher(TFMessage, "/tf_static", latched)
 
     def declare(self, name: str, default):
-        # Numbers accept either type: `fps:=30` as well as `fps:=30.0`.
+        # Numbers accept either type: `friction:=1` as well as `friction:=1.0`.
         numeric = isinstance(default, (int, float)) and not isinstance(default, bool)
         return self.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=numeric))
 
@@ -217,46 +182,45 @@ class GelstereoNode(Node):
         return gelstereo.Pipeline(calibration, models, grid, sensor, threads=p("threads", 0).value,
                                   mono=p("mono", False).value, **strings, **floats)
 
+    def camera_indices(self, camera_left, camera_right):
+        """The cameras as gelstereo.open takes them: one index, or a (left, right) pair."""
+        left, right = camera_index("camera_left", camera_left), camera_index("camera_right", camera_right)
+        if left is None:
+            raise ValueError("camera_left: expected a camera index")
+        if right is not None and self.side_by_side:
+            raise ValueError("side_by_side is for one camera holding both views: set camera_right:=-1")
+        return left if right is None else (left, right)
+
+    def open_recording(self) -> gelstereo.FrameReader:
+        if not self.recording:
+            raise ValueError("source recording needs the parameter recording "
+                             "(a recording folder, a folder of images or a video file)")
+        if not Path(self.recording).exists():
+            raise ValueError(f"recording {self.recording}: no such file or folder")
+        return gelstereo.open(self.recording, side_by_side=self.side_by_side)
+
     def stereo_input(self) -> bool:
         if self.source == "recording":
-            return (Path(self.recording) / "right").is_dir()
+            return self.reader.is_stereo
         if self.source == "cameras":
-            return self.camera_right not in (-1, "")
+            return isinstance(self.cameras, tuple) or self.side_by_side
         return bool(self.right_image)
 
     def frames(self) -> Iterator[StereoImages]:
-        if self.source == "recording":
-            return self.recording_frames()
-        return self.camera_frames()
-
-    def recording_frames(self) -> Iterator[StereoImages]:
-        if cv2 is None:
-            raise ValueError("reading a recording needs OpenCV's Python package (cv2): run scripts/setup.sh")
+        """The frames of the recording (played at their timestamps when realtime) or the cameras,
+        stamped with the clock when they are taken; unreadable ones are skipped with a warning."""
+        reader = self.reader if self.reader is not None else gelstereo.open(self.cameras, side_by_side=self.side_by_side)
+        pace = self.realtime and self.source == "recording"
         start = time.monotonic()
-        for k, (left, right) in enumerate(recording_files(Path(self.recording))):
-            if self.realtime:
-                time.sleep(max(0.0, start + k / self.fps - time.monotonic()))
-            images = (read_image(left), None if right is None else read_image(right))
-            yield StereoImages(*images, self.get_clock().now().to_msg(), k / self.fps)
-
-    def camera_frames(self) -> Iterator[StereoImages]:
-        if cv2 is None:
-            raise ValueError("source cameras needs OpenCV's Python package (cv2): run scripts/setup.sh")
-        sources = [c for c in (self.camera_left, self.camera_right) if c not in (-1, "")]
-        cameras = [open_camera(c) for c in sources]
-        for source, camera in zip(sources, cameras):
-            if not camera.isOpened():
-                raise ValueError(f"camera {source!r}: cannot be opened")
-        start = time.monotonic()
-        while rclpy.ok():
-            # Both grabs first, then the decoding, so the two views are as close in time as they can be.
-            grabbed = [camera.grab() for camera in cameras]
-            stamp, seconds = self.get_clock().now().to_msg(), time.monotonic() - start
-            images = [camera.retrieve()[1] for camera in cameras]
-            if not all(grabbed) or any(image is None for image in images):
-                self.get_logger().warning(f"cameras {sources}: no more frames (a file's end, or unplugged)")
-                return
-            yield StereoImages(images[0], images[1] if len(images) > 1 else None, stamp, seconds)
+        for frame in reader:
+            if frame.error is not None:
+                self.get_logger().warning(f"frame {frame.index} skipped: {frame.error}")
+                continue
+            if pace:
+                time.sleep(max(0.0, start + frame.timestamp - time.monotonic()))
+            yield StereoImages(frame.left, frame.right, self.get_clock().now().to_msg(), frame.timestamp)
+        if self.source == "cameras":
+            self.get_logger().warning(f"cameras {self.cameras}: no more frames (unplugged?)")
 
     def subscribe_to_images(self):
         self.create_subscription(Image, self.left_image, lambda m: self.on_image("left", m), 10)
@@ -305,25 +269,20 @@ class GelstereoNode(Node):
             self.get_logger().warning(f"frame {frame.frame}: {frame.note}")
 
     def publish_transform(self, frame, stamp):
-        """The gel frame in the camera's, fitted to the markers known in both (an exact rigid map)."""
-        m = frame.markers
-        camera = np.column_stack([m["X_mm"], m["Y_mm"], m["Z_mm"]])
-        gel = np.column_stack([m["X_gel_mm"], m["Y_gel_mm"], m["Z_gel_mm"]])
-        known = np.isfinite(camera).all(axis=1) & np.isfinite(gel).all(axis=1)
-        if known.sum() < 3:
+        """The gel frame's pose in the left camera's (the pipeline's `camera_from_gel`), once known
+        (a stereo sensor, from the reference frame on) and again whenever it changes."""
+        if frame.camera_from_gel is None:
             return
-        rotation, origin_mm = rigid_fit(camera[known], gel[known])
-        pose = np.concatenate([rotation.ravel(), origin_mm * MM])
-        if self.gel_in_camera is not None and np.allclose(pose, self.gel_in_camera, rtol=0, atol=1e-9):
+        pose = frame.camera_from_gel[:3]  # the gel's axes as columns, its origin (mm) as the last
+        if self.gel_in_camera is not None and np.array_equal(pose, self.gel_in_camera):
             return
         self.gel_in_camera = pose
         msg = TransformStamped()
         msg.header.stamp, msg.header.frame_id, msg.child_frame_id = stamp, self.camera_frame, self.gel_frame
         t = msg.transform.translation
-        t.x, t.y, t.z = (float(v) for v in origin_mm * MM)
+        t.x, t.y, t.z = (float(v) * MM for v in pose[:, 3])
         r = msg.transform.rotation
-        # The gel's axes are the rows of `rotation`; as a pose in the camera frame they are its columns.
-        r.x, r.y, r.z, r.w = (float(v) for v in quaternion(rotation.T))
+        r.x, r.y, r.z, r.w = (float(v) for v in quaternion(pose[:, :3]))
         self.pub_transform.publish(msg)
         if self.pub_tf_static:
             self.pub_tf_static.publish(TFMessage(transforms=[msg]))

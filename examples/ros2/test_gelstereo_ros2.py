@@ -1,5 +1,6 @@
-"""The ROS 2 node against `gelstereo track`: launched on the sample recording (and fed the sample as
-image topics), its PointCloud2, WrenchStamped, slip and transform messages carry the tables' values.
+"""The ROS 2 node against `gelstereo track`: launched on the sample recording, on the sample as a
+side-by-side video, and fed the sample as image topics, its PointCloud2, WrenchStamped, slip and
+transform messages carry the tables' values.
 
     .venv-ros/bin/python -m pytest -q examples/ros2
 
@@ -148,20 +149,36 @@ def rotation_of(q) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-SOURCES = {
-    "recording": [f"recording:={SAMPLE}"],
-    # OpenCV reads an image sequence as it reads a camera: the cameras' loop on the sample's frames.
-    "cameras": ["source:=cameras", f"camera_left:={SAMPLE}/left/%06d.jpg", f"camera_right:={SAMPLE}/right/%06d.jpg",
-                f"calibration:={SAMPLE / 'calib.yaml'}"],
-}
+@pytest.fixture(scope="module")
+def side_by_side_video(tmp_path_factory) -> Path:
+    """The sample as one video, each frame its left and right views side by side, coded losslessly
+    (FFV1): the node reads the same pixels as from the images."""
+    path = tmp_path_factory.mktemp("video") / "press-slide.mkv"
+    names = sorted(p.name for p in (SAMPLE / "left").iterdir())
+    writer = None
+    for name in names:
+        both = np.hstack([cv2.imread(str(SAMPLE / side / name)) for side in ("left", "right")])
+        if writer is None:
+            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, both.shape[1::-1])
+            assert writer.isOpened(), "OpenCV cannot write FFV1 video"
+        writer.write(both)
+    writer.release()
+    return path
 
 
-@pytest.mark.parametrize("source", SOURCES)
-def test_the_node_publishes_the_sample_as_gelstereo_track_tracks_it(tables, source):
+def source_params(source: str, request) -> list:
+    if source == "recording":
+        return [f"recording:={SAMPLE}"]
+    video = request.getfixturevalue("side_by_side_video")
+    return [f"recording:={video}", "side_by_side:=true", f"calibration:={SAMPLE / 'calib.yaml'}"]
+
+
+@pytest.mark.parametrize("source", ["recording", "video"])
+def test_the_node_publishes_the_sample_as_gelstereo_track_tracks_it(tables, source, request):
     markers, frames, gel = tables
     listener = Listener()
-    node = launch_node(*SOURCES[source], "wait_for_subscribers:=1", "camera_frame:=left_optical",
-                       "gel_frame:=gel")
+    node = launch_node(*source_params(source, request), "wait_for_subscribers:=1",
+                       "camera_frame:=left_optical", "gel_frame:=gel")
     try:
         listener.spin_until(lambda: node.poll() is not None and len(listener.got["markers"]) >= len(frames),
                             "the node to publish every frame and exit")
@@ -225,3 +242,11 @@ def test_the_node_tracks_image_topics_as_gelstereo_track_tracks_the_recording(ta
     for k in range(count):
         check_cloud(listener.got["markers"][k], markers[k], frames[k], "gelstereo_gel")
         assert listener.got["markers"][k].header.stamp == Time(seconds=100 + k / 30).to_msg()
+
+
+def test_the_node_names_a_camera_it_cannot_open():
+    node = subprocess.run([sys.executable, str(NODE), "--ros-args", "-r", f"__ns:={NAMESPACE}",
+                           "-p", "source:=cameras", "-p", "camera_left:=97", "-p", "camera_right:=-1"],
+                          capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert node.returncode == 1
+    assert "camera 97 cannot be opened" in node.stderr
