@@ -246,7 +246,12 @@ impl FrameSource {
                 next: 0,
             }),
             [left, right] => {
-                let cameras = StereoPair::new(Camera::open(left)?, Camera::open(right)?);
+                let mut cameras = StereoPair::new(Camera::open(left)?, Camera::open(right)?);
+                // One clock for both devices: each counted from its own opening would put the
+                // right camera's times behind by however long the left one took to open.
+                let epoch = Instant::now();
+                cameras.left.opened = epoch;
+                cameras.right.opened = epoch;
                 let rate = cameras.left.frame_rate_hz().max(cameras.right.frame_rate_hz());
                 Ok(FrameSource::TwoCameras {
                     cameras: Box::new(cameras),
