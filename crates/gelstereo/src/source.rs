@@ -297,120 +297,40 @@ impl FrameSource {
                 next,
                 frame_rate_hz,
             } => {
-                let index = *next;
-                let images = if *left_only {
-                    let paths = recording.paths(index)?;
-                    images::read_image(&paths.left).map(Images::Mono)
-                } else {
-                    recording.read(index)?.map(Images::Stereo)
-                };
+                let frame = read_recorded(recording, *left_only, *next, *frame_rate_hz)?;
                 *next += 1;
-                Some(SourceFrame {
-                    index,
-                    time_s: index as f64 / *frame_rate_hz,
-                    images: images.map_err(Error::from),
-                })
+                Some(frame)
             }
             FrameSource::Images {
                 files,
                 next,
                 frame_rate_hz,
             } => {
-                let index = *next;
-                let path = files.get(index)?;
-                *next += 1;
-                Some(SourceFrame {
-                    index,
-                    time_s: index as f64 / *frame_rate_hz,
+                let path = files.get(*next)?;
+                let frame = SourceFrame {
+                    index: *next,
+                    time_s: *next as f64 / *frame_rate_hz,
                     images: images::read_image(path).map(Images::Mono).map_err(Error::from),
-                })
+                };
+                *next += 1;
+                Some(frame)
             }
             FrameSource::Video {
                 frames,
                 side_by_side,
                 failures,
                 next,
-            } => {
-                let index = *next;
-                *next += 1;
-                let rate = frames.frame_rate_hz().unwrap_or(DEFAULT_FRAME_RATE_HZ);
-                let time_s = index as f64 / rate;
-                let images = match frames.next_frame() {
-                    Ok(None) => return None,
-                    Ok(Some((_, m))) => {
-                        *failures = 0;
-                        split(m, *side_by_side, frames.path())
-                    }
-                    Err(e) => {
-                        *failures += 1;
-                        // Give up after five unreadable frames in a row (a broken stream).
-                        if *failures > 5 {
-                            return None;
-                        }
-                        Err(e.into())
-                    }
-                };
-                Some(SourceFrame {
-                    index,
-                    time_s,
-                    images,
-                })
-            }
+            } => read_video(frames, *side_by_side, failures, take_index(next)),
             FrameSource::Camera {
                 camera,
                 side_by_side,
                 next,
-            } => {
-                let index = *next;
-                *next += 1;
-                let time_s = match camera.grab() {
-                    Ok(Some(t)) => t,
-                    Ok(None) => return None,
-                    Err(e) => {
-                        let time_s = camera.opened.elapsed().as_secs_f64();
-                        return Some(SourceFrame {
-                            index,
-                            time_s,
-                            images: Err(e.context(camera.name.clone())),
-                        });
-                    }
-                };
-                let images = camera
-                    .retrieve()
-                    .and_then(|m| split(m, *side_by_side, Path::new(&camera.name)));
-                Some(SourceFrame {
-                    index,
-                    time_s,
-                    images,
-                })
-            }
+            } => read_camera(camera, *side_by_side, take_index(next)),
             FrameSource::TwoCameras {
                 cameras,
                 tolerance_s,
                 next,
-            } => {
-                let index = *next;
-                *next += 1;
-                match grab_pair(cameras, *tolerance_s) {
-                    Ok(None) => None,
-                    Ok(Some(time_s)) => {
-                        let images = cameras
-                            .left
-                            .retrieve()
-                            .and_then(|l| Ok(Images::Stereo(StereoPair::new(l, cameras.right.retrieve()?))));
-                        Some(SourceFrame {
-                            index,
-                            time_s,
-                            images,
-                        })
-                    }
-                    Err(e) => Some(SourceFrame {
-                        index,
-                        time_s: cameras.left.opened.elapsed().as_secs_f64(),
-                        images: Err(e),
-                    }),
-                }
-            }
+            } => read_camera_pair(cameras, *tolerance_s, take_index(next)),
         }
     }
 
@@ -445,6 +365,110 @@ impl Iterator for FrameSource {
 
     fn next(&mut self) -> Option<SourceFrame> {
         self.next_frame()
+    }
+}
+
+/// The current frame number, and the counter moved on past it.
+fn take_index(next: &mut usize) -> usize {
+    let index = *next;
+    *next += 1;
+    index
+}
+
+/// Frame `index` of a stereo recording (its left view alone for `left_only`); `None` past its end.
+fn read_recorded(
+    recording: &StereoRecording,
+    left_only: bool,
+    index: usize,
+    frame_rate_hz: f64,
+) -> Option<SourceFrame> {
+    let images = if left_only {
+        let paths = recording.paths(index)?;
+        images::read_image(&paths.left).map(Images::Mono)
+    } else {
+        recording.read(index)?.map(Images::Stereo)
+    };
+    Some(SourceFrame {
+        index,
+        time_s: index as f64 / frame_rate_hz,
+        images: images.map_err(Error::from),
+    })
+}
+
+/// Frame `index` of a video; `None` at its end, or after five unreadable frames in a row (a broken
+/// stream), which `failures` counts.
+fn read_video(
+    frames: &mut VideoFrames,
+    side_by_side: bool,
+    failures: &mut usize,
+    index: usize,
+) -> Option<SourceFrame> {
+    let rate = frames.frame_rate_hz().unwrap_or(DEFAULT_FRAME_RATE_HZ);
+    let images = match frames.next_frame() {
+        Ok(None) => return None,
+        Ok(Some((_, m))) => {
+            *failures = 0;
+            split(m, side_by_side, frames.path())
+        }
+        Err(e) => {
+            *failures += 1;
+            if *failures > 5 {
+                return None;
+            }
+            Err(e.into())
+        }
+    };
+    Some(SourceFrame {
+        index,
+        time_s: index as f64 / rate,
+        images,
+    })
+}
+
+/// The next frame of one camera, stamped with its capture time; `None` when the camera ends.
+fn read_camera(camera: &mut Camera, side_by_side: bool, index: usize) -> Option<SourceFrame> {
+    let time_s = match camera.grab() {
+        Ok(Some(t)) => t,
+        Ok(None) => return None,
+        Err(e) => {
+            return Some(SourceFrame {
+                index,
+                time_s: camera.opened.elapsed().as_secs_f64(),
+                images: Err(e.context(camera.name.clone())),
+            });
+        }
+    };
+    let images = camera
+        .retrieve()
+        .and_then(|m| split(m, side_by_side, Path::new(&camera.name)));
+    Some(SourceFrame {
+        index,
+        time_s,
+        images,
+    })
+}
+
+/// The next pair of two cameras ([`grab_pair`]), stamped with the later capture time; `None` when
+/// either camera ends.
+fn read_camera_pair(cameras: &mut StereoPair<Camera>, tolerance_s: f64, index: usize) -> Option<SourceFrame> {
+    match grab_pair(cameras, tolerance_s) {
+        Ok(None) => None,
+        Ok(Some(time_s)) => {
+            let images = cameras
+                .left
+                .retrieve()
+                .and_then(|l| Ok(Images::Stereo(StereoPair::new(l, cameras.right.retrieve()?))));
+            Some(SourceFrame {
+                index,
+                time_s,
+                images,
+            })
+        }
+        Err(e) => Some(SourceFrame {
+            index,
+            time_s: cameras.left.opened.elapsed().as_secs_f64(),
+            images: Err(e),
+        }),
     }
 }
 
