@@ -346,104 +346,18 @@ impl Pipeline {
         self.next_frame += 1;
         let mut log = Vec::new();
         let mut earlier = Vec::new();
-        if self.session.is_none() {
-            match self.start(&frame.images, &dets) {
-                Ok((session, notes)) => {
-                    log.extend(
-                        notes
-                            .into_iter()
-                            .map(|n| format!("reference frame {frame_no}: {n}")),
-                    );
-                    self.shape = session.shape();
-                    log.push(format!(
-                        "reference frame {frame_no}: {} markers indexed on the {}x{} lattice ({})",
-                        session.ids().len(),
-                        self.shape.rows,
-                        self.shape.cols,
-                        self.method
-                    ));
-                    for mut f in self.pending.drain(..) {
-                        let (m, s) = flagged_rows(session.ids(), f.frame);
-                        (f.markers, f.summary) = (m, s);
-                        earlier.push(f);
-                    }
-                    self.session = Some(session);
-                }
-                Err(e) => {
-                    let note = format!("cannot index the reference lattice: {}", e.full_message());
-                    let out = FrameOutput::flagged(frame_no, t_s, note, None);
-                    self.pending.push(out.clone());
-                    return Ok(out);
-                }
-            }
+        if self.session.is_none()
+            && let Some(flagged) = self.start_session(frame_no, t_s, frame, &dets, &mut log, &mut earlier)
+        {
+            return Ok(flagged);
         }
+        self.rezero_if_requested(frame_no, &mut log)?;
         let Some(session) = self.session.as_mut() else {
             return Err(Error::Invalid(
                 "no session after indexing the reference frame".into(),
             ));
         };
-        if std::mem::take(&mut self.rezero_requested) {
-            match session {
-                Session::Stereo(st) => {
-                    if let Some(c) = &self.latest_contact {
-                        st.rezero(c)?;
-                    }
-                }
-                Session::Mono(m) => m.rezero(),
-            }
-            log.push(format!("frame {frame_no}: reference re-zeroed"));
-        }
-        let mut out = match (session, &frame.images) {
-            (Session::Stereo(st), Images::Stereo(_)) => {
-                let reference_left_px = st.left().reference_px().to_vec();
-                let reference_right_px = st.right().reference_px().to_vec();
-                let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
-                let contact_region = region(st.ids(), &self.shape, &tracked.contact.in_contact);
-                FrameOutput {
-                    frame: frame_no,
-                    t_s,
-                    markers: std::mem::take(&mut tracked.markers),
-                    summary: tracked.summary.clone(),
-                    contact_region,
-                    note: None,
-                    log: Vec::new(),
-                    earlier: Vec::new(),
-                    reference_left_px,
-                    reference_right_px,
-                    stages: Some(Stages::Stereo(Box::new(tracked))),
-                }
-            }
-            (Session::Mono(m), Images::Mono(_)) => {
-                let reference_left_px = m.tracker().reference_px().to_vec();
-                let mut tracked = m.track_tiered(frame_no, &dets.left)?;
-                let contact_region = m
-                    .tracker()
-                    .ids()
-                    .iter()
-                    .zip(&tracked.planar.in_contact)
-                    .filter(|(_, c)| **c)
-                    .map(|(i, _)| *i)
-                    .collect();
-                FrameOutput {
-                    frame: frame_no,
-                    t_s,
-                    markers: std::mem::take(&mut tracked.markers),
-                    summary: tracked.summary.clone(),
-                    contact_region,
-                    note: None,
-                    log: Vec::new(),
-                    earlier: Vec::new(),
-                    reference_left_px,
-                    reference_right_px: Vec::new(),
-                    stages: Some(Stages::Mono(Box::new(tracked))),
-                }
-            }
-            _ => {
-                return Err(Error::Invalid(format!(
-                    "frame {frame_no}: a mono frame in a stereo session or the reverse"
-                )));
-            }
-        };
+        let mut out = track_session(session, &frame.images, &dets, frame_no, t_s, &self.shape)?;
         if let Some(note) = unusable(&out.markers) {
             out.forget_contact(note);
         }
@@ -455,6 +369,67 @@ impl Pipeline {
         out.log = log;
         out.earlier = earlier;
         Ok(out)
+    }
+
+    /// Indexes the reference lattice on this frame and starts the session, logging how; the frames
+    /// flagged before it come back in `earlier` with a lost row per marker. Returns the flagged
+    /// frame when the lattice cannot be indexed here (it is kept to come back later).
+    fn start_session(
+        &mut self,
+        frame_no: u32,
+        t_s: f64,
+        frame: &Frame,
+        dets: &StereoPair<TieredDetections>,
+        log: &mut Vec<String>,
+        earlier: &mut Vec<FrameOutput>,
+    ) -> Option<FrameOutput> {
+        let (session, notes) = match self.start(&frame.images, dets) {
+            Ok(started) => started,
+            Err(e) => {
+                let note = format!("cannot index the reference lattice: {}", e.full_message());
+                let out = FrameOutput::flagged(frame_no, t_s, note, None);
+                self.pending.push(out.clone());
+                return Some(out);
+            }
+        };
+        log.extend(
+            notes
+                .into_iter()
+                .map(|n| format!("reference frame {frame_no}: {n}")),
+        );
+        self.shape = session.shape();
+        log.push(format!(
+            "reference frame {frame_no}: {} markers indexed on the {}x{} lattice ({})",
+            session.ids().len(),
+            self.shape.rows,
+            self.shape.cols,
+            self.method
+        ));
+        for mut f in self.pending.drain(..) {
+            (f.markers, f.summary) = flagged_rows(session.ids(), f.frame);
+            earlier.push(f);
+        }
+        self.session = Some(session);
+        None
+    }
+
+    /// Makes the current shape the reference when [`Self::rezero`] asked for it (a stereo session
+    /// from the last usable frame's contact).
+    fn rezero_if_requested(&mut self, frame_no: u32, log: &mut Vec<String>) -> Result<()> {
+        if !std::mem::take(&mut self.rezero_requested) {
+            return Ok(());
+        }
+        match self.session.as_mut() {
+            Some(Session::Stereo(st)) => {
+                if let Some(c) = &self.latest_contact {
+                    st.rezero(c)?;
+                }
+            }
+            Some(Session::Mono(m)) => m.rezero(),
+            None => return Ok(()),
+        }
+        log.push(format!("frame {frame_no}: reference re-zeroed"));
+        Ok(())
     }
 
     /// Processes every frame of `frames` (a [`crate::source::FrameSource`] or its
@@ -623,6 +598,79 @@ fn localize_with(
     Ok(match images {
         Images::Stereo(pair) => localizer.detect_stereo_tiered(pair)?,
         Images::Mono(m) => StereoPair::new(localizer.detect_tiered(m)?, TieredDetections::default()),
+    })
+}
+
+/// One frame through a started session: tracked, triangulated (stereo), contact and slip, as a
+/// [`FrameOutput`] (its log and earlier frames still empty).
+fn track_session(
+    session: &mut Session,
+    images: &Images,
+    dets: &StereoPair<TieredDetections>,
+    frame_no: u32,
+    t_s: f64,
+    shape: &GridShape,
+) -> Result<FrameOutput> {
+    let (markers, summary, contact_region, reference_left_px, reference_right_px, stages) =
+        match (session, images) {
+            (Session::Stereo(st), Images::Stereo(_)) => {
+                let reference_left_px = st.left().reference_px().to_vec();
+                let reference_right_px = st.right().reference_px().to_vec();
+                let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
+                let contact_region = region(st.ids(), shape, &tracked.contact.in_contact);
+                let markers = std::mem::take(&mut tracked.markers);
+                let summary = tracked.summary.clone();
+                let stages = Stages::Stereo(Box::new(tracked));
+                (
+                    markers,
+                    summary,
+                    contact_region,
+                    reference_left_px,
+                    reference_right_px,
+                    stages,
+                )
+            }
+            (Session::Mono(m), Images::Mono(_)) => {
+                let reference_left_px = m.tracker().reference_px().to_vec();
+                let mut tracked = m.track_tiered(frame_no, &dets.left)?;
+                let contact_region = m
+                    .tracker()
+                    .ids()
+                    .iter()
+                    .zip(&tracked.planar.in_contact)
+                    .filter(|(_, c)| **c)
+                    .map(|(i, _)| *i)
+                    .collect();
+                let markers = std::mem::take(&mut tracked.markers);
+                let summary = tracked.summary.clone();
+                let stages = Stages::Mono(Box::new(tracked));
+                (
+                    markers,
+                    summary,
+                    contact_region,
+                    reference_left_px,
+                    Vec::new(),
+                    stages,
+                )
+            }
+            _ => {
+                return Err(Error::Invalid(format!(
+                    "frame {frame_no}: a mono frame in a stereo session or the reverse"
+                )));
+            }
+        };
+    Ok(FrameOutput {
+        frame: frame_no,
+        t_s,
+        markers,
+        summary,
+        contact_region,
+        note: None,
+        log: Vec::new(),
+        earlier: Vec::new(),
+        reference_left_px,
+        reference_right_px,
+        stages: Some(stages),
     })
 }
 
