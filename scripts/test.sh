@@ -4,7 +4,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
-bash scripts/setup.sh --with-rerun --with-ros
+bash scripts/setup.sh --with-train --with-rerun --with-ros
 
 step() { printf '\n=== %s\n' "$*"; }
 step "cargo fmt --check"

@@ -68,9 +68,15 @@ impl LocalizerArgs {
     pub fn blob(spec: &str) -> anyhow::Result<BlobParams> {
         Ok(match spec {
             "default" => BlobParams::opencv_defaults()?,
+            // The shipped file where the project's files are, else the same values compiled in
+            // (an installed binary; a test keeps the two equal).
             "tuned" => {
                 let path = project::home().join(gelstereo_markers::blob::DEFAULT_PARAMS_FILE);
-                BlobParams::from_json_file(&path)?
+                if path.is_file() {
+                    BlobParams::from_json_file(&path)?
+                } else {
+                    BlobParams::tuned()
+                }
             }
             file => BlobParams::from_json_file(Path::new(file))?,
         })
@@ -81,7 +87,7 @@ impl LocalizerArgs {
         let models = self
             .models
             .clone()
-            .unwrap_or_else(|| project::home().join("data/models"));
+            .unwrap_or_else(gelstereo::models::shipped_models);
         Ok(LocalizerConfig {
             marknet_path: self
                 .marknet
