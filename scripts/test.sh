@@ -33,5 +33,4 @@ GELSTEREO="${CARGO_TARGET_DIR:-target}/debug/gelstereo" \
 step "examples/ros2: the ROS 2 node on the sample recording, against gelstereo track"
 "$ROOT/.venv-ros/bin/python" -m pytest -q -W ignore::DeprecationWarning examples/ros2
 step "the inference-only install: the wheel in a fresh virtual environment, cargo install, both outside the checkout"
-# The binary in the debug profile: the build of `cargo test` above, reused.
-CHECK_WHEEL_DEBUG=1 bash scripts/check-wheel.sh
+bash scripts/check-wheel.sh

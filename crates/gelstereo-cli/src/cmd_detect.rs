@@ -24,7 +24,8 @@ use crate::project;
 #[derive(clap::Args, Debug, Clone)]
 pub struct LocalizerArgs {
     /// Folder with marknet.onnx (the localization network) and mre.onnx (the MRE, Marker Rationality
-    /// Evaluator, which keeps low-confidence markers that fit the lattice); default: data/models.
+    /// Evaluator, which keeps low-confidence markers that fit the lattice); default: data/models of
+    /// the project, else the copy compiled into this binary.
     #[arg(long, value_name = "DIR")]
     pub models: Option<PathBuf>,
     /// Marknet model file (overrides --models).
