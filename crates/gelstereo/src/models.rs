@@ -31,10 +31,10 @@ pub fn shipped_models() -> PathBuf {
     }
     let home_models = project_home().join("data/models");
     #[cfg(feature = "embedded-models")]
-    if !holds_models(&home_models) {
-        if let Ok(dir) = embedded::unpacked() {
-            return dir;
-        }
+    if !holds_models(&home_models)
+        && let Ok(dir) = embedded::unpacked()
+    {
+        return dir;
     }
     home_models
 }
