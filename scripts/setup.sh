@@ -4,16 +4,21 @@
 #     and for the figures (`plotters` renders text through fontconfig / freetype with DejaVu fonts).
 #  2. ONNX Runtime: the shared library shipped inside the PyPI `onnxruntime` wheel (ort's own binary
 #     download cannot reach its CDN here), pinned by version and sha256, unpacked into .deps/onnxruntime/lib.
-#  3. The Python environment: the pinned packages of train/requirements.txt (PyTorch) and the small
-#     extras (maturin, matplotlib for examples/python) in a per-user cache keyed by the requirements'
-#     hash, so a fresh clone on the same machine does not reinstall PyTorch; on top of it the
-#     checkout's own .venv, whose site-packages come first and load the cached ones (a .pth file).
-#     `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for examples/python/stream_rerun.py;
-#     dask.distributed (a few MB) for examples/python/batch_dask.py is always installed (CI runs it).
-#     `--with-ros` adds the checkout's .venv-ros for the ROS 2 node (step 5).
-#  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin and
-#     installed into the checkout's .venv, so each clone imports its own build; skipped when the
-#     installed build's source hash matches.
+#  3. The Python environment, in a per-user cache keyed by the hash of train/requirements.txt (whose
+#     pins every install here follows as constraints), so a fresh clone on the same machine reuses it:
+#     what inference needs, no PyTorch (crates/gelstereo-py/requirements*.txt: the package's runtime,
+#     ONNX Runtime among it, and its build tools; examples/python: matplotlib, and dask.distributed,
+#     a few MB, for examples/python/batch_dask.py, which CI runs). `--with-train` adds the trainer's
+#     requirements (train/requirements.txt: PyTorch, ~5.8 GB with its CUDA wheels) for training,
+#     `gelstereo adapt` and their tests; `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for
+#     examples/python/stream_rerun.py. On top of it the checkout's own .venv, whose site-packages
+#     come first and load the cached ones (a .pth file). `--with-ros` adds the checkout's .venv-ros
+#     for the ROS 2 node (step 5).
+#  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin into a
+#     wheel that stands alone (its models inside, ONNX Runtime from the `onnxruntime` package it
+#     depends on, the OpenCV libraries it links copied in by auditwheel, tagged manylinux), in
+#     target/wheels, and installed into the checkout's .venv, so each clone imports its own build;
+#     skipped when the installed build's source hash matches.
 #  5. With `--with-ros`: the checkout's .venv-ros, a Python environment with the ROS 2 wheels of
 #     examples/ros2/requirements.txt (~60 MB download) that also loads the checkout's .venv (gelstereo,
 #     then the shared packages). The ROS wheels cannot go into the shared environment: they put their
@@ -23,13 +28,15 @@
 # Re-running it does only what is missing.
 set -euo pipefail
 
+WITH_TRAIN=0
 WITH_RERUN=0
 WITH_ROS=0
 for arg in "$@"; do
   case "$arg" in
+    --with-train) WITH_TRAIN=1 ;;
     --with-rerun) WITH_RERUN=1 ;;
     --with-ros) WITH_ROS=1 ;;
-    *) echo "usage: scripts/setup.sh [--with-rerun] [--with-ros]" >&2; exit 2 ;;
+    *) echo "usage: scripts/setup.sh [--with-train] [--with-rerun] [--with-ros]" >&2; exit 2 ;;
   esac
 done
 
@@ -96,11 +103,10 @@ venv="$CACHE/venv-$req_hash"
 exec 9>"$CACHE/venv.lock"
 flock 9
 if [ ! -x "$venv/bin/python" ] || [ ! -f "$venv/.complete" ]; then
-  say "creating Python environment $venv (PyTorch is a large download, ~1-2 min)"
+  say "creating Python environment $venv"
   rm -rf "$venv"
   "$PYTHON" -m venv "$venv"
   "$venv/bin/python" -m pip install --quiet --upgrade pip
-  "$venv/bin/python" -m pip install --quiet -r "$req"
   touch "$venv/.complete"
 else
   say "Python environment present ($venv)"
@@ -114,12 +120,15 @@ install_extra() {
   marker="$venv/.extra-$(echo "$1" | tr '/' '_')-$(sha256sum "$file" | cut -c1-16)"
   [ -f "$marker" ] && return
   say "installing $1 into the shared Python environment"
+  [ "$1" = train/requirements.txt ] && say "(PyTorch is a large download, ~1-2 min)"
   "$venv/bin/python" -m pip install --quiet -r "$file" -c "$req"
   touch "$marker"
 }
+install_extra crates/gelstereo-py/requirements.txt
 install_extra crates/gelstereo-py/requirements-build.txt
 install_extra examples/python/requirements.txt
 install_extra examples/python/requirements-batch.txt
+if ((WITH_TRAIN)); then install_extra train/requirements.txt; fi
 if ((WITH_RERUN)); then install_extra examples/python/requirements-rerun.txt; fi
 flock -u 9
 
@@ -137,16 +146,15 @@ link_line="import site; site.addsitedir('$("$venv/bin/python" -c "$purelib")')"
 [ -f "$link" ] && [ "$(cat "$link")" = "$link_line" ] || echo "$link_line" >"$link"
 
 # --- 4. The Python package gelstereo ------------------------------------------------------------
-# The source hash covers every crate (the package links them all), the lock file, this checkout's
-# path (the build finds data/ and ONNX Runtime through it) and the Python version.
+# The source hash covers every crate (the package links them all), the package's Python files, the
+# models it carries, the lock file and the Python version.
 source_hash="$(
   cd "$ROOT"
   {
-    echo "$ROOT"
     "$local_venv/bin/python" -c 'import sys; print(sys.version)'
     find crates -path '*/target' -prune -o -type f \( -name '*.rs' -o -name Cargo.toml -o -name pyproject.toml \
-      -o -name '*.pyi' \) -print | LC_ALL=C sort | xargs sha256sum
-    sha256sum Cargo.toml Cargo.lock .cargo/config.toml
+      -o -name '*.pyi' -o -name '*.py' -o -name py.typed \) -print | LC_ALL=C sort | xargs sha256sum
+    sha256sum Cargo.toml Cargo.lock .cargo/config.toml data/models/*
   } | sha256sum | cut -c1-16
 )"
 stamp="$local_venv/.gelstereo-source-hash"
@@ -156,15 +164,25 @@ if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$source_hash" ] \
 else
   say "building the Python package gelstereo (maturin build --release; a first build compiles every crate)"
   wheels="$ROOT/target/wheels"
-  rm -f "$wheels"/gelstereo-*.whl
+  rm -rf "$wheels"
   log="$ROOT/target/maturin.log"
-  mkdir -p "$wheels"
+  mkdir -p "$wheels/linux"
   if ! "$venv/bin/maturin" build --release --locked --compatibility linux -m "$ROOT/crates/gelstereo-py/Cargo.toml" \
-    -i "$local_venv/bin/python" --out "$wheels" >"$log" 2>&1; then
+    -i "$local_venv/bin/python" --out "$wheels/linux" >"$log" 2>&1; then
     tail -n 40 "$log" >&2
     echo "maturin build failed; full log: $log" >&2
     exit 1
   fi
+  # The libraries the extension links beyond the manylinux set (Debian's OpenCV and what it needs)
+  # go into the wheel, which is then tagged for the oldest glibc its contents allow.
+  if ! PATH="$venv/bin:$PATH" "$venv/bin/auditwheel" repair --wheel-dir "$wheels" "$wheels"/linux/gelstereo-*.whl \
+    >>"$log" 2>&1; then
+    tail -n 20 "$log" >&2
+    echo "auditwheel repair failed; full log: $log" >&2
+    exit 1
+  fi
+  rm -rf "$wheels/linux"
+  say "built $(cd "$wheels" && ls gelstereo-*.whl) ($(du -m "$wheels"/gelstereo-*.whl | cut -f1) MB)"
   "$local_venv/bin/python" -m pip install --quiet --no-deps --force-reinstall "$wheels"/gelstereo-*.whl
   "$local_venv/bin/python" -c 'import gelstereo'
   echo "$source_hash" >"$stamp"

@@ -4,7 +4,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 
-bash scripts/setup.sh --with-rerun --with-ros
+bash scripts/setup.sh --with-train --with-rerun --with-ros
 
 step() { printf '\n=== %s\n' "$*"; }
 step "cargo fmt --check"
@@ -32,3 +32,5 @@ GELSTEREO="${CARGO_TARGET_DIR:-target}/debug/gelstereo" \
   "$ROOT/.venv/bin/python" -m pytest -q examples/python/test_batch_dask.py
 step "examples/ros2: the ROS 2 node on the sample recording, against gelstereo track"
 "$ROOT/.venv-ros/bin/python" -m pytest -q -W ignore::DeprecationWarning examples/ros2
+step "the inference-only install: the wheel in a fresh virtual environment, cargo install, both outside the checkout"
+bash scripts/check-wheel.sh

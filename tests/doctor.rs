@@ -67,3 +67,36 @@ fn version_names_opencv_and_onnxruntime() {
         "{t}"
     );
 }
+
+#[test]
+fn doctor_away_from_the_project_passes_with_the_models_compiled_in() {
+    let home = tempfile::tempdir().unwrap();
+    let cache = tempfile::tempdir().unwrap();
+    let out = gelstereo_command()
+        .arg("doctor")
+        .env("GELSTEREO_HOME", home.path())
+        .env("XDG_CACHE_HOME", cache.path())
+        .output()
+        .expect("run gelstereo");
+    let t = text(&out);
+    assert!(out.status.success(), "doctor without the project's files:\n{t}");
+    let unpacked = cache.path().join("gelstereo");
+    assert!(
+        t.contains("ok       Marknet model") && t.contains(&unpacked.display().to_string()),
+        "{t}"
+    );
+    let models = std::fs::read_dir(&unpacked)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let shipped = common::repo().join("data/models");
+    for name in ["marknet.onnx", "mre.onnx"] {
+        assert_eq!(
+            std::fs::read(models.join(name)).unwrap(),
+            std::fs::read(shipped.join(name)).unwrap(),
+            "{name}"
+        );
+    }
+}

@@ -22,7 +22,7 @@ REAL_VIDEO="${REAL_VIDEO:-$ROOT/../shared/real/gelsight-mini-press/mini_example.
 PY="$ROOT/.venv/bin/python"
 export OMP_NUM_THREADS="$THREADS"
 
-[ -x "$PY" ] || bash "$ROOT/scripts/setup.sh"
+"$PY" -c "import torch" 2>/dev/null || bash "$ROOT/scripts/setup.sh" --with-train
 mkdir -p "$RUN"
 say() { printf '[retrain %s] %s\n' "$(date -u +%H:%M:%S)" "$*" | tee -a "$RUN/retrain.log"; }
 

@@ -23,7 +23,7 @@ def detect(
 ) -> npt.NDArray[np.float64]:
     """Marker centres in one image: an (N, 3) array of x, y (px) and confidence, sorted by y, then x.
 
-    Uses the shipped models (data/models) and the tuned blob parameters, as `gelstereo detect`; the
+    Uses the shipped models (the package's models/) and the tuned blob parameters, as `gelstereo detect`; the
     marker pitch is remembered per image size, and every image runs on the whole network input (the
     images of a loop may come from either camera; `Pipeline` runs a stream's frames on a window
     around its lattice). Raises TypeError / ValueError for an unusable array or method name, GelstereoError when the

@@ -24,7 +24,8 @@ use crate::project;
 #[derive(clap::Args, Debug, Clone)]
 pub struct LocalizerArgs {
     /// Folder with marknet.onnx (the localization network) and mre.onnx (the MRE, Marker Rationality
-    /// Evaluator, which keeps low-confidence markers that fit the lattice); default: data/models.
+    /// Evaluator, which keeps low-confidence markers that fit the lattice); default: data/models of
+    /// the project, else the copy compiled into this binary.
     #[arg(long, value_name = "DIR")]
     pub models: Option<PathBuf>,
     /// Marknet model file (overrides --models).
@@ -68,9 +69,15 @@ impl LocalizerArgs {
     pub fn blob(spec: &str) -> anyhow::Result<BlobParams> {
         Ok(match spec {
             "default" => BlobParams::opencv_defaults()?,
+            // The shipped file where the project's files are, else the same values compiled in
+            // (an installed binary; a test keeps the two equal).
             "tuned" => {
                 let path = project::home().join(gelstereo_markers::blob::DEFAULT_PARAMS_FILE);
-                BlobParams::from_json_file(&path)?
+                if path.is_file() {
+                    BlobParams::from_json_file(&path)?
+                } else {
+                    BlobParams::tuned()
+                }
             }
             file => BlobParams::from_json_file(Path::new(file))?,
         })
@@ -81,7 +88,7 @@ impl LocalizerArgs {
         let models = self
             .models
             .clone()
-            .unwrap_or_else(|| project::home().join("data/models"));
+            .unwrap_or_else(gelstereo::models::shipped_models);
         Ok(LocalizerConfig {
             marknet_path: self
                 .marknet

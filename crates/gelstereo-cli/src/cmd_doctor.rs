@@ -11,7 +11,8 @@ use crate::project;
 /// Arguments of `gelstereo doctor`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// Folder with the shipped models (default: data/models of the project).
+    /// Folder with the models to check (default: the shipped models: data/models of the project, or
+    /// the copy compiled into this binary).
     #[arg(long)]
     models: Option<PathBuf>,
 }
@@ -19,7 +20,10 @@ pub struct Args {
 /// Runs `gelstereo doctor`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let home = project::home();
-    let models = args.models.clone().unwrap_or_else(|| home.join("data/models"));
+    let models = args
+        .models
+        .clone()
+        .unwrap_or_else(gelstereo::models::shipped_models);
     let mut missing_required = 0;
     for c in &gelstereo::doctor::checks(&home, &models) {
         match &c.outcome {

@@ -380,14 +380,18 @@ impl Default for LocalizerConfig {
 }
 
 /// The folder holding the shipped `data/` and `calib/`: `GELSTEREO_HOME` when set, else the checkout
-/// this library was built from, else the folder of the running executable.
+/// this library was built from (not in a `relocatable` build), else the folder of the running
+/// executable.
 pub fn project_home() -> PathBuf {
     if let Some(p) = std::env::var_os("GELSTEREO_HOME").filter(|p| !p.is_empty()) {
         return PathBuf::from(p);
     }
-    let checkout = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."));
-    if checkout.join("data").is_dir() {
-        return checkout.canonicalize().unwrap_or(checkout);
+    #[cfg(not(feature = "relocatable"))]
+    {
+        let checkout = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."));
+        if checkout.join("data").is_dir() {
+            return checkout.canonicalize().unwrap_or(checkout);
+        }
     }
     std::env::current_exe()
         .ok()

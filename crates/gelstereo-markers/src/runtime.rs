@@ -5,7 +5,7 @@
 //! looked up in this order (the first that exists wins):
 //! 1. `ORT_DYLIB_PATH`, when set (an explicit choice: if that file is missing it is an error, no fallback);
 //! 2. the project folder `scripts/setup.sh` fills, `.deps/onnxruntime/lib/libonnxruntime.so` of the
-//!    checkout this binary was built from;
+//!    checkout this binary was built from (not in a `relocatable` build);
 //! 3. next to the executable: `libonnxruntime.so` or `lib/libonnxruntime.so` beside it;
 //! 4. the system's dynamic loader (`LD_LIBRARY_PATH`, ldconfig) by name.
 
@@ -16,6 +16,7 @@ use std::sync::OnceLock;
 pub const LIBRARY_FILE: &str = "libonnxruntime.so";
 
 /// Where `scripts/setup.sh` unpacks ONNX Runtime for the checkout this crate was built from.
+#[cfg(not(feature = "relocatable"))]
 pub const PROJECT_LIBRARY_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../.deps/onnxruntime/lib");
 
 /// Why ONNX Runtime could not be used.
@@ -65,7 +66,9 @@ pub fn candidate_paths() -> Result<Vec<PathBuf>, OnnxRuntimeError> {
             Err(OnnxRuntimeError::EnvPathMissing(p))
         };
     }
-    let mut paths = vec![Path::new(PROJECT_LIBRARY_DIR).join(LIBRARY_FILE)];
+    let mut paths = Vec::new();
+    #[cfg(not(feature = "relocatable"))]
+    paths.push(Path::new(PROJECT_LIBRARY_DIR).join(LIBRARY_FILE));
     if let Some(dir) = std::env::current_exe().ok().as_deref().and_then(Path::parent) {
         paths.push(dir.join(LIBRARY_FILE));
         paths.push(dir.join("lib").join(LIBRARY_FILE));

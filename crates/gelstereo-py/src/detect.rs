@@ -25,7 +25,8 @@ static LOCALIZERS: Mutex<BTreeMap<Method, Box<dyn Localizer + Send>>> = Mutex::n
 /// Args:
 ///     image: numpy uint8 array, HxW (grey) or HxWx3 (BGR, as OpenCV reads; HxWx4 BGRA also).
 ///     method: "marknet-mre" (default), "marknet", "blob" or "yolo", as `gelstereo detect --method`,
-///         with the shipped models (data/models) and the tuned blob parameters (data/blob_params.json).
+///         with the shipped models (the package's own, or data/models of a checkout) and the tuned
+///         blob parameters (data/blob_params.json).
 ///
 /// Returns:
 ///     float64 array of shape (N, 3): x, y (pixels, (0, 0) = centre of the top-left pixel) and
@@ -54,7 +55,7 @@ pub fn detect<'py>(
             Entry::Vacant(slot) => {
                 let config = LocalizerConfig {
                     lattice_window: false,
-                    ..LocalizerConfig::default()
+                    ..gelstereo::models::localizer_config()
                 };
                 slot.insert(create_localizer(method, &config).map_err(|e| to_py(&e))?)
             }

@@ -9,6 +9,11 @@
 //!   images.
 //! - [`stream`]: `gelstereo.read_stream(path)` / `parse_frame(line)`, the `--jsonl` stream read
 //!   back into `gelstereo.Frame`s.
+//! - [`package`]: the installed package's own models (`python/gelstereo/__init__.py` passes them).
+//!
+//! The extension module is `gelstereo._gelstereo`; the package `gelstereo`
+//! (`python/gelstereo/__init__.py`) points ONNX Runtime at the `onnxruntime` package's library and
+//! re-exports the module's names.
 //!
 //! Every Rust error becomes a `gelstereo.GelstereoError` carrying the Rust message with its causes;
 //! arrays of the wrong type or shape raise `TypeError` / `ValueError`. Work on images runs with the
@@ -20,19 +25,21 @@
 mod detect;
 mod error;
 mod image;
+mod package;
 mod pipeline;
 mod source;
 mod stream;
 
 use pyo3::prelude::*;
 
-/// The Python module `gelstereo`.
+/// The extension module `gelstereo._gelstereo` (the package `gelstereo` re-exports its names).
 #[pymodule]
-#[pyo3(name = "gelstereo")]
+#[pyo3(name = "_gelstereo")]
 fn gelstereo_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("GelstereoError", m.py().get_type::<error::GelstereoError>())?;
     m.add_function(wrap_pyfunction!(detect::detect, m)?)?;
+    m.add_function(wrap_pyfunction!(package::use_package_models, m)?)?;
     m.add_class::<pipeline::PyPipeline>()?;
     m.add_class::<pipeline::PyFrame>()?;
     m.add_class::<pipeline::PyContact>()?;

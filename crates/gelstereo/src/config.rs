@@ -46,7 +46,7 @@ impl Default for PipelineConfig {
             calibration: None,
             mono: false,
             method: None,
-            localizer: LocalizerConfig::default(),
+            localizer: crate::models::localizer_config(),
             grid: None,
             sensor: None,
             recording_sensor: None,

@@ -43,7 +43,7 @@ pub fn checks(home: &Path, models: &Path) -> Vec<Check> {
             outcome: gelstereo_markers::runtime::init()
                 .map(|rt| format!("{} at {}", rt.version, rt.library.display()))
                 .map_err(|e| e.to_string()),
-            fix: "run scripts/setup.sh (unpacks it into .deps/onnxruntime/lib) or set ORT_DYLIB_PATH",
+            fix: "in a checkout run scripts/setup.sh; else `pip install onnxruntime==1.31.1` and set ORT_DYLIB_PATH to its onnxruntime/capi/libonnxruntime.so.1.31.1, or put libonnxruntime.so next to the gelstereo binary",
         },
         Check {
             name: "Marknet model",
@@ -73,7 +73,7 @@ pub fn checks(home: &Path, models: &Path) -> Vec<Check> {
             name: "Python training env",
             need: Need::Optional,
             outcome: python_env(home),
-            fix: "run scripts/setup.sh (creates .venv with train/requirements.txt)",
+            fix: "run scripts/setup.sh --with-train (adds train/requirements.txt, PyTorch, to .venv)",
         },
     ]
 }

@@ -13,6 +13,7 @@
 //! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`](mod@bench) times it.
 //! - [`adapt`]: pseudo-labels from an unlabelled recording and the fine-tuning run that adapts the
 //!   localizer to a sensor (`gelstereo adapt`).
+//! - [`models`]: where the shipped models are, in a checkout, an installed package or binary.
 //! - [`doctor`]: every component a user needs, checked, with a fix for each that is missing.
 //! - [`eval`]: the paper's Table I of each localization method on a simulated dataset.
 //! - [`reconstruct`]: localization, indexing, pairing and triangulation of a stereo recording into
@@ -42,6 +43,7 @@ pub mod doctor;
 mod error;
 pub mod eval;
 pub mod gel;
+pub mod models;
 mod pipeline;
 pub mod reconstruct;
 pub mod sink;

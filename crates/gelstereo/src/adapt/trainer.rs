@@ -24,7 +24,7 @@ pub(super) fn find_python(given: Option<&Path>) -> Result<PathBuf> {
     if !python.exists() {
         return Err(Error::Invalid(format!(
             "{}: not found; the fine-tuning needs the project's Python environment with PyTorch: run \
-             scripts/setup.sh (it creates .venv), or give --python",
+             scripts/setup.sh --with-train (it creates .venv with PyTorch), or give --python",
             python.display()
         )));
     }
@@ -41,7 +41,7 @@ fn check_modules(python: &Path) -> Result<()> {
         return Ok(());
     }
     Err(Error::Invalid(format!(
-        "{}: lacks torch, onnx or onnxruntime ({}); run scripts/setup.sh, or give --python",
+        "{}: lacks torch, onnx or onnxruntime ({}); run scripts/setup.sh --with-train, or give --python",
         python.display(),
         String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
     )))

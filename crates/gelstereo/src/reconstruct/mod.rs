@@ -78,7 +78,7 @@ impl ReconstructionJob {
             out,
             force: false,
             method: Method::MarknetMre,
-            localizer: LocalizerConfig::default(),
+            localizer: crate::models::localizer_config(),
             from_ground_truth: None,
             grid: None,
             reference: 0,
