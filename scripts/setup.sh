@@ -11,7 +11,7 @@
 #     a few MB, for examples/python/batch_dask.py, which CI runs). `--with-train` adds the trainer's
 #     requirements (train/requirements.txt: PyTorch, ~5.8 GB with its CUDA wheels) for training,
 #     `gelstereo adapt` and their tests; `--with-rerun` adds rerun-sdk (~500 MB with pyarrow) for
-#     examples/python/stream_rerun.py. On top of it the checkout's own .venv, whose site-packages
+#     the live view, python -m gelstereo.view. On top of it the checkout's own .venv, whose site-packages
 #     come first and load the cached ones (a .pth file). `--with-ros` adds the checkout's .venv-ros
 #     for the ROS 2 node (step 5).
 #  4. The Python package `gelstereo` (crates/gelstereo-py), built from this checkout by maturin into a

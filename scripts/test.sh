@@ -24,7 +24,7 @@ examples_out="$(mktemp -d)"
 trap 'rm -rf "$examples_out"' EXIT
 "$ROOT/.venv/bin/python" examples/python/track_and_plot.py data/sample/press-slide --out "$examples_out/depth-slip.png"
 test -s "$examples_out/depth-slip.png"
-"$ROOT/.venv/bin/python" examples/python/stream_rerun.py data/sample/press-slide --rrd "$examples_out/sample.rrd"
+"$ROOT/.venv/bin/python" -m gelstereo.view data/sample/press-slide --rrd "$examples_out/sample.rrd"
 test -s "$examples_out/sample.rrd"
 step "examples/python/batch_dask.py: recordings on a local Dask cluster, tables as gelstereo track's"
 # The CLI binary `cargo test` built above for crates/gelstereo-cli/tests.

@@ -3,8 +3,8 @@ state over time.
 
     .venv/bin/python examples/python/track_and_plot.py data/sample/press-slide --out depth-slip.png
 
-The calibration is the recording's calib.yaml unless --calib names another; frame times are frame
-number / --fps.
+The calibration is the recording's calib.yaml unless --calib names another; frames are read by
+`gelstereo.open`, with their times (the recording's frame rate, else 30 Hz).
 """
 
 import argparse
@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 import gelstereo
-from recording import stereo_frames
 
 try:
     import matplotlib
@@ -31,14 +30,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("recording", type=Path, help="stereo recording: a folder with left/ and right/")
     parser.add_argument("--calib", type=Path, help="stereo calibration (default: RECORDING/calib.yaml)")
-    parser.add_argument("--fps", type=float, default=30.0, help="frame rate of the recording (default 30)")
     parser.add_argument("--out", type=Path, default=Path("depth-slip.png"), help="plot file (PNG, SVG, PDF)")
     args = parser.parse_args()
 
     pipeline = gelstereo.Pipeline(calibration=str(args.calib or args.recording / "calib.yaml"))
     times_s, depth_mm, slip = [], [], []
-    for k, left, right in stereo_frames(args.recording):
-        frame = pipeline.process(left, right, timestamp=k / args.fps)
+    for source in gelstereo.open(args.recording):
+        if source.error is not None:
+            print(f"frame {source.index}: {source.error}")
+            continue
+        frame = pipeline.process(source.left, source.right, source.timestamp)
         times_s.append(frame.timestamp)
         depth_mm.append(frame.contact.max_depth_mm)
         # A flagged frame (unreadable, no usable markers) knows no slip state: a gap in the plot.
