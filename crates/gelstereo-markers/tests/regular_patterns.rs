@@ -45,7 +45,7 @@ fn assert_at_most_a_handful(net: &mut Marknet, what: &str, img: &Mat) {
     assert!(n <= HANDFUL, "{what}: {n} markers");
 }
 
-const SIZES: [(i32, i32); 3] = [(640, 480), (427, 320), (320, 240)];
+const SIZES: [(i32, i32); 2] = [(640, 480), (320, 240)];
 
 /// Black and white squares of 8-40 px, the squares' corners off the image's by a few px.
 #[test]
