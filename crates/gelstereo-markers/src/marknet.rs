@@ -1654,12 +1654,10 @@ impl Marknet {
             .map(|((mut found, image), (pitch, spread))| {
                 // A regular pattern that is no marker gel (a checkerboard, a weave) can pass the
                 // lattice check; its "markers" then lose the look of dots on a gel.
-                if let Some(verdict) = judge_the_dots(image, &found.accepted)? {
-                    if !verdict.dots() {
-                        let rejected = std::mem::take(&mut found.accepted);
-                        found.second_tier.extend(rejected);
-                        return Ok(found);
-                    }
+                if judge_the_dots(image, &found.accepted)?.is_some_and(|v| !v.dots()) {
+                    let rejected = std::mem::take(&mut found.accepted);
+                    found.second_tier.extend(rejected);
+                    return Ok(found);
                 }
                 settle_the_border(&mut found, image, pitch)?;
                 let before = found.accepted.len();
