@@ -85,14 +85,14 @@ const SAME_WAY_COSINE: f64 = 0.5;
 
 /// Largest median dot width, in pitches (twice where the rays come back halfway to the gel): trained
 /// markers are up to 0.75 pitch wide, and contact spreads them a little; touching cells reach 1.
-pub const MAX_DOT_WIDTH_PITCH: f64 = 0.9;
+pub const MAX_DOT_WIDTH_PITCH: f64 = 0.97;
 
 /// Largest median distance of the colour halfway between neighbouring markers from the gel's around
-/// them, as a share of the markers' contrast: between two dots lies the gel (real sensors within
-/// 0.08, the widened simulator's hardest views within 0.3); between a checkerboard's diagonal squares
-/// lies their shared corner (about half way), between a weave's crossings its dark gaps (beyond the
-/// gel, away from the crossings).
-pub const MAX_GAP: f64 = 0.3;
+/// them, as a share of the markers' contrast: between two dots lies the gel; between a checkerboard's
+/// diagonal squares lies their shared corner (about half way), between a weave's crossings its dark
+/// gaps (beyond the gel, away from the crossings). The limit sits between the two with room on the
+/// gel's side (docs/experiments/localization-regular-patterns.md).
+pub const MAX_GAP: f64 = 0.4;
 
 /// The image's pixels, read in place.
 struct Pixels<'a> {
