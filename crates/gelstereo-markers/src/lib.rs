@@ -22,6 +22,7 @@ pub mod blob;
 pub mod border;
 pub mod close_look;
 pub mod contract;
+pub mod dots;
 pub mod edge;
 pub mod lattice;
 pub mod marknet;

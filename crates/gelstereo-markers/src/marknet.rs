@@ -24,6 +24,7 @@ use crate::close_look::{
 };
 use crate::contract::AutoFit;
 use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_FEATURES, MRE_INPUT, MRE_OUTPUT, TensorSpec};
+use crate::dots::judge_the_dots;
 use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
@@ -1651,6 +1652,13 @@ impl Marknet {
             .zip(images)
             .zip(pitch_and_spread)
             .map(|((mut found, image), (pitch, spread))| {
+                // A regular pattern that is no marker gel (a checkerboard, a weave) can pass the
+                // lattice check; its "markers" then lose the look of dots on a gel.
+                if judge_the_dots(image, &found.accepted)?.is_some_and(|v| !v.dots()) {
+                    let rejected = std::mem::take(&mut found.accepted);
+                    found.second_tier.extend(rejected);
+                    return Ok(found);
+                }
                 settle_the_border(&mut found, image, pitch)?;
                 let before = found.accepted.len();
                 if close_look && !spread {
