@@ -797,26 +797,21 @@ fn frame_names_that_do_not_settle_their_order_are_warned_about() {
         write(&frames.join(name), &dots());
     }
     let stream = dir.path().join("s.jsonl");
-    let out = gelstereo(&[
-        "track",
-        "--quiet",
-        "--method",
-        "blob",
-        "--jsonl",
-        s(&stream),
-        s(&frames),
-    ]);
-    let t = text(&out);
+    let track = || {
+        let args = [
+            "track",
+            "--quiet",
+            "--method",
+            "blob",
+            "--jsonl",
+            s(&stream),
+            s(&frames),
+        ];
+        text(&gelstereo(&args))
+    };
+    let t = track();
     assert!(t.contains("1.png and 01.png") && t.contains("same number"), "{t}");
     std::fs::remove_file(frames.join("01.png")).unwrap();
-    let out = gelstereo(&[
-        "track",
-        "--quiet",
-        "--method",
-        "blob",
-        "--jsonl",
-        s(&stream),
-        s(&frames),
-    ]);
-    assert!(!text(&out).contains("same number"), "{}", text(&out));
+    let t = track();
+    assert!(!t.contains("same number"), "{t}");
 }

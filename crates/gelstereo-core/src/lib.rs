@@ -21,6 +21,8 @@ mod marker;
 pub mod spatial;
 pub mod stats;
 pub mod table;
+#[doc(hidden)]
+pub mod testing;
 
 pub use grid::{GridIndex, GridShape};
 pub use marker::{Detection, ImageSize, MarkerStatus, Point2, SlipState, StereoPair, TieredDetections, View};

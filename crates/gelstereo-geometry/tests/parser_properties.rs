@@ -67,19 +67,6 @@ fn read_as(name: &str, text: &[u8]) -> Result<(), TestCaseError> {
     Ok(())
 }
 
-/// Applies byte edits to a file's contents: (where, byte, kind) with kind 0 replacing the byte there,
-/// 1 inserting `byte` before it, 2 cutting the file at that point.
-fn mutate(bytes: &mut Vec<u8>, edits: &[(prop::sample::Index, u8, u8)]) {
-    for (at, byte, kind) in edits {
-        let i = at.index(bytes.len().max(1)).min(bytes.len());
-        match kind {
-            0 if i < bytes.len() => bytes[i] = *byte,
-            1 => bytes.insert(i, *byte),
-            _ => bytes.truncate(i),
-        }
-    }
-}
-
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
@@ -100,14 +87,14 @@ proptest! {
     #[test]
     fn mutated_opencv_files_read_or_name_the_file(
         xml in any::<bool>(),
-        edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>(), 0u8..3), 1..6),
+        edits in proptest::collection::vec((any::<usize>(), any::<u8>(), 0u8..3), 1..6),
     ) {
         let (name, mut bytes) = if xml {
             ("opencv5.xml", std::fs::read(data("opencv5.xml")).unwrap())
         } else {
             ("opencv8.yaml", std::fs::read(data("opencv8.yaml")).unwrap())
         };
-        mutate(&mut bytes, &edits);
+        gelstereo_core::testing::mutate(&mut bytes, &edits);
         read_as(name, &bytes)?;
     }
 
@@ -137,10 +124,10 @@ proptest! {
     /// The committed mrcal pair with the left model's bytes replaced, inserted or cut.
     #[test]
     fn mutated_mrcal_models_read_or_name_the_file(
-        edits in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>(), 0u8..3), 1..6),
+        edits in proptest::collection::vec((any::<usize>(), any::<u8>(), 0u8..3), 1..6),
     ) {
         let mut bytes = std::fs::read(data("opencv5_left.cameramodel")).unwrap();
-        mutate(&mut bytes, &edits);
+        gelstereo_core::testing::mutate(&mut bytes, &edits);
         let dir = tempfile::tempdir().unwrap();
         let left = dir.path().join("left.cameramodel");
         std::fs::write(&left, &bytes).unwrap();
