@@ -6,32 +6,14 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers: a failure is a test failure
 
-use std::path::{Path, PathBuf};
+mod shipped;
+use shipped::shipped;
 
 use gelstereo_core::Detection;
-use gelstereo_markers::{Localizer, Marknet, Mre, PostProcess, SessionOptions};
+use gelstereo_markers::{Localizer, PostProcess};
 use opencv::core::{CV_8UC3, Mat, Point, Scalar};
 use opencv::imgproc;
 use opencv::prelude::*;
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
-}
-
-fn shipped() -> Marknet {
-    let options = SessionOptions {
-        intra_threads: 1,
-        use_cuda: false,
-    };
-    let models = root().join("data/models");
-    let mre = Mre::load(&models.join("mre.onnx"), &options).unwrap();
-    let mut net = Marknet::load(&models.join("marknet.onnx"), &options)
-        .unwrap()
-        .with_mre(mre)
-        .unwrap();
-    net.set_pitch_memory(false);
-    net
-}
 
 /// A `w x h` BGR image of `background` with filled discs of `radius` px and colour `dot` at `centres`
 /// (anti-aliased, 1/16 px positions), plus mild deterministic pixel noise.

@@ -5,30 +5,16 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers: a failure is a test failure
 
-use std::path::Path;
+mod shipped;
+use shipped::shipped;
 
-use gelstereo_markers::{Localizer, Marknet, Mre, SessionOptions};
+use gelstereo_markers::{Localizer, Marknet};
 use opencv::core::{CV_8UC3, Mat, Point, Scalar};
 use opencv::imgproc;
 use opencv::prelude::*;
 
 /// At most this many markers on an image without markers.
 const HANDFUL: usize = 5;
-
-fn shipped() -> Marknet {
-    let options = SessionOptions {
-        intra_threads: 1,
-        use_cuda: false,
-    };
-    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../data/models");
-    let mre = Mre::load(&models.join("mre.onnx"), &options).unwrap();
-    let mut net = Marknet::load(&models.join("marknet.onnx"), &options)
-        .unwrap()
-        .with_mre(mre)
-        .unwrap();
-    net.set_pitch_memory(false);
-    net
-}
 
 /// A `w x h` BGR image whose pixel (x, y) is `grey(x, y)` (clamped to 0-255).
 fn paint(w: i32, h: i32, grey: impl Fn(f64, f64) -> f64) -> Mat {
