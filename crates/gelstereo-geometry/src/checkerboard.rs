@@ -297,14 +297,8 @@ fn to_f32_points(points: &[Point2]) -> Vector<Point2f> {
         .collect()
 }
 
-/// Calibrates a stereo rig from corner pairs of `board` in images of `image_size`.
-pub fn calibrate_stereo(
-    board: &Board,
-    image_size: ImageSize,
-    views: &[StereoCorners],
-    options: &CalibrationOptions,
-) -> Result<CalibrationReport> {
-    options.validate()?;
+/// Every pair must hold all the board's corners in both views, and there must be enough pairs.
+fn check_stereo_views(board: &Board, views: &[StereoCorners], options: &CalibrationOptions) -> Result<()> {
     let n = board.corner_count();
     for v in views {
         if v.left.len() != n || v.right.len() != n {
@@ -323,6 +317,63 @@ pub fn calibrate_stereo(
             options.min_pairs.max(1)
         )));
     }
+    Ok(())
+}
+
+/// The per-pair left and right RMS errors of `stereoCalibrate` (`per_view`, one row of two
+/// per pair), named after their pairs.
+fn pair_errors(views: &[StereoCorners], per_view: &Mat) -> Result<Vec<PairError>> {
+    let (pv_rows, pv_cols, pv) = crate::cv::mat_to_rows(per_view)?;
+    if pv_rows != views.len() || pv_cols != 2 {
+        return Err(Error::Calibration(format!(
+            "stereoCalibrate returned {pv_rows}x{pv_cols} per-view errors for {} pairs",
+            views.len()
+        )));
+    }
+    Ok(views
+        .iter()
+        .zip(pv.chunks_exact(2))
+        .map(|(v, e)| PairError {
+            name: v.name.clone(),
+            left_rms_px: e[0],
+            right_rms_px: e[1],
+        })
+        .collect())
+}
+
+/// RMS and largest epipolar error of all corner pairs under the calibrated `rig`, an
+/// independent check of the calibration (the corners that cannot be undistorted are left out).
+fn epipolar_errors(rig: &StereoRig, views: &[StereoCorners]) -> Result<(f64, f64)> {
+    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+    let (mut sum2, mut max, mut count) = (0.0, 0.0f64, 0usize);
+    for v in views {
+        for (l, r) in v.left.iter().zip(&v.right) {
+            if let Some(e) = tri.epipolar_error_px(*l, *r) {
+                sum2 += e * e;
+                max = max.max(e);
+                count += 1;
+            }
+        }
+    }
+    if count == 0 {
+        return Err(Error::Calibration(
+            "no corner could be undistorted with the calibrated rig".to_owned(),
+        ));
+    }
+    #[allow(clippy::cast_precision_loss)]
+    let epipolar_rms_px = (sum2 / count as f64).sqrt();
+    Ok((epipolar_rms_px, max))
+}
+
+/// Calibrates a stereo rig from corner pairs of `board` in images of `image_size`.
+pub fn calibrate_stereo(
+    board: &Board,
+    image_size: ImageSize,
+    views: &[StereoCorners],
+    options: &CalibrationOptions,
+) -> Result<CalibrationReport> {
+    options.validate()?;
+    check_stereo_views(board, views, options)?;
     let flags = model_flags(options.distortion_coeffs)?;
     // Single precision is what OpenCV's calibration functions take.
     #[allow(clippy::cast_possible_truncation)]
@@ -376,22 +427,7 @@ pub fn calibrate_stereo(
         criteria,
     )
     .map_err(cv_err("stereoCalibrate"))?;
-    let (pv_rows, pv_cols, pv) = crate::cv::mat_to_rows(&per_view)?;
-    if pv_rows != views.len() || pv_cols != 2 {
-        return Err(Error::Calibration(format!(
-            "stereoCalibrate returned {pv_rows}x{pv_cols} per-view errors for {} pairs",
-            views.len()
-        )));
-    }
-    let per_pair: Vec<PairError> = views
-        .iter()
-        .zip(pv.chunks_exact(2))
-        .map(|(v, e)| PairError {
-            name: v.name.clone(),
-            left_rms_px: e[0],
-            right_rms_px: e[1],
-        })
-        .collect();
+    let per_pair = pair_errors(views, &per_view)?;
     let keep = |d: &Mat| -> Result<Mat> {
         // calibrateCamera returns 5 coefficients with k3 fixed at 0 for the 4-coefficient model.
         let (_, _, mut v) = crate::cv::mat_to_rows(d)?;
@@ -417,24 +453,7 @@ pub fn calibrate_stereo(
             )));
         }
     }
-    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
-    let (mut sum2, mut max, mut count) = (0.0, 0.0f64, 0usize);
-    for v in views {
-        for (l, r) in v.left.iter().zip(&v.right) {
-            if let Some(e) = tri.epipolar_error_px(*l, *r) {
-                sum2 += e * e;
-                max = max.max(e);
-                count += 1;
-            }
-        }
-    }
-    if count == 0 {
-        return Err(Error::Calibration(
-            "no corner could be undistorted with the calibrated rig".to_owned(),
-        ));
-    }
-    #[allow(clippy::cast_precision_loss)]
-    let epipolar_rms_px = (sum2 / count as f64).sqrt();
+    let (epipolar_rms_px, max) = epipolar_errors(&rig, views)?;
     Ok(CalibrationReport {
         rig,
         pairs_used: views.len(),

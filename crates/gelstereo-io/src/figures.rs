@@ -318,6 +318,39 @@ pub fn time_series(path: &Path, plot: &TimeSeries) -> Result<()> {
     render(path, PLOT_SIZE, &SeriesFigure(plot))
 }
 
+/// The value axis over the `known` values: from zero (or a margin below the lowest negative
+/// value) to a margin above the highest, at least `resolution` tall.
+fn value_axis(known: &[f64], resolution: f64) -> (f64, f64) {
+    let lo = known.iter().copied().fold(0.0f64, f64::min);
+    let hi = known.iter().copied().fold(lo, f64::max);
+    let span = (hi - lo).max(resolution.abs().max(1e-12));
+    (if lo < 0.0 { lo - 0.05 * span } else { 0.0 }, lo + 1.05 * span)
+}
+
+/// A grey note of font `size`, anchored at its `h`, `v` side.
+fn note_style(
+    size: u32,
+    h: plotters::style::text_anchor::HPos,
+    v: plotters::style::text_anchor::VPos,
+) -> TextStyle<'static> {
+    TextStyle::from((FONT, size).into_font())
+        .color(&RGBColor(90, 90, 90))
+        .pos(plotters::style::text_anchor::Pos::new(h, v))
+}
+
+/// Runs of known (finite) values as (x, value) points, so an unknown frame leaves a gap; runs
+/// may be empty.
+fn known_runs(x: &[f64], values: &[Option<f64>]) -> Vec<Vec<(f64, f64)>> {
+    let mut runs: Vec<Vec<(f64, f64)>> = vec![Vec::new()];
+    for (x, v) in x.iter().zip(values) {
+        match v.filter(|v| v.is_finite()) {
+            Some(v) => runs.last_mut().map_or((), |r| r.push((*x, v))),
+            None => runs.push(Vec::new()),
+        }
+    }
+    runs
+}
+
 fn draw_time_series<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     plot: &TimeSeries,
@@ -330,10 +363,7 @@ fn draw_time_series<DB: DrawingBackend>(
         .flat_map(|c| c.values.iter().flatten().copied())
         .filter(|v| v.is_finite())
         .collect();
-    let lo = known.iter().copied().fold(0.0f64, f64::min);
-    let hi = known.iter().copied().fold(lo, f64::max);
-    let span = (hi - lo).max(plot.y_resolution.abs().max(1e-12));
-    let (y0, y1) = (if lo < 0.0 { lo - 0.05 * span } else { 0.0 }, lo + 1.05 * span);
+    let (y0, y1) = value_axis(&known, plot.y_resolution);
     let (fx, fy) = (tick_label(x0, x1, 8.0), tick_label(y0, y1, 6.0));
     let mut chart = ChartBuilder::on(root)
         .caption(&plot.title, (FONT, 20))
@@ -357,12 +387,11 @@ fn draw_time_series<DB: DrawingBackend>(
         .map_err(err)?;
     if known.is_empty() {
         let at = ((x0 + x1) / 2.0, (y0 + y1) / 2.0);
-        let style = TextStyle::from((FONT, 15).into_font())
-            .color(&RGBColor(90, 90, 90))
-            .pos(plotters::style::text_anchor::Pos::new(
-                plotters::style::text_anchor::HPos::Center,
-                plotters::style::text_anchor::VPos::Center,
-            ));
+        let style = note_style(
+            15,
+            plotters::style::text_anchor::HPos::Center,
+            plotters::style::text_anchor::VPos::Center,
+        );
         chart
             .draw_series(std::iter::once(Text::new(
                 format!("unknown: {}", plot.unknown_note),
@@ -374,12 +403,11 @@ fn draw_time_series<DB: DrawingBackend>(
     }
     let total: usize = plot.curves.iter().map(|c| c.values.len()).sum();
     if known.len() < total {
-        let style = TextStyle::from((FONT, 12).into_font())
-            .color(&RGBColor(90, 90, 90))
-            .pos(plotters::style::text_anchor::Pos::new(
-                plotters::style::text_anchor::HPos::Right,
-                plotters::style::text_anchor::VPos::Top,
-            ));
+        let style = note_style(
+            12,
+            plotters::style::text_anchor::HPos::Right,
+            plotters::style::text_anchor::VPos::Top,
+        );
         chart
             .draw_series(std::iter::once(Text::new(
                 format!("gaps: unknown ({})", plot.unknown_note),
@@ -390,14 +418,7 @@ fn draw_time_series<DB: DrawingBackend>(
     }
     for (k, curve) in plot.curves.iter().enumerate() {
         let colour = CURVE_COLOURS[k % CURVE_COLOURS.len()];
-        // Runs of known values, so an unknown frame leaves a gap.
-        let mut runs: Vec<Vec<(f64, f64)>> = vec![Vec::new()];
-        for (x, v) in plot.timeline.x.iter().zip(&curve.values) {
-            match v.filter(|v| v.is_finite()) {
-                Some(v) => runs.last_mut().map_or((), |r| r.push((*x, v))),
-                None => runs.push(Vec::new()),
-            }
-        }
+        let runs = known_runs(&plot.timeline.x, &curve.values);
         let style = ShapeStyle::from(&colour).stroke_width(2);
         let mut first = true;
         for run in runs.into_iter().filter(|r| !r.is_empty()) {

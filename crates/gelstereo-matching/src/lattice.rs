@@ -849,105 +849,19 @@ impl ReferenceLattice {
             None => self.nodes.clone(),
         };
 
-        // Seed candidates: a unique detection near the expected position.
         let seed_gate = self.config.seed_gate_frac * pitch;
-        let mut cand: Vec<u32> = vec![NONE; n_nodes];
-        for n in 0..n_nodes {
-            let (mut b1, mut b2) = ((f64::INFINITY, NONE), f64::INFINITY);
-            buckets.for_each_within(expected[n], 2.0 * seed_gate, |d, d2| {
-                if d2 < b1.0 || (d2 == b1.0 && (d as u32) < b1.1) {
-                    b2 = b1.0;
-                    b1 = (d2, d as u32);
-                } else if d2 < b2 {
-                    b2 = d2;
-                }
-            });
-            let (d1, d2) = (b1.0.sqrt(), b2.sqrt());
-            if b1.1 != NONE && d1 <= seed_gate && d2 > 2.0 * d1.max(0.05 * pitch) && admit(n, b1.1 as usize) {
-                cand[n] = b1.1;
-            }
-        }
-        // One node per detection: the closer one keeps it.
-        let mut owner: Vec<u32> = vec![NONE; points.len()];
-        for n in 0..n_nodes {
-            let d = cand[n];
-            if d == NONE {
-                continue;
-            }
-            let o = owner[d as usize];
-            if o == NONE {
-                owner[d as usize] = n as u32;
-            } else {
-                let dist = |m: usize| points[d as usize].distance(expected[m]);
-                let (keep, drop) = if dist(n) < dist(o as usize) {
-                    (n as u32, o)
-                } else {
-                    (o, n as u32)
-                };
-                owner[d as usize] = keep;
-                cand[drop as usize] = NONE;
-            }
-        }
-        // Keep seeds whose displacement agrees with enough neighbouring seeds.
-        let disp = |n: usize| {
-            let p = points[cand[n] as usize];
-            (p.x - expected[n].x, p.y - expected[n].y)
+        let mut cand = seed_candidates(&expected, &buckets, seed_gate, pitch, &admit);
+        one_node_per_detection(&mut cand, &points, &expected);
+        let seeds = Seeds {
+            cand: &cand,
+            points: &points,
+            expected: &expected,
+            h,
+            w,
+            agree: self.config.seed_agreement_frac * pitch,
         };
-        let agree = self.config.seed_agreement_frac * pitch;
-        let neighbours8 = |n: usize| {
-            let (r, c) = ((n / w) as i64, (n % w) as i64);
-            (-1i64..=1)
-                .flat_map(move |dr| (-1i64..=1).map(move |dc| (r + dr, c + dc)))
-                .filter(move |&(rr, cc)| {
-                    (rr, cc) != (r, c) && rr >= 0 && cc >= 0 && rr < h as i64 && cc < w as i64
-                })
-                .map(move |(rr, cc)| rr as usize * w + cc as usize)
-        };
-        let consistent: Vec<bool> = (0..n_nodes)
-            .map(|n| {
-                cand[n] != NONE && {
-                    let (dx, dy) = disp(n);
-                    neighbours8(n)
-                        .filter(|&m| {
-                            cand[m] != NONE && {
-                                let (ex, ey) = disp(m);
-                                (dx - ex).powi(2) + (dy - ey).powi(2) <= agree * agree
-                            }
-                        })
-                        .count()
-                        >= self.config.seed_min_agreeing
-                }
-            })
-            .collect();
-        // Largest 8-connected component of consistent, mutually agreeing seeds (lowest first node among equals).
-        let mut comp = vec![usize::MAX; n_nodes];
-        let mut best: (usize, usize) = (usize::MAX, 0);
-        let mut stack = Vec::new();
-        for start in 0..n_nodes {
-            if !consistent[start] || comp[start] != usize::MAX {
-                continue;
-            }
-            comp[start] = start;
-            stack.push(start);
-            let mut size = 0;
-            while let Some(n) = stack.pop() {
-                size += 1;
-                for m in neighbours8(n) {
-                    if consistent[m] && comp[m] == usize::MAX && {
-                        // Link only seeds that agree, so that a block displaced by a whole
-                        // lattice vector does not join the correctly seeded region.
-                        let ((ax, ay), (bx, by)) = (disp(n), disp(m));
-                        (ax - bx).powi(2) + (ay - by).powi(2) <= agree * agree
-                    } {
-                        comp[m] = start;
-                        stack.push(m);
-                    }
-                }
-            }
-            if size > best.1 {
-                best = (start, size);
-            }
-        }
+        let consistent = seeds.consistent(self.config.seed_min_agreeing);
+        let (comp, best) = seeds.largest_group(&consistent);
         let mut g = Grower::new(
             h,
             w,
@@ -978,6 +892,139 @@ impl ReferenceLattice {
             }
         }
         Ok(IndexedView::from_nodes(self.shape, points, &g.node_det))
+    }
+}
+
+/// Seed candidates per node: a unique detection near the expected position (the nearest within
+/// `seed_gate`, with the second nearest clearly farther) that `admit` accepts; NONE elsewhere.
+fn seed_candidates(
+    expected: &[Point2],
+    buckets: &Buckets,
+    seed_gate: f64,
+    pitch: f64,
+    admit: &impl Fn(usize, usize) -> bool,
+) -> Vec<u32> {
+    let mut cand: Vec<u32> = vec![NONE; expected.len()];
+    for n in 0..expected.len() {
+        let (mut b1, mut b2) = ((f64::INFINITY, NONE), f64::INFINITY);
+        buckets.for_each_within(expected[n], 2.0 * seed_gate, |d, d2| {
+            if d2 < b1.0 || (d2 == b1.0 && (d as u32) < b1.1) {
+                b2 = b1.0;
+                b1 = (d2, d as u32);
+            } else if d2 < b2 {
+                b2 = d2;
+            }
+        });
+        let (d1, d2) = (b1.0.sqrt(), b2.sqrt());
+        if b1.1 != NONE && d1 <= seed_gate && d2 > 2.0 * d1.max(0.05 * pitch) && admit(n, b1.1 as usize) {
+            cand[n] = b1.1;
+        }
+    }
+    cand
+}
+
+/// One node per detection: where two candidates share a detection, the node closer to it keeps
+/// it and the other loses its candidate.
+fn one_node_per_detection(cand: &mut [u32], points: &[Point2], expected: &[Point2]) {
+    let mut owner: Vec<u32> = vec![NONE; points.len()];
+    for n in 0..cand.len() {
+        let d = cand[n];
+        if d == NONE {
+            continue;
+        }
+        let o = owner[d as usize];
+        if o == NONE {
+            owner[d as usize] = n as u32;
+        } else {
+            let dist = |m: usize| points[d as usize].distance(expected[m]);
+            let (keep, drop) = if dist(n) < dist(o as usize) {
+                (n as u32, o)
+            } else {
+                (o, n as u32)
+            };
+            owner[d as usize] = keep;
+            cand[drop as usize] = NONE;
+        }
+    }
+}
+
+/// The 8-neighbours of node `n` (row-major) inside an `h` x `w` grid.
+fn neighbours8(n: usize, h: usize, w: usize) -> impl Iterator<Item = usize> {
+    let (r, c) = ((n / w) as i64, (n % w) as i64);
+    (-1i64..=1)
+        .flat_map(move |dr| (-1i64..=1).map(move |dc| (r + dr, c + dc)))
+        .filter(move |&(rr, cc)| (rr, cc) != (r, c) && rr >= 0 && cc >= 0 && rr < h as i64 && cc < w as i64)
+        .map(move |(rr, cc)| rr as usize * w + cc as usize)
+}
+
+/// Seed candidates with what their agreement is judged by: displacements from the expected
+/// positions, compared between neighbours within `agree` pixels.
+struct Seeds<'a> {
+    cand: &'a [u32],
+    points: &'a [Point2],
+    expected: &'a [Point2],
+    h: usize,
+    w: usize,
+    agree: f64,
+}
+
+impl Seeds<'_> {
+    /// Displacement of seed `n` from its expected position.
+    fn disp(&self, n: usize) -> (f64, f64) {
+        let p = self.points[self.cand[n] as usize];
+        (p.x - self.expected[n].x, p.y - self.expected[n].y)
+    }
+
+    /// Seeds `n` and `m` are displaced alike.
+    fn agree(&self, n: usize, m: usize) -> bool {
+        let ((ax, ay), (bx, by)) = (self.disp(n), self.disp(m));
+        (ax - bx).powi(2) + (ay - by).powi(2) <= self.agree * self.agree
+    }
+
+    /// Seeds whose displacement agrees with at least `min_agreeing` neighbouring seeds.
+    fn consistent(&self, min_agreeing: usize) -> Vec<bool> {
+        (0..self.cand.len())
+            .map(|n| {
+                self.cand[n] != NONE
+                    && neighbours8(n, self.h, self.w)
+                        .filter(|&m| self.cand[m] != NONE && self.agree(n, m))
+                        .count()
+                        >= min_agreeing
+            })
+            .collect()
+    }
+
+    /// Largest 8-connected component of consistent, mutually agreeing seeds (lowest first node
+    /// among equals): the component label per node (usize::MAX where none) and (label, size) of
+    /// the largest, with label usize::MAX when there is none.
+    fn largest_group(&self, consistent: &[bool]) -> (Vec<usize>, (usize, usize)) {
+        let n_nodes = consistent.len();
+        let mut comp = vec![usize::MAX; n_nodes];
+        let mut best: (usize, usize) = (usize::MAX, 0);
+        let mut stack = Vec::new();
+        for start in 0..n_nodes {
+            if !consistent[start] || comp[start] != usize::MAX {
+                continue;
+            }
+            comp[start] = start;
+            stack.push(start);
+            let mut size = 0;
+            while let Some(n) = stack.pop() {
+                size += 1;
+                for m in neighbours8(n, self.h, self.w) {
+                    // Link only seeds that agree, so that a block displaced by a whole lattice
+                    // vector does not join the correctly seeded region.
+                    if consistent[m] && comp[m] == usize::MAX && self.agree(n, m) {
+                        comp[m] = start;
+                        stack.push(m);
+                    }
+                }
+            }
+            if size > best.1 {
+                best = (start, size);
+            }
+        }
+        (comp, best)
     }
 }
 

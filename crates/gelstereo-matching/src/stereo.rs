@@ -12,8 +12,8 @@ use nalgebra::{Matrix3, Vector2, Vector3};
 
 use crate::grow::NONE;
 use crate::lattice::{
-    GridPlacement, IndexedView, IndexingConfig, ReferenceLattice, best_window, grow_from_scratch, median,
-    placed_assignment,
+    GridPlacement, IndexedView, IndexingConfig, ReferenceLattice, ScratchLattice, best_window,
+    grow_from_scratch, median, placed_assignment,
 };
 use crate::{Error, Result};
 
@@ -359,101 +359,25 @@ impl StereoLattice {
         let epipolar = EpipolarGeometry::new(rig)?;
         let left_lattice = ReferenceLattice::from_detections(left, shape, config.indexing.clone())?;
         require_right_detections(right)?;
-        let points: Vec<Point2> = right.iter().map(|d| d.position).collect();
-        if let Some(i) = points.iter().position(|p| !(p.x.is_finite() && p.y.is_finite())) {
-            return Err(Error::NonFiniteDetection {
-                detection: i,
-                x: points[i].x,
-                y: points[i].y,
-            });
-        }
+        let points = finite_right_points(right)?;
         let scratch = grow_from_scratch(&points, shape, &config.indexing)?;
-        let (h, w) = (usize::from(shape.rows), usize::from(shape.cols));
-        let Some((rmin, rmax, cmin, cmax)) = scratch.extent() else {
+        let Some(extent) = scratch.extent() else {
             return Err(Error::StereoAlignment {
                 reason: "no lattice found in the right view".into(),
             });
         };
-
-        // Epipolar lines of the observed left reference markers; undistorted right points.
-        let lines: Vec<Option<Vector3<f64>>> = shape
-            .indices()
-            .map(|idx| {
-                left_lattice
-                    .observed(idx)
-                    .then(|| left_lattice.node_position(idx))
-                    .flatten()
-                    .and_then(|p| epipolar.line_of_left(p))
-            })
-            .collect();
-        let right_norm: Vec<Option<Vector2<f64>>> =
-            points.iter().map(|&p| epipolar.undistort_right(p)).collect();
-        let assigned: Vec<(i64, i64, usize)> = scratch
-            .node_det
-            .iter()
-            .enumerate()
-            .filter(|(_, d)| **d != NONE)
-            .map(|(n, &d)| ((n / scratch.cols) as i64, (n % scratch.cols) as i64, d as usize))
-            .collect();
-        // Per offset: right markers on an observed left node, and of those the ones within the
-        // epipolar bound.
-        let fit = |r0: i64, c0: i64| -> (usize, usize) {
-            let (mut overlap, mut within) = (0usize, 0usize);
-            for &(r, c, d) in &assigned {
-                let (gr, gc) = (r - r0, c - c0);
-                if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
-                    continue;
-                }
-                if let Some(l) = &lines[gr as usize * w + gc as usize] {
-                    overlap += 1;
-                    if right_norm[d]
-                        .is_some_and(|x| epipolar.line_distance_px(l, &x) <= config.max_epipolar_px)
-                    {
-                        within += 1;
-                    }
-                }
-            }
-            (overlap, within)
-        };
-        // A grid cut off by the view (`extent_decides` not both): the views overlap more under some
-        // wrong column offsets than under the true one, so an offset scores the share of its
-        // overlap that fits (in 1/1000, over at least a quarter of the markers), not the count.
-        let cut = extent_decides != (true, true);
-        let min_overlap = (assigned.len().min(lines.iter().flatten().count()) / 4).max(6);
-        let score = |r0: i64, c0: i64| -> usize {
-            let (overlap, within) = fit(r0, c0);
-            match cut {
-                false => within,
-                true if overlap >= min_overlap => within * 1000 / overlap,
-                true => 0,
-            }
-        };
-        let mut scored = Vec::new();
-        for r0 in rmin as i64 - h as i64 + 1..=rmax as i64 {
-            for c0 in cmin as i64 - w as i64 + 1..=cmax as i64 {
-                scored.push((score(r0, c0), r0, c0));
-            }
-        }
-        // Highest score first; lowest offsets among equals (deterministic).
-        scored.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        let search = OffsetSearch::new(
+            &epipolar,
+            &left_lattice,
+            &points,
+            &scratch,
+            shape,
+            config.max_epipolar_px,
+            extent_decides != (true, true),
+        );
+        let scored = search.scored_offsets(extent);
         let best = scored[0];
-        let possible = if cut {
-            1000
-        } else {
-            assigned.len().min(lines.iter().flatten().count())
-        };
-        if best.0 * 2 < possible {
-            let (_, within) = fit(best.1, best.2);
-            return Err(Error::StereoAlignment {
-                reason: format!(
-                    "at best {} of {} right markers lie within {} px of their left namesakes' epipolar \
-                     lines: expected at least half; check that the calibration belongs to this sensor",
-                    within,
-                    assigned.len(),
-                    config.max_epipolar_px
-                ),
-            });
-        }
+        search.require_half_within(best)?;
         let rivals: Vec<(i64, i64)> = scored
             .iter()
             .filter(|s| s.0 * 10 >= best.0 * 9)
@@ -462,135 +386,10 @@ impl StereoLattice {
         let (r0, c0) = if rivals.len() == 1 {
             (best.1, best.2)
         } else {
-            // The window of the right lattice's own rows and columns that holds the most markers
-            // (a stray row of dust beside the lattice does not move it); it decides when every
-            // one of its rows and columns is occupied. Per direction: an offset all rivals share
-            // stands; else the window decides where allowed (`extent_decides`: not for a direction
-            // in which the sensor's grid overfills the view, where the windows say nothing).
-            let (row_counts, col_counts) = scratch.counts();
-            let (wr, wc) = (best_window(&row_counts, h), best_window(&col_counts, w));
-            let rows_full = extent_decides.0 && !row_counts[wr..wr + h].contains(&0);
-            let cols_full = extent_decides.1 && !col_counts[wc..wc + w].contains(&0);
-            let shared = |of: fn(&(i64, i64)) -> i64| {
-                let v = of(&rivals[0]);
-                rivals.iter().all(|r| of(r) == v).then_some(v)
-            };
-            let r = shared(|r| r.0).or(rows_full.then_some(wr as i64));
-            let c = shared(|r| r.1).or(cols_full.then_some(wc as i64));
-            // The metric cue: relative error of the triangulated median neighbour spacing against
-            // the known pitch, per rival.
-            let spacing_errors: Vec<((i64, i64), f64)> = match pitch_mm {
-                Some(p) if r.zip(c).filter(|rc| rivals.contains(rc)).is_none() => {
-                    let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
-                    rivals
-                        .iter()
-                        .map(|&(r0, c0)| {
-                            let mut at: Vec<Option<nalgebra::Point3<f64>>> = vec![None; h * w];
-                            for &(r, c, d) in &assigned {
-                                let (gr, gc) = (r - r0, c - c0);
-                                if gr < 0 || gc < 0 || gr >= h as i64 || gc >= w as i64 {
-                                    continue;
-                                }
-                                let idx = GridIndex::new(gr as u16, gc as u16);
-                                if let Some(l) = left_lattice
-                                    .observed(idx)
-                                    .then(|| left_lattice.node_position(idx))
-                                    .flatten()
-                                {
-                                    at[gr as usize * w + gc as usize] =
-                                        tri.triangulate(l, points[d]).ok().map(|t| t.p_in_left_mm);
-                                }
-                            }
-                            let mut steps: Vec<f64> = Vec::new();
-                            for n in 0..h * w {
-                                let Some(a) = at[n] else { continue };
-                                let right_n = (n % w + 1 < w).then_some(n + 1);
-                                let below = (n / w + 1 < h).then_some(n + w);
-                                for m in [right_n, below].into_iter().flatten() {
-                                    if let Some(b) = at[m] {
-                                        steps.push((b - a).norm());
-                                    }
-                                }
-                            }
-                            let e = if steps.is_empty() {
-                                f64::INFINITY
-                            } else {
-                                (median(&mut steps) / p - 1.0).abs()
-                            };
-                            ((r0, c0), e)
-                        })
-                        .collect()
-                }
-                _ => Vec::new(),
-            };
-            let by_pitch = spacing_errors
-                .iter()
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .filter(|best| {
-                    best.1 <= 0.05
-                        && spacing_errors
-                            .iter()
-                            .all(|o| o.0 == best.0 || o.1 >= best.1 + 0.05)
-                })
-                .map(|best| best.0);
-            if let Some(by_extent) = r.zip(c).filter(|rc| rivals.contains(rc)) {
-                by_extent
-            } else if let Some(by_pitch) = by_pitch {
-                by_pitch
-            } else {
-                let cue = if spacing_errors.is_empty() {
-                    String::new()
-                } else {
-                    let v: Vec<String> = spacing_errors
-                        .iter()
-                        .map(|((r0, c0), e)| format!("({r0}, {c0}): {:.0} %", 100.0 * e))
-                        .collect();
-                    format!(
-                        "; triangulated neighbour spacing off the {:.3} mm pitch by offset: {} (expected one \
-                         within 5 % and the others 5 % farther)",
-                        pitch_mm.unwrap_or(f64::NAN),
-                        v.join(", ")
-                    )
-                };
-                return Err(Error::StereoAlignment {
-                    reason: format!(
-                        "{} row/column offsets of the right lattice fit the epipolar constraint about equally \
-                         well (best {} markers) and the right view does not show the whole {} x {} lattice \
-                         (rows {}..={}, columns {}..={} of its own grid){cue}",
-                        rivals.len(),
-                        fit(best.1, best.2).1,
-                        h,
-                        w,
-                        rmin,
-                        rmax,
-                        cmin,
-                        cmax
-                    ),
-                });
-            }
+            search.settle_rivals(rig, &rivals, best, extent, extent_decides, pitch_mm)?
         };
-        let node_det: Vec<u32> = (0..h * w)
-            .map(|n| {
-                let d = scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0);
-                // Drop right markers that contradict the constraint (where the left one was seen).
-                let ok = d != NONE
-                    && match (&lines[n], &right_norm[d as usize]) {
-                        (Some(l), Some(x)) => epipolar.line_distance_px(l, x) <= config.max_epipolar_px,
-                        (Some(_), None) => false,
-                        (None, _) => true,
-                    };
-                if ok { d } else { NONE }
-            })
-            .collect();
-        // A cut grid: the right view shows only its part of the window, so the minimum reference
-        // fraction counts the right markers that fall in the window.
-        let in_window = if cut {
-            (0..h * w)
-                .filter(|n| scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0) != NONE)
-                .count()
-        } else {
-            h * w
-        };
+        let node_det = search.node_assignment(r0, c0);
+        let in_window = search.nodes_in_window(r0, c0);
         let right_lattice = ReferenceLattice::from_assignment_of(
             points,
             shape,
@@ -723,4 +522,333 @@ fn require_right_detections(right: &[Detection]) -> Result<()> {
         });
     }
     Ok(())
+}
+
+/// The right reference frame's marker positions, refused when one is not finite (a non-finite
+/// position would poison every distance the alignment measures).
+fn finite_right_points(right: &[Detection]) -> Result<Vec<Point2>> {
+    let points: Vec<Point2> = right.iter().map(|d| d.position).collect();
+    if let Some(i) = points.iter().position(|p| !(p.x.is_finite() && p.y.is_finite())) {
+        return Err(Error::NonFiniteDetection {
+            detection: i,
+            x: points[i].x,
+            y: points[i].y,
+        });
+    }
+    Ok(points)
+}
+
+/// The search for the row/column offset that places the right view's scratch lattice on the
+/// left reference lattice: everything each candidate offset is scored against, computed once.
+struct OffsetSearch<'a> {
+    epipolar: &'a EpipolarGeometry,
+    left: &'a ReferenceLattice,
+    points: &'a [Point2],
+    scratch: &'a ScratchLattice,
+    /// Reference grid rows and columns.
+    h: usize,
+    w: usize,
+    max_epipolar_px: f64,
+    /// Epipolar line per reference node where the left view observed its marker.
+    lines: Vec<Option<Vector3<f64>>>,
+    /// Undistorted right points (None where undistortion failed).
+    right_norm: Vec<Option<Vector2<f64>>>,
+    /// (provisional row, provisional column, detection) of every assigned scratch node.
+    assigned: Vec<(i64, i64, usize)>,
+    /// The grid is cut off by the view in some direction (see [`OffsetSearch::score`]).
+    cut: bool,
+    /// Least overlap a cut grid's offset needs to be scored at all.
+    min_overlap: usize,
+}
+
+impl<'a> OffsetSearch<'a> {
+    /// Epipolar lines of the observed left reference markers, undistorted right points and the
+    /// assigned scratch nodes.
+    fn new(
+        epipolar: &'a EpipolarGeometry,
+        left: &'a ReferenceLattice,
+        points: &'a [Point2],
+        scratch: &'a ScratchLattice,
+        shape: GridShape,
+        max_epipolar_px: f64,
+        cut: bool,
+    ) -> Self {
+        let lines: Vec<Option<Vector3<f64>>> = shape
+            .indices()
+            .map(|idx| {
+                left.observed(idx)
+                    .then(|| left.node_position(idx))
+                    .flatten()
+                    .and_then(|p| epipolar.line_of_left(p))
+            })
+            .collect();
+        let right_norm: Vec<Option<Vector2<f64>>> =
+            points.iter().map(|&p| epipolar.undistort_right(p)).collect();
+        let assigned: Vec<(i64, i64, usize)> = scratch
+            .node_det
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| **d != NONE)
+            .map(|(n, &d)| ((n / scratch.cols) as i64, (n % scratch.cols) as i64, d as usize))
+            .collect();
+        let min_overlap = (assigned.len().min(lines.iter().flatten().count()) / 4).max(6);
+        Self {
+            epipolar,
+            left,
+            points,
+            scratch,
+            h: usize::from(shape.rows),
+            w: usize::from(shape.cols),
+            max_epipolar_px,
+            lines,
+            right_norm,
+            assigned,
+            cut,
+            min_overlap,
+        }
+    }
+
+    /// The reference node (row-major) a provisional node lands on under offset `(r0, c0)`, if
+    /// inside the grid.
+    fn node_under(&self, r: i64, c: i64, r0: i64, c0: i64) -> Option<(i64, i64)> {
+        let (gr, gc) = (r - r0, c - c0);
+        let outside = gr < 0 || gc < 0 || gr >= self.h as i64 || gc >= self.w as i64;
+        (!outside).then_some((gr, gc))
+    }
+
+    /// Per offset: right markers on an observed left node, and of those the ones within the
+    /// epipolar bound.
+    fn fit(&self, r0: i64, c0: i64) -> (usize, usize) {
+        let (mut overlap, mut within) = (0usize, 0usize);
+        for &(r, c, d) in &self.assigned {
+            let Some((gr, gc)) = self.node_under(r, c, r0, c0) else {
+                continue;
+            };
+            if let Some(l) = &self.lines[gr as usize * self.w + gc as usize] {
+                overlap += 1;
+                if self.right_norm[d]
+                    .is_some_and(|x| self.epipolar.line_distance_px(l, &x) <= self.max_epipolar_px)
+                {
+                    within += 1;
+                }
+            }
+        }
+        (overlap, within)
+    }
+
+    /// A grid cut off by the view: the views overlap more under some wrong column offsets than
+    /// under the true one, so an offset scores the share of its overlap that fits (in 1/1000,
+    /// over at least a quarter of the markers), not the count.
+    fn score(&self, r0: i64, c0: i64) -> usize {
+        let (overlap, within) = self.fit(r0, c0);
+        match self.cut {
+            false => within,
+            true if overlap >= self.min_overlap => within * 1000 / overlap,
+            true => 0,
+        }
+    }
+
+    /// Every offset that keeps the scratch extent overlapping the grid, as (score, row offset,
+    /// column offset): highest score first, lowest offsets among equals (deterministic).
+    fn scored_offsets(&self, extent: (usize, usize, usize, usize)) -> Vec<(usize, i64, i64)> {
+        let (rmin, rmax, cmin, cmax) = extent;
+        let (h, w) = (self.h, self.w);
+        let mut scored = Vec::new();
+        for r0 in rmin as i64 - h as i64 + 1..=rmax as i64 {
+            for c0 in cmin as i64 - w as i64 + 1..=cmax as i64 {
+                scored.push((self.score(r0, c0), r0, c0));
+            }
+        }
+        scored.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+        scored
+    }
+
+    /// Refuses the alignment when even the best offset fits fewer than half the markers it
+    /// could: the calibration most likely belongs to another sensor.
+    fn require_half_within(&self, best: (usize, i64, i64)) -> Result<()> {
+        let possible = if self.cut {
+            1000
+        } else {
+            self.assigned.len().min(self.lines.iter().flatten().count())
+        };
+        if best.0 * 2 < possible {
+            let (_, within) = self.fit(best.1, best.2);
+            return Err(Error::StereoAlignment {
+                reason: format!(
+                    "at best {} of {} right markers lie within {} px of their left namesakes' epipolar \
+                     lines: expected at least half; check that the calibration belongs to this sensor",
+                    within,
+                    self.assigned.len(),
+                    self.max_epipolar_px
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Chooses among offsets that fit about equally well. The window of the right lattice's own
+    /// rows and columns that holds the most markers (a stray row of dust beside the lattice does
+    /// not move it) decides when every one of its rows and columns is occupied. Per direction: an
+    /// offset all rivals share stands; else the window decides where allowed (`extent_decides`:
+    /// not for a direction in which the sensor's grid overfills the view, where the windows say
+    /// nothing). Failing that, the triangulated spacing against the known pitch decides.
+    fn settle_rivals(
+        &self,
+        rig: &StereoRig,
+        rivals: &[(i64, i64)],
+        best: (usize, i64, i64),
+        extent: (usize, usize, usize, usize),
+        extent_decides: (bool, bool),
+        pitch_mm: Option<f64>,
+    ) -> Result<(i64, i64)> {
+        let (h, w) = (self.h, self.w);
+        let (row_counts, col_counts) = self.scratch.counts();
+        let (wr, wc) = (best_window(&row_counts, h), best_window(&col_counts, w));
+        let rows_full = extent_decides.0 && !row_counts[wr..wr + h].contains(&0);
+        let cols_full = extent_decides.1 && !col_counts[wc..wc + w].contains(&0);
+        let shared = |of: fn(&(i64, i64)) -> i64| {
+            let v = of(&rivals[0]);
+            rivals.iter().all(|r| of(r) == v).then_some(v)
+        };
+        let r = shared(|r| r.0).or(rows_full.then_some(wr as i64));
+        let c = shared(|r| r.1).or(cols_full.then_some(wc as i64));
+        let spacing_errors: Vec<((i64, i64), f64)> = match pitch_mm {
+            Some(p) if r.zip(c).filter(|rc| rivals.contains(rc)).is_none() => {
+                let tri = Triangulator::new(rig.clone(), TriangulationConfig::default())?;
+                rivals
+                    .iter()
+                    .map(|&(r0, c0)| ((r0, c0), self.spacing_error(&tri, r0, c0, p)))
+                    .collect()
+            }
+            _ => Vec::new(),
+        };
+        let by_pitch = spacing_errors
+            .iter()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .filter(|best| {
+                best.1 <= 0.05
+                    && spacing_errors
+                        .iter()
+                        .all(|o| o.0 == best.0 || o.1 >= best.1 + 0.05)
+            })
+            .map(|best| best.0);
+        if let Some(by_extent) = r.zip(c).filter(|rc| rivals.contains(rc)) {
+            Ok(by_extent)
+        } else if let Some(by_pitch) = by_pitch {
+            Ok(by_pitch)
+        } else {
+            Err(self.ambiguity_error(rivals, best, extent, pitch_mm, &spacing_errors))
+        }
+    }
+
+    /// The metric cue: relative error of the triangulated median neighbour spacing against the
+    /// known pitch `p` under offset `(r0, c0)` (infinite where no neighbours triangulate).
+    fn spacing_error(&self, tri: &Triangulator, r0: i64, c0: i64, p: f64) -> f64 {
+        let (h, w) = (self.h, self.w);
+        let mut at: Vec<Option<nalgebra::Point3<f64>>> = vec![None; h * w];
+        for &(r, c, d) in &self.assigned {
+            let Some((gr, gc)) = self.node_under(r, c, r0, c0) else {
+                continue;
+            };
+            let idx = GridIndex::new(gr as u16, gc as u16);
+            if let Some(l) = self
+                .left
+                .observed(idx)
+                .then(|| self.left.node_position(idx))
+                .flatten()
+            {
+                at[gr as usize * w + gc as usize] =
+                    tri.triangulate(l, self.points[d]).ok().map(|t| t.p_in_left_mm);
+            }
+        }
+        let mut steps: Vec<f64> = Vec::new();
+        for n in 0..h * w {
+            let Some(a) = at[n] else { continue };
+            let right_n = (n % w + 1 < w).then_some(n + 1);
+            let below = (n / w + 1 < h).then_some(n + w);
+            for m in [right_n, below].into_iter().flatten() {
+                if let Some(b) = at[m] {
+                    steps.push((b - a).norm());
+                }
+            }
+        }
+        if steps.is_empty() {
+            f64::INFINITY
+        } else {
+            (median(&mut steps) / p - 1.0).abs()
+        }
+    }
+
+    /// The error for rivals neither the extent nor the pitch could settle, naming the offsets
+    /// and, where measured, their spacing errors.
+    fn ambiguity_error(
+        &self,
+        rivals: &[(i64, i64)],
+        best: (usize, i64, i64),
+        extent: (usize, usize, usize, usize),
+        pitch_mm: Option<f64>,
+        spacing_errors: &[((i64, i64), f64)],
+    ) -> Error {
+        let (rmin, rmax, cmin, cmax) = extent;
+        let cue = if spacing_errors.is_empty() {
+            String::new()
+        } else {
+            let v: Vec<String> = spacing_errors
+                .iter()
+                .map(|((r0, c0), e)| format!("({r0}, {c0}): {:.0} %", 100.0 * e))
+                .collect();
+            format!(
+                "; triangulated neighbour spacing off the {:.3} mm pitch by offset: {} (expected one \
+                 within 5 % and the others 5 % farther)",
+                pitch_mm.unwrap_or(f64::NAN),
+                v.join(", ")
+            )
+        };
+        Error::StereoAlignment {
+            reason: format!(
+                "{} row/column offsets of the right lattice fit the epipolar constraint about equally \
+                 well (best {} markers) and the right view does not show the whole {} x {} lattice \
+                 (rows {}..={}, columns {}..={} of its own grid){cue}",
+                rivals.len(),
+                self.fit(best.1, best.2).1,
+                self.h,
+                self.w,
+                rmin,
+                rmax,
+                cmin,
+                cmax
+            ),
+        }
+    }
+
+    /// The detection per reference node under offset `(r0, c0)`, dropping right markers that
+    /// contradict the constraint (where the left one was seen).
+    fn node_assignment(&self, r0: i64, c0: i64) -> Vec<u32> {
+        let w = self.w;
+        (0..self.h * w)
+            .map(|n| {
+                let d = self.scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0);
+                let ok = d != NONE
+                    && match (&self.lines[n], &self.right_norm[d as usize]) {
+                        (Some(l), Some(x)) => self.epipolar.line_distance_px(l, x) <= self.max_epipolar_px,
+                        (Some(_), None) => false,
+                        (None, _) => true,
+                    };
+                if ok { d } else { NONE }
+            })
+            .collect()
+    }
+
+    /// Reference nodes the right view can show: a cut grid shows only its part of the window, so
+    /// the minimum reference fraction counts the right markers that fall in the window.
+    fn nodes_in_window(&self, r0: i64, c0: i64) -> usize {
+        let w = self.w;
+        if self.cut {
+            (0..self.h * w)
+                .filter(|n| self.scratch.det_at((n / w) as i64 + r0, (n % w) as i64 + c0) != NONE)
+                .count()
+        } else {
+            self.h * w
+        }
+    }
 }

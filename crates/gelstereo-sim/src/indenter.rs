@@ -344,17 +344,7 @@ impl Indenter {
                 let re = 0.2;
                 (y * y + re * re).sqrt() - re + fillet(x.abs() - 0.5 * length_mm)
             }
-            Self::CubeCorner => {
-                let s = std::f64::consts::SQRT_2;
-                let mut h: f64 = 0.0;
-                for k in 0..3 {
-                    let a = std::f64::consts::TAU * f64::from(k) / 3.0 + std::f64::consts::FRAC_PI_2;
-                    h = h.max(s * (x * a.cos() + y * a.sin()));
-                }
-                // Round the tip a little.
-                let t = 0.15;
-                (h * h + t * t).sqrt() - t
-            }
+            Self::CubeCorner => cube_corner_height(x, y),
             Self::Cone { half_angle_deg } => {
                 let slope = 1.0 / half_angle_deg.to_radians().tan();
                 let t = 0.2;
@@ -369,16 +359,7 @@ impl Indenter {
                 ))
             }
             Self::Hexagon { radius_mm } => fillet(sd_polygon(&regular_polygon(6, *radius_mm, 0.0), x, y)),
-            Self::Star { radius_mm } => {
-                let v: Vec<[f64; 2]> = (0..10)
-                    .map(|k| {
-                        let a = -std::f64::consts::FRAC_PI_2 + std::f64::consts::PI * f64::from(k) / 5.0;
-                        let r = if k % 2 == 0 { *radius_mm } else { 0.45 * radius_mm };
-                        [r * a.cos(), r * a.sin()]
-                    })
-                    .collect();
-                fillet(sd_polygon(&v, x, y))
-            }
+            Self::Star { radius_mm } => fillet(sd_polygon(&star_polygon(*radius_mm), x, y)),
             Self::Cross { arm_mm: a, width_mm } => {
                 let w = 0.5 * width_mm;
                 let bx = (x.abs() - a).max(y.abs() - w);
@@ -393,37 +374,8 @@ impl Indenter {
                 let outer = (x.abs() - 0.5 * width_mm).max(y.abs() - 0.6 * width_mm);
                 fillet(outer.max(0.5 * groove_mm - x.abs()))
             }
-            Self::Text { text, height_mm } => {
-                let n = text.chars().count().max(1) as f64;
-                let advance = 0.85;
-                let x0 = -0.5 * (n * advance - 0.25);
-                let (u, v) = (x / height_mm - x0, y / height_mm + 0.5);
-                let mut d = f64::INFINITY;
-                for (k, c) in text.chars().enumerate() {
-                    let ox = k as f64 * advance;
-                    for s in glyph(c) {
-                        d = d.min(sd_segment(u, v, [s[0] + ox, s[1]], [s[2] + ox, s[3]]));
-                    }
-                }
-                // Strokes 0.2 letter-heights wide (0.6-1 mm, resolved by the physics grid); letters stand 0.5 mm proud of the stamp, whose
-                // edge is well outside the letters.
-                let stroke = (d - 0.1) * height_mm;
-                let stamp =
-                    fillet((x.abs() - 0.5 * (n * advance + 0.6) * height_mm).max(y.abs() - 0.8 * height_mm));
-                fillet(stroke).min(0.5) + stamp
-            }
-            Self::Bumpy { radius_mm: r, bumps } => {
-                if r2 >= r * r {
-                    return f64::INFINITY;
-                }
-                let mut h = r - (r * r - r2).sqrt();
-                let peak: f64 = bumps.iter().map(|b| b[3]).fold(0.0, f64::max);
-                for b in bumps {
-                    let d2 = (x - b[0]).powi(2) + (y - b[1]).powi(2);
-                    h -= b[3] * (-d2 / (2.0 * b[2] * b[2])).exp();
-                }
-                (h + peak).max(0.0)
-            }
+            Self::Text { text, height_mm } => text_height(text, *height_mm, x, y),
+            Self::Bumpy { radius_mm, bumps } => bumpy_height(*radius_mm, bumps, x, y),
             Self::Fingertip { rx_mm, ry_mm } => {
                 let q = (x / rx_mm).powi(2) + (y / ry_mm).powi(2);
                 // A soft pad flattens against the gel: flat middle, walls rising steeply towards
@@ -432,6 +384,65 @@ impl Indenter {
             }
         }
     }
+}
+
+/// A cube's corner pointing down: three faces at equal angles, the tip rounded a little.
+fn cube_corner_height(x: f64, y: f64) -> f64 {
+    let s = std::f64::consts::SQRT_2;
+    let mut h: f64 = 0.0;
+    for k in 0..3 {
+        let a = std::f64::consts::TAU * f64::from(k) / 3.0 + std::f64::consts::FRAC_PI_2;
+        h = h.max(s * (x * a.cos() + y * a.sin()));
+    }
+    let t = 0.15;
+    (h * h + t * t).sqrt() - t
+}
+
+/// The outline of a five-pointed star of outer radius `radius_mm`, a point up.
+fn star_polygon(radius_mm: f64) -> Vec<[f64; 2]> {
+    (0..10)
+        .map(|k| {
+            let a = -std::f64::consts::FRAC_PI_2 + std::f64::consts::PI * f64::from(k) / 5.0;
+            let r = if k % 2 == 0 { radius_mm } else { 0.45 * radius_mm };
+            [r * a.cos(), r * a.sin()]
+        })
+        .collect()
+}
+
+/// A stamp with raised letters `text` of `height_mm`: strokes 0.2 letter-heights wide
+/// (resolved by the physics grid); letters stand 0.5 mm proud of the stamp, whose edge is well
+/// outside the letters.
+fn text_height(text: &str, height_mm: f64, x: f64, y: f64) -> f64 {
+    let n = text.chars().count().max(1) as f64;
+    let advance = 0.85;
+    let x0 = -0.5 * (n * advance - 0.25);
+    let (u, v) = (x / height_mm - x0, y / height_mm + 0.5);
+    let mut d = f64::INFINITY;
+    for (k, c) in text.chars().enumerate() {
+        let ox = k as f64 * advance;
+        for s in glyph(c) {
+            d = d.min(sd_segment(u, v, [s[0] + ox, s[1]], [s[2] + ox, s[3]]));
+        }
+    }
+    let stroke = (d - 0.1) * height_mm;
+    let stamp = fillet((x.abs() - 0.5 * (n * advance + 0.6) * height_mm).max(y.abs() - 0.8 * height_mm));
+    fillet(stroke).min(0.5) + stamp
+}
+
+/// A sphere of radius `r` with Gaussian bumps (centre x, centre y, radius, height), lifted so
+/// that the tallest bump's top is the lowest point.
+fn bumpy_height(r: f64, bumps: &[[f64; 4]], x: f64, y: f64) -> f64 {
+    let r2 = x * x + y * y;
+    if r2 >= r * r {
+        return f64::INFINITY;
+    }
+    let mut h = r - (r * r - r2).sqrt();
+    let peak: f64 = bumps.iter().map(|b| b[3]).fold(0.0, f64::max);
+    for b in bumps {
+        let d2 = (x - b[0]).powi(2) + (y - b[1]).powi(2);
+        h -= b[3] * (-d2 / (2.0 * b[2] * b[2])).exp();
+    }
+    (h + peak).max(0.0)
 }
 
 #[cfg(test)]

@@ -483,12 +483,8 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
     let n = grid.n;
     let nn = n * n;
     let slide = Vector2::from(pose.slide_mm);
-    let slide_len = slide.norm();
     let twist = pose.twist_deg.to_radians();
     let depth = pose.depth_mm;
-    let touch_down = Vector2::from(script.centre_mm);
-    let c_ind = touch_down + slide;
-    let base_angle = script.angle_deg.to_radians();
     let overlap = |c_mat: Vector2<f64>, angle: f64| -> Vec<f64> {
         let rot = Rotation2::new(-angle);
         (0..nn)
@@ -498,10 +494,29 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
             })
             .collect()
     };
+    let (c_mat, mat_angle, normal) = place_material(gel, layer, script, slide, twist, &overlap);
+    let sol = solve_shear(gel, layer, normal, slide, twist, c_mat, || {
+        overlap(c_mat, mat_angle)
+    });
+    summarize(layer, &sol, [c_mat.x, c_mat.y, mat_angle])
+}
 
-    // Where the material under the indenter came from: first where it sticks (the touch-down
-    // place), then, if the contact cannot carry the whole slide or twist, moved by the part that
-    // slipped.
+/// Where the material under the indenter came from: first where it sticks (the touch-down
+/// place), then, if the contact cannot carry the whole slide or twist, moved by the part that
+/// slipped. Returns that place, the material angle and the press there; `overlap(centre,
+/// angle)` is the indenter's overlap with the rest surface placed so.
+fn place_material(
+    gel: &GelSpec,
+    layer: &Layer,
+    script: &Script,
+    slide: Vector2<f64>,
+    twist: f64,
+    overlap: &dyn Fn(Vector2<f64>, f64) -> Vec<f64>,
+) -> (Vector2<f64>, f64, forward::Indentation) {
+    let slide_len = slide.norm();
+    let touch_down = Vector2::from(script.centre_mm);
+    let c_ind = touch_down + slide;
+    let base_angle = script.angle_deg.to_radians();
     let (mut c_mat, mut mat_angle) = (touch_down, base_angle);
     let mut normal = press(layer, &overlap(c_mat, mat_angle));
     let moving = slide_len > 0.0 || twist != 0.0;
@@ -525,8 +540,27 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
             normal = press(layer, &overlap(c_mat, mat_angle));
         }
     }
+    (c_mat, mat_angle, normal)
+}
 
-    // Friction: each loaded point must follow the indenter's rigid slide and twist about c_mat.
+/// Friction: each loaded point must follow the indenter's rigid slide and twist about `c_mat`.
+/// The shear also moves the surface along its normal (the layer's normal–tangential coupling),
+/// which lifts the surface into the indenter on one side and away on the other: press again with
+/// that motion taken from the overlap (`overlap_now`), then drag again, so that pressure and
+/// shear are solved together (alternating the normal and the tangential problem, as Kalker's
+/// Panagiotopoulos process does).
+fn solve_shear(
+    gel: &GelSpec,
+    layer: &Layer,
+    normal: forward::Indentation,
+    slide: Vector2<f64>,
+    twist: f64,
+    c_mat: Vector2<f64>,
+    overlap_now: impl Fn() -> Vec<f64>,
+) -> Contact {
+    let grid = layer.grid;
+    let n = grid.n;
+    let moving = slide.norm() > 0.0 || twist != 0.0;
     let (s, c) = twist.sin_cos();
     let required = |k: usize| -> [f64; 2] {
         let [x, y] = grid.node(k % n, k / n);
@@ -538,47 +572,96 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
     };
     let required = moving.then_some(&required as &dyn Fn(usize) -> [f64; 2]);
     let mut sol = drag(layer, gel.friction, normal, required);
-    // The shear also moves the surface along its normal (the layer's normal–tangential coupling),
-    // which lifts the surface into the indenter on one side and away on the other: press again with
-    // that motion taken from the overlap, then drag again, so that pressure and shear are solved
-    // together (alternating the normal and the tangential problem, as Kalker's Panagiotopoulos
-    // process does).
     if moving {
-        let overlap_now = overlap(c_mat, mat_angle);
+        let overlap_now = overlap_now();
         for _ in 0..COUPLING_ROUNDS {
             let lift = normal_motion_of_shear(layer, &sol.traction);
             let pen: Vec<f64> = overlap_now.iter().zip(&lift).map(|(o, l)| o - l).collect();
             sol = drag(layer, gel.friction, press(layer, &pen), required);
         }
     }
+    sol
+}
 
-    // Fields and summary.
+/// Sums over the loaded nodes of a solved contact.
+struct ContactTotals {
+    /// Deepest indentation over all nodes, mm.
+    max_depth: f64,
+    /// Loaded nodes, and of those the ones that stick.
+    contact: usize,
+    stuck_count: usize,
+    /// Sum of the loaded nodes' displaced in-plane positions and of their depths (negated).
+    sum: Vector2<f64>,
+    sum_z: f64,
+    /// Sum of pressures, of tangential tractions and of pressure-weighted rest positions.
+    force: f64,
+    shear: [f64; 2],
+    moment: Vector2<f64>,
+}
+
+impl ContactTotals {
+    fn of(grid: SurfaceGrid, sol: &Contact) -> Self {
+        let n = grid.n;
+        let mut s = Self {
+            max_depth: 0.0,
+            contact: 0,
+            stuck_count: 0,
+            sum: Vector2::zeros(),
+            sum_z: 0.0,
+            force: 0.0,
+            shear: [0.0; 2],
+            moment: Vector2::zeros(),
+        };
+        for (k, &pk) in sol.pressure.iter().enumerate().take(n * n) {
+            let u = sol.displacement[k];
+            s.max_depth = s.max_depth.max(u[2]);
+            if pk > 0.0 {
+                let r = Vector2::from(grid.node(k % n, k / n));
+                s.contact += 1;
+                s.stuck_count += usize::from(!sol.slipping[k]);
+                s.sum += Vector2::new(r.x + u[0], r.y + u[1]);
+                s.sum_z -= u[2];
+                s.force += pk;
+                s.moment += r * pk;
+                s.shear[0] += sol.traction[k][0];
+                s.shear[1] += sol.traction[k][1];
+            }
+        }
+        s
+    }
+
+    /// The contact's slip state by its share of sticking nodes, and its displaced centroid.
+    fn slip_and_centroid(&self) -> (SlipState, Option<[f64; 3]>) {
+        if self.contact == 0 {
+            return (SlipState::NoContact, None);
+        }
+        let ratio = self.stuck_count as f64 / self.contact as f64;
+        let slip = if ratio >= 0.9 {
+            SlipState::Stick
+        } else if ratio > 0.03 {
+            SlipState::PartialSlip
+        } else {
+            SlipState::GrossSlip
+        };
+        let m = self.sum / self.contact as f64;
+        (slip, Some([m.x, m.y, self.sum_z / self.contact as f64]))
+    }
+}
+
+/// The per-node fields and the summary of a solved contact; `indenter_frame` is the material
+/// place and angle it was solved at.
+fn summarize(layer: &Layer, sol: &Contact, indenter_frame: [f64; 3]) -> Deformation {
+    let grid = layer.grid;
+    let n = grid.n;
+    let nn = n * n;
     let cell = grid.spacing_mm * grid.spacing_mm;
     let load_per_kpa = layer.facts.thickness_mm / layer.facts.modulus_kpa;
     let p = &sol.pressure;
-    let mut max_depth = 0.0f64;
-    let (mut contact, mut stuck_count) = (0usize, 0usize);
-    let mut sum = Vector2::zeros();
-    let mut sum_z = 0.0;
-    let (mut force, mut shear, mut moment) = (0.0, [0.0; 2], Vector2::zeros());
-    for (k, &pk) in p.iter().enumerate().take(nn) {
-        let u = sol.displacement[k];
-        max_depth = max_depth.max(u[2]);
-        if pk > 0.0 {
-            let r = Vector2::from(grid.node(k % n, k / n));
-            contact += 1;
-            stuck_count += usize::from(!sol.slipping[k]);
-            sum += Vector2::new(r.x + u[0], r.y + u[1]);
-            sum_z -= u[2];
-            force += pk;
-            moment += r * pk;
-            shear[0] += sol.traction[k][0];
-            shear[1] += sol.traction[k][1];
-        }
-    }
+    let totals = ContactTotals::of(grid, sol);
+    let (contact, force) = (totals.contact, totals.force);
     // Torque about the pressure centroid: Σ (r − c) × τ = Σ r × τ − c × Σ τ.
     let centre = if force > 0.0 {
-        moment / force
+        totals.moment / force
     } else {
         Vector2::zeros()
     };
@@ -589,20 +672,7 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
             r.x * sol.traction[k][1] - r.y * sol.traction[k][0]
         })
         .sum();
-    let (slip, centroid) = if contact == 0 {
-        (SlipState::NoContact, None)
-    } else {
-        let ratio = stuck_count as f64 / contact as f64;
-        let slip = if ratio >= 0.9 {
-            SlipState::Stick
-        } else if ratio > 0.03 {
-            SlipState::PartialSlip
-        } else {
-            SlipState::GrossSlip
-        };
-        let m = sum / contact as f64;
-        (slip, Some([m.x, m.y, sum_z / contact as f64]))
-    };
+    let (slip, centroid) = totals.slip_and_centroid();
     let field = |f: &dyn Fn(usize) -> f64| -> Vec<f32> { (0..nn).map(|k| f(k) as f32).collect() };
     Deformation {
         grid,
@@ -614,12 +684,12 @@ pub fn deform(gel: &GelSpec, layer: &Layer, script: &Script, pose: &Pose) -> Def
         load: field(&|k| p[k] * load_per_kpa),
         stick: field(&|k| f64::from(u8::from(p[k] > 0.0 && !sol.slipping[k]))),
         contact_area_mm2: contact as f64 * cell,
-        max_depth_mm: if contact == 0 { 0.0 } else { max_depth },
+        max_depth_mm: if contact == 0 { 0.0 } else { totals.max_depth },
         centroid_mm: centroid,
         slip,
-        indenter_frame: (contact > 0).then_some([c_mat.x, c_mat.y, mat_angle]),
+        indenter_frame: (contact > 0).then_some(indenter_frame),
         force_n: force * cell * 1e-3,
-        shear_n: [shear[0] * cell * 1e-3, shear[1] * cell * 1e-3],
+        shear_n: [totals.shear[0] * cell * 1e-3, totals.shear[1] * cell * 1e-3],
         torque_nmm: torque * cell * 1e-3,
     }
 }

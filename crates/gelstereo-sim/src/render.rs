@@ -391,98 +391,11 @@ impl Ridges {
 pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
     let o = job.optics;
     let app = job.appearance;
-    let def = job.def;
-    let sh = shading(def, app);
     let (w, h) = (
         o.camera.image_size.width as usize,
         o.camera.image_size.height as usize,
     );
-
-    // Background at half resolution.
-    let mut lo = Mat::new_rows_cols_with_default(o.lo_h as i32, o.lo_w as i32, CV_8UC3, Scalar::all(0.0))
-        .map_err(cv_err("allocating the background"))?;
-    {
-        let buf = lo.data_bytes_mut().map_err(cv_err("background buffer"))?;
-        let inv_half = (1.0 / job.lattice_half_mm) as f32;
-        // Pixels whose ray meets the rest surface outside the disturbed box (grown by how far the
-        // surface moved and the parallax of the indentation) see undisturbed gel.
-        let m = sh.max_w * o.max_slope + sh.max_u + def.grid.spacing_mm as f32;
-        let a = [
-            sh.active[0] - m,
-            sh.active[1] - m,
-            sh.active[2] + m,
-            sh.active[3] + m,
-        ];
-        let contact = def.contact_area_mm2 > 0.0 && a[0] <= a[2];
-        let plain_housing = Housing {
-            color: [30.0; 3],
-            rim_color: [60.0; 3],
-            rim_mm: 0.5,
-            clutter: Vec::new(),
-            glints: Vec::new(),
-        };
-        let housing = app.housing.as_ref().unwrap_or(&plain_housing);
-        let lo_w = o.lo_w;
-        for (k, px) in buf.chunks_exact_mut(3).enumerate() {
-            let r = o.rays[k];
-            if let Some(mem) = &job.membrane {
-                let d = mem.signed_distance_mm(f64::from(r[0]), f64::from(r[1])) as f32;
-                if d > 0.0 {
-                    px.copy_from_slice(&housing_pixel(
-                        housing,
-                        d,
-                        r[0],
-                        r[1],
-                        1.0 - app.vignette * o.radius2[k],
-                    ));
-                    continue;
-                }
-            }
-            let (mut hx, mut hy) = (r[0], r[1]);
-            let mut t = [0.0f32; 5];
-            let mut ridge = 0.0;
-            if contact && hx >= a[0] && hx <= a[2] && hy >= a[1] && hy <= a[3] {
-                let f = sample_n(&def.grid, &sh.fields, hx, hy);
-                let f = sample_n(&def.grid, &sh.fields, r[0] - f[0] * r[2], r[1] - f[0] * r[3]);
-                hx = r[0] - f[0] * r[2];
-                hy = r[1] - f[0] * r[3];
-                let (mx, my) = (hx - f[1], hy - f[2]);
-                t = sample_n(&def.grid, &sh.tex, mx, my);
-                if let Some(rd) = &job.ridges
-                    && t[4] > 0.0
-                {
-                    ridge = rd.value(mx, my) * t[4] * app.ridge_gain;
-                }
-                if let Some(nr) = &app.newton_rings {
-                    let depth = f[0].abs();
-                    let envelope = (depth / 0.01).min(1.0) * (1.0 - 0.6 * t[4]);
-                    let wave = (std::f32::consts::TAU * depth / nr.period_mm).cos() * envelope;
-                    for (c, amp) in nr.amplitude.iter().enumerate() {
-                        t[c] += amp * wave;
-                    }
-                }
-            }
-            if !app.textures.is_empty() {
-                let (x, y) = (2.0 * (k % lo_w) as f32 + 0.5, 2.0 * (k / lo_w) as f32 + 0.5);
-                ridge += gel_texture(&app.textures, x, y, w as f32, h as f32);
-            }
-            let gx = (hx * inv_half).clamp(-1.5, 1.5) * 0.5;
-            let gy = (hy * inv_half).clamp(-1.5, 1.5) * 0.5;
-            let gr = gx * gx + gy * gy;
-            let vig = 1.0 - app.vignette * o.radius2[k];
-            for c in 0..3 {
-                let base = app.background[c]
-                    + app.gradient_x[c] * gx
-                    + app.gradient_y[c] * gy
-                    + app.gradient_radial[c] * gr
-                    + t[c]
-                    + ridge;
-                let v = base + (app.contact_tint[c] - base) * t[3];
-                // Float to u8 casts saturate.
-                px[c] = (v * vig + 0.5) as u8;
-            }
-        }
-    }
+    let lo = render_background(job, &shading(job.def, app), w, h)?;
     let mut img = Mat::default();
     imgproc::resize(
         &lo,
@@ -493,67 +406,11 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         imgproc::INTER_LINEAR,
     )
     .map_err(cv_err("upsampling the background"))?;
-
-    // Markers, then dust.
     {
         let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
-        let r = job.dot_radius_mm;
-        let (cxp, cyp) = (0.5 * w as f64, 0.5 * h as f64);
-        for (k, m) in job.markers.iter().enumerate() {
-            let (Some(c), Some(j), true) = (m.px[job.view], m.jacobian[job.view], m.printed) else {
-                continue;
-            };
-            let fade = 1.0 - app.contact_fade * (m.load_mm / 0.05).min(1.0) as f32;
-            let (dx, dy) = ((c.x - cxp) / cxp, (c.y - cyp) / cyp);
-            let vig = 1.0 - app.vignette * (0.5 * (dx * dx + dy * dy)) as f32;
-            let col = app.marker_color.map(|v| v * vig);
-            let alpha = app.marker_alpha * fade;
-            // Motion blur: the marker smears from where it was when the exposure began to as far
-            // past its position at the frame's time (the middle of the exposure; the motion taken
-            // as steady over it), so the smear's middle is its truth.
-            let start = job
-                .exposure_start
-                .and_then(|p| p.get(k))
-                .and_then(|p| p.px[job.view]);
-            match start {
-                Some(s) if 2.0 * s.distance(c) > 0.3 => {
-                    let end = Point2::new(2.0 * c.x - s.x, 2.0 * c.y - s.y);
-                    let steps = ((2.0 * s.distance(c)).ceil() as usize).clamp(2, 8);
-                    let a = 1.0 - (1.0 - alpha).powf(1.0 / steps as f32);
-                    for i in 0..steps {
-                        let f = (i as f64 + 0.5) / steps as f64;
-                        let p = Point2::new(s.x + (end.x - s.x) * f, s.y + (end.y - s.y) * f);
-                        splat(buf, w, h, p, &(j * r), col, a, app.edge_softness_px);
-                    }
-                }
-                _ => splat(buf, w, h, c, &(j * r), col, alpha, app.edge_softness_px),
-            }
-            if let Some(g) = &app.glint {
-                let pick = (splitmix(k as u64 ^ u64::from(g.size.to_bits())) >> 40) as f32 / 16_777_216.0;
-                if pick < g.share {
-                    let off = j * r * Vector2::new(f64::from(g.offset[0]), f64::from(g.offset[1]));
-                    let spot = Point2::new(c.x + off.x, c.y + off.y);
-                    let jac = j * (r * f64::from(g.size));
-                    splat(buf, w, h, spot, &jac, [250.0; 3], g.alpha * fade, 0.8);
-                }
-            }
-        }
-        let scale = w as f64 / 640.0;
-        for (k, d) in app.dust.iter().enumerate() {
-            // Each view sees its own specks (they sit on the lens or at different parallax).
-            let shift = if job.view == 0 {
-                0.0
-            } else {
-                0.37 + 0.11 * k as f64
-            };
-            let at = Point2::new(((d.at[0] + shift) % 1.0) * w as f64, d.at[1] * h as f64);
-            let (s, c) = d.angle.sin_cos();
-            let (a, b) = (d.radius_px * d.elongation * scale, d.radius_px * scale);
-            let jac = Matrix2::new(c * a, -s * b, s * a, c * b);
-            splat(buf, w, h, at, &jac, d.color, d.alpha, 1.0);
-        }
+        draw_markers(job, buf, w, h);
+        draw_dust(job, buf, w, h);
     }
-
     if app
         .textures
         .iter()
@@ -562,8 +419,179 @@ pub fn render_view(job: &ViewJob<'_>) -> Result<Mat> {
         let buf = img.data_bytes_mut().map_err(cv_err("image buffer"))?;
         apply_stripes(buf, w, &app.textures);
     }
+    apply_optics_and_sensor(job, img)
+}
 
-    // Optics and sensor.
+/// The gel and housing background at half resolution (the markers are drawn on the upsampled
+/// image); `w` x `h` is the full image size.
+fn render_background(job: &ViewJob<'_>, sh: &Shading, w: usize, h: usize) -> Result<Mat> {
+    let o = job.optics;
+    let app = job.appearance;
+    let def = job.def;
+    let mut lo = Mat::new_rows_cols_with_default(o.lo_h as i32, o.lo_w as i32, CV_8UC3, Scalar::all(0.0))
+        .map_err(cv_err("allocating the background"))?;
+    let buf = lo.data_bytes_mut().map_err(cv_err("background buffer"))?;
+    let inv_half = (1.0 / job.lattice_half_mm) as f32;
+    // Pixels whose ray meets the rest surface outside the disturbed box (grown by how far the
+    // surface moved and the parallax of the indentation) see undisturbed gel.
+    let m = sh.max_w * o.max_slope + sh.max_u + def.grid.spacing_mm as f32;
+    let a = [
+        sh.active[0] - m,
+        sh.active[1] - m,
+        sh.active[2] + m,
+        sh.active[3] + m,
+    ];
+    let contact = def.contact_area_mm2 > 0.0 && a[0] <= a[2];
+    let plain_housing = Housing {
+        color: [30.0; 3],
+        rim_color: [60.0; 3],
+        rim_mm: 0.5,
+        clutter: Vec::new(),
+        glints: Vec::new(),
+    };
+    let housing = app.housing.as_ref().unwrap_or(&plain_housing);
+    let lo_w = o.lo_w;
+    for (k, px) in buf.chunks_exact_mut(3).enumerate() {
+        let r = o.rays[k];
+        if let Some(mem) = &job.membrane {
+            let d = mem.signed_distance_mm(f64::from(r[0]), f64::from(r[1])) as f32;
+            if d > 0.0 {
+                px.copy_from_slice(&housing_pixel(
+                    housing,
+                    d,
+                    r[0],
+                    r[1],
+                    1.0 - app.vignette * o.radius2[k],
+                ));
+                continue;
+            }
+        }
+        let (mut hx, mut hy) = (r[0], r[1]);
+        let mut t = [0.0f32; 5];
+        let mut ridge = 0.0;
+        if contact && hx >= a[0] && hx <= a[2] && hy >= a[1] && hy <= a[3] {
+            (hx, hy, t, ridge) = sample_contact(job, sh, r);
+        }
+        if !app.textures.is_empty() {
+            let (x, y) = (2.0 * (k % lo_w) as f32 + 0.5, 2.0 * (k / lo_w) as f32 + 0.5);
+            ridge += gel_texture(&app.textures, x, y, w as f32, h as f32);
+        }
+        let gx = (hx * inv_half).clamp(-1.5, 1.5) * 0.5;
+        let gy = (hy * inv_half).clamp(-1.5, 1.5) * 0.5;
+        let gr = gx * gx + gy * gy;
+        let vig = 1.0 - app.vignette * o.radius2[k];
+        for c in 0..3 {
+            let base = app.background[c]
+                + app.gradient_x[c] * gx
+                + app.gradient_y[c] * gy
+                + app.gradient_radial[c] * gr
+                + t[c]
+                + ridge;
+            let v = base + (app.contact_tint[c] - base) * t[3];
+            // Float to u8 casts saturate.
+            px[c] = (v * vig + 0.5) as u8;
+        }
+    }
+    Ok(lo)
+}
+
+/// What a ray `r` (rest-plane point and slope) sees inside the disturbed box: where it meets
+/// the deformed gel (`hx`, `hy`, refined once for the surface's own displacement), the shading
+/// there, and the skin ridges; Newton rings add to the shading where the gel nearly touches.
+fn sample_contact(job: &ViewJob<'_>, sh: &Shading, r: [f32; 4]) -> (f32, f32, [f32; 5], f32) {
+    let app = job.appearance;
+    let def = job.def;
+    let mut ridge = 0.0;
+    let f = sample_n(&def.grid, &sh.fields, r[0], r[1]);
+    let f = sample_n(&def.grid, &sh.fields, r[0] - f[0] * r[2], r[1] - f[0] * r[3]);
+    let hx = r[0] - f[0] * r[2];
+    let hy = r[1] - f[0] * r[3];
+    let (mx, my) = (hx - f[1], hy - f[2]);
+    let mut t = sample_n(&def.grid, &sh.tex, mx, my);
+    if let Some(rd) = &job.ridges
+        && t[4] > 0.0
+    {
+        ridge = rd.value(mx, my) * t[4] * app.ridge_gain;
+    }
+    if let Some(nr) = &app.newton_rings {
+        let depth = f[0].abs();
+        let envelope = (depth / 0.01).min(1.0) * (1.0 - 0.6 * t[4]);
+        let wave = (std::f32::consts::TAU * depth / nr.period_mm).cos() * envelope;
+        for (c, amp) in nr.amplitude.iter().enumerate() {
+            t[c] += amp * wave;
+        }
+    }
+    (hx, hy, t, ridge)
+}
+
+/// Splats the printed markers visible in this view onto the full-resolution image, each with
+/// its vignetting, contact fade, motion blur and glint.
+fn draw_markers(job: &ViewJob<'_>, buf: &mut [u8], w: usize, h: usize) {
+    let app = job.appearance;
+    let r = job.dot_radius_mm;
+    let (cxp, cyp) = (0.5 * w as f64, 0.5 * h as f64);
+    for (k, m) in job.markers.iter().enumerate() {
+        let (Some(c), Some(j), true) = (m.px[job.view], m.jacobian[job.view], m.printed) else {
+            continue;
+        };
+        let fade = 1.0 - app.contact_fade * (m.load_mm / 0.05).min(1.0) as f32;
+        let (dx, dy) = ((c.x - cxp) / cxp, (c.y - cyp) / cyp);
+        let vig = 1.0 - app.vignette * (0.5 * (dx * dx + dy * dy)) as f32;
+        let col = app.marker_color.map(|v| v * vig);
+        let alpha = app.marker_alpha * fade;
+        // Motion blur: the marker smears from where it was when the exposure began to as far
+        // past its position at the frame's time (the middle of the exposure; the motion taken
+        // as steady over it), so the smear's middle is its truth.
+        let start = job
+            .exposure_start
+            .and_then(|p| p.get(k))
+            .and_then(|p| p.px[job.view]);
+        match start {
+            Some(s) if 2.0 * s.distance(c) > 0.3 => {
+                let end = Point2::new(2.0 * c.x - s.x, 2.0 * c.y - s.y);
+                let steps = ((2.0 * s.distance(c)).ceil() as usize).clamp(2, 8);
+                let a = 1.0 - (1.0 - alpha).powf(1.0 / steps as f32);
+                for i in 0..steps {
+                    let f = (i as f64 + 0.5) / steps as f64;
+                    let p = Point2::new(s.x + (end.x - s.x) * f, s.y + (end.y - s.y) * f);
+                    splat(buf, w, h, p, &(j * r), col, a, app.edge_softness_px);
+                }
+            }
+            _ => splat(buf, w, h, c, &(j * r), col, alpha, app.edge_softness_px),
+        }
+        if let Some(g) = &app.glint {
+            let pick = (splitmix(k as u64 ^ u64::from(g.size.to_bits())) >> 40) as f32 / 16_777_216.0;
+            if pick < g.share {
+                let off = j * r * Vector2::new(f64::from(g.offset[0]), f64::from(g.offset[1]));
+                let spot = Point2::new(c.x + off.x, c.y + off.y);
+                let jac = j * (r * f64::from(g.size));
+                splat(buf, w, h, spot, &jac, [250.0; 3], g.alpha * fade, 0.8);
+            }
+        }
+    }
+}
+
+/// Splats the dust specks over the markers.
+fn draw_dust(job: &ViewJob<'_>, buf: &mut [u8], w: usize, h: usize) {
+    let scale = w as f64 / 640.0;
+    for (k, d) in job.appearance.dust.iter().enumerate() {
+        // Each view sees its own specks (they sit on the lens or at different parallax).
+        let shift = if job.view == 0 {
+            0.0
+        } else {
+            0.37 + 0.11 * k as f64
+        };
+        let at = Point2::new(((d.at[0] + shift) % 1.0) * w as f64, d.at[1] * h as f64);
+        let (s, c) = d.angle.sin_cos();
+        let (a, b) = (d.radius_px * d.elongation * scale, d.radius_px * scale);
+        let jac = Matrix2::new(c * a, -s * b, s * a, c * b);
+        splat(buf, w, h, at, &jac, d.color, d.alpha, 1.0);
+    }
+}
+
+/// What the camera adds after the scene: defocus blur, sensor noise and JPEG compression.
+fn apply_optics_and_sensor(job: &ViewJob<'_>, img: Mat) -> Result<Mat> {
+    let app = job.appearance;
     let mut out = Mat::default();
     if app.blur_px > 0.05 {
         imgproc::gaussian_blur_def(&img, &mut out, Size::new(0, 0), app.blur_px)

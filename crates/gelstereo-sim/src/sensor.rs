@@ -354,8 +354,17 @@ impl SensorSpec {
         membrane.holds(x, y, 0.5 * self.grid.dot_diameter_mm)
     }
 
-    /// Checks every field's range; `src` names the file in errors.
+    /// Checks every field's range; `src` names the file in errors. The sections are checked in
+    /// file order, so the first offending field is the one reported.
     pub fn validate(&self, src: &str) -> Result<()> {
+        self.validate_grid(src)?;
+        self.validate_membrane(src)?;
+        self.validate_gel(src)?;
+        self.validate_cameras(src)
+    }
+
+    /// The marker lattice: size, pitch, dot size and irregularity.
+    fn validate_grid(&self, src: &str) -> Result<()> {
         let g = &self.grid;
         if !(2..=200).contains(&g.rows) {
             return Err(field_err(src, "grid.rows", "an integer in [2, 200]", g.rows));
@@ -376,6 +385,11 @@ impl SensorSpec {
         if let Lattice::Irregular { jitter_frac, .. } = g.lattice {
             in_range(src, "grid.lattice.jitter_frac", jitter_frac, 0.0, 0.3)?;
         }
+        Ok(())
+    }
+
+    /// The membrane's outline, where it does not fill the view.
+    fn validate_membrane(&self, src: &str) -> Result<()> {
         match self.membrane {
             None => {}
             Some(Membrane::Circle { radius_mm }) => positive(src, "membrane.radius_mm", radius_mm)?,
@@ -389,7 +403,13 @@ impl SensorSpec {
                 positive(src, "membrane.half_height_mm", half_height_mm)?;
             }
         }
+        Ok(())
+    }
+
+    /// The gel layer: thickness, extent against the lattice, physics grid and material.
+    fn validate_gel(&self, src: &str) -> Result<()> {
         let gel = &self.gel;
+        let g = &self.grid;
         positive(src, "gel.thickness_mm", gel.thickness_mm)?;
         positive(src, "gel.grid_spacing_mm", gel.grid_spacing_mm)?;
         let span = 0.5 * f64::from(g.rows.max(g.cols) - 1) * g.pitch_mm;
@@ -419,6 +439,11 @@ impl SensorSpec {
             // 0.5, the incompressible limit, makes a bonded layer rigid under a uniform load.
             return Err(field_err(src, "gel.poisson", "a number in [0, 0.5)", gel.poisson));
         }
+        Ok(())
+    }
+
+    /// The cameras: image size, each camera's intrinsics and pose, and a non-zero baseline.
+    fn validate_cameras(&self, src: &str) -> Result<()> {
         let c = &self.cameras;
         if !(16..=8192).contains(&c.image_width) {
             return Err(field_err(
@@ -437,50 +462,7 @@ impl SensorSpec {
             ));
         }
         for (name, cam) in [("left", &c.left), ("right", &c.right)] {
-            let f = |k: &str| format!("cameras.{name}.{k}");
-            positive(src, &f("fx"), cam.fx)?;
-            positive(src, &f("fy"), cam.fy)?;
-            in_range(src, &f("cx"), cam.cx, -0.5, f64::from(c.image_width) - 0.5)?;
-            in_range(src, &f("cy"), cam.cy, -0.5, f64::from(c.image_height) - 0.5)?;
-            if !matches!(cam.distortion.len(), 0 | 4 | 5 | 8 | 12) {
-                return Err(field_err(
-                    src,
-                    &f("distortion"),
-                    "0, 4, 5, 8 or 12 OpenCV coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]])",
-                    format!("{} values", cam.distortion.len()),
-                ));
-            }
-            if let Some(v) = cam.distortion.iter().find(|v| !v.is_finite() || v.abs() > 10.0) {
-                return Err(field_err(
-                    src,
-                    &f("distortion"),
-                    "finite coefficients of magnitude <= 10",
-                    v,
-                ));
-            }
-            for (k, v) in cam.position_mm.iter().chain(&cam.look_at_mm).enumerate() {
-                if !v.is_finite() {
-                    let key = if k < 3 { "position_mm" } else { "look_at_mm" };
-                    return Err(field_err(src, &f(key), "finite coordinates", v));
-                }
-            }
-            if cam.position_mm[2] >= 0.0 {
-                return Err(field_err(
-                    src,
-                    &f("position_mm"),
-                    "a camera behind the gel (z < 0 in the sensor frame)",
-                    format!("{:?}", cam.position_mm),
-                ));
-            }
-            let dir = Vector3::from(cam.look_at_mm) - Vector3::from(cam.position_mm);
-            if dir.z <= 0.2 * dir.norm() {
-                return Err(field_err(
-                    src,
-                    &f("look_at_mm"),
-                    "a point in front of the camera, towards the gel (+z)",
-                    format!("{:?}", cam.look_at_mm),
-                ));
-            }
+            validate_camera(src, name, cam, c)?;
         }
         if c.left.position_mm == c.right.position_mm {
             return Err(field_err(
@@ -594,6 +576,56 @@ impl Sensor {
             _ => f64::NAN,
         }
     }
+}
+
+/// One camera of `cameras` (named `name`): intrinsics inside the image, distortion of a known
+/// length and sane size, and a finite pose behind the gel looking at it.
+fn validate_camera(src: &str, name: &str, cam: &CameraSpec, c: &CamerasSpec) -> Result<()> {
+    let f = |k: &str| format!("cameras.{name}.{k}");
+    positive(src, &f("fx"), cam.fx)?;
+    positive(src, &f("fy"), cam.fy)?;
+    in_range(src, &f("cx"), cam.cx, -0.5, f64::from(c.image_width) - 0.5)?;
+    in_range(src, &f("cy"), cam.cy, -0.5, f64::from(c.image_height) - 0.5)?;
+    if !matches!(cam.distortion.len(), 0 | 4 | 5 | 8 | 12) {
+        return Err(field_err(
+            src,
+            &f("distortion"),
+            "0, 4, 5, 8 or 12 OpenCV coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]])",
+            format!("{} values", cam.distortion.len()),
+        ));
+    }
+    if let Some(v) = cam.distortion.iter().find(|v| !v.is_finite() || v.abs() > 10.0) {
+        return Err(field_err(
+            src,
+            &f("distortion"),
+            "finite coefficients of magnitude <= 10",
+            v,
+        ));
+    }
+    for (k, v) in cam.position_mm.iter().chain(&cam.look_at_mm).enumerate() {
+        if !v.is_finite() {
+            let key = if k < 3 { "position_mm" } else { "look_at_mm" };
+            return Err(field_err(src, &f(key), "finite coordinates", v));
+        }
+    }
+    if cam.position_mm[2] >= 0.0 {
+        return Err(field_err(
+            src,
+            &f("position_mm"),
+            "a camera behind the gel (z < 0 in the sensor frame)",
+            format!("{:?}", cam.position_mm),
+        ));
+    }
+    let dir = Vector3::from(cam.look_at_mm) - Vector3::from(cam.position_mm);
+    if dir.z <= 0.2 * dir.norm() {
+        return Err(field_err(
+            src,
+            &f("look_at_mm"),
+            "a point in front of the camera, towards the gel (+z)",
+            format!("{:?}", cam.look_at_mm),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

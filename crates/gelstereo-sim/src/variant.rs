@@ -136,46 +136,8 @@ pub fn random_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> SensorSpec 
 fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec> {
     let (w, h) = WIDE_RESOLUTIONS[rng.random_range(0..WIDE_RESOLUTIONS.len())];
     let pitch_px = (rng.random_range(8f64.ln()..100f64.ln())).exp();
-    let lattice = match rng.random_range(0..4) {
-        0 | 1 => Lattice::Square,
-        2 => Lattice::Hexagonal,
-        _ => Lattice::Irregular {
-            jitter_frac: rng.random_range(0.05..0.25),
-            seed: rng.random(),
-        },
-    };
-    let membrane_kind = rng.random_range(0..5);
-    let overfill = membrane_kind < 3 && rng.random_bool(0.5);
-    let fill = if overfill {
-        rng.random_range(1.0..1.4)
-    } else if membrane_kind >= 3 {
-        rng.random_range(0.8..1.0)
-    } else {
-        rng.random_range(0.5..0.95)
-    };
-    let row_step = if lattice == Lattice::Hexagonal {
-        0.75f64.sqrt()
-    } else {
-        1.0
-    };
-    let max_cols = ((f64::from(w) * fill / pitch_px) as u16 + 1).min(60);
-    let max_rows = ((f64::from(h) * fill / (pitch_px * row_step)) as u16 + 1).min(60);
-    if max_cols < 4 || max_rows < 4 {
-        return None;
-    }
-    // An overfilling lattice takes the largest size (it must reach past the borders); membranes are
-    // shaped from the lattice's extent, so keep it near the largest that fits.
-    let least = |max: u16| {
-        if overfill {
-            max
-        } else if membrane_kind >= 3 {
-            (max * 4 / 5).max(4)
-        } else {
-            (max / 2).max(4)
-        }
-    };
-    let cols = rng.random_range(least(max_cols)..=max_cols);
-    let rows = rng.random_range(least(max_rows)..=max_rows);
+    let layout = WideLayout::draw((w, h), pitch_px, rng)?;
+    let (rows, cols, row_step) = (layout.rows, layout.cols, layout.row_step);
     let pitch_mm = rng.random_range(0.6..2.5);
     let dist = rng.random_range(12.0..35.0);
     let baseline = dist * rng.random_range(0.2..0.5);
@@ -186,7 +148,116 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
     let half_extent = view_half.max(span + 2.0 * pitch_mm);
     let half_x = 0.5 * f64::from(cols - 1) * pitch_mm;
     let half_y = 0.5 * f64::from(rows - 1) * pitch_mm * row_step;
-    let membrane = match membrane_kind {
+    let membrane = draw_wide_membrane(layout.membrane_kind, half_x, half_y, dot, rng);
+    let rig = RigDraw {
+        f,
+        size_px: (w, h),
+        baseline,
+        dist,
+        k1_min: -0.2,
+    };
+    let left = rig.camera(-1.0, rng);
+    let right = rig.camera(1.0, rng);
+    let spec = SensorSpec {
+        name: format!("wide-{rows}x{cols}-{w}x{h}"),
+        grid: GridSpec {
+            rows,
+            cols,
+            pitch_mm,
+            dot_diameter_mm: dot,
+            lattice: layout.lattice,
+        },
+        gel: GelSpec {
+            thickness_mm: pitch_mm * rng.random_range(2.0..4.0),
+            half_extent_mm: half_extent,
+            grid_spacing_mm: 2.0 * half_extent / 90.0,
+            friction: rng.random_range(0.4..1.0),
+            modulus_kpa: base.gel.modulus_kpa,
+            poisson: rng.random_range(0.35..0.49),
+        },
+        cameras: CamerasSpec {
+            image_width: w,
+            image_height: h,
+            left,
+            right,
+        },
+        membrane,
+    };
+    wide_view_acceptable(&spec, pitch_px, layout.overfill).then_some(spec)
+}
+
+/// The lattice of a wide variant in the image: its kind, the membrane kind (0-2 none, 3 circle,
+/// 4 trapezoid), whether it overfills the view, and its size.
+struct WideLayout {
+    lattice: Lattice,
+    membrane_kind: i32,
+    overfill: bool,
+    /// Row spacing in pitches (below one on a hexagonal lattice).
+    row_step: f64,
+    rows: u16,
+    cols: u16,
+}
+
+impl WideLayout {
+    /// Draws a layout for a `size_px` image at `pitch_px`; None where fewer than four rows or
+    /// columns fit.
+    fn draw(size_px: (u32, u32), pitch_px: f64, rng: &mut impl Rng) -> Option<Self> {
+        let (w, h) = size_px;
+        let lattice = match rng.random_range(0..4) {
+            0 | 1 => Lattice::Square,
+            2 => Lattice::Hexagonal,
+            _ => Lattice::Irregular {
+                jitter_frac: rng.random_range(0.05..0.25),
+                seed: rng.random(),
+            },
+        };
+        let membrane_kind = rng.random_range(0..5);
+        let overfill = membrane_kind < 3 && rng.random_bool(0.5);
+        let fill = if overfill {
+            rng.random_range(1.0..1.4)
+        } else if membrane_kind >= 3 {
+            rng.random_range(0.8..1.0)
+        } else {
+            rng.random_range(0.5..0.95)
+        };
+        let row_step = if lattice == Lattice::Hexagonal {
+            0.75f64.sqrt()
+        } else {
+            1.0
+        };
+        let max_cols = ((f64::from(w) * fill / pitch_px) as u16 + 1).min(60);
+        let max_rows = ((f64::from(h) * fill / (pitch_px * row_step)) as u16 + 1).min(60);
+        if max_cols < 4 || max_rows < 4 {
+            return None;
+        }
+        // An overfilling lattice takes the largest size (it must reach past the borders); membranes
+        // are shaped from the lattice's extent, so keep it near the largest that fits.
+        let least = |max: u16| {
+            if overfill {
+                max
+            } else if membrane_kind >= 3 {
+                (max * 4 / 5).max(4)
+            } else {
+                (max / 2).max(4)
+            }
+        };
+        let cols = rng.random_range(least(max_cols)..=max_cols);
+        let rows = rng.random_range(least(max_rows)..=max_rows);
+        Some(Self {
+            lattice,
+            membrane_kind,
+            overfill,
+            row_step,
+            rows,
+            cols,
+        })
+    }
+}
+
+/// The membrane of a wide variant, shaped from the lattice's half extents (`half_x`, `half_y`)
+/// so that its edge runs near the outer markers; None for kinds without one.
+fn draw_wide_membrane(kind: i32, half_x: f64, half_y: f64, dot: f64, rng: &mut impl Rng) -> Option<Membrane> {
+    match kind {
         3 => Some(Membrane::Circle {
             radius_mm: half_x.min(half_y) * rng.random_range(0.8..1.0) + 0.5 * dot,
         }),
@@ -205,59 +276,31 @@ fn try_wide_variant(base: &SensorSpec, rng: &mut impl Rng) -> Option<SensorSpec>
             })
         }
         _ => None,
+    }
+}
+
+/// A drawn wide sensor is kept when it builds, prints enough markers and shows them as its kind
+/// promises: an overfilling lattice partly, any other whole (with a margin inside the view).
+fn wide_view_acceptable(spec: &SensorSpec, pitch_px: f64, overfill: bool) -> bool {
+    let Ok(sensor) = spec.build() else {
+        return false;
     };
-    let rig = RigDraw {
-        f,
-        size_px: (w, h),
-        baseline,
-        dist,
-        k1_min: -0.2,
-    };
-    let left = rig.camera(-1.0, rng);
-    let right = rig.camera(1.0, rng);
-    let spec = SensorSpec {
-        name: format!("wide-{rows}x{cols}-{w}x{h}"),
-        grid: GridSpec {
-            rows,
-            cols,
-            pitch_mm,
-            dot_diameter_mm: dot,
-            lattice,
-        },
-        gel: GelSpec {
-            thickness_mm: pitch_mm * rng.random_range(2.0..4.0),
-            half_extent_mm: half_extent,
-            grid_spacing_mm: 2.0 * half_extent / 90.0,
-            friction: rng.random_range(0.4..1.0),
-            modulus_kpa: base.gel.modulus_kpa,
-            poisson: rng.random_range(0.35..0.49),
-        },
-        cameras: CamerasSpec {
-            image_width: w,
-            image_height: h,
-            left,
-            right,
-        },
-        membrane,
-    };
-    let sensor = spec.build().ok()?;
     let printed = spec
         .grid_shape()
         .indices()
         .filter(|i| spec.marker_printed(i.row, i.col))
         .count();
     if printed < 12 {
-        return None;
+        return false;
     }
     let seen = sensor.visible_fraction_at_rest(0.0) * spec.grid_shape().count() as f64 / printed as f64;
     let seen_inside =
         sensor.visible_fraction_at_rest(0.6 * pitch_px) * spec.grid_shape().count() as f64 / printed as f64;
-    let ok = if overfill {
+    if overfill {
         (0.45..0.95).contains(&seen)
     } else {
         seen_inside >= 0.999
-    };
-    ok.then_some(spec)
+    }
 }
 
 /// A stereo sensor with the optics of a GelSight Mini (320x240, dots about 11 px on a 31 px pitch

@@ -275,17 +275,17 @@ impl ReferenceSurface {
         self.plane_normal
     }
 
-    /// Analyses one frame: `current_mm` holds the frame's 3-D marker positions, dense over the
-    /// lattice like the reference (`None` where a marker is lost).
-    pub fn analyze(&mut self, current_mm: &[Option<[f64; 3]>]) -> Result<ContactFrame> {
-        let config = self.config.clone();
-        if current_mm.len() != self.positions_mm.len() {
-            return Err(Error::Mismatch {
-                what: "frame positions",
-                expected: format!("{} entries like the reference", self.positions_mm.len()),
-                found: format!("{} entries", current_mm.len()),
-            });
-        }
+    /// Per marker its position, displacement from the reference and depth along the reference
+    /// normal; None where the marker is lost, not finite, or has no reference or normal.
+    #[allow(clippy::type_complexity)]
+    fn measure(
+        &self,
+        current_mm: &[Option<[f64; 3]>],
+    ) -> (
+        Vec<Option<Point3<f64>>>,
+        Vec<Option<Vector3<f64>>>,
+        Vec<Option<f64>>,
+    ) {
         let n = current_mm.len();
         let mut positions = vec![None; n];
         let mut displacement = vec![None; n];
@@ -303,17 +303,26 @@ impl ReferenceSurface {
             displacement[k] = Some(d);
             depth[k] = Some(-d.dot(&nrm));
         }
+        (positions, displacement, depth)
+    }
+
+    /// Analyses one frame: `current_mm` holds the frame's 3-D marker positions, dense over the
+    /// lattice like the reference (`None` where a marker is lost).
+    pub fn analyze(&mut self, current_mm: &[Option<[f64; 3]>]) -> Result<ContactFrame> {
+        let config = self.config.clone();
+        if current_mm.len() != self.positions_mm.len() {
+            return Err(Error::Mismatch {
+                what: "frame positions",
+                expected: format!("{} entries like the reference", self.positions_mm.len()),
+                found: format!("{} entries", current_mm.len()),
+            });
+        }
+        let n = current_mm.len();
+        let (positions, displacement, depth) = self.measure(current_mm);
         // Contact is decided on the 3 x 3 mean of the depth, so that single noisy markers do not make
         // one; the deepest point is then refined on the raw depths around the smoothed peak.
         let smooth = smooth3(self.shape, &depth);
-        let (peak_index, smooth_max) = smooth
-            .iter()
-            .enumerate()
-            .filter_map(|(k, d)| d.map(|d| (k, d)))
-            .fold(
-                (None, 0.0f64),
-                |(bk, bd), (k, d)| if d > bd { (Some(k), d) } else { (bk, bd) },
-            );
+        let (peak_index, smooth_max) = deepest(&smooth);
         let depth_noise = depth_noise_mm(self.shape, &depth);
         let contact_depth = config
             .min_depth_mm
@@ -526,6 +535,19 @@ fn weighted_centroid(
 fn index_of(shape: GridShape, k: usize) -> Option<GridIndex> {
     let cols = usize::from(shape.cols);
     (k < shape.count()).then(|| GridIndex::new((k / cols) as u16, (k % cols) as u16))
+}
+
+/// The deepest of the smoothed depths: its index (None where none is positive) and depth (zero
+/// where none is positive); the lowest index among equals.
+fn deepest(smooth: &[Option<f64>]) -> (Option<usize>, f64) {
+    smooth
+        .iter()
+        .enumerate()
+        .filter_map(|(k, d)| d.map(|d| (k, d)))
+        .fold(
+            (None, 0.0f64),
+            |(bk, bd), (k, d)| if d > bd { (Some(k), d) } else { (bk, bd) },
+        )
 }
 
 /// Mean of each marker's value and its present 8-neighbours' (`None` where the marker has none).

@@ -331,46 +331,10 @@ impl StereoSession {
         };
         self.stage_marks.clear();
         let m_start = mark();
-        let (mut lf, mut rf) = if self.parallel {
-            let (l, r) = (&mut self.left, &mut self.right);
-            rayon::join(
-                || l.update_tiered(left[0], left[1]),
-                || r.update_tiered(right[0], right[1]),
-            )
-        } else {
-            (
-                self.left.update_tiered(left[0], left[1]),
-                self.right.update_tiered(right[0], right[1]),
-            )
-        };
-        self.check_and_assist_across_views(&mut lf, &mut rf);
+        let (lf, rf) = self.associate_views(left, right);
         let m_associated = mark();
-        let n = self.shape.count();
-        let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); n];
-        for (lin, entry) in px.iter_mut().enumerate() {
-            if let Some(k) = self.left_slot[lin] {
-                entry.0 = lf.markers[k].position_px;
-                entry.2 = lf.markers[k].status;
-            }
-            if let Some(k) = self.right_slot[lin] {
-                entry.1 = rf.markers[k].position_px;
-                entry.3 = rf.markers[k].status;
-            }
-        }
-        let triangulator = &self.triangulator;
-        let triangulate = |&(l, r, _, _): &(Option<Point2>, Option<Point2>, MarkerStatus, MarkerStatus)| {
-            let t = triangulator.triangulate(l?, r?).ok()?;
-            let p = t.p_in_left_mm;
-            Some(([p.x, p.y, p.z], t.max_reprojection_error_px()))
-        };
-        let points: Vec<Option<([f64; 3], f64)>> = if self.parallel {
-            // One piece per thread: 529 markers take ~0.5 ms, a piece more costs a wake-up (rayon
-            // halves a range while each half keeps at least `piece`).
-            let piece = (n / rayon::current_num_threads()).max(1);
-            px.par_iter().with_min_len(piece).map(triangulate).collect()
-        } else {
-            px.iter().map(triangulate).collect()
-        };
+        let px = self.view_pixels(&lf, &rf);
+        let points = self.triangulate_all(&px);
         let mut current: Vec<Option<[f64; 3]>> = points.iter().map(|t| t.map(|(p, _)| p)).collect();
         let reprojection_px: Vec<Option<f64>> = points.iter().map(|t| t.map(|(_, e)| e)).collect();
         let m_triangulated = mark();
@@ -394,7 +358,83 @@ impl StereoSession {
                 .into_iter()
                 .flatten(),
         );
-        // What is written: outliers within the noise floor keep their measurement.
+        let written = self.restore_within_floor(filled, &mut measured, dropped);
+        self.last_written.clone_from(&written);
+        let markers = self.marker_records(frame, &px, &written, &measured, &contact);
+        Ok(StereoFrame {
+            markers,
+            summary: frame_summary(frame, &contact, &slip),
+            left: lf,
+            right: rf,
+            contact,
+            slip,
+            reprojection_px,
+        })
+    }
+
+    /// Associates both views' points with their trackers (side by side where parallel), then
+    /// checks and assists each view with the other.
+    fn associate_views(&mut self, left: [&[Point2]; 2], right: [&[Point2]; 2]) -> (TrackFrame, TrackFrame) {
+        let (mut lf, mut rf) = if self.parallel {
+            let (l, r) = (&mut self.left, &mut self.right);
+            rayon::join(
+                || l.update_tiered(left[0], left[1]),
+                || r.update_tiered(right[0], right[1]),
+            )
+        } else {
+            (
+                self.left.update_tiered(left[0], left[1]),
+                self.right.update_tiered(right[0], right[1]),
+            )
+        };
+        self.check_and_assist_across_views(&mut lf, &mut rf);
+        (lf, rf)
+    }
+
+    /// Per marker (linear index) its left and right pixel and status; Lost where a view has no
+    /// slot for it.
+    fn view_pixels(&self, lf: &TrackFrame, rf: &TrackFrame) -> Vec<ViewPixels> {
+        let mut px = vec![(None, None, MarkerStatus::Lost, MarkerStatus::Lost); self.shape.count()];
+        for (lin, entry) in px.iter_mut().enumerate() {
+            if let Some(k) = self.left_slot[lin] {
+                entry.0 = lf.markers[k].position_px;
+                entry.2 = lf.markers[k].status;
+            }
+            if let Some(k) = self.right_slot[lin] {
+                entry.1 = rf.markers[k].position_px;
+                entry.3 = rf.markers[k].status;
+            }
+        }
+        px
+    }
+
+    /// Triangulates every marker seen in both views: its 3-D point in the left camera frame and
+    /// its largest reprojection error.
+    fn triangulate_all(&self, px: &[ViewPixels]) -> Vec<Option<([f64; 3], f64)>> {
+        let triangulator = &self.triangulator;
+        let triangulate = |&(l, r, _, _): &ViewPixels| {
+            let t = triangulator.triangulate(l?, r?).ok()?;
+            let p = t.p_in_left_mm;
+            Some(([p.x, p.y, p.z], t.max_reprojection_error_px()))
+        };
+        if self.parallel {
+            // One piece per thread: a piece more costs a wake-up (rayon halves a range while each
+            // half keeps at least `piece`).
+            let piece = (px.len() / rayon::current_num_threads()).max(1);
+            px.par_iter().with_min_len(piece).map(triangulate).collect()
+        } else {
+            px.iter().map(triangulate).collect()
+        }
+    }
+
+    /// What is written: outliers within the noise floor keep their measurement (and count as
+    /// measured) in place of the filled-in value.
+    fn restore_within_floor(
+        &self,
+        filled: Vec<Option<[f64; 3]>>,
+        measured: &mut [bool],
+        dropped: Vec<(usize, [f64; 3], f64)>,
+    ) -> Vec<Option<[f64; 3]>> {
         let mut written = filled;
         let floor_mm = self.config.outlier_min_pitch * self.surface.pitch_mm();
         for (k, p, residual_mm) in dropped {
@@ -403,7 +443,19 @@ impl StereoSession {
                 measured[k] = true;
             }
         }
-        self.last_written.clone_from(&written);
+        written
+    }
+
+    /// One record per tracked marker id: pixels, position and displacement in the camera and gel
+    /// frames, status (Tracked only where measured and tracked in both views) and contact facts.
+    fn marker_records(
+        &self,
+        frame: u32,
+        px: &[ViewPixels],
+        written: &[Option<[f64; 3]>],
+        measured: &[bool],
+        contact: &ContactFrame,
+    ) -> Vec<MarkerRecord> {
         let gel = self.surface.gel_frame();
         let mut markers = Vec::with_capacity(self.ids.len());
         for id in &self.ids {
@@ -438,31 +490,7 @@ impl StereoSession {
                 gel_displacement_mm: displacement.map(|d| gel.vector_to_gel(Vector3::from(d))),
             });
         }
-        let summary = FrameSummary {
-            frame,
-            contact: contact.contact,
-            contact_area_mm2: Some(contact.contact_area_mm2),
-            max_depth_mm: Some(if contact.contact {
-                contact.max_depth_mm
-            } else {
-                0.0
-            }),
-            centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
-            slip: slip.state,
-            force_n: Some(contact.force_n),
-            shear_n: Some(contact.shear_n),
-            torque_nmm: Some(contact.torque_nmm),
-            measured: true,
-        };
-        Ok(StereoFrame {
-            markers,
-            summary,
-            left: lf,
-            right: rf,
-            contact,
-            slip,
-            reprojection_px,
-        })
+        markers
     }
 
     /// Stereo check and assist, after both views are associated. The local map between the views
@@ -623,6 +651,29 @@ pub fn flagged_rows(ids: &[GridIndex], frame: u32) -> (Vec<MarkerRecord>, FrameS
         })
         .collect();
     (markers, FrameSummary::unmeasured(frame))
+}
+
+/// A marker's left pixel, right pixel, left status and right status in one frame.
+type ViewPixels = (Option<Point2>, Option<Point2>, MarkerStatus, MarkerStatus);
+
+/// The frame's summary row from its contact and slip.
+fn frame_summary(frame: u32, contact: &ContactFrame, slip: &SlipFrame) -> FrameSummary {
+    FrameSummary {
+        frame,
+        contact: contact.contact,
+        contact_area_mm2: Some(contact.contact_area_mm2),
+        max_depth_mm: Some(if contact.contact {
+            contact.max_depth_mm
+        } else {
+            0.0
+        }),
+        centroid_mm: contact.centroid_mm.map(|c| [c.x, c.y]),
+        slip: slip.state,
+        force_n: Some(contact.force_n),
+        shear_n: Some(contact.shear_n),
+        torque_nmm: Some(contact.torque_nmm),
+        measured: true,
+    }
 }
 
 /// The normalised median test of particle image velocimetry (Westerweel & Scarano, "Universal outlier

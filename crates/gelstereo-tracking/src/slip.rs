@@ -278,52 +278,109 @@ impl SlipDetector {
     pub fn update(&mut self, surface: &ReferenceSurface, frame: &ContactFrame) -> SlipFrame {
         if !frame.contact {
             self.reset();
-            return SlipFrame {
-                state: SlipState::NoContact,
-                shear_mm: Vector3::zeros(),
-                stick_fraction: 1.0,
-                drift_mm: 0.0,
-                rotation_rad: 0.0,
-                turned_rad: self.turned_rad,
-            };
+            return self.quiet(SlipState::NoContact, Vector3::zeros(), 0.0);
         }
-        // An indentation does not slide by more than its own radius from one frame to the next: a
-        // material centroid that far from the last one is another contact region taking over (a
-        // shallow touch-down beside a patch of depth noise), so the drift starts afresh there
-        // rather than reading the jump as a slide.
+        self.restart_on_takeover(frame);
+        let smoothed = crate::contact::smooth3(surface.shape(), &frame.depth_mm);
+        let past = self.remember(frame, &smoothed);
+        let drift_threshold = self
+            .config
+            .drift_mm_per_frame
+            .max(self.config.drift_noise_factor * frame.depth_noise_mm);
+        let latched = if self.sliding {
+            SlipState::GrossSlip
+        } else {
+            SlipState::Stick
+        };
+        let Some(core) = self.core_motion(surface, frame, &smoothed) else {
+            return self.quiet(latched, Vector3::zeros(), 0.0);
+        };
+        let min_shear = self.config.min_shear_mm.min(
+            (self.config.stick_shear_per_depth * frame.max_depth_mm)
+                .max(self.config.shear_noise_factor * frame.depth_noise_mm),
+        );
+        if core.shear.norm() < min_shear && core.twist_mm < min_shear {
+            return self.quiet(latched, core.shear, core.omega);
+        }
+        // How the depth pattern turned and moved across the gel since the oldest kept frame
+        // (`material_motion`); the twist branch uses the turn, the slide branch the shift.
+        let pattern_motion = || match (&past.depth, frame.material_centroid_mm) {
+            (Some(old), Some(c)) if past.depth_span > 0 => {
+                material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
+            }
+            _ => None,
+        };
+        if core.twist_mm > core.shear.norm() {
+            let turn = pattern_motion().map(|(t, _)| t);
+            return self.classify_twist(surface, &core, turn, past.depth_span, drift_threshold);
+        }
+        let shift = pattern_motion().map(|(_, shift)| shift);
+        self.classify_slide(frame, &core, shift, &past, drift_threshold)
+    }
+
+    /// A frame with nothing to classify beyond `state`: everything sticks and nothing drifts.
+    fn quiet(&self, state: SlipState, shear_mm: Vector3<f64>, rotation_rad: f64) -> SlipFrame {
+        SlipFrame {
+            state,
+            shear_mm,
+            stick_fraction: 1.0,
+            drift_mm: 0.0,
+            rotation_rad,
+            turned_rad: self.turned_rad,
+        }
+    }
+
+    /// An indentation does not slide by more than its own radius from one frame to the next: a
+    /// material centroid that far from the last one is another contact region taking over (a
+    /// shallow touch-down beside a patch of depth noise), so the drift starts afresh there
+    /// rather than reading the jump as a slide.
+    fn restart_on_takeover(&mut self, frame: &ContactFrame) {
         if let (Some(c), Some(last)) = (frame.material_centroid_mm, self.history.back()) {
             let radius_mm = (frame.contact_area_mm2 / std::f64::consts::PI).sqrt();
             if (c - last).norm() > radius_mm {
                 self.restart_drift();
             }
         }
-        let oldest = self.history.front().copied();
-        let span = self.history.len();
-        let smoothed = crate::contact::smooth3(surface.shape(), &frame.depth_mm);
-        let old_depth = self.depths.front().cloned();
-        let depth_span = self.depths.len();
-        self.depths.push_back(smoothed.clone());
+    }
+
+    /// Adds this frame's smoothed depths and material centroid to the kept frames, returning
+    /// the oldest ones from before it, which the drift is measured against.
+    fn remember(&mut self, frame: &ContactFrame, smoothed: &[Option<f64>]) -> Past {
+        let past = Past {
+            centroid: self.history.front().copied(),
+            span: self.history.len(),
+            depth: self.depths.front().cloned(),
+            depth_span: self.depths.len(),
+        };
+        self.depths.push_back(smoothed.to_vec());
         if self.depths.len() > DRIFT_WINDOW {
             self.depths.pop_front();
         }
-        let drift_threshold = self
-            .config
-            .drift_mm_per_frame
-            .max(self.config.drift_noise_factor * frame.depth_noise_mm);
         if let Some(c) = frame.material_centroid_mm {
             self.history.push_back(c);
             if self.history.len() > DRIFT_WINDOW {
                 self.history.pop_front();
             }
         }
+        past
+    }
+
+    /// The tangential displacement of the contact's core and its mean shear and in-plane
+    /// rotation; None where the core holds no marker. The core is where the pressure exceeds
+    /// `core_load_fraction` of its largest and the indentation `core_depth_fraction` of its
+    /// deepest: the displacement there is what the object's motion drags. The loaded region's
+    /// rim, where the shear falls off, and from images markers away from the indentation would
+    /// dilute it.
+    fn core_motion(
+        &self,
+        surface: &ReferenceSurface,
+        frame: &ContactFrame,
+        smoothed: &[Option<f64>],
+    ) -> Option<CoreMotion> {
         let normals = surface.normals();
         let reference = surface.positions_mm();
         let mut tangential = Vec::new();
         let mut at = Vec::new();
-        // The markers of the contact's core, where the pressure exceeds `core_load_fraction` of
-        // its largest and the indentation `core_depth_fraction` of its deepest: the displacement
-        // there is what the object's motion drags. The loaded region's rim, where the shear falls
-        // off, and from images markers away from the indentation would dilute it.
         let core = self.config.core_depth_fraction * smoothed.iter().flatten().copied().fold(0.0, f64::max);
         let peak_load = frame.traction_kpa.iter().fold(0.0f64, |m, t| m.max(t[2]));
         let core_load = self.config.core_load_fraction * peak_load;
@@ -336,20 +393,8 @@ impl SlipDetector {
                 at.push(x.coords);
             }
         }
-        let latched = if self.sliding {
-            SlipState::GrossSlip
-        } else {
-            SlipState::Stick
-        };
         if tangential.is_empty() {
-            return SlipFrame {
-                state: latched,
-                shear_mm: Vector3::zeros(),
-                stick_fraction: 1.0,
-                drift_mm: 0.0,
-                rotation_rad: 0.0,
-                turned_rad: self.turned_rad,
-            };
+            return None;
         }
         let count = tangential.len() as f64;
         let shear = tangential.iter().fold(Vector3::zeros(), |a, t| a + t) / count;
@@ -368,80 +413,91 @@ impl SlipDetector {
         });
         let omega = if den > 0.0 { num / den } else { 0.0 };
         let radius_mm = (den / count).sqrt();
-        let twist_mm = omega.abs() * radius_mm;
-        let min_shear = self.config.min_shear_mm.min(
-            (self.config.stick_shear_per_depth * frame.max_depth_mm)
-                .max(self.config.shear_noise_factor * frame.depth_noise_mm),
-        );
-        if shear.norm() < min_shear && twist_mm < min_shear {
-            return SlipFrame {
-                state: latched,
-                shear_mm: shear,
-                stick_fraction: 1.0,
-                drift_mm: 0.0,
-                rotation_rad: omega,
-                turned_rad: self.turned_rad,
-            };
-        }
-        // How the depth pattern turned and moved across the gel since the oldest kept frame
-        // (`material_motion`); the twist branch uses the turn, the slide branch the shift.
-        let pattern_motion = || match (&old_depth, frame.material_centroid_mm) {
-            (Some(old), Some(c)) if depth_span > 0 => {
-                material_motion(surface, old, &smoothed, c, 0.1 * frame.max_depth_mm)
-            }
-            _ => None,
+        Some(CoreMotion {
+            twist_mm: omega.abs() * radius_mm,
+            tangential,
+            radial,
+            plane,
+            shear,
+            omega,
+            radius_mm,
+        })
+    }
+
+    /// A twist: sticking points turn with the object by one angle, slipping ones lag. The
+    /// plateau is that of the angular displacement of the markers off the centre; `turn` is the
+    /// rotation of the depth pattern since the oldest kept frame, `depth_span` frames back.
+    fn classify_twist(
+        &mut self,
+        surface: &ReferenceSurface,
+        core: &CoreMotion,
+        turn: Option<f64>,
+        depth_span: usize,
+        drift_threshold: f64,
+    ) -> SlipFrame {
+        let (plane, omega) = (core.plane, core.omega);
+        let min_r = 0.75 * surface.pitch_mm();
+        let mut angles: Vec<f64> = core
+            .radial
+            .iter()
+            .zip(&core.tangential)
+            .filter(|(r, _)| r.norm() >= min_r)
+            .map(|(r, t)| r.cross(t).dot(&plane) / r.norm_squared() * omega.signum())
+            .collect();
+        let stick_fraction = if angles.is_empty() {
+            1.0
+        } else {
+            angles.sort_by(f64::total_cmp);
+            let top = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
+            let tol = self.config.plateau_tolerance * top.abs();
+            angles.iter().filter(|&&a| a >= top - tol).count() as f64 / angles.len() as f64
         };
-        if twist_mm > shear.norm() {
-            // A twist: sticking points turn with the object by one angle, slipping ones lag. The
-            // plateau is that of the angular displacement of the markers off the centre.
-            let min_r = 0.75 * surface.pitch_mm();
-            let mut angles: Vec<f64> = radial
-                .iter()
-                .zip(&tangential)
-                .filter(|(r, _)| r.norm() >= min_r)
-                .map(|(r, t)| r.cross(t).dot(&plane) / r.norm_squared() * omega.signum())
-                .collect();
-            let stick_fraction = if angles.is_empty() {
-                1.0
-            } else {
-                angles.sort_by(f64::total_cmp);
-                let top = angles[((angles.len() - 1) as f64 * 0.9).round() as usize];
-                let tol = self.config.plateau_tolerance * top.abs();
-                angles.iter().filter(|&&a| a >= top - tol).count() as f64 / angles.len() as f64
-            };
-            // Torsional gross slip: the indentation turns across the gel (the twist analogue of the
-            // drift): the rotation of the depth pattern in material coordinates, at the contact's
-            // RMS radius, per frame, in the sense of the twist.
-            let turn_rad = pattern_motion().map_or(0.0, |(t, _)| t * omega.signum() / depth_span as f64);
-            let turn_mm = turn_rad * radius_mm;
-            let turning = turn_mm > self.config.turn_threshold_factor * drift_threshold;
-            if turning {
-                self.turned_rad += turn_rad;
-            }
-            // Torsion never slides the centre at once (Lubkin): the stuck core shrinks as the
-            // object turns on, so the whole contact slips only once the indentation has turned by
-            // a multiple of the contact's elastic twist (the field's rotation `omega`).
-            let turning = turning && self.turned_rad >= self.config.twist_turn_ratio * omega.abs();
-            self.drifting = if turning { self.drifting + 1 } else { 0 };
-            self.sliding |= stick_fraction < self.config.twist_gross_fraction || self.drifting >= 2;
-            let state = if self.sliding || turning {
-                SlipState::GrossSlip
-            } else if stick_fraction < self.config.stick_fraction {
-                SlipState::PartialSlip
-            } else {
-                SlipState::Stick
-            };
-            return SlipFrame {
-                state,
-                shear_mm: shear,
-                stick_fraction,
-                drift_mm: turn_mm,
-                rotation_rad: omega,
-                turned_rad: self.turned_rad,
-            };
+        // Torsional gross slip: the indentation turns across the gel (the twist analogue of the
+        // drift): the rotation of the depth pattern in material coordinates, at the contact's
+        // RMS radius, per frame, in the sense of the twist.
+        let turn_rad = turn.map_or(0.0, |t| t * omega.signum() / depth_span as f64);
+        let turn_mm = turn_rad * core.radius_mm;
+        let turning = turn_mm > self.config.turn_threshold_factor * drift_threshold;
+        if turning {
+            self.turned_rad += turn_rad;
         }
+        // Torsion never slides the centre at once (Lubkin): the stuck core shrinks as the
+        // object turns on, so the whole contact slips only once the indentation has turned by
+        // a multiple of the contact's elastic twist (the field's rotation `omega`).
+        let turning = turning && self.turned_rad >= self.config.twist_turn_ratio * omega.abs();
+        self.drifting = if turning { self.drifting + 1 } else { 0 };
+        self.sliding |= stick_fraction < self.config.twist_gross_fraction || self.drifting >= 2;
+        let state = if self.sliding || turning {
+            SlipState::GrossSlip
+        } else if stick_fraction < self.config.stick_fraction {
+            SlipState::PartialSlip
+        } else {
+            SlipState::Stick
+        };
+        SlipFrame {
+            state,
+            shear_mm: core.shear,
+            stick_fraction,
+            drift_mm: turn_mm,
+            rotation_rad: omega,
+            turned_rad: self.turned_rad,
+        }
+    }
+
+    /// A slide: sticking points move with the object by one displacement along the shear,
+    /// slipping ones lag; gross slip is the indentation drifting across the gel. `shift` is the
+    /// translation of the depth pattern since the oldest kept frame.
+    fn classify_slide(
+        &mut self,
+        frame: &ContactFrame,
+        core: &CoreMotion,
+        shift: Option<Vector3<f64>>,
+        past: &Past,
+        drift_threshold: f64,
+    ) -> SlipFrame {
+        let shear = core.shear;
         let dir = shear / shear.norm();
-        let mut along: Vec<f64> = tangential.iter().map(|t| t.dot(&dir)).collect();
+        let mut along: Vec<f64> = core.tangential.iter().map(|t| t.dot(&dir)).collect();
         along.sort_by(f64::total_cmp);
         let top = along[((along.len() - 1) as f64 * 0.9).round() as usize];
         let tol = (self.config.plateau_tolerance * top.abs()).max(self.config.plateau_min_mm);
@@ -450,20 +506,19 @@ impl SlipDetector {
         // The drift is the shift of the whole 3 x 3 mean depth pattern across the gel (the
         // translation of the optical-flow fit of `material_motion`), the material centroid's
         // displacement where the fit has too few markers: the half-maximum centroid moves in
-        // uneven steps on the lattice (about 10 % short of a slow slide on exact 3-D) and jumps
-        // with the noise of the few markers at its threshold (docs/tracking.md, "Drift from the
-        // depth pattern").
-        let flow_drift = pattern_motion().map(|(_, shift)| shift.dot(&dir) / depth_span as f64);
-        let drift = flow_drift.unwrap_or_else(|| match (oldest, frame.material_centroid_mm) {
-            (Some(a), Some(b)) if span > 0 => (b - a).dot(&dir) / span as f64,
+        // uneven steps on the lattice and jumps with the noise of the few markers at its
+        // threshold (docs/tracking.md, "Drift from the depth pattern").
+        let flow_drift = shift.map(|shift| shift.dot(&dir) / past.depth_span as f64);
+        let drift = flow_drift.unwrap_or_else(|| match (past.centroid, frame.material_centroid_mm) {
+            (Some(a), Some(b)) if past.span > 0 => (b - a).dot(&dir) / past.span as f64,
             _ => 0.0,
         });
         // Once the whole contact has slid, it stays in gross slip until it is released: the traction
         // is at the friction limit everywhere, and unloading or further sliding keep it there.
         // It latches after two drifting frames in a row (one noisy frame must not latch it).
         // A sliding contact drags the surface at the friction limit: its mean shear is a sizeable
-        // part of the indentation depth (0.8 w on the reference sensor). Pressing alone shears
-        // little, so a drift without that shear is the noise of a growing contact.
+        // part of the indentation depth. Pressing alone shears little, so a drift without that
+        // shear is the noise of a growing contact.
         let dragged = shear.norm() >= self.config.min_shear_per_depth * frame.max_depth_mm;
         let at_limit = cone_load_share(frame) >= self.config.cone_load_fraction;
         let drifting = drift > drift_threshold && dragged && at_limit;
@@ -481,10 +536,35 @@ impl SlipDetector {
             shear_mm: shear,
             stick_fraction,
             drift_mm: drift,
-            rotation_rad: omega,
+            rotation_rad: core.omega,
             turned_rad: self.turned_rad,
         }
     }
+}
+
+/// The kept frames from before the current one: the oldest material centroid and depth pattern,
+/// and how many frames back each lies.
+struct Past {
+    centroid: Option<Point3<f64>>,
+    span: usize,
+    depth: Option<Vec<Option<f64>>>,
+    depth_span: usize,
+}
+
+/// How the contact's core moved: per core marker its tangential displacement and in-plane
+/// offset from the core's centre, their mean (the shear) and the least-squares rotation.
+struct CoreMotion {
+    tangential: Vec<Vector3<f64>>,
+    radial: Vec<Vector3<f64>>,
+    /// Normal of the lattice plane the rotation is about.
+    plane: Vector3<f64>,
+    shear: Vector3<f64>,
+    /// In-plane rotation, rad, signed about `plane`.
+    omega: f64,
+    /// RMS in-plane distance of the core markers from their centre, mm.
+    radius_mm: f64,
+    /// Displacement of the rotation at `radius_mm`, mm.
+    twist_mm: f64,
 }
 
 /// Rotation (rad, about the surface normal) and translation (mm, in the lattice plane) that carry

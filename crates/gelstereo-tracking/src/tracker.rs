@@ -419,9 +419,35 @@ impl Tracker {
         let (finite2, points2) = finite_points(second_tier);
         let non_finite = detections.len() - finite.len() + second_tier.len() - finite2.len();
         let grid = self.bucket_grid(&points);
-
-        let n = self.ids.len();
         let steps = f64::from(std::mem::replace(&mut self.steps, 1));
+        let fine = self.fine_association(&points, &grid, steps);
+        let (placed, taken) = self.place_markers(&points, &finite, &fine);
+        // The second tier is gated around a missed marker's step-5 position: its last position
+        // moved like its neighbours this frame.
+        let centres: Vec<Point2> = placed.iter().map(|p| p.0).collect();
+        let second = self.take_second_tier(&placed, &centres, &points2);
+        let tiered = SecondTier {
+            taken: &second,
+            points: &points2,
+            finite: &finite2,
+        };
+        let markers = self.settle_markers(&placed, tiered, &grid, steps);
+        let unassigned = (0..points.len())
+            .filter(|&d| !taken[d])
+            .map(|d| finite[d])
+            .collect();
+        TrackFrame {
+            markers,
+            unassigned,
+            non_finite,
+        }
+    }
+
+    /// The coarse then fine association of the accepted detections: predictions from the last
+    /// motion (over `steps` frames), re-centred by the coarse association's local motion, then
+    /// the motion and lattice outlier checks. Per slot the detection it takes, or [`NONE`].
+    fn fine_association(&self, points: &[[f64; 2]], grid: &Buckets, steps: f64) -> Vec<u32> {
+        let n = self.ids.len();
         let vf = self.config.velocity_factor * steps;
         let pred: Vec<Point2> = (0..n)
             .map(|i| {
@@ -431,15 +457,14 @@ impl Tracker {
                 )
             })
             .collect();
-
-        let mut coarse = self.associate(&pred, &grid, self.config.gate_pitch);
+        let mut coarse = self.associate(&pred, grid, self.config.gate_pitch);
         if self.config.propagation_gate_pitch > 0.0 {
-            self.propagate(&points, &grid, &mut coarse);
+            self.propagate(points, grid, &mut coarse);
         }
         // The coarse association is gated wide and has no motion check yet: a weighted mean is
-        // enough to re-centre the predictions (the same fine associations as a median on the
-        // v1 train / val splits and the seed-505 set) at half the association's cost.
-        let (step1, _) = self.local_motion(&points, &coarse, Centre::MeanOfAll);
+        // enough to re-centre the predictions (the same fine associations as a median) at half
+        // the association's cost.
+        let (step1, _) = self.local_motion(points, &coarse, Centre::MeanOfAll);
         let pred2: Vec<Point2> = (0..n)
             .map(|i| {
                 Point2::new(
@@ -448,18 +473,26 @@ impl Tracker {
                 )
             })
             .collect();
-        let mut fine = self.associate(&pred2, &grid, self.config.refine_gate_pitch);
+        let mut fine = self.associate(&pred2, grid, self.config.refine_gate_pitch);
         if self.config.motion_outlier_pitch > 0.0 {
-            self.drop_motion_outliers(&points, &mut fine, self.config.motion_outlier_pitch);
+            self.drop_motion_outliers(points, &mut fine, self.config.motion_outlier_pitch);
         }
         if self.config.lattice_outlier_pitch > 0.0 {
-            self.drop_lattice_outliers(&points, &mut fine, self.config.lattice_outlier_pitch);
+            self.drop_lattice_outliers(points, &mut fine, self.config.lattice_outlier_pitch);
         }
-        // Only the markers left without a detection use it (fill, second-tier gate).
-        let (step2, around) = self.local_motion(&points, &fine, Centre::MedianOfUnassociated);
+        fine
+    }
 
+    /// Every marker's position, status and detection after the fine association, and which
+    /// accepted detections were taken. A marker without a detection moves from its last position
+    /// like its neighbours this frame; it is Predicted where it has associated neighbours, Lost
+    /// where it has none.
+    fn place_markers(&self, points: &[[f64; 2]], finite: &[usize], fine: &[u32]) -> (Vec<Placed>, Vec<bool>) {
+        let n = self.ids.len();
+        // Only the markers left without a detection use it (fill, second-tier gate).
+        let (step2, around) = self.local_motion(points, fine, Centre::MedianOfUnassociated);
         let mut taken = vec![false; points.len()];
-        let mut placed: Vec<(Point2, MarkerStatus, Option<usize>)> = Vec::with_capacity(n);
+        let mut placed: Vec<Placed> = Vec::with_capacity(n);
         for i in 0..n {
             placed.push(if fine[i] != NONE {
                 let d = fine[i] as usize;
@@ -473,9 +506,8 @@ impl Tracker {
                 // The last position moved like its neighbours this frame. Not re-anchored on the
                 // reference plus the neighbours' mean displacement: under a sliding edge the
                 // displacement field changes by a pitch within two lattice steps, and that fill
-                // put missed markers 0.3-0.6 pitch off, onto their neighbour's detection (val
-                // exp_0015, train exp_0010). A wrong detection cannot be carried on either: the
-                // motion check below drops it.
+                // put missed markers onto their neighbour's detection. A wrong detection cannot
+                // be carried on either: the motion check drops it.
                 let p = Point2::new(
                     self.current_px[i].x + step2[i][0],
                     self.current_px[i].y + step2[i][1],
@@ -488,27 +520,35 @@ impl Tracker {
                 (p, s, None)
             });
         }
-        // The second tier is gated around a missed marker's step-5 position: its last position
-        // moved like its neighbours this frame (fewer wrong associations on the val split than
-        // the former reference-anchored fill).
-        let centres: Vec<Point2> = placed.iter().map(|p| p.0).collect();
-        let second = self.take_second_tier(&placed, &centres, &points2);
-        let mut markers = Vec::with_capacity(n);
+        (placed, taken)
+    }
+
+    /// Takes the second-tier candidates, marks ambiguous predictions Lost, and carries every
+    /// marker's position and motion (over `steps` frames) on to the next frame.
+    fn settle_markers(
+        &mut self,
+        placed: &[Placed],
+        tiered: SecondTier<'_>,
+        grid: &Buckets,
+        steps: f64,
+    ) -> Vec<TrackedMarker> {
+        let mut markers = Vec::with_capacity(placed.len());
         for (i, &(mut pos, mut status, mut det)) in placed.iter().enumerate() {
-            if second[i] != NONE {
-                let d = second[i] as usize;
+            let second = tiered.taken[i];
+            if second != NONE {
+                let d = second as usize;
                 (pos, status, det) = (
-                    Point2::new(points2[d][0], points2[d][1]),
+                    Point2::new(tiered.points[d][0], tiered.points[d][1]),
                     MarkerStatus::Tracked,
-                    Some(finite2[d]),
+                    Some(tiered.finite[d]),
                 );
             }
             // A predicted position next to a detection it did not take is ambiguous: the
             // marker's own detection refused by the checks, or a neighbour's that the lagging
-            // prediction has caught up with (val exp_0015). An empty cell rather than a position
-            // that may be its neighbour's; the position is still carried on to predict the next frame.
+            // prediction has caught up with. An empty cell rather than a position that may be
+            // its neighbour's; the position is still carried on to predict the next frame.
             let near = self.config.lost_near_detection_pitch;
-            if near > 0.0 && status == MarkerStatus::Predicted && self.any_within(&grid, i, pos, near) {
+            if near > 0.0 && status == MarkerStatus::Predicted && self.any_within(grid, i, pos, near) {
                 status = MarkerStatus::Lost;
             }
             self.motion_px[i] = [
@@ -522,18 +562,10 @@ impl Tracker {
                 position_px: (status != MarkerStatus::Lost).then_some(pos),
                 status,
                 detection: det,
-                second_tier: second[i] != NONE,
+                second_tier: second != NONE,
             });
         }
-        let unassigned = (0..points.len())
-            .filter(|&d| !taken[d])
-            .map(|d| finite[d])
-            .collect();
-        TrackFrame {
-            markers,
-            unassigned,
-            non_finite,
-        }
+        markers
     }
 
     /// The second-tier pass of [`update_tiered`](Self::update_tiered): per slot, the second-tier
@@ -1014,6 +1046,17 @@ pub(crate) fn lattice_neighbourhood(
             let lin = shape.linear(GridIndex::new(row as u16, col as u16))?;
             Some((lin, 1.0 / f64::from(dr * dr + dc * dc)))
         })
+}
+
+/// A marker's position, status and detection (its number among the frame's detections).
+type Placed = (Point2, MarkerStatus, Option<usize>);
+
+/// The second-tier candidates of a frame and which one each slot took ([`NONE`] for none).
+struct SecondTier<'a> {
+    taken: &'a [u32],
+    points: &'a [[f64; 2]],
+    /// Number among the frame's second-tier candidates, per finite point.
+    finite: &'a [usize],
 }
 
 /// The finite points of `detections`: their positions in `detections` and their coordinates.

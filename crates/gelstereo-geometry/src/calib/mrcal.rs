@@ -61,7 +61,8 @@ fn numbers(
     Ok(out)
 }
 
-fn read_model(path: &Path) -> Result<Model> {
+/// The file's text parsed as the Python dict literal a mrcal .cameramodel is.
+fn read_dict(path: &Path) -> Result<Vec<(String, Value)>> {
     let bytes = super::structure::read_at_most(path)?;
     let text = String::from_utf8(bytes).map_err(|e| Error::Syntax {
         path: path.to_path_buf(),
@@ -86,22 +87,12 @@ fn read_model(path: &Path) -> Result<Model> {
             ),
         });
     };
-    let get = |keys: &[&str], expected: &str| -> Result<(&str, &Value)> {
-        for key in keys {
-            if let Some((k, v)) = dict.iter().find(|(k, _)| k == key) {
-                return Ok((k.as_str(), v));
-            }
-        }
-        Err(Error::MissingKey {
-            path: path.to_path_buf(),
-            key: keys.join(" or "),
-            expected: expected.to_owned(),
-        })
-    };
-    let (lm_key, lm) = get(
-        &["lensmodel", "distortion_model", "lens_model"],
-        "the lens model name, e.g. 'LENSMODEL_OPENCV8'",
-    )?;
+    Ok(dict)
+}
+
+/// The lens model named by `lm` (the value of `lm_key`; the older `DISTORTION_` spelling taken
+/// as `LENSMODEL_`) and its number of distortion coefficients; only OpenCV's models are read.
+fn lens_model(path: &Path, lm_key: &str, lm: &Value) -> Result<(String, usize)> {
     let Value::Str(model) = lm else {
         return Err(Error::BadValue {
             path: path.to_path_buf(),
@@ -124,6 +115,49 @@ fn read_model(path: &Path) -> Result<Model> {
             });
         }
     };
+    Ok((model, n_dist))
+}
+
+/// The image width and height from `imagersize`: positive whole numbers of pixels.
+fn image_dims(path: &Path, size: &[f64]) -> Result<[u32; 2]> {
+    let mut dims = [0u32; 2];
+    for (d, v) in dims.iter_mut().zip(size) {
+        if !(v.fract() == 0.0 && *v >= 1.0 && *v <= f64::from(u32::MAX)) {
+            return Err(Error::BadValue {
+                path: path.to_path_buf(),
+                key: "imagersize".to_owned(),
+                expected: "positive whole numbers of pixels".to_owned(),
+                found: format!("{v}"),
+            });
+        }
+        // Checked above: a positive whole number that fits.
+        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+        {
+            *d = *v as u32;
+        }
+    }
+    Ok(dims)
+}
+
+fn read_model(path: &Path) -> Result<Model> {
+    let dict = read_dict(path)?;
+    let get = |keys: &[&str], expected: &str| -> Result<(&str, &Value)> {
+        for key in keys {
+            if let Some((k, v)) = dict.iter().find(|(k, _)| k == key) {
+                return Ok((k.as_str(), v));
+            }
+        }
+        Err(Error::MissingKey {
+            path: path.to_path_buf(),
+            key: keys.join(" or "),
+            expected: expected.to_owned(),
+        })
+    };
+    let (lm_key, lm) = get(
+        &["lensmodel", "distortion_model", "lens_model"],
+        "the lens model name, e.g. 'LENSMODEL_OPENCV8'",
+    )?;
+    let (model, n_dist) = lens_model(path, lm_key, lm)?;
     let (_, iv) = get(&["intrinsics"], "fx fy cx cy and the distortion coefficients")?;
     let intr = numbers(
         path,
@@ -154,22 +188,7 @@ fn read_model(path: &Path) -> Result<Model> {
         Some(2),
         "a list of 2 integers [width, height]",
     )?;
-    let mut dims = [0u32; 2];
-    for (d, v) in dims.iter_mut().zip(&size) {
-        if !(v.fract() == 0.0 && *v >= 1.0 && *v <= f64::from(u32::MAX)) {
-            return Err(Error::BadValue {
-                path: path.to_path_buf(),
-                key: "imagersize".to_owned(),
-                expected: "positive whole numbers of pixels".to_owned(),
-                found: format!("{v}"),
-            });
-        }
-        // Checked above: a positive whole number that fits.
-        #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
-        {
-            *d = *v as u32;
-        }
-    }
+    let dims = image_dims(path, &size)?;
     let camera = Camera {
         image_size: ImageSize {
             width: dims[0],
