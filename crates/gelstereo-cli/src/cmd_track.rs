@@ -214,39 +214,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             n => n,
         },
     };
-    let folder = match &args.out {
-        Some(dir) => {
-            let inputs: Vec<&std::path::Path> = args.input.as_deref().into_iter().collect();
-            Some(Arc::new(OutputFolder::prepare_apart_from(
-                dir, args.force, &inputs,
-            )?))
-        }
-        None => None,
-    };
-    let mut sinks: Vec<Box<dyn Sink>> = match &folder {
-        Some(f) => gelstereo::track::sinks(f, &args.sink_options(), stereo)?,
-        None => Vec::new(),
-    };
-    match args.jsonl.as_deref() {
-        Some(p) if p.as_os_str() == "-" => sinks.push(Box::new(JsonlSink::new(
-            std::io::stdout(),
-            std::path::Path::new("standard output"),
-        ))),
-        Some(p) => {
-            let file = std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?;
-            sinks.push(Box::new(JsonlSink::new(file, p)));
-        }
-        None => {}
-    }
-    let progress = if args.quiet {
-        ProgressBar::hidden()
-    } else {
-        ProgressBar::new(source.len_hint().unwrap_or(0) as u64)
-    };
-    progress.set_style(
-        ProgressStyle::with_template("{spinner} track [{bar:30}] {pos}/{len} frames {per_sec} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let (folder, mut sinks) = output_sinks(args, stereo)?;
+    let progress = progress_bar(args.quiet, source.len_hint());
     let started = std::time::Instant::now();
     let mut warnings = 0usize;
     let mut frames = source.prefetch(PREFETCH_FRAMES);
@@ -286,7 +255,64 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             warnings - MAX_WARNINGS
         );
     }
-    let secs = started.elapsed().as_secs_f64();
+    report(&summary, started.elapsed().as_secs_f64(), folder.as_deref());
+    if summary.interrupted {
+        bail!(
+            "interrupted by a signal: the outputs hold the {} frames processed",
+            summary.frames
+        );
+    }
+    Ok(())
+}
+
+/// Where a run writes: its output folder, if any, and every sink.
+type Outputs = (Option<Arc<OutputFolder>>, Vec<Box<dyn Sink>>);
+
+/// The output folder (`--out`) with its sinks, and the stream (`--jsonl`).
+fn output_sinks(args: &Args, stereo: bool) -> anyhow::Result<Outputs> {
+    let folder = match &args.out {
+        Some(dir) => {
+            let inputs: Vec<&std::path::Path> = args.input.as_deref().into_iter().collect();
+            Some(Arc::new(OutputFolder::prepare_apart_from(
+                dir, args.force, &inputs,
+            )?))
+        }
+        None => None,
+    };
+    let mut sinks: Vec<Box<dyn Sink>> = match &folder {
+        Some(f) => gelstereo::track::sinks(f, &args.sink_options(), stereo)?,
+        None => Vec::new(),
+    };
+    match args.jsonl.as_deref() {
+        Some(p) if p.as_os_str() == "-" => sinks.push(Box::new(JsonlSink::new(
+            std::io::stdout(),
+            std::path::Path::new("standard output"),
+        ))),
+        Some(p) => {
+            let file = std::fs::File::create(p).with_context(|| format!("cannot create {}", p.display()))?;
+            sinks.push(Box::new(JsonlSink::new(file, p)));
+        }
+        None => {}
+    }
+    Ok((folder, sinks))
+}
+
+/// The progress bar on standard error (hidden for `--quiet`).
+fn progress_bar(quiet: bool, frames: Option<usize>) -> ProgressBar {
+    let progress = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(frames.unwrap_or(0) as u64)
+    };
+    progress.set_style(
+        ProgressStyle::with_template("{spinner} track [{bar:30}] {pos}/{len} frames {per_sec} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    progress
+}
+
+/// The run's closing line: frames, speed, tracking, contact, slip, flags and where outputs went.
+fn report(summary: &gelstereo::track::TrackSummary, secs: f64, folder: Option<&OutputFolder>) {
     eprintln!(
         "{}{} frames in {secs:.1} s ({:.1} frames/s): {:.2} % of marker-frames tracked in the left view, {} frames in contact, {} slipping, {} flagged; outputs in {}",
         match (summary.interrupted, summary.reader_closed) {
@@ -300,17 +326,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         summary.contact_frames,
         summary.slipping_frames,
         summary.flagged.len(),
-        folder
-            .as_ref()
-            .map_or_else(|| "standard output".to_owned(), |f| f.dir().display().to_string())
+        folder.map_or_else(|| "standard output".to_owned(), |f| f.dir().display().to_string())
     );
-    if summary.interrupted {
-        bail!(
-            "interrupted by a signal: the outputs hold the {} frames processed",
-            summary.frames
-        );
-    }
-    Ok(())
 }
 
 /// Warnings printed one by one; the rest are counted.
