@@ -23,9 +23,12 @@ fn markdown_files(dir: &Path, out: &mut Vec<PathBuf>) {
         if name.starts_with('.') || SKIPPED_DIRS.contains(&name.as_str()) {
             continue;
         }
-        if path.is_dir() {
+        // A link to a file (the Python package's copy of the model card) is checked where the
+        // file itself lives: its relative links are written from there.
+        let is_link = entry.file_type().is_ok_and(|t| t.is_symlink());
+        if path.is_dir() && !is_link {
             markdown_files(&path, out);
-        } else if name.ends_with(".md") {
+        } else if name.ends_with(".md") && !is_link {
             out.push(path);
         }
     }
