@@ -72,7 +72,7 @@ PY
 mkdir -p "$work/outside"
 cp data/sample/press-slide/calib.yaml "$work/outside/calib.yaml"
 cp tests/data/press-slide-frames.csv "$work/outside/expected.csv"
-(cd "$work/outside" && env -u ORT_DYLIB_PATH -u GELSTEREO_HOME "$work/venv/bin/python" - <<'PY'
+(cd "$work/outside" && env -u ORT_DYLIB_PATH -u GELSTEREO_HOME SAMPLE="$ROOT/data/sample/press-slide" "$work/venv/bin/python" - <<'PY'
 import csv, math, os
 from pathlib import Path
 import numpy as np
@@ -100,6 +100,14 @@ for left, right, want in zip(frames["left"], frames["right"], expected):
         assert math.isfinite(out.contact.area_mm2) and out.contact.area_mm2 > 0, (k, out.contact.area_mm2)
         pressed += 1
 assert pressed >= 10, f"only {pressed} frames in contact"
+# gelstereo.open reads the bundled recording frame by frame with the wheel's own decoder: the
+# same pixels as OpenCV's in the checkout, and the same tracking.
+opened = gelstereo.open(os.environ["SAMPLE"])
+assert opened.is_stereo and opened.frames == 40, (opened.is_stereo, opened.frames)
+again = gelstereo.Pipeline(calibration="calib.yaml")
+for f, left, right, want in zip(opened, frames["left"], frames["right"], expected):
+    assert f.error is None and np.array_equal(f.left, left) and np.array_equal(f.right, right), f.index
+    assert again.process(f.left, f.right, f.timestamp).slip == want["slip"], f.index
 print(f"{len(expected)} frames as gelstereo track tracks them ({pressed} in contact, area finite); "
       f"models from {package / 'models'}, ONNX Runtime {library}")
 PY

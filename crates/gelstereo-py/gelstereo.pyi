@@ -130,7 +130,8 @@ class Pipeline:
     `gelstereo track`'s flags: `gel` (a gel file), `gel_thickness_mm`, `gel_modulus_kpa`, `poisson`,
     `friction`; `method` ("marknet-mre", "marknet", "blob", "yolo"); `pitch_mm` (a mono sensor's
     marker pitch, for its area in mm²); `threads` (0: one per core); `mono` (track the left view
-    only). Every other setting is `gelstereo track`'s default.
+    only); `pad_border` is accepted and ignored (DeprecationWarning), as `--pad-border`. Every
+    other setting is `gelstereo track`'s default.
     Raises GelstereoError when the calibration, models, sensor description or a setting cannot be
     used, ValueError for an unknown method or more than 256 threads (also from RAYON_NUM_THREADS or
     OMP_NUM_THREADS).
@@ -152,6 +153,7 @@ class Pipeline:
         pitch_mm: Optional[float] = None,
         threads: int = 0,
         mono: bool = False,
+        pad_border: Optional[Union[str, int]] = None,
     ) -> None: ...
     def process(self, left: Image, right: Optional[Image] = None, timestamp: Optional[float] = None) -> Frame:
         """Processes one frame (stereo when `right` is given); timestamp in s (finite, each later than the last), None: frame number / 30 Hz.

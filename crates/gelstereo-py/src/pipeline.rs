@@ -42,6 +42,8 @@ use crate::image::to_mat;
 ///         (`--pitch-mm`); None: the area of a mono sensor is unknown (NaN).
 ///     threads: ONNX Runtime intra-op threads, 0 (default) one per core (`--threads`).
 ///     mono: track only the left view given to `process` (`--mono`).
+///     pad_border: accepted and ignored with a DeprecationWarning, as `track --pad-border`: markers
+///         cut by the image border are found by default.
 ///
 /// Every other setting is `gelstereo track`'s default. The first frame that can be indexed is the
 /// reference (no contact): marker ids are its grid indices, displacement is measured against it.
@@ -62,7 +64,7 @@ pub struct PyPipeline {
 #[pymethods]
 impl PyPipeline {
     #[new]
-    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel = None, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None, method = None, pitch_mm = None, threads = 0, mono = false))]
+    #[pyo3(signature = (calibration = None, models = None, grid = None, sensor = None, *, gel = None, gel_thickness_mm = None, gel_modulus_kpa = None, poisson = None, friction = None, method = None, pitch_mm = None, threads = 0, mono = false, pad_border = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -79,7 +81,21 @@ impl PyPipeline {
         pitch_mm: Option<f64>,
         threads: usize,
         mono: bool,
+        pad_border: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
+        if let Some(value) = pad_border {
+            // As `track --pad-border`: kept for old scripts, a value given changes nothing.
+            let note = std::ffi::CString::new(format!(
+                "pad_border={value} is ignored: markers cut by the image border are found and placed at their \
+                 centre by default, and none whose centre lies outside the image is reported"
+            ))?;
+            PyErr::warn(
+                py,
+                &py.get_type::<pyo3::exceptions::PyDeprecationWarning>(),
+                &note,
+                1,
+            )?;
+        }
         // The thread pools start with the first pipeline; a huge count from the environment would
         // start thousands of threads.
         gelstereo::core::limits::check_thread_env().map_err(PyValueError::new_err)?;

@@ -333,3 +333,10 @@ def test_open_warns_where_frame_names_do_not_settle_the_order(left_bgr, tmp_path
     with pytest.warns(UserWarning, match="1.png and 01.png"):
         reader = gelstereo.open(tmp_path)
     assert reader.frames == 4 and not reader.is_stereo
+
+
+def test_pad_border_is_accepted_and_ignored_as_on_the_command_line(sample, left_bgr):
+    with pytest.warns(DeprecationWarning, match="pad_border=8 is ignored"):
+        padded = gelstereo.Pipeline(grid="23x23", pad_border=8, mono=True)
+    plain = gelstereo.Pipeline(grid="23x23", mono=True)
+    np.testing.assert_array_equal(padded.process(left_bgr).markers["x_left"], plain.process(left_bgr).markers["x_left"])
