@@ -1651,29 +1651,41 @@ impl Marknet {
             .into_iter()
             .zip(images)
             .zip(pitch_and_spread)
-            .map(|((mut found, image), (pitch, spread))| {
-                // A regular pattern that is no marker gel (a checkerboard, a weave) can pass the
-                // lattice check; its "markers" then lose the look of dots on a gel.
-                if judge_the_dots(image, &found.accepted)?.is_some_and(|v| !v.dots()) {
-                    let rejected = std::mem::take(&mut found.accepted);
-                    found.second_tier.extend(rejected);
-                    return Ok(found);
-                }
-                settle_the_border(&mut found, image, pitch)?;
-                let before = found.accepted.len();
-                if close_look && !spread {
-                    let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
-                    found.accepted.extend(blobs);
-                }
-                let at_sites = blobs_at_empty_sites(image, &found.accepted, pitch)?;
-                found.accepted.extend(at_sites);
-                if found.accepted.len() > before {
-                    crate::sort_detections(&mut found.accepted);
-                }
-                Ok(found)
+            .map(|((found, image), (pitch, spread))| {
+                after_the_lattice(found, image, pitch, close_look && !spread)
             })
             .collect()
     }
+}
+
+/// The steps after the lattice check on one image: the dots-on-a-gel check, the border, and the
+/// dots the network missed, found as blobs (between squeezed markers when `between_squeezed`, then
+/// at the lattice's empty sites).
+fn after_the_lattice(
+    mut found: TieredDetections,
+    image: &Mat,
+    pitch: Option<f64>,
+    between_squeezed: bool,
+) -> Result<TieredDetections> {
+    // A regular pattern that is no marker gel (a checkerboard, a weave) can pass the lattice
+    // check; its "markers" then lose the look of dots on a gel.
+    if judge_the_dots(image, &found.accepted)?.is_some_and(|v| !v.dots()) {
+        let rejected = std::mem::take(&mut found.accepted);
+        found.second_tier.extend(rejected);
+        return Ok(found);
+    }
+    settle_the_border(&mut found, image, pitch)?;
+    let before = found.accepted.len();
+    if between_squeezed {
+        let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
+        found.accepted.extend(blobs);
+    }
+    let at_sites = blobs_at_empty_sites(image, &found.accepted, pitch)?;
+    found.accepted.extend(at_sites);
+    if found.accepted.len() > before {
+        crate::sort_detections(&mut found.accepted);
+    }
+    Ok(found)
 }
 
 impl Localizer for Marknet {

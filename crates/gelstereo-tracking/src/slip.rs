@@ -467,15 +467,8 @@ impl SlipDetector {
         let turning = turning && self.turned_rad >= self.config.twist_turn_ratio * omega.abs();
         self.drifting = if turning { self.drifting + 1 } else { 0 };
         self.sliding |= stick_fraction < self.config.twist_gross_fraction || self.drifting >= 2;
-        let state = if self.sliding || turning {
-            SlipState::GrossSlip
-        } else if stick_fraction < self.config.stick_fraction {
-            SlipState::PartialSlip
-        } else {
-            SlipState::Stick
-        };
         SlipFrame {
-            state,
+            state: self.state_of(turning, stick_fraction),
             shear_mm: core.shear,
             stick_fraction,
             drift_mm: turn_mm,
@@ -524,20 +517,25 @@ impl SlipDetector {
         let drifting = drift > drift_threshold && dragged && at_limit;
         self.drifting = if drifting { self.drifting + 1 } else { 0 };
         self.sliding |= self.drifting >= 2;
-        let state = if self.sliding || drifting {
-            SlipState::GrossSlip
-        } else if stick_fraction < self.config.stick_fraction {
-            SlipState::PartialSlip
-        } else {
-            SlipState::Stick
-        };
         SlipFrame {
-            state,
+            state: self.state_of(drifting, stick_fraction),
             shear_mm: shear,
             stick_fraction,
             drift_mm: drift,
             rotation_rad: core.omega,
             turned_rad: self.turned_rad,
+        }
+    }
+
+    /// The state of a frame in contact: gross slip while the contact slides (latched) or moves
+    /// across the gel in this frame (`moving`), partial slip when too few markers stick, else stick.
+    fn state_of(&self, moving: bool, stick_fraction: f64) -> SlipState {
+        if self.sliding || moving {
+            SlipState::GrossSlip
+        } else if stick_fraction < self.config.stick_fraction {
+            SlipState::PartialSlip
+        } else {
+            SlipState::Stick
         }
     }
 }
