@@ -467,6 +467,19 @@ impl GelFrame {
     pub fn vector_to_gel(&self, v: Vector3<f64>) -> [f64; 3] {
         self.axes.map(|a| a.dot(&v))
     }
+
+    /// A gel-frame point in the left camera frame, mm: the inverse of [`Self::to_gel`] (the axes
+    /// are orthonormal).
+    pub fn to_camera(&self, p: [f64; 3]) -> [f64; 3] {
+        let c = self.origin_mm + Vector3::from(self.vector_to_camera(p));
+        [c.x, c.y, c.z]
+    }
+
+    /// A gel-frame vector in the left camera frame: the inverse of [`Self::vector_to_gel`].
+    pub fn vector_to_camera(&self, v: [f64; 3]) -> [f64; 3] {
+        let c = self.axes[0] * v[0] + self.axes[1] * v[1] + self.axes[2] * v[2];
+        [c.x, c.y, c.z]
+    }
 }
 
 /// Contact geometry of one frame.

@@ -269,8 +269,8 @@ impl<W: Write> super::Sink for JsonlSink<W> {
 /// frame the line carries. The camera-frame positions and displacements are the gel-frame ones
 /// through that gel frame (so they agree with `markers.csv` to about a micrometre); the contact
 /// region is the `in_contact` markers. What the stream does not carry comes back empty: the
-/// stages' results, the log, the reference positions and earlier frames (each is a line of its
-/// own). `name` (the stream and line) starts every error, which names the field and what was
+/// stages' results, the log, the reference positions, earlier frames (each is a line of its
+/// own) and the gel frame's marker pitch (NaN). `name` (the stream and line) starts every error, which names the field and what was
 /// expected.
 pub fn parse_frame_line(line: &str, name: &str) -> Result<(FrameOutput, Option<GelFrame>)> {
     let v: Value = serde_json::from_str(line)
@@ -523,8 +523,8 @@ impl Fields<'_> {
                 index: GridIndex::new(id(0, m)?, id(1, m)?),
                 left_px: point(2, m)?,
                 right_px: point(4, m)?,
-                position_mm: gel.zip(gel_position_mm).map(|(g, p)| camera_point(g, p)),
-                displacement_mm: gel.zip(gel_displacement_mm).map(|(g, d)| camera_vector(g, d)),
+                position_mm: gel.zip(gel_position_mm).map(|(g, p)| g.to_camera(p)),
+                displacement_mm: gel.zip(gel_displacement_mm).map(|(g, d)| g.vector_to_camera(d)),
                 status: Some(status),
                 pressure_kpa: number(12, m)?,
                 in_contact: member(&sets[2], m),
@@ -559,22 +559,6 @@ impl Fields<'_> {
     }
 }
 
-/// A gel-frame point in the left camera frame, mm (the axes are orthonormal: the inverse of
-/// [`GelFrame::to_gel`]).
-fn camera_point(gel: &GelFrame, p: [f64; 3]) -> [f64; 3] {
-    let v = camera_vector(gel, p);
-    [
-        v[0] + gel.origin_mm.x,
-        v[1] + gel.origin_mm.y,
-        v[2] + gel.origin_mm.z,
-    ]
-}
-
-fn camera_vector(gel: &GelFrame, v: [f64; 3]) -> [f64; 3] {
-    let c = gel.axes[0] * v[0] + gel.axes[1] * v[1] + gel.axes[2] * v[2];
-    [c.x, c.y, c.z]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -605,8 +589,8 @@ mod tests {
                     index: GridIndex::new((k / 23) as u16, (k % 23) as u16),
                     left_px: Some(Point2::new(a * 10.0, b * 10.0)),
                     right_px: (kind % 2 == 0).then(|| Point2::new(b, a)),
-                    position_mm: gel_position_mm.map(|p| camera_point(&gel, p)),
-                    displacement_mm: gel_displacement_mm.map(|d| camera_vector(&gel, d)),
+                    position_mm: gel_position_mm.map(|p| gel.to_camera(p)),
+                    displacement_mm: gel_displacement_mm.map(|d| gel.vector_to_camera(d)),
                     status: Some(status),
                     pressure_kpa: measured.then_some(z.abs()),
                     in_contact: measured.then_some(kind % 4 == 1),
