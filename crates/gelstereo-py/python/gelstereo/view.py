@@ -77,15 +77,6 @@ def log_frame(rr, frame, left: np.ndarray, right: Optional[np.ndarray]) -> None:
         rr.log("slip/state", rr.TextLog(f"frame {frame.frame}: {frame.note}", level="WARN"))
 
 
-def source_of(text: str):
-    """A camera index or pair as numbers, anything else as a path."""
-    parts = text.split(",")
-    if all(p.strip().isdigit() for p in parts) and not Path(text).exists():
-        numbers = tuple(int(p) for p in parts)
-        return numbers[0] if len(numbers) == 1 else numbers
-    return Path(text)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m gelstereo.view", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -105,11 +96,11 @@ def main(argv=None) -> int:
         print('rerun-sdk is not installed: pip install "gelstereo[view]"', file=sys.stderr)
         return 2
 
-    source = source_of(args.source)
     calib = args.calib
-    if calib is None and isinstance(source, Path) and (source / "calib.yaml").is_file():
-        calib = source / "calib.yaml"
-    frames = gelstereo.open(source, side_by_side=args.side_by_side, mono=args.mono)
+    if calib is None and (Path(args.source) / "calib.yaml").is_file():
+        calib = Path(args.source) / "calib.yaml"
+    # gelstereo.open reads a path, or camera numbers as text ("0", "0,1").
+    frames = gelstereo.open(args.source, side_by_side=args.side_by_side, mono=args.mono)
     stereo = frames.is_stereo and not args.mono and calib is not None
     pipeline = gelstereo.Pipeline(calibration=calib if stereo else None, grid=args.grid,
                                   pitch_mm=args.pitch_mm, mono=not stereo)
