@@ -20,6 +20,10 @@ use crate::pad_border::PadBorder;
 
 use crate::project;
 
+/// The help section of the localizer's internal switches: they exist to measure what each step of
+/// the localizer adds, and the defaults are what every figure in the docs uses.
+const EXPERT: &str = "Expert options (localizer internals; the defaults are measured best)";
+
 /// How to build the localizers: model files, blob parameters, ONNX Runtime options.
 #[derive(clap::Args, Debug, Clone)]
 pub struct LocalizerArgs {
@@ -47,20 +51,20 @@ pub struct LocalizerArgs {
     /// pitch measured on a first pass lands in the range the network was trained on, a margin of the
     /// median colour; the pitch is remembered per image size), `stretch` (the whole image resized to the nominal
     /// input) or `pad` (isotropic, never enlarged, centred in the nominal input).
-    #[arg(long, default_value = "auto", value_name = "auto|stretch|pad")]
+    #[arg(long, default_value = "auto", value_name = "auto|stretch|pad", help_heading = EXPERT)]
     pub fit: InputFit,
     /// Run Marknet on the whole input of every frame. By default a stream's later frames run on a
     /// window of the input around the lattice its first frame showed (the whole input again for a
     /// frame whose markers come near the window's edge); the markers are the same to a few
     /// hundredths of a pixel (docs/localization.md, "Window around the lattice").
-    #[arg(long)]
+    #[arg(long, help_heading = EXPERT)]
     pub whole_input: bool,
     /// Do not look again where the lattice is squeezed. By default, where the first pass's
     /// candidates lie closer together than 0.8 pitch (dots pushed into each other at an indenter's
     /// rim), Marknet runs once more on a window around them at 1.5 x the scale and its finds replace
     /// the first pass's there, and dots between squeezed markers that it still misses are found as
     /// blobs (docs/localization.md, "A closer look at squeezed dots", "Blobs between squeezed markers").
-    #[arg(long)]
+    #[arg(long, help_heading = EXPERT)]
     pub no_close_look: bool,
 }
 
