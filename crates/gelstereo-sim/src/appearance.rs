@@ -486,7 +486,7 @@ fn random_texture(rng: &mut impl Rng) -> Texture {
 
 /// A random housing around `membrane`: colour, rim, round clutter and LED glints just outside
 /// the rim (all on the housing, none inside the membrane).
-pub fn random_housing(rng: &mut impl Rng, membrane: &crate::sensor::Membrane, pitch_mm: f64) -> Housing {
+pub fn random_housing(rng: &mut impl Rng, membrane: &gelstereo_sensor::Membrane, pitch_mm: f64) -> Housing {
     let bright = rng.random_bool(0.5);
     let v = if bright {
         rng.random_range(150.0..245.0)

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use crate::dataset::begin_output;
 use crate::error::{Error, Result, cv_err, io_err};
-use crate::sensor::Sensor;
+use gelstereo_sensor::Sensor;
 
 /// How the target images are degraded.
 #[derive(Debug, Clone, Copy, PartialEq)]

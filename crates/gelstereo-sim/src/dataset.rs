@@ -28,8 +28,8 @@ use crate::indenter::{Indenter, SHAPES};
 use crate::motion::{MotionKind, Script};
 use crate::physics::{Layer, SurfaceGrid, deform};
 use crate::render::{MarkerTruth, Ridges, StereoOptics, ViewJob, encode_png, marker_truth, render_view};
-use crate::sensor::{Sensor, SensorSpec};
 use crate::variant::{random_gelsight_mini_like, random_variant, random_wide_variant};
+use gelstereo_sensor::{Sensor, SensorSpec};
 
 /// How much a dataset varies from the reference sensor's look and geometry.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -155,7 +155,7 @@ impl DatasetConfig {
                 expected: format!("one of {}", SHAPES.join(", ")),
             });
         }
-        self.sensor.validate("sensor")
+        Ok(self.sensor.validate("sensor")?)
     }
 }
 
@@ -358,7 +358,7 @@ fn wide_look(base: &SensorSpec, rng: &mut ChaCha8Rng) -> (SensorSpec, Appearance
 /// `newton_rings`, `glint`).
 pub fn families(experiment: &Experiment, pitch_px: f64) -> Vec<String> {
     use crate::appearance::{Texture, luminance};
-    use crate::sensor::{Lattice, Membrane};
+    use gelstereo_sensor::{Lattice, Membrane};
     let app = &experiment.appearance;
     let sensor = &experiment.sensor;
     let ratio = luminance(app.marker_color) / luminance(app.background).max(1.0);

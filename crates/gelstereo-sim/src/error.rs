@@ -77,6 +77,9 @@ pub enum Error {
     /// The gel's facts or the physics grid out of the contact mechanics' range.
     #[error("gel mechanics: {0}")]
     Mechanics(#[from] gelstereo_mechanics::Error),
+    /// A sensor description or `meta.json` that cannot be used (from `gelstereo-sensor`).
+    #[error(transparent)]
+    Sensor(#[from] gelstereo_sensor::Error),
     /// A camera or calibration error from `gelstereo-geometry`.
     #[error(transparent)]
     Geometry(#[from] gelstereo_geometry::Error),

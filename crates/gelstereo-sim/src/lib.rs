@@ -12,7 +12,7 @@
 //! `calib.yaml` gives `x_left, y_left, x_right, y_right` exactly.
 //!
 //! # Pipeline
-//! [`sensor`] (file) -> [`motion`] script of an [`indenter`] -> [`physics::deform`] per frame ->
+//! [`sensor`] (the description, from `gelstereo-sensor`) -> [`motion`] script of an [`indenter`] -> [`physics::deform`] per frame ->
 //! [`render`] both views -> [`dataset`] on disk. [`checkerboard`] renders calibration targets
 //! through the same cameras.
 
@@ -26,16 +26,20 @@ pub mod manifest;
 pub mod motion;
 pub mod physics;
 pub mod render;
-pub mod sensor;
 pub mod variant;
+
+/// The sensor description, from [`gelstereo_sensor`] (kept here under its old path for the
+/// simulator's users).
+pub use gelstereo_sensor::spec as sensor;
 
 pub use appearance::Appearance;
 pub use dataset::{DatasetConfig, Experiment, Randomization, Simulator, Split, write_dataset};
 pub use error::{Error, Result};
+pub use gelstereo_sensor::RecordingMeta;
+pub use gelstereo_sensor::{Sensor, SensorSpec};
 pub use indenter::{Indenter, SHAPES};
-pub use manifest::{DatasetManifest, RecordingMeta};
+pub use manifest::DatasetManifest;
 pub use motion::{MotionKind, Pose, Script};
-pub use sensor::{Sensor, SensorSpec};
 
 /// Name and version written into every `dataset.json` and `meta.json`.
 pub const GENERATOR_VERSION: &str = concat!("gelstereo-sim ", env!("CARGO_PKG_VERSION"));

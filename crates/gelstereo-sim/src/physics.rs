@@ -42,8 +42,8 @@ use nalgebra::{Point3, Rotation2, Vector2};
 
 use crate::error::Result;
 use crate::motion::{Pose, Script};
-use crate::sensor::GelSpec;
 use gelstereo_core::SlipState;
+use gelstereo_sensor::GelSpec;
 
 /// Relative tolerance of the normal contact solver on the gap (of the deepest overlap).
 const NORMAL_TOLERANCE: f64 = 1e-5;
@@ -699,7 +699,7 @@ mod tests {
     use super::*;
     use crate::indenter::Indenter;
     use crate::motion::MotionKind;
-    use crate::sensor::SensorSpec;
+    use gelstereo_sensor::SensorSpec;
 
     fn script(indenter: Indenter, slide: [f64; 2], twist: f64) -> Script {
         Script {

@@ -14,7 +14,7 @@ use opencv::{imgcodecs, imgproc};
 use crate::appearance::{Appearance, Housing, Texture};
 use crate::error::{Result, cv_err};
 use crate::physics::Deformation;
-use crate::sensor::{Membrane, Sensor};
+use gelstereo_sensor::{Membrane, Sensor, splitmix64};
 
 /// Per-camera lookup: where each half-resolution pixel's ray meets the rest surface.
 #[derive(Debug, Clone)]
@@ -272,13 +272,6 @@ fn sample_n<const N: usize>(g: &crate::physics::SurfaceGrid, f: &[[f32; N]], x: 
         out[m] = top + (bot - top) * ay;
     }
     out
-}
-
-pub(crate) fn splitmix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 /// Draws a filled, anti-aliased ellipse into an RGB buffer: `jac` maps the unit disk to pixels
@@ -560,7 +553,7 @@ fn draw_markers(job: &ViewJob<'_>, buf: &mut [u8], w: usize, h: usize) {
             _ => splat(buf, w, h, c, &(j * r), col, alpha, app.edge_softness_px),
         }
         if let Some(g) = &app.glint {
-            let pick = (splitmix(k as u64 ^ u64::from(g.size.to_bits())) >> 40) as f32 / 16_777_216.0;
+            let pick = (splitmix64(k as u64 ^ u64::from(g.size.to_bits())) >> 40) as f32 / 16_777_216.0;
             if pick < g.share {
                 let off = j * r * Vector2::new(f64::from(g.offset[0]), f64::from(g.offset[1]));
                 let spot = Point2::new(c.x + off.x, c.y + off.y);
@@ -606,7 +599,7 @@ fn apply_optics_and_sensor(job: &ViewJob<'_>, img: Mat) -> Result<Mat> {
         let k = (12f32.sqrt() * app.noise / 512.0 * 256.0).round() as i32;
         let seed = job.seed;
         for (i, chunk) in buf.chunks_mut(8).enumerate() {
-            let r = splitmix(seed ^ (i as u64).wrapping_mul(0x2545_F491_4F6C_DD1D)).to_le_bytes();
+            let r = splitmix64(seed ^ (i as u64).wrapping_mul(0x2545_F491_4F6C_DD1D)).to_le_bytes();
             for (v, b) in chunk.iter_mut().zip(r) {
                 let d = ((2 * i32::from(b) - 255) * k + 128) >> 8;
                 *v = (i32::from(*v) + d).clamp(0, 255) as u8;

@@ -4,7 +4,7 @@
 
 use rand::Rng;
 
-use crate::sensor::{CameraSpec, CamerasSpec, GelSpec, GridSpec, Lattice, Membrane, SensorSpec};
+use gelstereo_sensor::{CameraSpec, CamerasSpec, GelSpec, GridSpec, Lattice, Membrane, SensorSpec};
 
 const RESOLUTIONS: [(u32, u32); 7] = [
     (320, 240),
@@ -333,8 +333,8 @@ pub fn gelsight_mini_like() -> SensorSpec {
             half_extent_mm: 16.0,
             grid_spacing_mm: 0.36,
             friction: 0.8,
-            modulus_kpa: crate::sensor::REFERENCE_MODULUS_KPA,
-            poisson: crate::sensor::REFERENCE_POISSON,
+            modulus_kpa: gelstereo_sensor::REFERENCE_MODULUS_KPA,
+            poisson: gelstereo_sensor::REFERENCE_POISSON,
         },
         cameras: CamerasSpec {
             image_width: w,

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use gelstereo_core::GridShape;
 use gelstereo_core::limits::{ECHO_CHARS, MAX_GRID_SIDE, shorten};
 use gelstereo_markers::{Localizer, LocalizerConfig, Method};
-use gelstereo_sim::SensorSpec;
+use gelstereo_sensor::{RecordingMeta, SensorSpec};
 use gelstereo_tracking::SessionConfig;
 
 use crate::{Error, Result};
@@ -72,17 +72,14 @@ impl PipelineConfig {
         if calib.is_file() {
             self.calibration = Some(calib);
         }
-        let meta = RecordingMeta::read(dir)?;
+        let Some(meta) = RecordingMeta::read(dir)? else {
+            return Ok(());
+        };
         self.grid = meta.grid;
-        let layer = &mut self.session.contact.layer;
-        for (value, fact) in [
-            (meta.gel_thickness_mm, &mut layer.thickness_mm),
-            (meta.gel_modulus_kpa, &mut layer.modulus_kpa),
-            (meta.gel_poisson, &mut layer.poisson),
-        ] {
-            if let Some(v) = value {
-                *fact = v;
-            }
+        if let Some(gel) = meta.sensor.as_ref().map(|s| &s.gel) {
+            let layer = &mut self.session.contact.layer;
+            (layer.thickness_mm, layer.modulus_kpa, layer.poisson) =
+                (gel.thickness_mm, gel.modulus_kpa, gel.poisson);
         }
         self.recording_sensor = meta.sensor;
         Ok(())
@@ -173,40 +170,6 @@ impl PipelineConfig {
         }
         contact.validate()?;
         Ok(())
-    }
-}
-
-/// What a recording's `meta.json` says about its sensor.
-#[derive(Debug, Clone, Default)]
-pub struct RecordingMeta {
-    /// `grid.rows` x `grid.cols`.
-    pub grid: Option<GridShape>,
-    /// `sensor.gel.thickness_mm`.
-    pub gel_thickness_mm: Option<f64>,
-    /// `sensor.gel.modulus_kpa`.
-    pub gel_modulus_kpa: Option<f64>,
-    /// `sensor.gel.poisson`.
-    pub gel_poisson: Option<f64>,
-    /// `sensor`, validated.
-    pub sensor: Option<SensorSpec>,
-}
-
-impl RecordingMeta {
-    /// Reads `dir/meta.json`; a recording without one (a real recording) gives nothing. A file
-    /// that is present but malformed is an error naming the file and the field (one parser with
-    /// `reconstruct`: [`gelstereo_sim::manifest::RecordingMeta`]).
-    pub fn read(dir: &Path) -> Result<Self> {
-        let Some(meta) = gelstereo_sim::manifest::RecordingMeta::read(dir)? else {
-            return Ok(Self::default());
-        };
-        let gel = meta.sensor.as_ref().map(|s| &s.gel);
-        Ok(Self {
-            grid: meta.grid,
-            gel_thickness_mm: gel.map(|g| g.thickness_mm),
-            gel_modulus_kpa: gel.map(|g| g.modulus_kpa),
-            gel_poisson: gel.map(|g| g.poisson),
-            sensor: meta.sensor,
-        })
     }
 }
 

@@ -20,7 +20,10 @@ pub enum Error {
     /// Reading frames or writing exports failed.
     #[error(transparent)]
     Io(#[from] gelstereo_io::Error),
-    /// A sensor description could not be read or built.
+    /// A sensor description or a recording's `meta.json` could not be read or built.
+    #[error(transparent)]
+    Sensor(#[from] gelstereo_sensor::Error),
+    /// The simulator failed (evaluation, adaptation).
     #[error(transparent)]
     Sim(#[from] gelstereo_sim::Error),
     /// OpenCV failed outside the stage crates (padding, drawing, capture).

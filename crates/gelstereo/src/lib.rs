@@ -52,10 +52,9 @@ mod start;
 pub mod track;
 pub mod truth;
 
-pub use config::{
-    GelFacts, PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python,
-};
+pub use config::{GelFacts, PipelineConfig, localizer, parse_grid, project_home, project_python};
 pub use error::{Error, Result};
+pub use gelstereo_sensor::RecordingMeta;
 pub use gelstereo_tracking::GelFrame;
 pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
 
@@ -64,6 +63,7 @@ pub use gelstereo_geometry as geometry;
 pub use gelstereo_io as io;
 pub use gelstereo_markers as markers;
 pub use gelstereo_matching as matching;
+pub use gelstereo_sensor as sensor;
 pub use gelstereo_sim as sim;
 pub use gelstereo_tracking as tracking;
 
@@ -76,7 +76,7 @@ mod tests {
     /// assumes by default.
     #[test]
     fn the_simulated_and_the_assumed_reference_gel_agree() {
-        let gel = gelstereo_sim::SensorSpec::reference().gel;
+        let gel = gelstereo_sensor::SensorSpec::reference().gel;
         assert_eq!(gel.layer(), gelstereo_tracking::ContactConfig::default().layer);
     }
 }

@@ -505,7 +505,7 @@ fn split(m: Mat, side_by_side: bool, source: &Path) -> Result<Images> {
 /// A recording's frame rate: `meta.json` `fps` (or `frame_rate_hz`), else
 /// [`DEFAULT_FRAME_RATE_HZ`]; a malformed `meta.json` is an error naming it and the field.
 pub fn recording_frame_rate_hz(dir: &Path) -> Result<f64> {
-    let meta = gelstereo_sim::manifest::RecordingMeta::read(dir)?;
+    let meta = gelstereo_sensor::RecordingMeta::read(dir)?;
     Ok(meta
         .and_then(|m| m.frame_rate_hz)
         .unwrap_or(DEFAULT_FRAME_RATE_HZ))

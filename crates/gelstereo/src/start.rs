@@ -4,7 +4,7 @@
 use gelstereo_core::{Detection, GridIndex, GridShape, ImageSize, Point2, StereoPair, TieredDetections};
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
 use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoLattice};
-use gelstereo_sim::SensorSpec;
+use gelstereo_sensor::SensorSpec;
 use gelstereo_tracking::{MonoSession, SessionConfig, StereoSession};
 
 use crate::{Error, Result};

@@ -19,7 +19,7 @@ use gelstereo_io::video;
 use gelstereo_markers::{LocalizerConfig, Method};
 use gelstereo_matching::eval::{Evaluation, GroundTruth};
 use gelstereo_matching::{StereoConfig, StereoPrior, StereoReconstructor};
-use gelstereo_sim::RecordingMeta;
+use gelstereo_sensor::RecordingMeta;
 
 pub use evaluation::EvaluationReport;
 pub use input::Perturbation;

@@ -19,6 +19,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
+/// SplitMix64's output function: a stateless hash of `z`, for draws that must be the same for a
+/// given key in every run (an irregular lattice's jitter per marker, the renderer's per-marker
+/// looks) without carrying a random-number generator along.
+pub fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// A whole sensor description.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -336,7 +346,7 @@ impl SensorSpec {
             }
             Lattice::Irregular { jitter_frac, seed } => {
                 let key = seed ^ (u64::from(row) << 32) ^ u64::from(col);
-                let h = crate::render::splitmix(key);
+                let h = splitmix64(key);
                 // Two uniform numbers in [-1, 1) from the hash's halves.
                 let u = |bits: u64| (bits & 0xFFFF_FFFF) as f64 / 2_147_483_648.0 - 1.0;
                 [(x + jitter_frac * u(h)) * p, (y + jitter_frac * u(h >> 32)) * p]
