@@ -478,9 +478,9 @@ impl Pipeline {
 
     /// Checks the frame against the calibration and the first frame's size.
     fn check_size(&mut self, images: &Images) -> Result<()> {
-        let size = size_of(images.left());
+        let size = image_size(images.left());
         if let Images::Stereo(pair) = images {
-            let right = size_of(&pair.right);
+            let right = image_size(&pair.right);
             if right != size {
                 return Err(Error::Invalid(format!(
                     "left and right images differ in size ({}x{} vs {}x{})",
@@ -688,8 +688,8 @@ fn region(ids: &[GridIndex], shape: &GridShape, in_contact: &[bool]) -> Vec<Grid
         .collect()
 }
 
-/// The size of an image.
-pub(crate) fn size_of(m: &Mat) -> ImageSize {
+/// The size of an image (0 for an empty one).
+pub fn image_size(m: &Mat) -> ImageSize {
     ImageSize {
         width: m.cols().max(0) as u32,
         height: m.rows().max(0) as u32,
