@@ -168,7 +168,7 @@ fn calibrations(dir: &Path) -> Result<String, String> {
 
 /// Asks the project's Python environment for its PyTorch and ONNX Runtime versions.
 fn python_env(home: &Path) -> Result<String, String> {
-    let python = gelstereo::project_python(home);
+    let python = crate::project_python(home);
     if !python.exists() {
         return Err(format!("{} not found", python.display()));
     }

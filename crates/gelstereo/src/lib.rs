@@ -43,9 +43,7 @@ pub mod source;
 mod start;
 pub mod track;
 
-pub use config::{
-    GelFacts, PipelineConfig, RecordingMeta, localizer, parse_grid, project_home, project_python,
-};
+pub use config::{GelFacts, PipelineConfig, RecordingMeta, localizer, parse_grid, project_home};
 pub use error::{Error, Result, file_err};
 pub use gelstereo_tracking::GelFrame;
 pub use pipeline::{
