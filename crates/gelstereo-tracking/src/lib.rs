@@ -36,7 +36,7 @@ pub use field::{DenseField, interpolate};
 pub use gelstereo_mechanics::Layer;
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 pub use session::{
-    CpuClock, MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
+    MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
 };
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

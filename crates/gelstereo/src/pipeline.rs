@@ -313,7 +313,7 @@ impl Pipeline {
 
     /// Records a process CPU-time clock reading between the tracking stages of each stereo frame
     /// (for benchmarks); see [`Self::stage_marks`].
-    pub fn record_stage_marks(&mut self, clock: gelstereo_tracking::CpuClock) {
+    pub fn record_stage_marks(&mut self, clock: gelstereo_core::CpuClock) {
         if let Some(Session::Stereo(s)) = &mut self.session {
             s.record_stage_marks(clock);
         }
