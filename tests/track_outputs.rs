@@ -213,9 +213,13 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
             summary.force_n.map(|f| [f]),
             5e-5
         ));
+        let mut region = Vec::new();
         for m in &frame.markers {
             let truth = gelstereo_core::MarkerRecord::from_table(&table, row).unwrap();
             row += 1;
+            if truth.in_contact == Some(true) {
+                region.push(truth.index);
+            }
             let at = format!("frame {k} marker {:?}", m.index);
             assert_eq!(
                 (m.frame, m.index, m.status),
@@ -246,6 +250,7 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
                 "{at}"
             );
         }
+        assert_eq!(frame.contact_region, region, "frame {k}: the contact region");
     }
     assert_eq!(row, table.len());
 }

@@ -4,7 +4,7 @@
         --out-dir MODELS --minutes 5
 
 `gelstereo adapt` runs this after writing the pseudo-label dataset PSEUDO (images, labels and ignore
-masks, see ``crates/gelstereo/src/adapt.rs``); it can be run by hand on such a dataset too. Steps:
+masks, see ``crates/gelstereo-apps/src/adapt/labels.rs``); it can be run by hand on such a dataset too. Steps:
 
 1. warm start from the base folder's ``marknet.onnx`` (architecture read from the ONNX graph and its
    metadata; BatchNorm re-inflated, ``onnx_init``);

@@ -1,9 +1,9 @@
 //! `gelstereo adapt`: adapts the localizer to the user's own sensor from an unlabelled recording.
-//! The work is `gelstereo::adapt::run`; this is its arguments and progress display.
+//! The work is `gelstereo_apps::adapt::run`; this is its arguments and progress display.
 
 use std::path::PathBuf;
 
-use gelstereo::adapt::{AdaptOptions, Progress};
+use gelstereo_apps::adapt::{AdaptOptions, Progress};
 use gelstereo_core::interrupt;
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -55,7 +55,7 @@ pub struct Args {
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let style = ProgressStyle::with_template("pseudo-labels {bar:30} {pos}/{len} frames {elapsed}");
     let bar = ProgressBar::new(0).with_style(style.unwrap_or_else(|_| ProgressStyle::default_bar()));
-    let report = gelstereo::adapt::run(&options(args)?, interrupt::flag(), &|step| show(&bar, step))?;
+    let report = gelstereo_apps::adapt::run(&options(args)?, interrupt::flag(), &|step| show(&bar, step))?;
     let (out, test) = (args.out.display(), report.self_test);
     eprintln!(
         "wrote {out} in {:.0} s (self-test: {} of {} markers); use it with --models {out}",

@@ -1,4 +1,4 @@
-//! `gelstereo bench`, three benchmarks, all in [`gelstereo::bench`]:
+//! `gelstereo bench`, three benchmarks, all in [`gelstereo_apps::bench`]:
 //! - localization (`--dataset DATA`, or recordings / images without `--calib`): latency of each
 //!   method per view and per stereo pair against the blob baseline;
 //! - the whole stereo pipeline (`--calib FILE RECORDING` or `--pipeline RECORDING`; also
@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use gelstereo::PipelineConfig;
-use gelstereo::bench::{PipelineBench, localization};
+use gelstereo_apps::bench::{PipelineBench, localization};
 use gelstereo_markers::Method;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -97,7 +97,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         if let Some(g) = &args.grid {
             config.grid = Some(gelstereo::parse_grid(g, "--grid")?);
         }
-        let report = gelstereo::bench::pipeline(&PipelineBench {
+        let report = gelstereo_apps::bench::pipeline(&PipelineBench {
             recording: recording.clone(),
             config,
             frames: args.frames,
@@ -139,7 +139,7 @@ fn pipeline_config(args: &Args, recording: &Path) -> anyhow::Result<PipelineConf
 }
 
 /// Prints a benchmark's table, and writes its figures as JSON to `out` when given.
-fn write_report(report: &gelstereo::bench::Report, out: Option<&Path>) -> anyhow::Result<()> {
+fn write_report(report: &gelstereo_apps::bench::Report, out: Option<&Path>) -> anyhow::Result<()> {
     print!("{}", report.text);
     if let Some(out) = out {
         let pretty = serde_json::to_string_pretty(&report.json).context("cannot format the JSON report")?;
@@ -155,7 +155,7 @@ fn run_end_to_end(args: &Args) -> anyhow::Result<()> {
     };
     let config = pipeline_config(args, recording)?;
     let scratch = tempfile::tempdir().context("cannot create a folder for the outputs")?;
-    let report = gelstereo::bench::end_to_end(&gelstereo::bench::EndToEndBench {
+    let report = gelstereo_apps::bench::end_to_end(&gelstereo_apps::bench::EndToEndBench {
         recording: recording.clone(),
         config,
         sinks: gelstereo::track::SinkOptions::default(),

@@ -1,12 +1,12 @@
 //! `gelstereo calibrate`: stereo checkerboard calibration. Pairs the images of LEFT_DIR and
 //! RIGHT_DIR by file name, finds the board in both views, calibrates with OpenCV
-//! ([`gelstereo::calibrate`]), prints the RMS reprojection and epipolar errors and writes
+//! ([`gelstereo_apps::calibrate`]), prints the RMS reprojection and epipolar errors and writes
 //! the calibration (OpenCV YAML/XML or a mrcal pair, by the path given to `--out`).
 
 use std::path::PathBuf;
 
 use anyhow::Context;
-use gelstereo::calibrate::{FolderCalibration, calibrate_folders};
+use gelstereo_apps::calibrate::{FolderCalibration, calibrate_folders};
 use gelstereo_geometry::{Board, CalibrationOptions, CalibrationPath};
 
 /// Arguments of `gelstereo calibrate`.

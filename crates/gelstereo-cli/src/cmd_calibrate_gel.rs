@@ -7,9 +7,10 @@ use std::io::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
-use gelstereo::gel::{GelFile, fit_modulus};
+use gelstereo::gel::GelFile;
 use gelstereo::source::FrameSource;
 use gelstereo::{Pipeline, PipelineConfig};
+use gelstereo_apps::calibrate_gel::fit_modulus;
 use gelstereo_core::CsvTable;
 
 /// Arguments of `gelstereo calibrate-gel`.

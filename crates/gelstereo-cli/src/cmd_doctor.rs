@@ -1,10 +1,10 @@
 //! `gelstereo doctor`: one line per component a user needs, with a one-line fix for each problem.
-//! The checks are [`gelstereo::doctor::checks`].
+//! The checks are [`gelstereo_apps::doctor::checks`].
 
 use std::path::PathBuf;
 
 use anyhow::bail;
-use gelstereo::doctor::Need;
+use gelstereo_apps::doctor::Need;
 
 use crate::project;
 
@@ -25,7 +25,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(gelstereo::models::shipped_models);
     let mut missing_required = 0;
-    for c in &gelstereo::doctor::checks(&home, &models) {
+    for c in &gelstereo_apps::doctor::checks(&home, &models) {
         match &c.outcome {
             Ok(what) => println!("ok       {:<20} {what}", c.name),
             Err(why) => {

@@ -1,12 +1,12 @@
 //! `gelstereo eval`: the paper's Table I on a dataset written by `gelstereo simulate` — precision,
 //! recall and loss of each localization method on the easy / hard / contact splits. The work is
-//! [`gelstereo::eval::run`]; this is argument parsing, progress and the output files.
+//! [`gelstereo_apps::eval::run`]; this is argument parsing, progress and the output files.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use gelstereo::eval::LocalizationEval;
+use gelstereo_apps::eval::LocalizationEval;
 use gelstereo_markers::Method;
 
 use crate::cmd_detect::LocalizerArgs;
@@ -59,7 +59,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         frames_per_experiment: args.frames_per_experiment,
     };
     let started = Instant::now();
-    let table = gelstereo::eval::run(&job, &mut |exp, frames| {
+    let table = gelstereo_apps::eval::run(&job, &mut |exp, frames| {
         eprintln!(
             "{}: {frames} frames ({:.0} s so far)",
             exp.display(),

@@ -1,12 +1,12 @@
 //! `gelstereo reconstruct`: localization + grid indexing + left/right pairing + triangulation of a
 //! stereo recording (or one stereo pair), written as `OUT/markers.csv` (docs/design.md per-frame marker
 //! table, displacement and status empty) and one binary PLY point cloud per frame
-//! (`OUT/ply/NNNNNN.ply`). The work is [`gelstereo::reconstruct::run`]; this is argument parsing.
+//! (`OUT/ply/NNNNNN.ply`). The work is [`gelstereo_apps::reconstruct::run`]; this is argument parsing.
 
 use std::path::PathBuf;
 
 use anyhow::bail;
-use gelstereo::reconstruct::{Perturbation, ReconstructionJob};
+use gelstereo_apps::reconstruct::{Perturbation, ReconstructionJob};
 use gelstereo_core::limits;
 use gelstereo_markers::Method;
 
@@ -118,9 +118,10 @@ impl Args {
 
 /// Runs `gelstereo reconstruct`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let summary = gelstereo::reconstruct::run(&args.job()?, gelstereo_core::interrupt::flag(), &mut |w| {
-        eprintln!("warning: {w}")
-    })?;
+    let summary =
+        gelstereo_apps::reconstruct::run(&args.job()?, gelstereo_core::interrupt::flag(), &mut |w| {
+            eprintln!("warning: {w}")
+        })?;
     if summary.interrupted() {
         bail!(
             "interrupted after {} of {} frames; {} and {} hold those frames",

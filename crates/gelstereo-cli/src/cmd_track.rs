@@ -342,18 +342,18 @@ fn ground_truth(
     let Some(dir) = args.input.as_deref().filter(|p| p.join("markers.csv").is_file()) else {
         bail!("--from-ground-truth needs a simulated recording with a markers.csv");
     };
-    Ok(Some(gelstereo::truth::ground_truth(dir, args.gt_noise_px)?))
+    Ok(Some(gelstereo_apps::truth::ground_truth(dir, args.gt_noise_px)?))
 }
 
 /// `gelstereo track --bench`: an alias of the pipeline benchmark, `gelstereo bench --calib FILE
-/// RECORDING` (one implementation, [`gelstereo::bench::pipeline`]).
+/// RECORDING` (one implementation, [`gelstereo_apps::bench::pipeline`]).
 fn bench(args: &Args) -> anyhow::Result<()> {
     let Some(input) = &args.input else {
         bail!("--bench needs a stereo RECORDING")
     };
     let mut config = args.pipeline_config()?;
     config.method = Some(config.chosen_method());
-    let report = gelstereo::bench::pipeline(&gelstereo::bench::PipelineBench {
+    let report = gelstereo_apps::bench::pipeline(&gelstereo_apps::bench::PipelineBench {
         recording: input.clone(),
         config,
         frames: 0,

@@ -39,7 +39,7 @@ pub mod yolo;
 
 use std::path::PathBuf;
 
-use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
+use gelstereo_core::{CpuClock, Detection, ImageSize, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
@@ -151,10 +151,6 @@ pub struct LocalizationTimes {
     /// CPU time of the process during each of the three parts, ms (`None` without a clock).
     pub cpu_ms: Option<[f64; 3]>,
 }
-
-/// A reading of the process's CPU time, ns (e.g. `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`), given by
-/// a benchmark to [`Localizer::set_cpu_clock`]; `None` when unavailable.
-pub type CpuClock = fn() -> Option<u64>;
 
 /// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
 pub trait Localizer: Send {

@@ -11,7 +11,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
+use gelstereo_core::{CpuClock, Detection, ImageSize, Point2, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
@@ -37,8 +37,8 @@ use crate::site_blobs::blobs_at_empty_sites;
 use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
-    CpuClock, Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result,
-    check_image, cv_err, runtime,
+    Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image,
+    cv_err, runtime,
 };
 
 /// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize

@@ -42,6 +42,10 @@ pub enum Error {
         /// What was given.
         found: String,
     },
+    /// A line of the frame stream that is not a frame: names the stream and line, the field and
+    /// what was expected.
+    #[error("{0}")]
+    Stream(String),
     /// The gel's facts or the contact mechanics' settings.
     #[error("gel mechanics: {0}")]
     Mechanics(#[from] gelstereo_mechanics::Error),

@@ -7,6 +7,8 @@
 //! - [`session`]: whole recordings, stereo and mono, producing the `markers.csv` / `frames.csv` rows.
 //! - [`field`]: dense interpolation of per-marker fields on the lattice (for plots).
 //! - [`contact`]: the marker mesh, indentation depth, contact region, area, centroid, largest depth.
+//! - [`stream`]: the per-frame rows and the gel frame as one JSON line per frame (`gelstereo track
+//!   --jsonl`), written and read back.
 //!
 //! # Conventions
 //! - Image coordinates in pixels of the original image, (0, 0) = centre of the top-left pixel,
@@ -23,6 +25,7 @@ mod fit;
 pub mod planar;
 pub mod session;
 pub mod slip;
+pub mod stream;
 #[cfg(test)]
 mod synthetic;
 pub mod tracker;
@@ -33,7 +36,7 @@ pub use field::{DenseField, interpolate};
 pub use gelstereo_mechanics::Layer;
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
 pub use session::{
-    CpuClock, MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
+    MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
 };
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

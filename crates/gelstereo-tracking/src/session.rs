@@ -6,7 +6,8 @@
 //!   in-plane field (see [`crate::planar`]).
 
 use gelstereo_core::{
-    Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, TieredDetections,
+    CpuClock, Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2,
+    TieredDetections,
 };
 use gelstereo_geometry::Triangulator;
 use nalgebra::{Point3, Vector3};
@@ -95,9 +96,6 @@ pub struct StereoFrame {
     /// over the lattice; `None` where the marker was not triangulated in this frame.
     pub reprojection_px: Vec<Option<f64>>,
 }
-
-/// A process CPU-time clock, ns (e.g. `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`); `None` when it fails.
-pub type CpuClock = fn() -> Option<u64>;
 
 /// A clock reading taken between two stages of [`StereoSession::track`].
 #[derive(Debug, Clone, Copy)]

@@ -209,9 +209,3 @@ pub fn parse_grid(text: &str, what: &str) -> Result<GridShape> {
 pub fn project_home() -> PathBuf {
     gelstereo_markers::project_home()
 }
-
-/// The Python of the checkout in `home` (`.venv`, made by `scripts/setup.sh`, with PyTorch, ONNX and
-/// ONNX Runtime for `train/`).
-pub fn project_python(home: &Path) -> PathBuf {
-    home.join(".venv/bin/python")
-}

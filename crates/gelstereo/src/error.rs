@@ -99,7 +99,7 @@ impl Error {
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// `Err(Error::File)` for an I/O error on `path`.
-pub(crate) fn file_err(path: &std::path::Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
+pub fn file_err(path: &std::path::Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
     move |source| Error::File {
         path: path.to_path_buf(),
         source,

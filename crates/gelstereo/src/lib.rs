@@ -10,14 +10,12 @@
 //!   timestamps, optionally decoded ahead on a thread of their own ([`source::Prefetch`]).
 //! - [`sink`]: CSV tables, JSON lines, PLY clouds and meshes, overlays and plots, into an output
 //!   folder that records what it wrote ([`sink::OutputFolder`]).
-//! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs; [`bench`](mod@bench) times it.
-//! - [`adapt`]: pseudo-labels from an unlabelled recording and the fine-tuning run that adapts the
-//!   localizer to a sensor (`gelstereo adapt`).
+//! - [`track`]: source -> pipeline -> sinks, what `gelstereo track` runs.
+//! - [`gel`]: the gel's facts (thickness, modulus, Poisson ratio) from a gel file or the sensor.
 //! - [`models`]: where the shipped models are, in a checkout, an installed package or binary.
-//! - [`doctor`]: every component a user needs, checked, with a fix for each that is missing.
-//! - [`eval`]: the paper's Table I of each localization method on a simulated dataset.
-//! - [`reconstruct`]: localization, indexing, pairing and triangulation of a stereo recording into
-//!   tables and point clouds, with its ground-truth evaluation (`gelstereo reconstruct`).
+//!
+//! The applications over the pipeline (benchmarks, adaptation, calibration, `doctor`, evaluation,
+//! reconstruction jobs) are the crate `gelstereo-apps`.
 //!
 //! ```no_run
 //! use gelstereo::{Pipeline, PipelineConfig, source::FrameSource};
@@ -35,28 +33,23 @@
 //! in the left camera's frame (x right, y down, z forward); marker id = grid (row, col) on the left
 //! view's reference frame; times in s.
 
-pub mod adapt;
-pub mod bench;
-pub mod calibrate;
 mod config;
-pub mod doctor;
 mod error;
-pub mod eval;
 pub mod gel;
 pub mod models;
 mod pipeline;
-pub mod reconstruct;
 pub mod sink;
 pub mod source;
 mod start;
 pub mod track;
-pub mod truth;
 
-pub use config::{GelFacts, PipelineConfig, localizer, parse_grid, project_home, project_python};
-pub use error::{Error, Result};
+pub use config::{GelFacts, PipelineConfig, localizer, parse_grid, project_home};
+pub use error::{Error, Result, file_err};
 pub use gelstereo_sensor::RecordingMeta;
 pub use gelstereo_tracking::GelFrame;
-pub use pipeline::{Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, join_rayon_pool};
+pub use pipeline::{
+    Frame, FrameLocalizer, FrameOutput, Images, Pipeline, Stages, image_size, join_rayon_pool,
+};
 
 pub use gelstereo_core as core;
 pub use gelstereo_geometry as geometry;

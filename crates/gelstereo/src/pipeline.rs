@@ -119,20 +119,36 @@ impl FrameOutput {
         self.note = Some(note);
     }
 
-    fn flagged(frame: u32, t_s: f64, note: String, ids: Option<&[GridIndex]>) -> Self {
-        let (markers, summary) = flagged_rows(ids.unwrap_or(&[]), frame);
+    fn with_stages(self, stages: Stages) -> Self {
+        Self {
+            stages: Some(stages),
+            ..self
+        }
+    }
+
+    /// A frame's rows with nothing attached: no contact region, note, log, earlier frames,
+    /// reference positions or stages' results.
+    pub(crate) fn rows(frame: u32, t_s: f64, markers: Vec<MarkerRecord>, summary: FrameSummary) -> Self {
         Self {
             frame,
             t_s,
             markers,
             summary,
             contact_region: Vec::new(),
-            note: Some(note),
+            note: None,
             log: Vec::new(),
             earlier: Vec::new(),
             reference_left_px: Vec::new(),
             reference_right_px: Vec::new(),
             stages: None,
+        }
+    }
+
+    fn flagged(frame: u32, t_s: f64, note: String, ids: Option<&[GridIndex]>) -> Self {
+        let (markers, summary) = flagged_rows(ids.unwrap_or(&[]), frame);
+        Self {
+            note: Some(note),
+            ..Self::rows(frame, t_s, markers, summary)
         }
     }
 }
@@ -297,7 +313,7 @@ impl Pipeline {
 
     /// Records a process CPU-time clock reading between the tracking stages of each stereo frame
     /// (for benchmarks); see [`Self::stage_marks`].
-    pub fn record_stage_marks(&mut self, clock: gelstereo_tracking::CpuClock) {
+    pub fn record_stage_marks(&mut self, clock: gelstereo_core::CpuClock) {
         if let Some(Session::Stereo(s)) = &mut self.session {
             s.record_stage_marks(clock);
         }
@@ -323,12 +339,16 @@ impl Pipeline {
         self.rezero_requested = true;
     }
 
-    /// Processes one frame: the size checks and localization, then [`Self::process_localized`].
+    /// Processes one frame: the size checks, localization, tracking; a frame that does not fit the
+    /// calibration or the first frame, or cannot be localized, comes back flagged.
     pub fn process(&mut self, frame: &Frame) -> Result<FrameOutput> {
         let located = self
             .check_size(&frame.images)
             .and_then(|()| self.localize(&frame.images));
-        self.process_localized(frame, located)
+        match located {
+            Ok(dets) => self.track_checked(frame, dets),
+            Err(e) => Ok(self.flag(frame.time_s, e.full_message())),
+        }
     }
 
     /// Processes one frame whose markers were found elsewhere (e.g. ground truth of a simulated
@@ -338,9 +358,14 @@ impl Pipeline {
         frame: &Frame,
         dets: StereoPair<TieredDetections>,
     ) -> Result<FrameOutput> {
-        if let Err(e) = self.check_size(&frame.images) {
-            return Ok(self.flag(frame.time_s, e.full_message()));
+        match self.check_size(&frame.images) {
+            Ok(()) => self.track_checked(frame, dets),
+            Err(e) => Ok(self.flag(frame.time_s, e.full_message())),
         }
+    }
+
+    /// A frame whose size was checked, and its markers: tracked (the reference frame indexed first).
+    fn track_checked(&mut self, frame: &Frame, dets: StereoPair<TieredDetections>) -> Result<FrameOutput> {
         let frame_no = self.next_frame;
         let t_s = self.time_of(frame.time_s);
         self.next_frame += 1;
@@ -478,9 +503,9 @@ impl Pipeline {
 
     /// Checks the frame against the calibration and the first frame's size.
     fn check_size(&mut self, images: &Images) -> Result<()> {
-        let size = size_of(images.left());
+        let size = image_size(images.left());
         if let Images::Stereo(pair) = images {
-            let right = size_of(&pair.right);
+            let right = image_size(&pair.right);
             if right != size {
                 return Err(Error::Invalid(format!(
                     "left and right images differ in size ({}x{} vs {}x{})",
@@ -611,67 +636,36 @@ fn track_session(
     t_s: f64,
     shape: &GridShape,
 ) -> Result<FrameOutput> {
-    let (markers, summary, contact_region, reference_left_px, reference_right_px, stages) =
-        match (session, images) {
-            (Session::Stereo(st), Images::Stereo(_)) => {
-                let reference_left_px = st.left().reference_px().to_vec();
-                let reference_right_px = st.right().reference_px().to_vec();
-                let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
-                let contact_region = region(st.ids(), shape, &tracked.contact.in_contact);
-                let markers = std::mem::take(&mut tracked.markers);
-                let summary = tracked.summary.clone();
-                let stages = Stages::Stereo(Box::new(tracked));
-                (
-                    markers,
-                    summary,
-                    contact_region,
-                    reference_left_px,
-                    reference_right_px,
-                    stages,
-                )
+    match (session, images) {
+        (Session::Stereo(st), Images::Stereo(_)) => {
+            let reference_left_px = st.left().reference_px().to_vec();
+            let reference_right_px = st.right().reference_px().to_vec();
+            let mut tracked = st.track_tiered(frame_no, &dets.left, &dets.right)?;
+            let markers = std::mem::take(&mut tracked.markers);
+            Ok(FrameOutput {
+                contact_region: region(st.ids(), shape, &tracked.contact.in_contact),
+                reference_left_px,
+                reference_right_px,
+                ..FrameOutput::rows(frame_no, t_s, markers, tracked.summary.clone())
             }
-            (Session::Mono(m), Images::Mono(_)) => {
-                let reference_left_px = m.tracker().reference_px().to_vec();
-                let mut tracked = m.track_tiered(frame_no, &dets.left)?;
-                let contact_region = m
-                    .tracker()
-                    .ids()
-                    .iter()
-                    .zip(&tracked.planar.in_contact)
-                    .filter(|(_, c)| **c)
-                    .map(|(i, _)| *i)
-                    .collect();
-                let markers = std::mem::take(&mut tracked.markers);
-                let summary = tracked.summary.clone();
-                let stages = Stages::Mono(Box::new(tracked));
-                (
-                    markers,
-                    summary,
-                    contact_region,
-                    reference_left_px,
-                    Vec::new(),
-                    stages,
-                )
+            .with_stages(Stages::Stereo(Box::new(tracked))))
+        }
+        (Session::Mono(m), Images::Mono(_)) => {
+            let reference_left_px = m.tracker().reference_px().to_vec();
+            let mut tracked = m.track_tiered(frame_no, &dets.left)?;
+            let ids = m.tracker().ids().iter().zip(&tracked.planar.in_contact);
+            let markers = std::mem::take(&mut tracked.markers);
+            Ok(FrameOutput {
+                contact_region: ids.filter(|(_, c)| **c).map(|(i, _)| *i).collect(),
+                reference_left_px,
+                ..FrameOutput::rows(frame_no, t_s, markers, tracked.summary.clone())
             }
-            _ => {
-                return Err(Error::Invalid(format!(
-                    "frame {frame_no}: a mono frame in a stereo session or the reverse"
-                )));
-            }
-        };
-    Ok(FrameOutput {
-        frame: frame_no,
-        t_s,
-        markers,
-        summary,
-        contact_region,
-        note: None,
-        log: Vec::new(),
-        earlier: Vec::new(),
-        reference_left_px,
-        reference_right_px,
-        stages: Some(stages),
-    })
+            .with_stages(Stages::Mono(Box::new(tracked))))
+        }
+        _ => Err(Error::Invalid(format!(
+            "frame {frame_no}: a mono frame in a stereo session or the reverse"
+        ))),
+    }
 }
 
 /// The ids whose lattice position is in contact.
@@ -688,8 +682,8 @@ fn region(ids: &[GridIndex], shape: &GridShape, in_contact: &[bool]) -> Vec<Grid
         .collect()
 }
 
-/// The size of an image.
-pub(crate) fn size_of(m: &Mat) -> ImageSize {
+/// The size of an image (0 for an empty one).
+pub fn image_size(m: &Mat) -> ImageSize {
     ImageSize {
         width: m.cols().max(0) as u32,
         height: m.rows().max(0) as u32,

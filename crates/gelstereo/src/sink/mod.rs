@@ -22,7 +22,8 @@ use gelstereo_io::ply::CoordinateFrame;
 use gelstereo_tracking::{TrackFrame, interpolate};
 
 pub use folder::{MANIFEST, OutputFolder};
-pub use jsonl::{FRAME_SCHEMA, JsonlSink, MAX_LINE_BYTES, frame_line, parse_frame_line, read_frames};
+pub use gelstereo_tracking::stream::{FRAME_SCHEMA, MAX_LINE_BYTES};
+pub use jsonl::{JsonlSink, frame_line, parse_frame_line, read_frames};
 
 use crate::error::file_err;
 use crate::{FrameOutput, Images, Pipeline, Result, Stages};

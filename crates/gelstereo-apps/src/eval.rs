@@ -14,7 +14,7 @@ use gelstereo_sim::DatasetManifest;
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::{Value, json};
 
-use crate::{Error, Result};
+use gelstereo::{Error, Result};
 
 /// What [`run`] evaluates, and how.
 #[derive(Debug, Clone)]
@@ -74,7 +74,7 @@ pub fn run(job: &LocalizationEval, on_experiment: &mut dyn FnMut(&Path, usize)) 
     let mut localizers: Vec<Box<dyn Localizer + Send>> = job
         .methods
         .iter()
-        .map(|m| crate::localizer(*m, &config))
+        .map(|m| gelstereo::localizer(*m, &config))
         .collect::<Result<_>>()?;
     let mut tally = Tally {
         tables: vec![SplitTable::default(); job.methods.len()],

@@ -10,7 +10,7 @@
 //!   make a detection a label or an ignore region, and the dataset layout the trainer reads.
 //!
 //! ```no_run
-//! use gelstereo::adapt::{AdaptOptions, run};
+//! use gelstereo_apps::adapt::{AdaptOptions, run};
 //! use gelstereo::LocalizerConfig;
 //! let base = LocalizerConfig::default();
 //! let options = AdaptOptions::new("my-recording".into(), "data/models-adapted/mine".into(), base);

@@ -12,8 +12,8 @@ use gelstereo_core::table::MARKER_COLUMNS;
 use gelstereo_io::ply::{CoordinateFrame, MarkerPoint, write_marker_cloud};
 use gelstereo_matching::FrameReconstruction;
 
-use crate::sink::OutputFolder;
-use crate::{Error, Result};
+use gelstereo::sink::OutputFolder;
+use gelstereo::{Error, Result};
 
 /// The output folder's files: an [`OutputFolder`] (apart from the inputs, locked, the files of an
 /// earlier run removed, a folder gelstereo did not write refused without `force`) with the tables

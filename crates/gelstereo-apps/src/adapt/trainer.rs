@@ -6,7 +6,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use crate::{Error, Result, project_home, project_python};
+use gelstereo::{Error, Result, project_home};
+
+use crate::project_python;
 
 /// The trainer's module, run with `python -m` from the checkout's `train/` folder.
 const MODULE: &str = "gelstereo_train.adapt";

@@ -45,9 +45,9 @@ use gelstereo_markers::lattice::{LatticeCheck, fit_lattice};
 use opencv::core::{CV_8UC1, Mat, MatTraitConst, Point, Scalar, Vector};
 use opencv::imgproc;
 
-use crate::error::file_err;
-use crate::source::FrameSource;
-use crate::{Error, Images, Result};
+use gelstereo::file_err;
+use gelstereo::source::FrameSource;
+use gelstereo::{Error, Images, Result};
 
 /// Name of the generator in `dataset.json`, with the crate version.
 pub const GENERATOR: &str = concat!("gelstereo-adapt ", env!("CARGO_PKG_VERSION"));

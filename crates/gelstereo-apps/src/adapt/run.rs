@@ -11,8 +11,8 @@ use gelstereo_markers::{Localizer, LocalizerConfig, Method, create_localizer};
 use super::labels::{GENERATOR, PseudoLabelConfig, PseudoLabelSummary, write_pseudo_labels};
 use super::output::{MANIFEST, Staging, check_output, install, keep_pseudo_labels};
 use super::trainer::{FineTuning, find_python};
-use crate::error::file_err;
-use crate::{Error, Result, parse_grid};
+use gelstereo::file_err;
+use gelstereo::{Error, Result, parse_grid};
 
 /// What to adapt, from what, and how. Errors name the `gelstereo adapt` option of the field at fault.
 #[derive(Debug, Clone)]

@@ -6,8 +6,8 @@ use std::path::{Component, Path, PathBuf};
 
 use tempfile::TempDir;
 
-use crate::error::file_err;
-use crate::{Error, Result, project_home};
+use gelstereo::file_err;
+use gelstereo::{Error, Result, project_home};
 
 /// The file that marks a folder as written by `gelstereo adapt` (and says how).
 pub const MANIFEST: &str = "adapt.json";

@@ -1,4 +1,4 @@
-//! Benchmarks of the pipeline as it runs, timing [`crate::Pipeline`] and [`crate::track::run`]
+//! Benchmarks of the pipeline as it runs, timing [`gelstereo::Pipeline`] and [`gelstereo::track::run`]
 //! themselves (no copy of their logic):
 //! - [`pipeline`]: per-stage medians and p90 in latency mode (one frame at a time, frames decoded
 //!   into memory first), the whole pipeline per stereo frame with its CPU time, and the throughput
@@ -23,9 +23,9 @@ use gelstereo_markers::{Method, create_localizer};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
 
-use crate::source::FrameSource;
-use crate::track::{SinkOptions, TrackOptions};
-use crate::{Error, Frame, Images, Pipeline, PipelineConfig, Result};
+use gelstereo::source::FrameSource;
+use gelstereo::track::{SinkOptions, TrackOptions};
+use gelstereo::{Error, Frame, Images, Pipeline, PipelineConfig, Result};
 
 /// A benchmark's result: the table as text, and the figures as JSON.
 #[derive(Debug, Clone)]
@@ -192,7 +192,7 @@ fn load(rec: &StereoRecording, n: usize) -> Result<Loaded> {
     };
     for k in 0..n {
         let Some(p) = rec.paths(k) else { break };
-        let read = |f: &Path| std::fs::read(f).map_err(crate::error::file_err(f));
+        let read = |f: &Path| std::fs::read(f).map_err(gelstereo::file_err(f));
         let bytes = StereoPair::new(read(&p.left)?, read(&p.right)?);
         loaded.frames.push(Frame::stereo(
             decode(&bytes.left, &p.left)?,
@@ -672,7 +672,7 @@ pub struct EndToEndBench {
     pub workers: usize,
 }
 
-/// `gelstereo track` end to end, as [`crate::track::run`] runs it: frames read and decoded from disk
+/// `gelstereo track` end to end, as [`gelstereo::track::run`] runs it: frames read and decoded from disk
 /// on the prefetch thread, the pipeline, the default outputs written. Two modes in turn within each
 /// run, so machine load hits them alike: frames localized one at a time (`--workers 1`) and ahead of
 /// the tracker by `workers` threads (`gelstereo track`'s default); `runs` timed runs of each after a
@@ -764,8 +764,8 @@ fn end_to_end_run(b: &EndToEndBench, workers: usize) -> Result<(usize, f64, Opti
     let mut pipeline = Pipeline::new(&b.config)?;
     let source = FrameSource::open_path(&b.recording, false)?;
     let stereo = source.is_stereo();
-    let folder = std::sync::Arc::new(crate::sink::OutputFolder::prepare(&b.out, false)?);
-    let mut sinks = crate::track::sinks(&folder, &b.sinks, stereo)?;
+    let folder = std::sync::Arc::new(gelstereo::sink::OutputFolder::prepare(&b.out, false)?);
+    let mut sinks = gelstereo::track::sinks(&folder, &b.sinks, stereo)?;
     let options = TrackOptions {
         workers,
         ..TrackOptions::default()
@@ -773,9 +773,9 @@ fn end_to_end_run(b: &EndToEndBench, workers: usize) -> Result<(usize, f64, Opti
     let stop = AtomicBool::new(false);
     let c0 = process_cpu_clock_ns();
     let t0 = Instant::now();
-    let summary = crate::track::run(
+    let summary = gelstereo::track::run(
         &mut pipeline,
-        source.prefetch(crate::track::PREFETCH_FRAMES),
+        source.prefetch(gelstereo::track::PREFETCH_FRAMES),
         &mut sinks,
         &options,
         &stop,

@@ -7,10 +7,9 @@ use std::path::{Path, PathBuf};
 use gelstereo_core::{ImageSize, Point2};
 use gelstereo_geometry::checkerboard::{CalibrationReport, calibrate_stereo, find_corners};
 use gelstereo_geometry::{Board, CalibrationOptions, StereoCorners};
-use opencv::core::MatTraitConst;
 use rayon::prelude::*;
 
-use crate::{Error, Result};
+use gelstereo::{Error, Result};
 
 /// A calibration from two folders, with what was left out.
 #[derive(Debug, Clone)]
@@ -56,13 +55,6 @@ impl FolderCalibration {
 /// One detected pair: file name, image size, left and right corners (`None`: board not found).
 type Detected = (String, ImageSize, Option<Vec<Point2>>, Option<Vec<Point2>>);
 
-fn size_of(m: &opencv::core::Mat) -> ImageSize {
-    ImageSize {
-        width: u32::try_from(m.cols()).unwrap_or(0),
-        height: u32::try_from(m.rows()).unwrap_or(0),
-    }
-}
-
 fn file_name(p: &Path) -> String {
     p.file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -105,7 +97,7 @@ fn pair_images(left_dir: &Path, right_dir: &Path) -> Result<(Vec<NamedPair>, Vec
 fn detect(name: &str, l: &Path, r: &Path, board: &Board, options: &CalibrationOptions) -> Result<Detected> {
     let li = gelstereo_io::images::read_image(l)?;
     let ri = gelstereo_io::images::read_image(r)?;
-    let (ls, rs) = (size_of(&li), size_of(&ri));
+    let (ls, rs) = (gelstereo::image_size(&li), gelstereo::image_size(&ri));
     if ls != rs {
         return Err(Error::Invalid(format!(
             "{}: {}x{} but {}: {}x{}; both cameras must have the same image size",

@@ -24,7 +24,7 @@ use gelstereo_sensor::RecordingMeta;
 pub use evaluation::EvaluationReport;
 pub use input::Perturbation;
 
-use crate::{Error, Result};
+use gelstereo::{Error, Result};
 use input::{FrameInput, LazyLocalizer};
 use output::{EVALUATION_FILE, MARKERS_FILE, OutputFiles, REJECTIONS_FILE};
 
@@ -78,7 +78,7 @@ impl ReconstructionJob {
             out,
             force: false,
             method: Method::MarknetMre,
-            localizer: crate::models::localizer_config(),
+            localizer: gelstereo::models::localizer_config(),
             from_ground_truth: None,
             grid: None,
             reference: 0,

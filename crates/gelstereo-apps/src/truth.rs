@@ -6,7 +6,7 @@ use std::path::Path;
 use gelstereo_core::{Detection, Point2, StereoPair};
 use gelstereo_matching::eval::GroundTruth;
 
-use crate::Result;
+use gelstereo::Result;
 
 /// Per frame, the ground-truth positions of the markers visible in each view (with Gaussian noise of
 /// `noise_px`, seeded, when > 0), in a shuffled-free but id-free form: sorted by y then x like a

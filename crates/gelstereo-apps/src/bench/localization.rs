@@ -20,7 +20,7 @@ use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
 
 use super::{Report, stats};
-use crate::{Error, Result};
+use gelstereo::{Error, Result};
 
 /// What the localization benchmark runs.
 pub struct LocalizationBench {

@@ -14,8 +14,8 @@ use gelstereo_matching::eval::GroundTruth;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::pipeline::size_of;
-use crate::{Error, Result};
+use gelstereo::image_size;
+use gelstereo::{Error, Result};
 
 /// Imperfections added to ground-truth positions, to measure how indexing and pairing hold up
 /// under a localizer's noise, misses and false detections. The default adds none.
@@ -116,7 +116,7 @@ impl<'a> LazyLocalizer<'a> {
     fn get(&mut self) -> Result<&mut (dyn Localizer + Send)> {
         let localizer = match self.built.take() {
             Some(l) => l,
-            None => crate::localizer(self.method, self.config)?,
+            None => gelstereo::localizer(self.method, self.config)?,
         };
         Ok(self.built.insert(localizer).as_mut())
     }
@@ -229,7 +229,7 @@ pub(super) fn localized_video(
     let mut frames = Vec::new();
     while let Some((index, frame)) = video.next_frame()? {
         let pair = video::split_side_by_side(&frame, path)?;
-        rig.check_image_sizes(size_of(&pair.left), size_of(&pair.right))
+        rig.check_image_sizes(image_size(&pair.left), image_size(&pair.right))
             .map_err(|e| {
                 Error::from(e).context(format!(
                     "{} frame {index}: the halves do not match the calibration '{}'",
@@ -266,7 +266,7 @@ pub(super) fn detect(
         images::read_image(p).map_err(|e| Error::from(e).context(format!("frame {}", input.frame)))
     };
     let pair = StereoPair::new(read(&paths.left)?, read(&paths.right)?);
-    rig.check_image_sizes(size_of(&pair.left), size_of(&pair.right))
+    rig.check_image_sizes(image_size(&pair.left), image_size(&pair.right))
         .map_err(|e| {
             Error::from(e).context(format!(
                 "{}: the images do not match the calibration '{}'",
