@@ -259,7 +259,12 @@ pub fn input_per_px(size: ImageSize, layout: &InputLayout) -> f64 {
 
 /// The decoding geometry of an image of `size` run under `layout` by a network of output `stride`
 /// with `candidates` slots per cell.
-pub fn layout_geometry(size: ImageSize, layout: &InputLayout, stride: u32, candidates: u32) -> DecodeGeometry {
+pub fn layout_geometry(
+    size: ImageSize,
+    layout: &InputLayout,
+    stride: u32,
+    candidates: u32,
+) -> DecodeGeometry {
     DecodeGeometry {
         grid_y: (layout.input_height / stride.max(1)) as usize,
         grid_x: (layout.input_width / stride.max(1)) as usize,

@@ -70,10 +70,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for PostArgs {
             conf_marknet_only: f32_of("conf_marknet_only")?,
             dedup_radius_frac: ob.getattr("dedup_radius_frac")?.extract()?,
             accept: f32_of("accept")?,
-            lattice: ob
-                .getattr("lattice")?
-                .is_truthy()?
-                .then(LatticeCheck::default),
+            lattice: ob.getattr("lattice")?.is_truthy()?.then(LatticeCheck::default),
         }))
     }
 }
@@ -247,7 +244,10 @@ struct Steps {
 
 impl Steps {
     fn of(decoded: Vec<Detection>, post: &PostProcess) -> Self {
-        let mut kept: Vec<Detection> = decoded.into_iter().filter(|d| d.confidence > post.conf_low).collect();
+        let mut kept: Vec<Detection> = decoded
+            .into_iter()
+            .filter(|d| d.confidence > post.conf_low)
+            .collect();
         let pitch_px = estimate_pitch_px(&kept, post.conf_keep);
         deduplicate(&mut kept, dedup_radius_px(pitch_px, post));
         Self { pitch_px, kept }
@@ -348,7 +348,11 @@ fn postprocess<'py>(
         _ => None,
     };
     let marknet_mre = match (&mre, &scores) {
-        (Some(_), scores) => after.finish(with_mre.finish_tiered(scores.as_deref().unwrap_or(&[]), post.accept))?.accepted,
+        (Some(_), scores) => {
+            after
+                .finish(with_mre.finish_tiered(scores.as_deref().unwrap_or(&[]), post.accept))?
+                .accepted
+        }
         (None, _) => Vec::new(),
     };
     let mre_index: Vec<i64> = (0..steps.kept.len() as i64)
@@ -478,7 +482,13 @@ impl PyMarknet {
         &self,
         py: Python<'py>,
         images: Vec<Bound<'py, PyAny>>,
-    ) -> PyResult<Vec<(Bound<'py, PyArray2<f64>>, LayoutTuple, Option<(f64, f64, f64, f64)>)>> {
+    ) -> PyResult<
+        Vec<(
+            Bound<'py, PyArray2<f64>>,
+            LayoutTuple,
+            Option<(f64, f64, f64, f64)>,
+        )>,
+    > {
         let mats = images
             .iter()
             .map(|im| crate::image::to_mat("image", im))
