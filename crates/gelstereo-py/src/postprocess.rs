@@ -32,6 +32,15 @@ use crate::error::{GelstereoError, to_py};
 /// `(input_width, input_height, scaled_width, scaled_height, offset_x, offset_y)`.
 type LayoutTuple = (u32, u32, u32, u32, u32, u32);
 
+/// A region `(x0, y0, x1, y1)`, original px.
+type RegionTuple = (f64, f64, f64, f64);
+
+/// A per-point mask.
+type Mask<'py> = Bound<'py, PyArray1<bool>>;
+
+/// One image's candidates, the layout they ran under and the region a closer look re-examined.
+type Fitted<'py> = (Bound<'py, PyArray2<f64>>, LayoutTuple, Option<RegionTuple>);
+
 fn layout_tuple(l: &InputLayout) -> LayoutTuple {
     (
         l.input_width,
@@ -139,7 +148,7 @@ fn rows_of<'py>(py: Python<'py>, found: &[Detection]) -> Bound<'py, PyArray2<f64
     PyArray2::from_owned_array(py, a)
 }
 
-fn region_of(region: Option<(f64, f64, f64, f64)>) -> Option<Region> {
+fn region_of(region: Option<RegionTuple>) -> Option<Region> {
     region.map(|(x0, y0, x1, y1)| Region { x0, y0, x1, y1 })
 }
 
@@ -322,7 +331,7 @@ fn postprocess<'py>(
     mre: Option<Bound<'py, PyAny>>,
     input_per_px: Option<f64>,
     size: Option<(u32, u32)>,
-    looked: Option<(f64, f64, f64, f64)>,
+    looked: Option<RegionTuple>,
     image: Option<Bound<'py, PyAny>>,
     close_look: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
@@ -385,7 +394,7 @@ fn lattice_fit<'py>(
     points: PyReadonlyArray2<'py, f64>,
     confidence: Option<PyReadonlyArray1<'py, f64>>,
     input_per_px: f64,
-) -> PyResult<(Bound<'py, PyArray1<bool>>, Bound<'py, PyArray1<bool>>, f64, bool)> {
+) -> PyResult<(Mask<'py>, Mask<'py>, f64, bool)> {
     let p = points.as_array();
     let conf: Vec<f32> = match &confidence {
         Some(c) => c.as_array().iter().map(|&v| v as f32).collect(),
@@ -477,18 +486,7 @@ impl PyMarknet {
     /// Each image's (uint8 grey or BGR) candidates with c > `conf_low` after the passes
     /// (`(n, 3)`, flat order), the layout of the pass they come from, and the region
     /// (x0, y0, x1, y1) a closer look re-examined, or None.
-    #[allow(clippy::type_complexity)]
-    fn fitted<'py>(
-        &self,
-        py: Python<'py>,
-        images: Vec<Bound<'py, PyAny>>,
-    ) -> PyResult<
-        Vec<(
-            Bound<'py, PyArray2<f64>>,
-            LayoutTuple,
-            Option<(f64, f64, f64, f64)>,
-        )>,
-    > {
+    fn fitted<'py>(&self, py: Python<'py>, images: Vec<Bound<'py, PyAny>>) -> PyResult<Vec<Fitted<'py>>> {
         let mats = images
             .iter()
             .map(|im| crate::image::to_mat("image", im))
