@@ -425,6 +425,91 @@ fn lattice_fit<'py>(
     ))
 }
 
+/// The YOLO baseline's post-processing (`gelstereo_markers::yolo`) of one image's raw output `raw`
+/// (float32 `(K, 5)`) from a network of input `input_hw` with heads of `strides` and `anchors`
+/// (`(heads, anchors per head, 2)`, input px; `|tw|`, `|th|` clamped to `tw_clamp`) on an image of
+/// `image_wh`: a dict of `candidates` (`(n, 5)` x, y, width, height, objectness above
+/// `conf_threshold`, original px, flat order) and `markers` (`(k, 3)` x, y, objectness of the boxes
+/// NMS at `nms_iou` keeps, in its visiting order).
+#[pyfunction]
+#[pyo3(signature = (raw, input_hw, strides, anchors, tw_clamp, image_wh, conf_threshold, nms_iou))]
+#[allow(clippy::too_many_arguments)] // the contract's values, each named as in the metadata
+fn yolo_postprocess<'py>(
+    py: Python<'py>,
+    raw: PyReadonlyArray2<'py, f32>,
+    input_hw: (u32, u32),
+    strides: Vec<u32>,
+    anchors: Vec<Vec<[f64; 2]>>,
+    tw_clamp: f64,
+    image_wh: (u32, u32),
+    conf_threshold: f64,
+    nms_iou: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    use gelstereo::markers::yolo::{self, YoloContract, YoloHead, YoloPost};
+    let (input_height, input_width) = input_hw;
+    if strides.len() != anchors.len() || strides.contains(&0) {
+        return Err(PyValueError::new_err(format!(
+            "strides, anchors: expected one non-zero stride per head's anchors, found {} strides and {} heads",
+            strides.len(),
+            anchors.len()
+        )));
+    }
+    let heads = strides
+        .iter()
+        .zip(anchors)
+        .map(|(&stride, anchors)| YoloHead {
+            stride,
+            grid_x: input_width / stride,
+            grid_y: input_height / stride,
+            anchors,
+        })
+        .collect();
+    let contract = YoloContract {
+        input_width,
+        input_height,
+        heads,
+        tw_clamp,
+        post: YoloPost {
+            conf_threshold,
+            nms_iou,
+        },
+        dataset: String::new(),
+        trained: String::new(),
+    };
+    let array = raw.as_array();
+    if array.ncols() != yolo::OUTPUTS_PER_ANCHOR || array.nrows() != contract.rows() {
+        return Err(PyValueError::new_err(format!(
+            "raw: expected shape ({}, {}) for these heads, found {:?}",
+            contract.rows(),
+            yolo::OUTPUTS_PER_ANCHOR,
+            array.shape()
+        )));
+    }
+    let values: Vec<f32> = array.iter().copied().collect();
+    let scale_x = f64::from(image_wh.0) / f64::from(input_width.max(1));
+    let scale_y = f64::from(image_wh.1) / f64::from(input_height.max(1));
+    let boxes = yolo::decode(&values, &contract, scale_x, scale_y, conf_threshold);
+    let kept = yolo::nms(&boxes, nms_iou);
+    let table = |rows: Vec<Vec<f64>>, width: usize| {
+        let flat: Vec<f64> = rows.into_iter().flatten().collect();
+        Array2::from_shape_vec((flat.len() / width, width), flat)
+            .map(|a| PyArray2::from_owned_array(py, a))
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    };
+    let out = PyDict::new(py);
+    let candidates = boxes
+        .iter()
+        .map(|b| vec![b.centre.x, b.centre.y, b.width_px, b.height_px, b.objectness])
+        .collect();
+    out.set_item("candidates", table(candidates, 5)?)?;
+    let markers = kept
+        .iter()
+        .map(|b| vec![b.centre.x, b.centre.y, b.objectness])
+        .collect();
+    out.set_item("markers", table(markers, 3)?)?;
+    Ok(out)
+}
+
 /// A Marknet ONNX model run by `gelstereo-markers` up to its post-processing: the passes of the
 /// "auto" fit (probes, relayouts; each image on its own, no pitch remembered) and the closer look.
 #[pyclass(module = "gelstereo.postprocess", name = "Marknet", frozen)]
@@ -527,6 +612,7 @@ pub fn module(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     m.add_function(wrap_pyfunction!(decode, &m)?)?;
     m.add_function(wrap_pyfunction!(postprocess, &m)?)?;
     m.add_function(wrap_pyfunction!(lattice_fit, &m)?)?;
+    m.add_function(wrap_pyfunction!(yolo_postprocess, &m)?)?;
     m.add_class::<PyMarknet>()?;
     m.add("MRE_NEIGHBOURS", MRE_NEIGHBOURS)?;
     m.add("MRE_FEATURES", MRE_FEATURES)?;
