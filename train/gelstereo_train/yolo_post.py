@@ -16,14 +16,16 @@ from gelstereo import postprocess as _rust
 
 from .yolo_model import TW_CLAMP
 
+_DEFAULT = _rust.default_yolo_post()
+
 
 @dataclass
 class YoloPost:
-    """Thresholds (stored in the model's metadata_props). Defaults are Darknet's detector defaults
-    (``-thresh 0.25``, ``nms 0.45``); the shipped model may carry values chosen on the val split."""
+    """Thresholds (stored in the model's metadata_props). Defaults are the Rust ``YoloPost``'s, Darknet's
+    detector defaults (``-thresh 0.25``, ``nms 0.45``); the shipped model may carry values chosen on the val split."""
 
-    conf_threshold: float = 0.25
-    nms_iou: float = 0.45
+    conf_threshold: float = _DEFAULT["conf_threshold"]
+    nms_iou: float = _DEFAULT["nms_iou"]
 
 
 def postprocess(raw: np.ndarray, input_hw, strides, anchors, image_wh, post: YoloPost) -> dict:

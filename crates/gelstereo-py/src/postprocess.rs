@@ -169,6 +169,16 @@ fn default_post(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     Ok(d)
 }
 
+/// The YOLO baseline's thresholds' defaults (Darknet's), as a dict of `YoloPost`'s fields.
+#[pyfunction]
+fn default_yolo_post(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let p = gelstereo::markers::yolo::YoloPost::default();
+    let d = PyDict::new(py);
+    d.set_item("conf_threshold", p.conf_threshold)?;
+    d.set_item("nms_iou", p.nms_iou)?;
+    Ok(d)
+}
+
 /// The "auto" layout of a `width x height` image whose marker pitch is `pitch_px` (None or NaN:
 /// unknown) under `fit` (a `FitConfig`).
 #[pyfunction]
@@ -605,6 +615,7 @@ impl PyMarknet {
 pub fn module(py: Python<'_>) -> PyResult<Bound<'_, PyModule>> {
     let m = PyModule::new(py, "_postprocess")?;
     m.add_function(wrap_pyfunction!(default_post, &m)?)?;
+    m.add_function(wrap_pyfunction!(default_yolo_post, &m)?)?;
     m.add_function(wrap_pyfunction!(fit_layout, &m)?)?;
     m.add_function(wrap_pyfunction!(probe_layout, &m)?)?;
     m.add_function(wrap_pyfunction!(input_per_px, &m)?)?;

@@ -11,6 +11,7 @@ from ._gelstereo import _postprocess as _native
 
 Marknet = _native.Marknet
 default_post = _native.default_post
+default_yolo_post = _native.default_yolo_post
 fit_layout = _native.fit_layout
 probe_layout = _native.probe_layout
 input_per_px = _native.input_per_px
@@ -28,7 +29,7 @@ FILL_SAMPLE_STEP: int = _native.FILL_SAMPLE_STEP
 MAX_INPUT_SIDE_PX: int = _native.MAX_INPUT_SIDE_PX
 
 __all__ = [
-    "Marknet", "default_post", "fit_layout", "probe_layout", "input_per_px", "network_input", "decode", "postprocess",
+    "Marknet", "default_post", "default_yolo_post", "fit_layout", "probe_layout", "input_per_px", "network_input", "decode", "postprocess",
     "lattice_fit", "yolo_postprocess", "MRE_NEIGHBOURS", "MRE_FEATURES", "MISSING_DISTANCE", "AREA_BELOW_SCALE",
     "FILL_SAMPLE_STEP", "MAX_INPUT_SIDE_PX",
 ]
