@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,51 +24,32 @@ from .data import experiment_families, list_samples, median_nn_distance
 from .metrics import Evaluator, hard_mask, radius_for
 from .runtime import ort_session
 from .postprocess import (
-    COARSE_PROBE_SCALE,
-    FINE_PROBE_SCALE,
-    MAX_RELAYOUTS,
-    MIN_PITCH_SUPPORT,
-    PROBE_MIN_COVER,
-    PROBE_MIN_GAIN,
-    PROBE_SCALE,
     FitConfig,
     Layout,
     PostConfig,
     TorchMRE,
+    bgr,
     decode_layout,
-    decode_to_original,
-    dedup,
-    input_per_px,
-    lattice_fit,
     fit_config_from_metadata,
     fit_layout,
-    pitch_px,
+    input_per_px,
     postprocess,
-    preprocess,
     preprocess_layout,
-    probe_layout,
-    relayout_needed,
-    layout_at_scale,
-    close_look_zoom,
-    merge_close_look,
-    squeezed_region,
+    stretch_layout,
 )
+from gelstereo import postprocess as rust_post
 
 
 class MarknetRunner:
     """Runs a Marknet checkpoint or ONNX file on RGB images; returns decoded candidates per image.
 
-    Models with a dynamic input (contract ``gelstereo-marknet/2``, every checkpoint) get the "auto" fit of
-    docs/model-contract.md: a first pass without a pitch and a probe at ``PROBE_SCALE`` x its scale (kept
-    when it finds at least ``MIN_PITCH_SUPPORT`` and ``PROBE_MIN_GAIN`` x as many confident candidates,
-    covering at least ``PROBE_MIN_COVER`` of the area the first pass's cover), and where neither found a
-    lattice a fine probe at ``FINE_PROBE_SCALE`` x and a coarse one at ``COARSE_PROBE_SCALE`` x under the
-    same rule; then, when the pitch measured on the kept one asks for a scale more than
-    ``RELAYOUT_SCALE_CHANGE`` away, a pass at that scale, repeated (at most ``MAX_RELAYOUTS`` passes) while
-    the pitch each measures asks for another (each image on its own, as ``gelstereo eval`` does); with the
-    lattice check, a closer look where the candidates lie squeezed (``look_closer``; ``close_look=False``:
-    none, ``gelstereo eval --no-close-look``).
-    Fixed-size models (``gelstereo-marknet/1``) get the whole-image stretch."""
+    The passes are the Rust localizer's (``gelstereo.postprocess.Marknet``, each image on its own as
+    ``gelstereo eval`` runs them): models with a dynamic input (contract ``gelstereo-marknet/2``, every
+    checkpoint) get the "auto" fit of docs/model-contract.md (probes, relayouts to the measured pitch and,
+    with the lattice check, a closer look where candidates lie squeezed; ``close_look=False``: none, as
+    ``gelstereo eval --no-close-look``); fixed-size models (``gelstereo-marknet/1``) and ``fit="stretch"``
+    the whole-image stretch. A checkpoint is exported to ONNX for them first. ``raw`` runs the network
+    itself (PyTorch or ONNX Runtime) on a prepared input (the MRE dataset's augmented copies)."""
 
     def __init__(self, path: Path | str, threads: int = 2, post: PostConfig | None = None, fit: str = "auto",
                  close_look: bool = True):
@@ -77,26 +59,37 @@ class MarknetRunner:
         self.path = path
         self.post = post or PostConfig()
         self.close_look = close_look
-        self.looked_region = None  # the region the latest fitted() image's closer look re-examined
-        self.looked: list = []  # per image of the latest call, that region or None
+        self.looked: list = []  # per image of the latest call, the region its closer look re-examined or None
         if path.suffix == ".onnx":
             self.sess = ort_session(path, threads)
             meta = self.sess.get_modelmeta().custom_metadata_map
-            self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
-            self.stride = int(meta["stride"])
             self.model = None
+            self.net = rust_post.Marknet(str(path), threads, fit, self.post, close_look)
             dynamic = meta.get("input_size") == "dynamic" and fit == "auto"
             self.fit = fit_config_from_metadata(meta) if dynamic else None
         else:
             from .train_marknet import load_checkpoint
 
             self.model, meta = load_checkpoint(path)
-            self.input_hw = (int(meta["input_height"]), int(meta["input_width"]))
-            self.stride = self.model.stride
             self.sess = None
+            hw = (int(meta["input_height"]), int(meta["input_width"]))
             stretch = meta.get("aug", {}).get("canonical", "stretch") == "stretch"
-            self.fit = FitConfig(nominal_hw=self.input_hw, prefer_stretch=stretch) if fit == "auto" else None
+            fit_cfg = FitConfig(nominal_hw=hw, prefer_stretch=stretch)
+            self.net = self._exported(threads, fit, fit_cfg, close_look)
+            self.fit = fit_cfg if fit == "auto" else None
+        self.input_hw = (self.net.input_height, self.net.input_width)
+        self.stride = self.net.stride
         self.meta = meta
+
+    def _exported(self, threads: int, fit: str, fit_cfg: FitConfig, close_look: bool):
+        """The Rust runner of the checkpoint's model, exported to a temporary ONNX file."""
+        from .export import export_marknet, marknet_metadata
+
+        with tempfile.TemporaryDirectory() as tmp:
+            onnx_path = Path(tmp) / "marknet.onnx"
+            meta = marknet_metadata(self.model, fit_cfg.nominal_hw, "checkpoint", "checkpoint", self.post, fit_cfg)
+            export_marknet(self.model, onnx_path, fit_cfg.nominal_hw, meta)
+            return rust_post.Marknet(str(onnx_path), threads, fit, self.post, close_look)
 
     def raw(self, x: torch.Tensor) -> np.ndarray:
         if self.sess is not None:
@@ -108,106 +101,25 @@ class MarknetRunner:
         """The input layout of an image: "auto" fit for dynamic models, else the stretch."""
         h, w = img.shape[:2]
         if self.fit is None:
-            ih, iw = self.input_hw
-            return Layout(iw, ih, iw, ih, 0, 0)
+            return stretch_layout(self.input_hw[::-1])
         return fit_layout(w, h, pitch_px, self.fit)
 
     def run_layout(self, img: np.ndarray, lay: Layout) -> np.ndarray:
-        """Decoded candidates (flat, original px) of one image under one layout."""
+        """Decoded candidates (flat, original px) of one image under one layout, run by ``raw``."""
         raw = self.raw(preprocess_layout(img, lay))[0]
         return decode_layout(raw, self.stride, (img.shape[1], img.shape[0]), lay)
 
     def fitted(self, img: np.ndarray) -> tuple[np.ndarray, Layout]:
-        """Decoded candidates of one image and the layout they came from (up to four passes)."""
-        lay = self.layout(img)
-        dec = self.run_layout(img, lay)
-        if self.fit is None:
-            return dec, lay
-
-        wh = (img.shape[1], img.shape[0])
-
-        def support(d: np.ndarray, used: Layout) -> tuple[int, float]:
-            """How many confident candidates support the pitch the layout follows, and that pitch (Rust:
-            ``Pass::new``): with the lattice check the members among the de-duplicated confident ones
-            (none without a lattice), else all confident ones and step 2's pitch."""
-            cands = d[d[:, 2] > self.post.conf_low]
-            p = pitch_px(cands, self.post.conf_keep)
-            conf = cands[cands[:, 2] > self.post.conf_keep]
-            if self.post.lattice is None:
-                return len(conf), p
-            conf = conf[dedup(conf, self.post.dedup_radius_frac * p)]
-            member, _, lp, ok = lattice_fit(conf[:, :2], self.post.lattice, input_per_px(wh, used), conf[:, 2])
-            return (int(member.sum()), lp) if ok else (0, float("nan"))
-
-        def cover(n: int, p: float) -> float:  # the area the supporting finds cover, see PROBE_MIN_COVER
-            return n * (p * p if np.isfinite(p) else 0.0)
-
-        n_first, p_first = support(dec, lay)
-        for scale in (PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE):
-            # The fine and coarse probes only where no pass so far found a lattice; the fine one also where
-            # the lattice found lies below the network's range at its input (maybe a thinned-out finer one).
-            unresolved = (self.post.lattice is not None and np.isfinite(p_first)
-                          and p_first * input_per_px(wh, lay) < self.fit.pitch_range_px[0])
-            if scale != PROBE_SCALE and n_first >= MIN_PITCH_SUPPORT and not (scale == FINE_PROBE_SCALE and unresolved):
-                continue
-            probe = probe_layout(img.shape[1], img.shape[0], self.fit, scale)
-            if probe == lay:
-                continue
-            probed = self.run_layout(img, probe)
-            n, p_probe = support(probed, probe)
-            gain = n >= MIN_PITCH_SUPPORT and n >= PROBE_MIN_GAIN * n_first
-            if gain and cover(n, p_probe) >= PROBE_MIN_COVER * cover(n_first, p_first):
-                lay, dec, n_first, p_first = probe, probed, n, p_probe
-        # each pass brings a partly resolved lattice's pitch closer; without the lattice check a pitch is any
-        # candidates' spacing (a random network's lies at its output stride at every scale): one relayout
-        for _ in range(MAX_RELAYOUTS if self.post.lattice is not None else 1):
-            if not (n_first >= MIN_PITCH_SUPPORT and np.isfinite(p_first)):
-                break
-            better = self.layout(img, p_first)
-            if not relayout_needed(lay, better):
-                break
-            lay = better
-            dec = self.run_layout(img, lay)
-            n_first, p_first = support(dec, lay)
-        self.looked_region = None
-        if self.close_look and self.post.lattice is not None:
-            dec, self.looked_region = self.look_closer(img, dec, lay)
-        return dec, lay
-
-    def look_closer(self, img: np.ndarray, dec: np.ndarray, lay: Layout):
-        """The decoded candidates after a closer look where they lie squeezed (Rust:
-        ``Marknet::look_closer``): the network run again at a larger scale, its candidates replacing the
-        first pass's inside the region; and the region (None without a look). The whole zoomed input runs
-        here, the window around the region in Rust, which finds the same there."""
-        wh = (img.shape[1], img.shape[0])
-        cands = dec[dec[:, 2] > self.post.conf_low]
-        p = pitch_px(cands, self.post.conf_keep)
-        kept = cands[dedup(cands, self.post.dedup_radius_frac * p)]
-        region = squeezed_region(kept, p, wh)
-        zoom = close_look_zoom(p * input_per_px(wh, lay)) if region is not None else None
-        if zoom is None:
-            return dec, None
-        zoomed = layout_at_scale(wh[0], wh[1], p, zoom * input_per_px(wh, lay), self.fit)
-        return merge_close_look(dec, self.run_layout(img, zoomed), region), region
+        """Decoded candidates (c > conf_low) of one image after the Rust passes and the layout they came
+        from; ``looked_region``: the region its closer look re-examined, or None."""
+        dec, lay, self.looked_region = self.net.fitted([bgr(img)])[0]
+        return dec, Layout(*lay)
 
     def __call__(self, images: list[np.ndarray], batch: int = 8) -> list[np.ndarray]:
-        if self.fit is not None:
-            fitted, self.looked = [], []
-            for im in images:
-                fitted.append(self.fitted(im))
-                self.looked.append(self.looked_region)
-            self.layouts = [lay for _, lay in fitted]
-            return [dec for dec, _ in fitted]
-        ih, iw = self.input_hw
-        self.layouts = [Layout(iw, ih, iw, ih, 0, 0) for _ in images]
-        self.looked = [None for _ in images]
-        out = []
-        for i in range(0, len(images), batch):
-            chunk = images[i : i + batch]
-            x = torch.cat([preprocess(im, self.input_hw) for im in chunk])
-            for im, r in zip(chunk, self.raw(x)):
-                out.append(decode_to_original(r, self.stride, (im.shape[1], im.shape[0]), self.input_hw[::-1]))
-        return out
+        fitted = [self.fitted(im) + (self.looked_region,) for im in images]
+        self.layouts = [lay for _, lay, _ in fitted]
+        self.looked = [looked for _, _, looked in fitted]
+        return [dec for dec, _, _ in fitted]
 
 
 def load_mre(path: Path | str | None, threads: int = 2):
@@ -253,7 +165,7 @@ def evaluate(samples, runner: MarknetRunner, mre_fn, post: PostConfig, blob: Blo
             bl = blob.detect(img)
             hard = hard_mask(bl, gt, r)
             size = (img.shape[1], img.shape[0])
-            det = postprocess(dec, post, mre_fn, input_per_px(size, used), size, looked)
+            det = postprocess(dec, post, mre_fn, input_per_px(size, used), size, looked, img, runner.close_look)
             lay = runner.layout(img, median_nn_distance(gt))
             in_range = pitch_at_input_px(gt, size, (lay.scaled_w, lay.scaled_h)) >= min_pitch_in_px
             n_out += not in_range
@@ -308,10 +220,10 @@ def main(argv=None) -> int:
                    "`gelstereo simulate --randomization wide`); repeated: of all of them")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
-    runner = MarknetRunner(args.marknet, args.threads, fit=args.fit)
     post = PostConfig()
     if args.dedup_radius_frac is not None:
         post.dedup_radius_frac = args.dedup_radius_frac
+    runner = MarknetRunner(args.marknet, args.threads, post, fit=args.fit)
     samples = list_samples(args.data, args.split, frame_step=args.frame_step, max_experiments=args.max_experiments)
     if args.family:
         samples = [s for s in samples

@@ -46,8 +46,8 @@ def check(frames, runner, mre_fn, expect: int, post: PostConfig | None = None) -
     post = post or PostConfig()
     decoded = runner(frames)
     sizes = [(f.shape[1], f.shape[0]) for f in frames]
-    dets = [postprocess(d, post, mre_fn, input_per_px(size, lay), size, looked)
-            for d, size, lay, looked in zip(decoded, sizes, runner.layouts, runner.looked)]
+    dets = [postprocess(d, post, mre_fn, input_per_px(size, lay), size, looked, f)
+            for d, size, lay, looked, f in zip(decoded, sizes, runner.layouts, runner.looked, frames)]
     blob = BlobDetector()
     ref = dets[0].marknet_mre[:, :2]
     pitch = dets[0].pitch_px

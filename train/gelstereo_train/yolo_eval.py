@@ -6,7 +6,7 @@ objectness threshold on the validation split.
 
 The model is a yolo_train checkpoint (.pt) or an exported ``yolo.onnx`` (run in onnxruntime). The
 network runs once per image; every threshold of ``--sweep`` is then post-processed (decoding + NMS,
-gelstereo_train.yolo_post) and scored; ``best`` is the threshold of highest F1 over all markers. The
+the Rust localizer's, through gelstereo_train.yolo_post) and scored; ``best`` is the threshold of highest F1 over all markers. The
 official Table I figures come from the Rust ``gelstereo eval``, not from this script.
 """
 

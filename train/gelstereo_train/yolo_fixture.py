@@ -9,7 +9,7 @@
 * ``yolo_tiny_expected.json``: the model's raw output on that image as onnxruntime computes it (input
   resized with OpenCV ``INTER_LINEAR`` from 8-bit, exactly as the Rust side does), the decoded
   candidates above the threshold (flat order), and the markers after NMS (keep order), from the
-  reference post-processing gelstereo_train.yolo_post.
+  Rust post-processing (gelstereo_train.yolo_post calls it): a regression snapshot of it.
 
 Deterministic for a given torch build (seeded); the JSON records what it was made with.
 """
@@ -82,7 +82,7 @@ def main(argv=None) -> int:
     if not (len(cand) > len(markers) > 0):
         raise SystemExit(f"fixture does not exercise NMS: {len(cand)} candidates, {len(markers)} markers")
     expected = {
-        "origin": "train/gelstereo_train/yolo_fixture.py (reference: gelstereo_train/yolo_post.py)",
+        "origin": "train/gelstereo_train/yolo_fixture.py (post-processing: gelstereo_markers::yolo)",
         "torch": torch.__version__,
         "onnxruntime": ort.__version__,
         "opencv_python": cv2.__version__,

@@ -7,7 +7,7 @@
 
 Per model, over the held-out frames (`heldout_frames` of adapt.json): markers per frame (min, median,
 max), the share of them that are lattice members (the Python twin of the Rust lattice check,
-`postprocess.lattice_members`), and with a track folder: markers `tracked` per frame, and the ids
+`postprocess.lattice_fit`, the Rust lattice check), and with a track folder: markers `tracked` per frame, and the ids
 tracked in every held-out frame (the same marker kept from the reference frame through them all).
 Frames are numbered as `gelstereo adapt` numbers them: the frame of a video, the position of an image
 in the sorted folder.
@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gelstereo_train.postprocess import lattice_members  # noqa: E402
+from gelstereo_train.postprocess import lattice_fit  # noqa: E402
 
 IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm"}
 
@@ -69,7 +69,7 @@ def summarise(name: str, dets: dict[int, np.ndarray], track, frames: list[int]) 
         pts = dets.get(fr, np.zeros((0, 2)))
         counts.append(len(pts))
         if len(pts):
-            lattice.append(float(lattice_members(pts).mean()))
+            lattice.append(float(lattice_fit(pts, 1.0)[0].mean()))
     row = {
         "model": name,
         "frames": len(frames),

@@ -21,7 +21,6 @@ Writes (all small, deterministic from the seeds below):
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -37,13 +36,14 @@ from gelstereo_train.model import MRE, Marknet  # noqa: E402
 from gelstereo_train.evaluate import MarknetRunner  # noqa: E402
 from gelstereo_train.postprocess import (  # noqa: E402
     FitConfig,
+    Layout,
     PostConfig,
     decode_to_original,
     fit_layout,
-    probe_layout,
     postprocess,
     preprocess,
 )
+from gelstereo.postprocess import probe_layout  # noqa: E402
 from gelstereo_train.tinydata import grid_points, render_dots  # noqa: E402
 
 INPUT_HW = (64, 64)
@@ -105,7 +105,7 @@ def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
     """The "auto" fit (contract gelstereo-marknet/2): the same network exported with a dynamic input as
     ``marknet_tiny_auto.onnx``; ``expected_auto.json`` holds fit_layout for a table of sizes and pitches,
     probe_layout for a table of sizes and, per image, the first-pass layout, the final layout and the
-    post-processed output of the multi-pass fit (no pitch remembered), as MarknetRunner computes them."""
+    post-processed output of the multi-pass fit (no pitch remembered), as the Rust localizer's passes compute them (MarknetRunner)."""
     fit = FitConfig(nominal_hw=INPUT_HW)
     md = marknet_metadata(net, INPUT_HW, "fixture: random weights (train/scripts/make_onnx_fixtures.py)",
                           "2026-11-22T00:00:00Z", post, fit=fit)
@@ -115,7 +115,7 @@ def write_auto_fixture(net, out: Path, post: PostConfig, mre_fn, rng) -> None:
     img = render_dots(120, 160, pts + rng.uniform(-1, 1, pts.shape), 26.0 * 0.3, rng)
     Image.fromarray(img).save(out / "dots_160x120.png")
     runner = MarknetRunner(path, threads=1, post=post)
-    lay_dict = lambda lay: dataclasses.asdict(lay)  # noqa: E731
+    lay_dict = lambda lay: Layout(*lay)._asdict()  # noqa: E731
     cases = []
     for w, h in ((640, 480), (320, 240), (800, 600), (64, 64), (1280, 720), (5000, 40)):
         for pitch in (None, 5.0, 10.0, 16.0, 31.0, 200.0):

@@ -14,7 +14,7 @@ from gelstereo_train import yolo_eval, yolo_export, yolo_train
 from gelstereo_train.augment import AugConfig, make_batch
 from gelstereo_train.data import list_samples, median_nn_distance
 from gelstereo_train.yolo_model import YoloV3, decode_head, kmeans_anchors, wh_iou
-from gelstereo_train.yolo_post import YoloPost, decode_raw, nms, postprocess
+from gelstereo_train.yolo_post import YoloPost, postprocess
 
 FIXTURES = Path(__file__).resolve().parents[2] / "data" / "fixtures" / "onnx"
 
@@ -102,17 +102,25 @@ def test_reference_decoding_matches_the_torch_decoding():
         maps = model.head_maps(x)
         ref = torch.cat([decode_head(m, s, a).reshape(1, -1, 5)
                          for m, s, a in zip(maps, model.strides, model.anchors)], 1)[0].numpy()
-    dec = decode_raw(raw, (32, 64), (8, 16), model.anchors.numpy())
-    np.testing.assert_allclose(dec, ref, rtol=1e-5, atol=1e-5)
-    with pytest.raises(ValueError):
-        decode_raw(raw[:-1], (32, 64), (8, 16), model.anchors.numpy())
+    # all boxes (threshold below any objectness) of an image the size of the input: x = x_in - 0.5
+    every = YoloPost(conf_threshold=-1.0, nms_iou=1.0)
+    dec = postprocess(raw, (32, 64), (8, 16), model.anchors.numpy(), (64, 32), every)["candidates"]
+    np.testing.assert_allclose(dec + [0.5, 0.5, 0, 0, 0], ref, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="raw: expected shape"):
+        postprocess(raw[:-1], (32, 64), (8, 16), model.anchors.numpy(), (64, 32), every)
 
 
 def test_nms_keeps_the_best_of_overlapping_boxes():
-    boxes = np.array([[10, 10, 4, 4], [11, 10, 4, 4], [30, 30, 4, 4]], float)  # IoU(0, 1) = 0.6
-    assert nms(boxes, np.array([0.8, 0.9, 0.5]), 0.45).tolist() == [1, 2]
-    assert nms(boxes, np.array([0.8, 0.9, 0.5]), 0.7).tolist() == [1, 0, 2]
-    assert nms(boxes[:2], np.array([0.5, 0.5]), 0.45).tolist() == [0]
+    # one stride-32 head of one 4 x 4 px anchor on a 64 x 32 input: the boxes of cells (0, 0) and
+    # (0, 1) lie 1 px apart across the cells' border (IoU 0.6)
+    logit = lambda p: float(np.log(p / (1 - p)))  # noqa: E731
+    raw = np.full((2, 5), -20.0, np.float32)
+    raw[0] = [logit(31.5 / 32), 0.0, 0.0, 0.0, logit(0.8)]
+    raw[1] = [logit(0.5 / 32), 0.0, 0.0, 0.0, logit(0.9)]
+    args = ((32, 64), (32,), np.array([[[4.0, 4.0]]]), (64, 32))
+    kept = postprocess(raw, *args, YoloPost(0.1, 0.45))["markers"]
+    assert kept[:, 2].tolist() == pytest.approx([0.9])
+    assert postprocess(raw, *args, YoloPost(0.1, 0.95))["markers"][:, 2].tolist() == pytest.approx([0.9, 0.8])
 
 
 def test_loss_falls_on_a_fixed_batch(tiny_root):

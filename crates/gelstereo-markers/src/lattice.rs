@@ -644,7 +644,7 @@ pub fn keep_the_lattice(
 /// region a closer look re-examined) [`LatticeCheck::looked_min_confidence`] for the markers on the
 /// lattice; with the image's `size`, empty sites where its border cuts the lattice count too (see
 /// the module documentation).
-pub(crate) fn keep_fitted_lattice(
+pub fn keep_fitted_lattice(
     found: TieredDetections,
     fit: LatticeFit,
     check: &LatticeCheck,

@@ -48,7 +48,7 @@ pub use marknet::{
     InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout, network_input, probe_layout,
 };
 pub use postprocess::PostProcess;
-pub use resize::{Kernels, ResizeScratch};
+pub use resize::{FILL_SAMPLE_STEP, Kernels, ResizeScratch};
 
 /// Errors of the marker localizers. Each names the file, the field or the image property concerned and
 /// what was expected.

@@ -257,6 +257,55 @@ pub fn input_per_px(size: ImageSize, layout: &InputLayout) -> f64 {
     (sx * sy).sqrt()
 }
 
+/// The decoding geometry of an image of `size` run under `layout` by a network of output `stride`
+/// with `candidates` slots per cell.
+pub fn layout_geometry(
+    size: ImageSize,
+    layout: &InputLayout,
+    stride: u32,
+    candidates: u32,
+) -> DecodeGeometry {
+    DecodeGeometry {
+        grid_y: (layout.input_height / stride.max(1)) as usize,
+        grid_x: (layout.input_width / stride.max(1)) as usize,
+        candidates: candidates as usize,
+        stride: f64::from(stride),
+        scale_x: f64::from(size.width) / f64::from(layout.scaled_width.max(1)),
+        scale_y: f64::from(size.height) / f64::from(layout.scaled_height.max(1)),
+        offset_x: f64::from(layout.offset_x),
+        offset_y: f64::from(layout.offset_y),
+    }
+}
+
+/// [`decode`] of one image of `size` run under `layout`, without the candidates in the padding
+/// around the image (a marker whose centre lies outside the image is not reported).
+pub fn decode_in_layout(
+    raw: &[f32],
+    geometry: &DecodeGeometry,
+    layout: &InputLayout,
+    size: ImageSize,
+    min_confidence: f32,
+) -> Vec<Detection> {
+    let mut dets = decode(raw, geometry, min_confidence);
+    if !layout.fills_input() {
+        let (w, h) = (f64::from(size.width) - 0.5, f64::from(size.height) - 0.5);
+        dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
+    }
+    dets
+}
+
+/// What the passes of the "auto" fit and the closer look leave of one image, before the
+/// post-processing ([`Marknet::fitted_candidates`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FittedCandidates {
+    /// The candidates with c > `conf_low`, in the image's pixels, in flat order.
+    pub candidates: Vec<Detection>,
+    /// The layout of the pass they come from (its scale is the lattice check's).
+    pub layout: InputLayout,
+    /// The region a closer look re-examined, if any.
+    pub looked: Option<Region>,
+}
+
 /// One image's candidates from one network pass, and what they say about its layout.
 #[derive(Debug, Clone, Default)]
 struct Pass {
@@ -1088,17 +1137,7 @@ impl Marknet {
 
     /// The decoding geometry of an image of `size` under `layout`.
     pub fn geometry_for(&self, size: ImageSize, layout: &InputLayout) -> DecodeGeometry {
-        let c = &self.contract;
-        DecodeGeometry {
-            grid_y: (layout.input_height / c.stride) as usize,
-            grid_x: (layout.input_width / c.stride) as usize,
-            candidates: c.candidates as usize,
-            stride: f64::from(c.stride),
-            scale_x: f64::from(size.width) / f64::from(layout.scaled_width),
-            scale_y: f64::from(size.height) / f64::from(layout.scaled_height),
-            offset_x: f64::from(layout.offset_x),
-            offset_y: f64::from(layout.offset_y),
-        }
+        layout_geometry(size, layout, self.contract.stride, self.contract.candidates)
     }
 
     /// [`geometry_for`](Self::geometry_for) of the network run on `window` of the layout's input.
@@ -1177,11 +1216,7 @@ impl Marknet {
                 .zip(raw.chunks(per_image.max(1)))
                 .collect();
             let decoded = map_images(self.parallel, jobs, |((i, geometry), raw)| {
-                let mut dets = decode(raw, &geometry, min_confidence);
-                if !layouts[i].fills_input() {
-                    let (w, h) = (f64::from(sizes[i].width) - 0.5, f64::from(sizes[i].height) - 0.5);
-                    dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
-                }
+                let dets = decode_in_layout(raw, &geometry, &layouts[i], sizes[i], min_confidence);
                 (i, finish(i, dets))
             });
             for (i, d) in decoded {
@@ -1198,6 +1233,21 @@ impl Marknet {
     pub fn candidates(&mut self, images: &[&Mat], min_confidence: f32) -> Result<Vec<Vec<Detection>>> {
         let found = self.candidates_with_pitch(images, &vec![None; images.len()], min_confidence)?;
         Ok(found.into_iter().map(|(pass, _)| pass.candidates).collect())
+    }
+
+    /// Each image's [`FittedCandidates`]: the network passes [`Localizer::detect`] runs before its
+    /// post-processing (probes, relayouts, the closer look), for a caller that post-processes the
+    /// candidates itself (the trainer's evaluation scores them with and without its own MRE).
+    pub fn fitted_candidates(&mut self, images: &[&Mat]) -> Result<Vec<FittedCandidates>> {
+        let found = self.candidates_with_pitch(images, &vec![None; images.len()], self.post.conf_low)?;
+        Ok(found
+            .into_iter()
+            .map(|(pass, layout)| FittedCandidates {
+                candidates: pass.candidates,
+                layout,
+                looked: pass.looked,
+            })
+            .collect())
     }
 
     /// [`candidates`](Self::candidates), each image's as a [`Pass`] (with its pitch estimate,
@@ -1660,8 +1710,8 @@ impl Marknet {
 
 /// The steps after the lattice check on one image: the dots-on-a-gel check, the border, and the
 /// dots the network missed, found as blobs (between squeezed markers when `between_squeezed`, then
-/// at the lattice's empty sites).
-fn after_the_lattice(
+/// at the lattice's empty sites). `pitch`: the candidates' pitch (post-processing step 2).
+pub fn after_the_lattice(
     mut found: TieredDetections,
     image: &Mat,
     pitch: Option<f64>,

@@ -9,6 +9,8 @@
 //!   images.
 //! - [`stream`]: `gelstereo.read_stream(path)` / `parse_frame(line)`, the `--jsonl` stream read
 //!   back into `gelstereo.Frame`s.
+//! - [`postprocess`]: `gelstereo.postprocess`, Marknet's input layout, decoding and
+//!   post-processing for the trainer's own networks (one implementation for Rust and Python).
 //! - [`package`]: the installed package's own models (`python/gelstereo/__init__.py` passes them).
 //!
 //! The extension module is `gelstereo._gelstereo`; the package `gelstereo`
@@ -27,6 +29,7 @@ mod error;
 mod image;
 mod package;
 mod pipeline;
+mod postprocess;
 mod source;
 mod stream;
 
@@ -49,5 +52,6 @@ fn gelstereo_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(source::open, m)?)?;
     m.add_class::<source::FrameReader>()?;
     m.add_class::<source::InputFrame>()?;
+    m.add_submodule(&postprocess::module(m.py())?)?;
     Ok(())
 }
