@@ -122,7 +122,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             // A track run's written positions again through its outlier test and fill (markers it
             // dropped within the noise floor were written as measured), as the session analyses them.
             if tracked {
-                gelstereo_tracking::session::reject_outliers(
+                gelstereo_tracking::stereo::reject_outliers(
                     shape,
                     &reference,
                     &mut per_frame[f],
@@ -130,7 +130,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     session_cfg.outlier_noise_mm,
                 );
                 per_frame[f] =
-                    gelstereo_tracking::session::fill_from_neighbours(shape, &reference, &per_frame[f]);
+                    gelstereo_tracking::stereo::fill_from_neighbours(shape, &reference, &per_frame[f]);
             }
             let c = surface.analyze(&per_frame[f])?;
             let sl = det.update(&surface, &c);

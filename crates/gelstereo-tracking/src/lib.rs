@@ -4,7 +4,9 @@
 //!   with motion prediction, gated association on a bucket grid, neighbour-based prediction of
 //!   missed markers and re-acquisition.
 //! - [`slip`]: per-frame slip state from the 3-D field; [`planar`]: contact and slip of mono sensors.
-//! - [`session`]: whole recordings, stereo and mono, producing the `markers.csv` / `frames.csv` rows.
+//! - [`stereo`]: the stereo stages "track" ([`ViewTracking`]) and "triangulate" ([`Triangulation`]).
+//! - [`session`]: whole recordings, stereo (the stages track -> triangulate -> contact -> slip) and
+//!   mono, producing the `markers.csv` / `frames.csv` rows.
 //! - [`field`]: dense interpolation of per-marker fields on the lattice (for plots).
 //! - [`contact`]: the marker mesh, indentation depth, contact region, area, centroid, largest depth.
 //! - [`stream`]: the per-frame rows and the gel frame as one JSON line per frame (`gelstereo track
@@ -25,6 +27,7 @@ mod fit;
 pub mod planar;
 pub mod session;
 pub mod slip;
+pub mod stereo;
 pub mod stream;
 #[cfg(test)]
 mod synthetic;
@@ -35,8 +38,7 @@ pub use error::{Error, Result};
 pub use field::{DenseField, interpolate};
 pub use gelstereo_mechanics::Layer;
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
-pub use session::{
-    MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
-};
+pub use session::{MonoFrame, MonoSession, SessionConfig, StereoFrame, StereoSession, flagged_rows};
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
+pub use stereo::{Points3, Triangulation, ViewTracking, ViewTracks};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

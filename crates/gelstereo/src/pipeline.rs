@@ -5,12 +5,11 @@ use gelstereo_core::{
     FrameSummary, GridIndex, GridShape, ImageSize, MarkerRecord, MarkerStatus, Point2, SlipState, StereoPair,
     TieredDetections,
 };
-use gelstereo_geometry::StereoRig;
 use gelstereo_markers::{Localizer, Method};
-use gelstereo_tracking::{ContactFrame, MonoFrame, SessionConfig, StereoFrame, flagged_rows};
+use gelstereo_tracking::{ContactFrame, MonoFrame, StereoFrame, flagged_rows};
 use opencv::core::{Mat, MatTraitConst};
 
-use crate::start::{self, ExpectedLattice, Session};
+use crate::start::{Indexing, Session};
 use crate::{Error, PipelineConfig, Result};
 
 /// The images of one frame.
@@ -177,14 +176,18 @@ fn unusable(markers: &[MarkerRecord]) -> Option<String> {
 /// The first frame that can be indexed is the reference (no contact): marker ids are its grid
 /// indices, displacement is measured against it. Frames before it, and frames that cannot be read or
 /// localized, come back flagged ([`FrameOutput::note`]) rather than as errors.
+///
+/// Per frame it runs one chain of stages: **localize** ([`FrameLocalizer`]: both views' markers) ->
+/// **index** ([`Indexing`], on the reference frame only: grid ids, and for stereo the pairing of the
+/// views) -> the tracking session, stereo: **track** -> **triangulate** -> **contact** -> **slip**
+/// ([`gelstereo_tracking::StereoSession`]), mono: track -> in-plane contact and slip.
 pub struct Pipeline {
-    localizer: Box<dyn Localizer + Send>,
+    localize: FrameLocalizer,
+    index: Indexing,
     method: Method,
-    rig: Option<StereoRig>,
-    expected: Option<ExpectedLattice>,
+    /// The tracked lattice: the grid given, then the visible part once a grid that overfills the
+    /// view was indexed.
     shape: GridShape,
-    session_config: SessionConfig,
-    pitch_mm: Option<f64>,
     mono: bool,
     frame_rate_hz: f64,
     session: Option<Session>,
@@ -207,45 +210,15 @@ impl Pipeline {
     /// Builds the pipeline around a localizer built elsewhere (`config.method` and
     /// `config.localizer` are then not used).
     pub fn with_localizer(config: &PipelineConfig, mut localizer: Box<dyn Localizer + Send>) -> Result<Self> {
-        config.session.validate()?;
-        let method = config.chosen_method();
-        let rig = match &config.calibration {
-            Some(spec) => match StereoRig::load(spec) {
-                Ok(rig) => Some(rig),
-                Err(_) if config.mono => None,
-                Err(e) => {
-                    return Err(
-                        Error::from(e).context(format!("cannot load the calibration {}", spec.display()))
-                    );
-                }
-            },
-            None => None,
-        };
-        let shape = config.grid_shape();
-        // The sensor description's lattice is projected through the calibration (a mono run of a
-        // stereo recording uses its left camera); only a grid that overfills the view needs it.
-        let expected = match (&config.sensor, &config.recording_sensor, &rig) {
-            (Some(spec), _, Some(rig)) if spec.grid_shape() == shape => {
-                Some(start::expected_lattice(spec, rig)?)
-            }
-            (None, Some(spec), Some(rig)) if spec.grid_shape() == shape => {
-                start::expected_lattice(spec, rig).ok()
-            }
-            _ => None,
-        };
+        let index = Indexing::new(config)?;
         // One frame at a time: the two views' stages in parallel where a core is free (same results).
         join_rayon_pool();
         localizer.set_parallel(true);
-        let session_config = config.session.clone();
-        let pitch_mm = session_config.planar.pitch_mm;
         Ok(Self {
-            localizer,
-            method,
-            rig,
-            expected,
-            shape,
-            session_config,
-            pitch_mm,
+            localize: FrameLocalizer { localizer },
+            shape: index.shape(),
+            index,
+            method: config.chosen_method(),
             mono: config.mono,
             frame_rate_hz: config.frame_rate_hz,
             session: None,
@@ -265,7 +238,7 @@ impl Pipeline {
 
     /// Whether stereo frames can be processed (a calibration is loaded and the pipeline is not mono).
     pub fn is_stereo(&self) -> bool {
-        self.rig.is_some() && !self.mono
+        self.index.rig().is_some() && !self.mono
     }
 
     /// Whether the reference lattice has been indexed.
@@ -294,7 +267,7 @@ impl Pipeline {
 
     /// The contact mechanics' settings: the gel's facts and the friction coefficient.
     pub fn contact_config(&self) -> &gelstereo_tracking::ContactConfig {
-        &self.session_config.contact
+        self.index.contact_config()
     }
 
     /// The gel frame in the left camera frame; `None` for mono sensors and before the reference
@@ -308,29 +281,12 @@ impl Pipeline {
 
     /// The localizer, e.g. for its timing of the last frame.
     pub fn localizer(&self) -> &dyn Localizer {
-        self.localizer.as_ref()
-    }
-
-    /// Records a process CPU-time clock reading between the tracking stages of each stereo frame
-    /// (for benchmarks); see [`Self::stage_marks`].
-    pub fn record_stage_marks(&mut self, clock: gelstereo_core::CpuClock) {
-        if let Some(Session::Stereo(s)) = &mut self.session {
-            s.record_stage_marks(clock);
-        }
-    }
-
-    /// The clock readings between the tracking stages of the last stereo frame (empty unless
-    /// [`Self::record_stage_marks`] was called after the reference frame).
-    pub fn stage_marks(&self) -> &[gelstereo_tracking::StageMark] {
-        match &self.session {
-            Some(Session::Stereo(s)) => s.stage_marks(),
-            _ => &[],
-        }
+        self.localize.localizer.as_ref()
     }
 
     /// The localizer, mutable (e.g. to set a CPU clock for benchmarks).
     pub fn localizer_mut(&mut self) -> &mut (dyn Localizer + Send) {
-        self.localizer.as_mut()
+        self.localize.localizer.as_mut()
     }
 
     /// Makes the current shape of the gel the new reference from the next frame on (drift
@@ -408,7 +364,7 @@ impl Pipeline {
         log: &mut Vec<String>,
         earlier: &mut Vec<FrameOutput>,
     ) -> Option<FrameOutput> {
-        let (session, notes) = match self.start(&frame.images, dets) {
+        let (session, notes) = match self.index.run(&frame.images, dets, self.reference_size) {
             Ok(started) => started,
             Err(e) => {
                 let note = format!("cannot index the reference lattice: {}", e.full_message());
@@ -512,7 +468,7 @@ impl Pipeline {
                     size.width, size.height, right.width, right.height
                 )));
             }
-            let Some(rig) = self.rig.as_ref().filter(|_| !self.mono) else {
+            let Some(rig) = self.index.rig().filter(|_| !self.mono) else {
                 return Err(Error::Invalid(
                     "stereo frames need a calibration (or a mono pipeline)".into(),
                 ));
@@ -534,14 +490,14 @@ impl Pipeline {
     }
 
     fn localize(&mut self, images: &Images) -> Result<StereoPair<TieredDetections>> {
-        localize_with(self.localizer.as_mut(), images)
+        self.localize.localize(images)
     }
 
     /// A localizer for a worker thread that localizes frames of this pipeline's stream ahead of it
     /// ([`FrameLocalizer`]), its network on `intra_threads` ONNX Runtime threads; `None` when the
     /// pipeline's localizer cannot be forked ([`Localizer::fork`]).
     pub fn fork_localizer(&self, intra_threads: usize) -> Option<Result<FrameLocalizer>> {
-        let forked = self.localizer.fork(intra_threads)?;
+        let forked = self.localize.localizer.fork(intra_threads)?;
         Some(
             forked
                 .map_err(Error::from)
@@ -568,41 +524,11 @@ impl Pipeline {
             }
         }
     }
-
-    /// Indexes the reference frame: the whole lattice, else (a grid that overfills the view) the
-    /// visible part, placed by the sensor description when there is one.
-    fn start(&self, images: &Images, dets: &StereoPair<TieredDetections>) -> Result<(Session, Vec<String>)> {
-        let stereo_rig = match images {
-            Images::Stereo(_) => self.rig.as_ref(),
-            Images::Mono(_) => None,
-        };
-        let whole = start::start_whole(dets, stereo_rig, self.shape, &self.session_config);
-        match whole {
-            Ok(s) => Ok((s, Vec::new())),
-            Err(e) if e.lattice_cut() && self.expected.as_ref().is_none_or(|x| x.overfills) => {
-                let size = self.reference_size.unwrap_or(ImageSize { width: 0, height: 0 });
-                match start::start_cut(
-                    dets,
-                    stereo_rig,
-                    self.shape,
-                    self.expected.as_ref(),
-                    self.pitch_mm,
-                    size,
-                    &self.session_config,
-                ) {
-                    Ok(Some(started)) => Ok(started),
-                    // Not a cut grid: the whole-lattice error stands (the next frame is tried).
-                    Ok(None) => Err(e),
-                    Err(cut) => Err(cut.context(format!("{}; indexing the visible part", e.full_message()))),
-                }
-            }
-            Err(e) => Err(e),
-        }
-    }
 }
 
-/// Localizes frames of a [`Pipeline`]'s stream on another thread, as the pipeline itself would
-/// ([`Pipeline::fork_localizer`]; hand the result to [`Pipeline::process_localized`]).
+/// The "localize" stage: the markers of a frame's views, found by the pipeline's localizer. The
+/// pipeline runs one; [`Pipeline::fork_localizer`] makes more, for threads that localize frames of
+/// its stream ahead of it (hand their results to [`Pipeline::process_localized`]).
 pub struct FrameLocalizer {
     localizer: Box<dyn Localizer + Send>,
 }

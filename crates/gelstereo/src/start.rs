@@ -1,5 +1,7 @@
-//! Starting a session on the reference frame: the whole lattice, or the visible part of a grid that
-//! overfills the view (placed by a sensor description, else from the visible top-left marker).
+//! The "index" stage ([`Indexing`]): on the reference frame, the grid ids of the markers (and for
+//! stereo the pairing of the views) that start the tracking session: the whole lattice, or the
+//! visible part of a grid that overfills the view (placed by a sensor description, else from the
+//! visible top-left marker).
 
 use gelstereo_core::{Detection, GridIndex, GridShape, ImageSize, Point2, StereoPair, TieredDetections};
 use gelstereo_geometry::{StereoRig, TriangulationConfig, Triangulator};
@@ -7,10 +9,106 @@ use gelstereo_matching::{IndexingConfig, ReferenceLattice, StereoConfig, StereoL
 use gelstereo_sensor::SensorSpec;
 use gelstereo_tracking::{MonoSession, SessionConfig, StereoSession};
 
-use crate::{Error, Result};
+use crate::pipeline::Images;
+use crate::{Error, PipelineConfig, Result};
+
+/// The "index" stage: what indexing a reference frame needs (calibration, lattice, the sensor
+/// description's projected lattice, settings); [`Indexing::run`] starts the tracking session.
+pub(crate) struct Indexing {
+    rig: Option<StereoRig>,
+    expected: Option<ExpectedLattice>,
+    shape: GridShape,
+    config: SessionConfig,
+}
+
+impl Indexing {
+    /// Loads the calibration (a mono pipeline may do without one it cannot load) and projects the
+    /// sensor description's lattice through it.
+    pub(crate) fn new(config: &PipelineConfig) -> Result<Self> {
+        config.session.validate()?;
+        let rig = match &config.calibration {
+            Some(spec) => match StereoRig::load(spec) {
+                Ok(rig) => Some(rig),
+                Err(_) if config.mono => None,
+                Err(e) => {
+                    return Err(
+                        Error::from(e).context(format!("cannot load the calibration {}", spec.display()))
+                    );
+                }
+            },
+            None => None,
+        };
+        let shape = config.grid_shape();
+        // The sensor description's lattice is projected through the calibration (a mono run of a
+        // stereo recording uses its left camera); only a grid that overfills the view needs it.
+        let expected = match (&config.sensor, &config.recording_sensor, &rig) {
+            (Some(spec), _, Some(rig)) if spec.grid_shape() == shape => Some(expected_lattice(spec, rig)?),
+            (None, Some(spec), Some(rig)) if spec.grid_shape() == shape => expected_lattice(spec, rig).ok(),
+            _ => None,
+        };
+        Ok(Self {
+            rig,
+            expected,
+            shape,
+            config: config.session.clone(),
+        })
+    }
+
+    /// The calibration, when one is loaded.
+    pub(crate) fn rig(&self) -> Option<&StereoRig> {
+        self.rig.as_ref()
+    }
+
+    /// The lattice given.
+    pub(crate) fn shape(&self) -> GridShape {
+        self.shape
+    }
+
+    /// The contact mechanics' settings the session starts with.
+    pub(crate) fn contact_config(&self) -> &gelstereo_tracking::ContactConfig {
+        &self.config.contact
+    }
+
+    /// Indexes the reference frame (`size`: the first frame's image size): the whole lattice, else
+    /// (a grid that overfills the view) the visible part, placed by the sensor description when
+    /// there is one. Returns the session and the lines to log.
+    pub(crate) fn run(
+        &self,
+        images: &Images,
+        dets: &StereoPair<TieredDetections>,
+        size: Option<ImageSize>,
+    ) -> Result<(Session, Vec<String>)> {
+        let stereo_rig = match images {
+            Images::Stereo(_) => self.rig.as_ref(),
+            Images::Mono(_) => None,
+        };
+        match start_whole(dets, stereo_rig, self.shape, &self.config) {
+            Ok(s) => Ok((s, Vec::new())),
+            Err(e) if e.lattice_cut() && self.expected.as_ref().is_none_or(|x| x.overfills) => {
+                let size = size.unwrap_or(ImageSize { width: 0, height: 0 });
+                let cut = start_cut(
+                    dets,
+                    stereo_rig,
+                    self.shape,
+                    self.expected.as_ref(),
+                    self.config.planar.pitch_mm,
+                    size,
+                    &self.config,
+                );
+                match cut {
+                    Ok(Some(started)) => Ok(started),
+                    // Not a cut grid: the whole-lattice error stands (the next frame is tried).
+                    Ok(None) => Err(e),
+                    Err(cut) => Err(cut.context(format!("{}; indexing the visible part", e.full_message()))),
+                }
+            }
+            Err(e) => Err(e),
+        }
+    }
+}
 
 /// Starts a session on the whole lattice: stereo when `rig` is given, else mono on the left view.
-pub(crate) fn start_whole(
+fn start_whole(
     dets: &StereoPair<TieredDetections>,
     rig: Option<&StereoRig>,
     shape: GridShape,
@@ -83,7 +181,7 @@ impl Session {
 
 /// The rest positions of a sensor description's markers in both views (row-major; `None` where a
 /// marker does not project), with the calibrated rig; and whether every one falls inside the image.
-pub(crate) fn expected_lattice(spec: &SensorSpec, rig: &StereoRig) -> Result<ExpectedLattice> {
+fn expected_lattice(spec: &SensorSpec, rig: &StereoRig) -> Result<ExpectedLattice> {
     let sensor = spec
         .build()
         .map_err(|e| Error::from(e).context("the sensor description"))?;
@@ -106,12 +204,12 @@ pub(crate) fn expected_lattice(spec: &SensorSpec, rig: &StereoRig) -> Result<Exp
     })
 }
 
-pub(crate) struct ExpectedLattice {
+struct ExpectedLattice {
     /// Rest positions in the left view (row-major; `None` where a marker does not project).
     left: Vec<Option<Point2>>,
     right: Vec<Option<Point2>>,
     /// Some marker falls outside a view at rest.
-    pub(crate) overfills: bool,
+    overfills: bool,
 }
 
 /// Whether the left view's markers come within a pitch of the image border (on a side where the
@@ -144,7 +242,7 @@ fn touches_border(dets: &[Detection], visible: GridShape, full: GridShape, size:
 /// marker (with a warning; `pitch_mm`, the marker pitch, can settle the right view's column
 /// offset). Returns the session and the lines to log; `None` when the view does not look cut off
 /// (no description, and no fewer rows or columns than the grid's near the image border).
-pub(crate) fn start_cut(
+fn start_cut(
     dets: &StereoPair<TieredDetections>,
     rig: Option<&StereoRig>,
     full: GridShape,
