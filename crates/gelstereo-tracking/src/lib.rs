@@ -17,6 +17,11 @@
 //! - Marker identity = grid index (row, col) on the reference frame of the left view; every list of
 //!   markers comes in row-major id order.
 //! - Indentation depth is positive when the gel surface is pushed towards the cameras.
+//!
+//! # Timing
+//! [`StereoSession`] runs each stage of a frame in a `tracing` span (level TRACE, no fields): `track`,
+//! `triangulate`, `outliers`, `contact`, `slip`. A benchmark times them with a subscriber of its own;
+//! without a subscriber a span costs a level check.
 
 pub mod contact;
 pub mod error;
@@ -35,8 +40,6 @@ pub use error::{Error, Result};
 pub use field::{DenseField, interpolate};
 pub use gelstereo_mechanics::Layer;
 pub use planar::{PlanarConfig, PlanarDetector, PlanarFrame};
-pub use session::{
-    MonoFrame, MonoSession, SessionConfig, StageMark, StereoFrame, StereoSession, flagged_rows,
-};
+pub use session::{MonoFrame, MonoSession, SessionConfig, StereoFrame, StereoSession, flagged_rows};
 pub use slip::{SlipConfig, SlipDetector, SlipFrame};
 pub use tracker::{TrackFrame, TrackedMarker, Tracker, TrackerConfig};

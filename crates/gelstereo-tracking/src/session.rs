@@ -6,8 +6,7 @@
 //!   in-plane field (see [`crate::planar`]).
 
 use gelstereo_core::{
-    CpuClock, Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2,
-    TieredDetections,
+    Detection, FrameSummary, GridIndex, GridShape, MarkerRecord, MarkerStatus, Point2, TieredDetections,
 };
 use gelstereo_geometry::Triangulator;
 use nalgebra::{Point3, Vector3};
@@ -97,15 +96,6 @@ pub struct StereoFrame {
     pub reprojection_px: Vec<Option<f64>>,
 }
 
-/// A clock reading taken between two stages of [`StereoSession::track`].
-#[derive(Debug, Clone, Copy)]
-pub struct StageMark {
-    /// Wall-clock time.
-    pub wall: std::time::Instant,
-    /// Process CPU time, ns (`None` when the clock failed).
-    pub cpu_ns: Option<u64>,
-}
-
 /// Tracks a stereo recording from its reference frame on.
 #[derive(Debug, Clone)]
 pub struct StereoSession {
@@ -125,9 +115,6 @@ pub struct StereoSession {
     /// 1/d^2 in lattice steps (the maps between the views, [`transfer`](Self::transfer)).
     around: Vec<Vec<(u32, f64)>>,
     reference_mm: Vec<Option<[f64; 3]>>,
-    /// With a clock, [`track`](Self::track) records [`StageMark`]s (for benchmarks).
-    stage_clock: Option<CpuClock>,
-    stage_marks: Vec<StageMark>,
     /// Track the two views and triangulate in parallel ([`set_parallel`](Self::set_parallel)).
     parallel: bool,
     /// The last frame number tracked: a later call with a gap (unreadable frames were not passed
@@ -208,8 +195,6 @@ impl StereoSession {
             ids,
             around,
             reference_mm,
-            stage_clock: None,
-            stage_marks: Vec::new(),
             parallel: false,
             last_frame: None,
             last_written: Vec::new(),
@@ -219,19 +204,6 @@ impl StereoSession {
     /// The ids written per frame (indexed in either view on the reference frame), row-major.
     pub fn ids(&self) -> &[GridIndex] {
         &self.ids
-    }
-
-    /// Makes [`track`](Self::track) take a [`StageMark`] (wall time and `cpu_clock`) before and after
-    /// each stage: association (both trackers), triangulation, outlier test and fill, contact geometry,
-    /// slip. Off by default (it costs six clock readings per frame).
-    pub fn record_stage_marks(&mut self, cpu_clock: CpuClock) {
-        self.stage_clock = Some(cpu_clock);
-    }
-
-    /// The six marks of the latest [`track`](Self::track) call (empty unless
-    /// [`record_stage_marks`](Self::record_stage_marks) was called, or after an error).
-    pub fn stage_marks(&self) -> &[StageMark] {
-        &self.stage_marks
     }
 
     /// Whether [`track`](Self::track) updates the two views' trackers and triangulates on rayon's
@@ -310,7 +282,9 @@ impl StereoSession {
         self.track_views(frame, [&l, &l2], [&r, &r2])
     }
 
-    /// Tracks a frame given each view's [accepted, second-tier] points.
+    /// Tracks a frame given each view's [accepted, second-tier] points. Each stage runs in a `tracing`
+    /// span (level TRACE, no fields; crate docs, "Timing"): `track` (both views' association and the
+    /// cross-view check), `triangulate`, `outliers` (outlier test and fill), `contact`, `slip`.
     fn track_views(
         &mut self,
         frame: u32,
@@ -320,22 +294,14 @@ impl StereoSession {
         let skipped = frames_skipped(&mut self.last_frame, frame);
         self.left.skip_frames(skipped);
         self.right.skip_frames(skipped);
-        let clock = self.stage_clock;
-        let mark = || {
-            clock.map(|cpu| StageMark {
-                wall: std::time::Instant::now(),
-                cpu_ns: cpu(),
-            })
-        };
-        self.stage_marks.clear();
-        let m_start = mark();
-        let (lf, rf) = self.associate_views(left, right);
-        let m_associated = mark();
+        let (lf, rf) = tracing::trace_span!("track").in_scope(|| self.associate_views(left, right));
+        let triangulate = tracing::trace_span!("triangulate").entered();
         let px = self.view_pixels(&lf, &rf);
         let points = self.triangulate_all(&px);
         let mut current: Vec<Option<[f64; 3]>> = points.iter().map(|t| t.map(|(p, _)| p)).collect();
         let reprojection_px: Vec<Option<f64>> = points.iter().map(|t| t.map(|(_, e)| e)).collect();
-        let m_triangulated = mark();
+        drop(triangulate);
+        let outliers = tracing::trace_span!("outliers").entered();
         let dropped = reject_outliers(
             self.shape,
             &self.reference_mm,
@@ -347,15 +313,9 @@ impl StereoSession {
         // Markers without a 3-D point take their reference plus the mean 3-D displacement of their
         // measured 8-neighbours.
         let filled = fill_from_neighbours(self.shape, &self.reference_mm, &current);
-        let m_filled = mark();
-        let contact = self.surface.analyze(&filled)?;
-        let m_contact = mark();
-        let slip = self.slip.update(&self.surface, &contact);
-        self.stage_marks.extend(
-            [m_start, m_associated, m_triangulated, m_filled, m_contact, mark()]
-                .into_iter()
-                .flatten(),
-        );
+        drop(outliers);
+        let contact = tracing::trace_span!("contact").in_scope(|| self.surface.analyze(&filled))?;
+        let slip = tracing::trace_span!("slip").in_scope(|| self.slip.update(&self.surface, &contact));
         let written = self.restore_within_floor(filled, &mut measured, dropped);
         self.last_written.clone_from(&written);
         let markers = self.marker_records(frame, &px, &written, &measured, &contact);

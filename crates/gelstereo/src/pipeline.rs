@@ -306,29 +306,12 @@ impl Pipeline {
         }
     }
 
-    /// The localizer, e.g. for its timing of the last frame.
+    /// The localizer (e.g. its name and MRE band).
     pub fn localizer(&self) -> &dyn Localizer {
         self.localizer.as_ref()
     }
 
-    /// Records a process CPU-time clock reading between the tracking stages of each stereo frame
-    /// (for benchmarks); see [`Self::stage_marks`].
-    pub fn record_stage_marks(&mut self, clock: gelstereo_core::CpuClock) {
-        if let Some(Session::Stereo(s)) = &mut self.session {
-            s.record_stage_marks(clock);
-        }
-    }
-
-    /// The clock readings between the tracking stages of the last stereo frame (empty unless
-    /// [`Self::record_stage_marks`] was called after the reference frame).
-    pub fn stage_marks(&self) -> &[gelstereo_tracking::StageMark] {
-        match &self.session {
-            Some(Session::Stereo(s)) => s.stage_marks(),
-            _ => &[],
-        }
-    }
-
-    /// The localizer, mutable (e.g. to set a CPU clock for benchmarks).
+    /// The localizer, mutable (e.g. to localize a frame outside [`Self::process`]).
     pub fn localizer_mut(&mut self) -> &mut (dyn Localizer + Send) {
         self.localizer.as_mut()
     }

@@ -8,12 +8,13 @@
 //!   run's frames/s and CPU time per frame.
 
 pub mod localization;
+mod span_clock;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::{Barrier, mpsc};
+use std::sync::{Arc, Barrier, mpsc};
 use std::time::Instant;
 
 use gelstereo_core::stats::median;
@@ -22,6 +23,7 @@ use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_markers::{Method, create_localizer};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
+use span_clock::{Interval, Mark, SpanClock};
 
 use gelstereo::source::FrameSource;
 use gelstereo::track::{SinkOptions, TrackOptions};
@@ -56,20 +58,36 @@ pub struct PipelineBench {
     pub repeats: usize,
 }
 
-/// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
-/// for the learned methods only).
-const STAGES: [&str; 11] = [
-    "decode (both views, from bytes in memory)",
-    "localization (both views, one batch)",
-    "  preprocess (resize, f32 tensor)",
-    "  network (ONNX Runtime run)",
-    "  post-process (decode, select, MRE)",
-    "tracking association (2 views)",
-    "triangulation",
-    "outlier test + fill",
-    "contact geometry",
-    "slip",
-    "track() whole (stages above + rows)",
+/// Where a row of the latency table is timed.
+#[derive(Clone, Copy)]
+enum Timed {
+    /// Decoding both views from their bytes, by the benchmark.
+    Decode,
+    /// From the call of [`Pipeline::process`] to the first tracking span.
+    Localization,
+    /// The own time of the spans of this name ([`span_clock`]).
+    Span(&'static str),
+    /// From the first tracking span to the return of [`Pipeline::process`].
+    TrackWhole,
+}
+
+/// The span that starts the tracking stages of a stereo frame.
+const FIRST_TRACKING_SPAN: &str = "track";
+
+/// The rows of the latency table, in pipeline order, and where each is timed (the indented ones:
+/// parts of localization, for Marknet only).
+const STAGES: [(&str, Timed); 11] = [
+    ("decode (both views, from bytes in memory)", Timed::Decode),
+    ("localization (both views, one batch)", Timed::Localization),
+    ("  preprocess (resize, f32 tensor)", Timed::Span("marknet.preprocess")),
+    ("  network (ONNX Runtime run)", Timed::Span("marknet.network")),
+    ("  post-process (decode, select, MRE)", Timed::Span("marknet.postprocess")),
+    ("tracking association (2 views)", Timed::Span(FIRST_TRACKING_SPAN)),
+    ("triangulation", Timed::Span("triangulate")),
+    ("outlier test + fill", Timed::Span("outliers")),
+    ("contact geometry", Timed::Span("contact")),
+    ("slip", Timed::Span("slip")),
+    ("track() whole (stages above + rows)", Timed::TrackWhole),
 ];
 
 /// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
@@ -101,35 +119,6 @@ pub fn clock_overhead_ns() -> u64 {
         .collect();
     empty.sort_unstable();
     empty.get(empty.len() / 2).copied().unwrap_or(0)
-}
-
-/// A point in time and the process CPU time then.
-#[derive(Clone, Copy)]
-struct Mark {
-    wall: Instant,
-    cpu_ns: Option<u64>,
-}
-
-impl Mark {
-    fn now() -> Self {
-        let cpu_ns = process_cpu_clock_ns();
-        Self {
-            wall: Instant::now(),
-            cpu_ns,
-        }
-    }
-
-    /// Wall time from `self` to `later`, ms.
-    fn wall_ms(&self, later: &Mark) -> f64 {
-        (later.wall - self.wall).as_secs_f64() * 1e3
-    }
-
-    /// CPU time of the process from `self` to `later`, ms, less `overhead_ns` (one clock reading).
-    fn cpu_ms(&self, later: &Mark, overhead_ns: u64) -> Option<f64> {
-        self.cpu_ns
-            .zip(later.cpu_ns)
-            .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6)
-    }
 }
 
 /// Median, 90th percentile and mean of `samples_ms` (zeros when empty).
@@ -231,8 +220,15 @@ struct Latency {
     index_ms: Vec<f64>,
 }
 
-/// Latency mode: one frame at a time through [`Pipeline::process`], stages from the localizer's
-/// and the tracker's own clock readings.
+impl Latency {
+    fn push(&mut self, row: usize, time: Interval, overhead_ns: u64) {
+        self.times[row].push(time.wall_ms());
+        self.cpu[row].extend(time.cpu_ms(overhead_ns));
+    }
+}
+
+/// Latency mode: one frame at a time through [`Pipeline::process`], its stages timed from their
+/// `tracing` spans by a [`SpanClock`] on this thread.
 fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead_ns: u64) -> Result<Latency> {
     let n = loaded.frames.len();
     let mut l = Latency {
@@ -243,6 +239,8 @@ fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead
         markers: 0,
         index_ms: Vec::new(),
     };
+    let clock = Arc::new(SpanClock::default());
+    let _timing = tracing::subscriber::set_default(Arc::clone(&clock));
     for j in 0..b.warmup + b.runs {
         let k = ping_pong(j, n);
         let m_decode = Mark::now();
@@ -259,40 +257,27 @@ fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead
                 loaded.paths[k].left.display()
             )));
         }
-        let st: Vec<Mark> = pipeline
-            .stage_marks()
-            .iter()
-            .map(|m| Mark {
-                wall: m.wall,
-                cpu_ns: m.cpu_ns,
-            })
-            .collect();
+        let spans = clock.take_frame();
         if j < b.warmup {
             continue;
         }
-        let Some(m1) = st.first().copied() else { continue };
-        let mut push = |i: usize, a: &Mark, z: &Mark| {
-            l.times[i].push(a.wall_ms(z));
-            l.cpu[i].extend(a.cpu_ms(z, overhead_ns));
+        let Some(m1) = spans.get(FIRST_TRACKING_SPAN).map(|t| t.first) else {
+            continue;
         };
-        push(0, &m_decode, &m_decoded);
-        push(1, &m0, &m1);
-        for (i, w) in st.windows(2).enumerate() {
-            push(5 + i, &w[0], &w[1]);
-        }
-        push(10, &m1, &m2);
-        if let Some(parts) = pipeline.localizer().last_times() {
-            l.times[2].push(parts.preprocess_ms);
-            l.times[3].push(parts.network_ms);
-            l.times[4].push(parts.postprocess_ms);
-            if let Some(cpu) = parts.cpu_ms {
-                for (i, c) in cpu.iter().enumerate() {
-                    l.cpu[2 + i].push((c - overhead_ns as f64 * 1e-6).max(0.0));
-                }
+        for (row, (_, timed)) in STAGES.iter().enumerate() {
+            let time = match timed {
+                Timed::Decode => Some(Interval::between(&m_decode, &m_decoded)),
+                Timed::Localization => Some(Interval::between(&m0, &m1)),
+                Timed::Span(name) => spans.get(name).map(|t| t.own),
+                Timed::TrackWhole => Some(Interval::between(&m1, &m2)),
+            };
+            if let Some(time) = time {
+                l.push(row, time, overhead_ns);
             }
         }
-        l.whole.push(m0.wall_ms(&m2));
-        l.cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
+        let whole = Interval::between(&m0, &m2);
+        l.whole.push(whole.wall_ms());
+        l.cpu_whole.extend(whole.cpu_ms(overhead_ns));
         l.markers += out.markers.iter().filter(|m| m.left_px.is_some()).count()
             + out.markers.iter().filter(|m| m.right_px.is_some()).count();
     }
@@ -452,7 +437,6 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         .unwrap_or_default();
     let method = b.config.chosen_method();
     let mut pipeline = Pipeline::new(&b.config)?;
-    pipeline.localizer_mut().set_cpu_clock(process_cpu_clock_ns);
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let workers = if b.workers == 0 { cores } else { b.workers };
     let max = gelstereo_core::limits::MAX_THREADS;
@@ -497,7 +481,6 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         }
     }
     let overhead_ns = clock_overhead_ns();
-    pipeline.record_stage_marks(process_cpu_clock_ns);
     let mut lat = latency(&mut pipeline, &loaded, b, overhead_ns)?;
     lat.index_ms = index_ms;
     let throughput_of = |bench: &PipelineBench| -> Result<(f64, Option<f64>)> {
@@ -561,7 +544,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
     let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"));
     let mut stage_rows = Vec::new();
-    for ((name, samples), cpu) in STAGES.iter().zip(lat.times.iter_mut()).zip(lat.cpu.iter_mut()) {
+    for (((name, _), samples), cpu) in STAGES.iter().zip(lat.times.iter_mut()).zip(lat.cpu.iter_mut()) {
         if samples.is_empty() {
             continue;
         }
@@ -617,7 +600,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     }
     let _ = writeln!(
         text,
-        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; tracking stages from StereoSession::track's own stage marks; load average {load_start} at start, {load_end} at end",
+        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; stages from their `tracing` spans (own time, nested spans excluded); load average {load_start} at start, {load_end} at end",
         lat.markers as f64 / (2 * b.runs) as f64,
     );
     let json = json!({
@@ -648,7 +631,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
             "repeats": repeats.iter().map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})).collect::<Vec<_>>(),
             "whole_input": whole_input.map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})),
         },
-        "tracking_stages_from": "StereoSession::track stage marks",
+        "tracking_stages_from": "tracing spans (own time)",
         "not_timed": "exports (CSV rows, PLY, overlays, plots)",
     });
     Ok(Report { text, json })
