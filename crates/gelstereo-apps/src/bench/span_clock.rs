@@ -57,8 +57,7 @@ impl Interval {
 
     /// CPU time, ms, less `overhead_ns` (the cost of one clock reading).
     pub(super) fn cpu_ms(&self, overhead_ns: u64) -> Option<f64> {
-        self.cpu_ns
-            .map(|c| c.saturating_sub(overhead_ns) as f64 * 1e-6)
+        self.cpu_ns.map(|c| c.saturating_sub(overhead_ns) as f64 * 1e-6)
     }
 
     fn add(&mut self, other: Self) {
