@@ -188,3 +188,58 @@ impl Subscriber for SpanClock {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    use super::*;
+
+    fn sleep_ms(ms: u64) {
+        std::thread::sleep(Duration::from_millis(ms));
+    }
+
+    /// Marknet's post-process row is its call's own time: the network passes nested in it must not
+    /// count twice. Sleeps only bound a time from below, so the checks leave a wide margin above.
+    #[test]
+    fn a_span_counts_its_own_time_without_the_spans_nested_in_it() {
+        let clock = Arc::new(SpanClock::default());
+        let _installed = tracing::subscriber::set_default(Arc::clone(&clock));
+        tracing::trace_span!("outer").in_scope(|| {
+            sleep_ms(5);
+            tracing::trace_span!("inner").in_scope(|| sleep_ms(50));
+            tracing::trace_span!("inner").in_scope(|| sleep_ms(50));
+        });
+        let frame = clock.take_frame();
+        let (Some(outer), Some(inner)) = (frame.get("outer"), frame.get("inner")) else {
+            panic!("a span was not timed");
+        };
+        assert!(inner.own.wall_ms() >= 100.0, "{}", inner.own.wall_ms());
+        assert!(
+            (5.0..100.0).contains(&outer.own.wall_ms()),
+            "{}",
+            outer.own.wall_ms()
+        );
+        assert!(outer.first.wall <= inner.first.wall);
+        assert!(
+            clock.take_frame().get("outer").is_none(),
+            "the frame was not reset"
+        );
+    }
+
+    /// The subscriber times the benchmark's thread only: the throughput mode's localizers run on
+    /// worker threads.
+    #[test]
+    fn spans_of_other_threads_are_not_timed() {
+        let clock = Arc::new(SpanClock::default());
+        let _installed = tracing::subscriber::set_default(Arc::clone(&clock));
+        std::thread::spawn(|| tracing::trace_span!("elsewhere").in_scope(|| sleep_ms(1)))
+            .join()
+            .unwrap_or_default();
+        tracing::trace_span!("here").in_scope(|| sleep_ms(1));
+        let frame = clock.take_frame();
+        assert!(frame.get("elsewhere").is_none());
+        assert!(frame.get("here").is_some());
+    }
+}
