@@ -73,7 +73,7 @@ fn pipeline_bench_lists_every_stage_with_positive_figures() {
         text.contains("stereo frames/s over 6 frames (2 workers"),
         "{text}"
     );
-    assert!(text.contains("StereoSession::track's own stage marks"), "{text}");
+    assert!(text.contains("stages from their `tracing` spans"), "{text}");
     assert!(text.contains("load average"), "{text}");
 
     assert_eq!(report["method"], "blob");
@@ -84,7 +84,7 @@ fn pipeline_bench_lists_every_stage_with_positive_figures() {
     assert!(stages.iter().all(|s| s["median_ms"].as_f64().unwrap() >= 0.0));
     assert!(report["latency"]["whole_ms"]["median"].as_f64().unwrap() > 0.0);
     assert!(report["throughput"]["frames_per_s"].as_f64().unwrap() > 0.0);
-    assert_eq!(report["tracking_stages_from"], "StereoSession::track stage marks");
+    assert_eq!(report["tracking_stages_from"], "tracing spans (own time)");
     // The blob detector has no window around the lattice: no whole-input run beside it.
     assert!(report["throughput"]["whole_input"].is_null());
     assert!(!text.contains("--whole-input"), "{text}");
@@ -101,6 +101,15 @@ fn pipeline_bench_measures_the_whole_input_beside_the_window() {
         "{text}"
     );
     assert_eq!(report["method"], "marknet-mre");
+    // Marknet's parts come from its `tracing` spans: all three rows, each positive.
+    for part in [
+        "  preprocess (resize, f32 tensor)",
+        "  network (ONNX Runtime run)",
+        "  post-process (decode, select, MRE)",
+    ] {
+        assert!(first_ms(&text, part) > 0.0, "{part}: not positive in\n{text}");
+    }
+    assert_eq!(report["latency"]["stages"].as_array().unwrap().len(), 11);
     assert!(
         report["throughput"]["whole_input"]["frames_per_s"]
             .as_f64()

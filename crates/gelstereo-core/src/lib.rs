@@ -28,10 +28,6 @@ pub use grid::{GridIndex, GridShape};
 pub use marker::{Detection, ImageSize, MarkerStatus, Point2, SlipState, StereoPair, TieredDetections, View};
 pub use table::{CsvTable, FrameSummary, MarkerRecord};
 
-/// A reading of the process's CPU time, ns (e.g. `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`), that a
-/// benchmark hands to the stages it times; `None` when the clock fails.
-pub type CpuClock = fn() -> Option<u64>;
-
 /// Errors of the shared types: parsing names and table files.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {

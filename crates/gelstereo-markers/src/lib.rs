@@ -17,6 +17,12 @@
 //! - Images are 8-bit OpenCV [`Mat`]s, BGR (3 channels), BGRA (4) or grey (1). Network tensors are f32,
 //!   geometry f64.
 //! - Detections come out sorted by y, then x, so results are deterministic.
+//!
+//! # Timing
+//! [`marknet::Marknet`] opens `tracing` spans (level TRACE, no fields) around the parts of a
+//! localization call: `marknet.preprocess` (resize, f32 tensor), `marknet.network` (the ONNX Runtime
+//! run) and `marknet.postprocess`, the whole call, in which the other two nest: its own time is the
+//! decoding, selection, layout decisions and MRE. Without a subscriber a span costs a level check.
 
 pub mod blob;
 pub mod border;
@@ -39,7 +45,7 @@ pub mod yolo;
 
 use std::path::PathBuf;
 
-use gelstereo_core::{CpuClock, Detection, ImageSize, StereoPair, TieredDetections};
+use gelstereo_core::{Detection, ImageSize, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
@@ -138,20 +144,6 @@ pub(crate) fn cv_err(context: &'static str) -> impl FnOnce(opencv::Error) -> Err
 /// Smallest image side a localizer accepts, px: below it no marker of any sensor we know is resolvable.
 pub const MIN_IMAGE_SIDE_PX: u32 = 16;
 
-/// Wall time (and, with a [`CpuClock`], CPU time) of the parts of one localization call (one image
-/// or one stereo batch), ms.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct LocalizationTimes {
-    /// Resize to the network input and conversion to its f32 tensor, all images of the batch.
-    pub preprocess_ms: f64,
-    /// The network's ONNX Runtime run, its output copied out.
-    pub network_ms: f64,
-    /// Decoding the output, candidate selection and (with MRE) the MRE run.
-    pub postprocess_ms: f64,
-    /// CPU time of the process during each of the three parts, ms (`None` without a clock).
-    pub cpu_ms: Option<[f64; 3]>,
-}
-
 /// A marker localizer: finds marker centres in one image, or in both views of a stereo pair.
 pub trait Localizer: Send {
     /// The method's name as used on the command line and in tables (`blob`, `marknet`, `marknet-mre`).
@@ -164,18 +156,6 @@ pub trait Localizer: Send {
     /// `conf_keep`), so overlays can mark those. `None` for methods without MRE.
     fn mre_band_top(&self) -> Option<f32> {
         None
-    }
-
-    /// Wall time of the parts of the latest `detect` / `detect_stereo` call (for benchmarks); `None`
-    /// for methods that do not split their work (the blob detector).
-    fn last_times(&self) -> Option<LocalizationTimes> {
-        None
-    }
-
-    /// Lets [`Localizer::last_times`] also report CPU time, read with `clock` (for benchmarks; no
-    /// effect on methods without [`Localizer::last_times`]).
-    fn set_cpu_clock(&mut self, clock: CpuClock) {
-        let _ = clock;
     }
 
     /// Whether the views of a stereo pair are worked on in parallel where the method can (the

@@ -11,7 +11,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use gelstereo_core::{CpuClock, Detection, ImageSize, Point2, StereoPair, TieredDetections};
+use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 use ort::session::Session;
 use ort::session::builder::GraphOptimizationLevel;
@@ -37,8 +37,7 @@ use crate::site_blobs::blobs_at_empty_sites;
 use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
-    Error, LocalizationTimes, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image,
-    cv_err, runtime,
+    Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
 };
 
 /// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
@@ -839,12 +838,6 @@ pub struct Marknet {
     /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
     parallel: bool,
     input: Vec<f32>,
-    times: LocalizationTimes,
-    clock: Option<CpuClock>,
-    /// CPU time of the latest batch spent preprocessing and in the network (all passes), ns.
-    cpu_spent_ns: [u64; 2],
-    /// Whether every clock reading of the latest batch succeeded.
-    cpu_complete: bool,
 }
 
 impl std::fmt::Debug for Marknet {
@@ -886,10 +879,6 @@ impl Marknet {
             resize: Vec::new(),
             parallel: false,
             input: Vec::new(),
-            times: LocalizationTimes::default(),
-            clock: None,
-            cpu_spent_ns: [0; 2],
-            cpu_complete: true,
         })
     }
 
@@ -1034,8 +1023,8 @@ impl Marknet {
 
     /// Runs the network once on `images` under `layouts` (each on the whole input, or on the window
     /// `windows` gives), all of one input size; returns the raw output (`[Gy, Gx, m, 3]` logits per
-    /// image, row-major, concatenated). Adds its preprocessing and network times to
-    /// [`LocalizationTimes`] (a batch may take two passes under the "auto" fit).
+    /// image, row-major, concatenated), in the spans `marknet.preprocess` and `marknet.network` (a
+    /// batch may take several passes under the "auto" fit).
     fn run_batch(
         &mut self,
         images: &[&Mat],
@@ -1047,8 +1036,7 @@ impl Marknet {
         };
         let (iw, ih) = input_dims(first, windows.first().and_then(Option::as_ref));
         let (iw, ih) = (iw as usize, ih as usize);
-        let c0 = self.clock.and_then(|c| c());
-        let t0 = std::time::Instant::now();
+        let preprocessing = tracing::trace_span!("marknet.preprocess").entered();
         self.input.resize(images.len() * 3 * iw * ih, 0.0);
         if self.resize.len() < images.len() {
             self.resize.resize_with(images.len(), ResizeScratch::default);
@@ -1073,8 +1061,8 @@ impl Marknet {
         )
         .into_iter()
         .collect::<Result<()>>()?;
-        let t1 = std::time::Instant::now();
-        let c1 = self.clock.and_then(|c| c());
+        drop(preprocessing);
+        let _network = tracing::trace_span!("marknet.network").entered();
         let run = onnx_err(&self.path, "inference");
         let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
             .map_err(|e| run(e.to_string()))?;
@@ -1096,17 +1084,7 @@ impl Marknet {
             )));
         }
         check_finite(raw, MARKNET_OUTPUT).map_err(run)?;
-        let raw = raw.to_vec();
-        self.times.preprocess_ms += (t1 - t0).as_secs_f64() * 1e3;
-        self.times.network_ms += t1.elapsed().as_secs_f64() * 1e3;
-        match (c0, c1, self.clock.and_then(|c| c())) {
-            (Some(a), Some(b), Some(c)) => {
-                self.cpu_spent_ns[0] += b.saturating_sub(a);
-                self.cpu_spent_ns[1] += c.saturating_sub(b);
-            }
-            _ => self.cpu_complete = false,
-        }
-        Ok(raw)
+        Ok(raw.to_vec())
     }
 
     /// Runs the network on `images` as one batch under the layouts the next images of their sizes get
@@ -1489,26 +1467,11 @@ impl Marknet {
 
     /// [`detect_batch`](Self::detect_batch) with each image's rejected candidates as second tier
     /// ([`Selection::finish_tiered`]); same accepted markers, same cost.
+    /// The call runs in the span `marknet.postprocess`, the network passes' spans nested in it
+    /// (crate docs, "Timing").
     pub fn detect_batch_tiered(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
-        let started = std::time::Instant::now();
-        self.times = LocalizationTimes::default();
-        self.cpu_spent_ns = [0; 2];
-        self.cpu_complete = true;
-        let start = self.clock.and_then(|c| c());
-        let found = self.detect_batch_untimed(images)?;
-        let end = self.clock.and_then(|c| c());
-        let t = &mut self.times;
-        t.postprocess_ms = (started.elapsed().as_secs_f64() * 1e3 - t.preprocess_ms - t.network_ms).max(0.0);
-        if let (true, Some(a), Some(d)) = (self.cpu_complete, start, end) {
-            let [pre, net] = self.cpu_spent_ns;
-            let ms = |ns: u64| ns as f64 * 1e-6;
-            t.cpu_ms = Some([
-                ms(pre),
-                ms(net),
-                ms(d.saturating_sub(a).saturating_sub(pre + net)),
-            ]);
-        }
-        Ok(found)
+        let _postprocess = tracing::trace_span!("marknet.postprocess").entered();
+        self.localize_batch(images)
     }
 
     /// Localizes a batch: each image on its view's remembered window ([`crate::window`]) where it
@@ -1516,7 +1479,7 @@ impl Marknet {
     /// lattice (and a remembered pitch) gives the view its window, and is then localized on it, as
     /// every later frame of the view will be (one scale and sampling for a tracker's reference frame
     /// and the frames compared with it).
-    fn detect_batch_untimed(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
+    fn localize_batch(&mut self, images: &[&Mat]) -> Result<Vec<TieredDetections>> {
         let sizes = images
             .iter()
             .map(|im| check_image(im))
@@ -1753,14 +1716,6 @@ impl Localizer for Marknet {
 
     fn mre_band_top(&self) -> Option<f32> {
         self.mre.is_some().then_some(self.post.conf_keep)
-    }
-
-    fn last_times(&self) -> Option<LocalizationTimes> {
-        Some(self.times)
-    }
-
-    fn set_cpu_clock(&mut self, clock: CpuClock) {
-        self.clock = Some(clock);
     }
 
     fn set_parallel(&mut self, parallel: bool) {

@@ -279,12 +279,12 @@ impl Pipeline {
         }
     }
 
-    /// The localizer, e.g. for its timing of the last frame.
+    /// The localizer (e.g. its name and MRE band).
     pub fn localizer(&self) -> &dyn Localizer {
         self.localize.localizer.as_ref()
     }
 
-    /// The localizer, mutable (e.g. to set a CPU clock for benchmarks).
+    /// The localizer, mutable (e.g. to localize a frame outside [`Self::process`]).
     pub fn localizer_mut(&mut self) -> &mut (dyn Localizer + Send) {
         self.localize.localizer.as_mut()
     }

@@ -1,19 +1,21 @@
 //! Benchmarks of the pipeline as it runs, timing [`gelstereo::Pipeline`] and [`gelstereo::track::run`]
 //! themselves (no copy of their logic):
 //! - [`pipeline`]: per-stage medians and p90 in latency mode (one frame at a time, frames decoded
-//!   into memory first), the whole pipeline per stereo frame with its CPU time, and the throughput
+//!   into memory first; the stages timed from their `tracing` spans by a subscriber installed on the
+//!   benchmark's thread for that mode only), the whole pipeline per stereo frame with its CPU time, and the throughput
 //!   mode (frames localized in parallel on worker threads, feeding the pipeline's tracker in order;
 //!   repeated with fresh workers as asked, its medians and range);
 //! - [`end_to_end`]: `gelstereo track` from disk with its default outputs, repeated, the median
 //!   run's frames/s and CPU time per frame.
 
 pub mod localization;
+mod span_clock;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::{Barrier, mpsc};
+use std::sync::{Arc, Barrier, mpsc};
 use std::time::Instant;
 
 use gelstereo_core::stats::median;
@@ -22,6 +24,7 @@ use gelstereo_io::images::{self, StereoRecording};
 use gelstereo_markers::{Method, create_localizer};
 use opencv::core::{Mat, MatTraitConst};
 use serde_json::json;
+use span_clock::{Interval, Mark, SpanClock};
 
 use gelstereo::source::FrameSource;
 use gelstereo::track::{SinkOptions, TrackOptions};
@@ -56,20 +59,42 @@ pub struct PipelineBench {
     pub repeats: usize,
 }
 
-/// Stage names of the latency table, in pipeline order (the indented ones: parts of localization,
-/// for the learned methods only).
-const STAGES: [&str; 11] = [
-    "decode (both views, from bytes in memory)",
-    "localization (both views, one batch)",
-    "  preprocess (resize, f32 tensor)",
-    "  network (ONNX Runtime run)",
-    "  post-process (decode, select, MRE)",
-    "tracking association (2 views)",
-    "triangulation",
-    "outlier test + fill",
-    "contact geometry",
-    "slip",
-    "track() whole (stages above + rows)",
+/// Where a row of the latency table is timed.
+#[derive(Clone, Copy)]
+enum Timed {
+    /// Decoding both views from their bytes, by the benchmark.
+    Decode,
+    /// From the call of [`Pipeline::process`] to the first tracking span.
+    Localization,
+    /// The own time of the spans of this name ([`span_clock`]).
+    Span(&'static str),
+    /// From the first tracking span to the return of [`Pipeline::process`].
+    TrackWhole,
+}
+
+/// The span that starts the tracking stages of a stereo frame.
+const FIRST_TRACKING_SPAN: &str = "track";
+
+/// The rows of the latency table, in pipeline order, and where each is timed (the indented ones:
+/// parts of localization, for Marknet only).
+const STAGES: [(&str, Timed); 11] = [
+    ("decode (both views, from bytes in memory)", Timed::Decode),
+    ("localization (both views, one batch)", Timed::Localization),
+    (
+        "  preprocess (resize, f32 tensor)",
+        Timed::Span("marknet.preprocess"),
+    ),
+    ("  network (ONNX Runtime run)", Timed::Span("marknet.network")),
+    (
+        "  post-process (decode, select, MRE)",
+        Timed::Span("marknet.postprocess"),
+    ),
+    ("tracking association (2 views)", Timed::Span(FIRST_TRACKING_SPAN)),
+    ("triangulation", Timed::Span("triangulate")),
+    ("outlier test + fill", Timed::Span("outliers")),
+    ("contact geometry", Timed::Span("contact")),
+    ("slip", Timed::Span("slip")),
+    ("track() whole (stages above + rows)", Timed::TrackWhole),
 ];
 
 /// CPU time of all threads of this process, ns, from `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: exact
@@ -101,35 +126,6 @@ pub fn clock_overhead_ns() -> u64 {
         .collect();
     empty.sort_unstable();
     empty.get(empty.len() / 2).copied().unwrap_or(0)
-}
-
-/// A point in time and the process CPU time then.
-#[derive(Clone, Copy)]
-struct Mark {
-    wall: Instant,
-    cpu_ns: Option<u64>,
-}
-
-impl Mark {
-    fn now() -> Self {
-        let cpu_ns = process_cpu_clock_ns();
-        Self {
-            wall: Instant::now(),
-            cpu_ns,
-        }
-    }
-
-    /// Wall time from `self` to `later`, ms.
-    fn wall_ms(&self, later: &Mark) -> f64 {
-        (later.wall - self.wall).as_secs_f64() * 1e3
-    }
-
-    /// CPU time of the process from `self` to `later`, ms, less `overhead_ns` (one clock reading).
-    fn cpu_ms(&self, later: &Mark, overhead_ns: u64) -> Option<f64> {
-        self.cpu_ns
-            .zip(later.cpu_ns)
-            .map(|(a, b)| b.saturating_sub(a).saturating_sub(overhead_ns) as f64 * 1e-6)
-    }
 }
 
 /// Median, 90th percentile and mean of `samples_ms` (zeros when empty).
@@ -228,11 +224,17 @@ struct Latency {
     whole: Vec<f64>,
     cpu_whole: Vec<f64>,
     markers: usize,
-    index_ms: Vec<f64>,
 }
 
-/// Latency mode: one frame at a time through [`Pipeline::process`], stages from the localizer's
-/// and the tracker's own clock readings.
+impl Latency {
+    fn push(&mut self, row: usize, time: Interval, overhead_ns: u64) {
+        self.times[row].push(time.wall_ms());
+        self.cpu[row].extend(time.cpu_ms(overhead_ns));
+    }
+}
+
+/// Latency mode: one frame at a time through [`Pipeline::process`], its stages timed from their
+/// `tracing` spans by a [`SpanClock`] on this thread.
 fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead_ns: u64) -> Result<Latency> {
     let n = loaded.frames.len();
     let mut l = Latency {
@@ -241,8 +243,9 @@ fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead
         whole: Vec::new(),
         cpu_whole: Vec::new(),
         markers: 0,
-        index_ms: Vec::new(),
     };
+    let clock = Arc::new(SpanClock::default());
+    let _timing = tracing::subscriber::set_default(Arc::clone(&clock));
     for j in 0..b.warmup + b.runs {
         let k = ping_pong(j, n);
         let m_decode = Mark::now();
@@ -259,40 +262,27 @@ fn latency(pipeline: &mut Pipeline, loaded: &Loaded, b: &PipelineBench, overhead
                 loaded.paths[k].left.display()
             )));
         }
-        let st: Vec<Mark> = pipeline
-            .stage_marks()
-            .iter()
-            .map(|m| Mark {
-                wall: m.wall,
-                cpu_ns: m.cpu_ns,
-            })
-            .collect();
+        let spans = clock.take_frame();
         if j < b.warmup {
             continue;
         }
-        let Some(m1) = st.first().copied() else { continue };
-        let mut push = |i: usize, a: &Mark, z: &Mark| {
-            l.times[i].push(a.wall_ms(z));
-            l.cpu[i].extend(a.cpu_ms(z, overhead_ns));
+        let Some(m1) = spans.get(FIRST_TRACKING_SPAN).map(|t| t.first) else {
+            continue;
         };
-        push(0, &m_decode, &m_decoded);
-        push(1, &m0, &m1);
-        for (i, w) in st.windows(2).enumerate() {
-            push(5 + i, &w[0], &w[1]);
-        }
-        push(10, &m1, &m2);
-        if let Some(parts) = pipeline.localizer().last_times() {
-            l.times[2].push(parts.preprocess_ms);
-            l.times[3].push(parts.network_ms);
-            l.times[4].push(parts.postprocess_ms);
-            if let Some(cpu) = parts.cpu_ms {
-                for (i, c) in cpu.iter().enumerate() {
-                    l.cpu[2 + i].push((c - overhead_ns as f64 * 1e-6).max(0.0));
-                }
+        for (row, (_, timed)) in STAGES.iter().enumerate() {
+            let time = match timed {
+                Timed::Decode => Some(Interval::between(&m_decode, &m_decoded)),
+                Timed::Localization => Some(Interval::between(&m0, &m1)),
+                Timed::Span(name) => spans.get(name).map(|t| t.own),
+                Timed::TrackWhole => Some(Interval::between(&m1, &m2)),
+            };
+            if let Some(time) = time {
+                l.push(row, time, overhead_ns);
             }
         }
-        l.whole.push(m0.wall_ms(&m2));
-        l.cpu_whole.extend(m0.cpu_ms(&m2, overhead_ns));
+        let whole = Interval::between(&m0, &m2);
+        l.whole.push(whole.wall_ms());
+        l.cpu_whole.extend(whole.cpu_ms(overhead_ns));
         l.markers += out.markers.iter().filter(|m| m.left_px.is_some()).count()
             + out.markers.iter().filter(|m| m.right_px.is_some()).count();
     }
@@ -422,55 +412,79 @@ fn spread_of_runs(runs: &[(f64, Option<f64>)]) -> String {
     )
 }
 
-/// The pipeline benchmark (see the module docs).
-pub fn pipeline(b: &PipelineBench) -> Result<Report> {
-    if b.runs < 1 {
-        return Err(Error::Invalid("--runs must be at least 1".into()));
+/// The recording of the pipeline benchmark, loaded, and the machine it runs on.
+struct Setup {
+    loaded: Loaded,
+    /// Image size, px (width, height).
+    size: (i32, i32),
+    /// The folder of the models.
+    models: String,
+    method: Method,
+    cores: usize,
+    /// Worker threads of the throughput mode.
+    workers: usize,
+}
+
+impl Setup {
+    /// Checks the options and loads the first frames of the recording.
+    fn open(b: &PipelineBench) -> Result<Self> {
+        if b.runs < 1 {
+            return Err(Error::Invalid("--runs must be at least 1".into()));
+        }
+        if b.repeats < 1 {
+            return Err(Error::Invalid("--repeats must be at least 1".into()));
+        }
+        let rec = open_recording(&b.recording)?;
+        let n = if b.frames == 0 {
+            rec.len()
+        } else {
+            b.frames.min(rec.len())
+        };
+        let loaded = load(&rec, n)?;
+        let left = loaded.frames[0].images.left();
+        let size = (left.cols(), left.rows());
+        let models = b
+            .config
+            .localizer
+            .marknet_path
+            .parent()
+            .map(|p| p.display().to_string())
+            .unwrap_or_default();
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let workers = if b.workers == 0 { cores } else { b.workers };
+        let max = gelstereo_core::limits::MAX_THREADS;
+        if workers > max {
+            return Err(Error::Invalid(format!(
+                "workers: at most {max} threads, got {workers}"
+            )));
+        }
+        Ok(Self {
+            loaded,
+            size,
+            models,
+            method: b.config.chosen_method(),
+            cores,
+            workers,
+        })
     }
-    if b.repeats < 1 {
-        return Err(Error::Invalid("--repeats must be at least 1".into()));
+
+    fn frames(&self) -> usize {
+        self.loaded.frames.len()
     }
-    let input = b.recording.as_path();
-    let rec = open_recording(input)?;
-    let spec = b.config.calibration.clone().unwrap_or_default();
-    let n = if b.frames == 0 {
-        rec.len()
-    } else {
-        b.frames.min(rec.len())
-    };
-    let loaded = load(&rec, n)?;
-    let size = (
-        loaded.frames[0].images.left().cols(),
-        loaded.frames[0].images.left().rows(),
-    );
-    let models = b
-        .config
-        .localizer
-        .marknet_path
-        .parent()
-        .map(|p| p.display().to_string())
-        .unwrap_or_default();
-    let method = b.config.chosen_method();
-    let mut pipeline = Pipeline::new(&b.config)?;
-    pipeline.localizer_mut().set_cpu_clock(process_cpu_clock_ns);
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let workers = if b.workers == 0 { cores } else { b.workers };
-    let max = gelstereo_core::limits::MAX_THREADS;
-    if workers > max {
-        return Err(Error::Invalid(format!(
-            "workers: at most {max} threads, got {workers}"
-        )));
+
+    /// Whether the method runs a network through ONNX Runtime.
+    fn ort(&self) -> bool {
+        matches!(self.method, Method::Marknet | Method::MarknetMre | Method::Yolo)
     }
-    let load_start = load_average();
-    eprintln!(
-        "pipeline benchmark: {} ({n} frames of {}x{}, {method}), {} warm-up + {} timed frame-runs per mode; {cores} cores, load average {load_start}",
-        input.display(),
-        size.0,
-        size.1,
-        b.warmup,
-        b.runs
-    );
-    // The reference frame, then reference indexing timed on its own (a fresh pipeline each time).
+}
+
+/// Processes the reference frame with `pipeline`, then times reference indexing on its own (a
+/// fresh pipeline each time): frame 0's markers, and the indexing times, ms.
+fn reference_indexing(
+    pipeline: &mut Pipeline,
+    loaded: &Loaded,
+    b: &PipelineBench,
+) -> Result<(StereoPair<TieredDetections>, Vec<f64>)> {
     let reference = pipeline.process(&loaded.frames[0])?;
     if let Some(note) = reference.note {
         return Err(Error::Invalid(format!(
@@ -478,14 +492,12 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
             loaded.paths[0].left.display()
         )));
     }
-    let dets0 = {
-        let Images::Stereo(pair) = &loaded.frames[0].images else {
-            return Err(Error::Invalid(
-                "the pipeline benchmark needs stereo frames".into(),
-            ));
-        };
-        pipeline.localizer_mut().detect_stereo_tiered(pair)?
+    let Images::Stereo(pair) = &loaded.frames[0].images else {
+        return Err(Error::Invalid(
+            "the pipeline benchmark needs stereo frames".into(),
+        ));
     };
+    let dets0 = pipeline.localizer_mut().detect_stereo_tiered(pair)?;
     let mut index_ms = Vec::new();
     for i in 0..(b.runs.min(50) + 2) {
         let mut fresh =
@@ -496,25 +508,39 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
             index_ms.push(t.elapsed().as_secs_f64() * 1e3);
         }
     }
-    let overhead_ns = clock_overhead_ns();
-    pipeline.record_stage_marks(process_cpu_clock_ns);
-    let mut lat = latency(&mut pipeline, &loaded, b, overhead_ns)?;
-    lat.index_ms = index_ms;
+    Ok((dets0, index_ms))
+}
+
+/// The throughput mode's runs: each run's frames/s and CPU ms per frame, and their medians.
+struct ThroughputRuns {
+    repeats: Vec<(f64, Option<f64>)>,
+    fps: f64,
+    cpu_ms: Option<f64>,
+    /// With Marknet on a window around the lattice: the same mode on the whole input, right after.
+    whole_input: Option<(f64, Option<f64>)>,
+}
+
+/// The throughput mode `b.repeats` times (and on the whole input where Marknet runs on a window),
+/// each run with a fresh pipeline started from frame 0's markers `dets0`.
+fn throughput_runs(
+    b: &PipelineBench,
+    s: &Setup,
+    dets0: &StereoPair<TieredDetections>,
+) -> Result<ThroughputRuns> {
     let throughput_of = |bench: &PipelineBench| -> Result<(f64, Option<f64>)> {
         let mut tp_pipeline = Pipeline::with_localizer(
             &bench.config,
             create_localizer(Method::Blob, &bench.config.localizer)?,
         )?;
-        tp_pipeline.process_detected(&loaded.frames[0], dets0.clone())?;
-        let (elapsed_s, cpu_ns) = throughput(&mut tp_pipeline, &loaded.frames, bench, workers)?;
+        tp_pipeline.process_detected(&s.loaded.frames[0], dets0.clone())?;
+        let (elapsed_s, cpu_ns) = throughput(&mut tp_pipeline, &s.loaded.frames, bench, s.workers)?;
         let fps = bench.runs as f64 / elapsed_s.max(1e-9);
         Ok((fps, cpu_ns.map(|c| c as f64 * 1e-6 / bench.runs as f64)))
     };
     let repeats: Vec<(f64, Option<f64>)> = (0..b.repeats).map(|_| throughput_of(b)).collect::<Result<_>>()?;
-    let (fps, cpu_per_frame_tp) = median_run(&repeats);
-    // Marknet on a window around the lattice: the same mode on the whole input, right after.
+    let (fps, cpu_ms) = median_run(&repeats);
     let windowed =
-        matches!(method, Method::Marknet | Method::MarknetMre) && b.config.localizer.lattice_window;
+        matches!(s.method, Method::Marknet | Method::MarknetMre) && b.config.localizer.lattice_window;
     let whole_input = if windowed {
         let mut whole = b.clone();
         whole.config.localizer.lattice_window = false;
@@ -522,23 +548,120 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
     } else {
         None
     };
-    let ort = matches!(method, Method::Marknet | Method::MarknetMre | Method::Yolo);
-    let load_end = load_average();
+    Ok(ThroughputRuns {
+        repeats,
+        fps,
+        cpu_ms,
+        whole_input,
+    })
+}
 
-    // Report.
+/// Median, p90 and mean of a row of the latency table, ms.
+#[derive(Clone, Copy)]
+struct Spread {
+    median: f64,
+    p90: f64,
+    mean: f64,
+}
+
+impl Spread {
+    fn of(samples_ms: &mut [f64]) -> Self {
+        let (median, p90, mean) = stats(samples_ms);
+        Self { median, p90, mean }
+    }
+
+    fn json(&self) -> serde_json::Value {
+        json!({"median": self.median, "p90": self.p90, "mean": self.mean})
+    }
+}
+
+/// The latency mode's figures.
+struct LatencySummary {
+    /// Per stage with samples: its name, wall times and median CPU time.
+    stages: Vec<(&'static str, Spread, Option<f64>)>,
+    index: Spread,
+    whole: Spread,
+    cpu_whole: Option<f64>,
+    markers_per_view: f64,
+}
+
+impl LatencySummary {
+    fn new(mut lat: Latency, mut index_ms: Vec<f64>, runs: usize) -> Self {
+        let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
+        let stages = STAGES
+            .iter()
+            .zip(lat.times.iter_mut())
+            .zip(lat.cpu.iter_mut())
+            .filter(|((_, samples), _)| !samples.is_empty())
+            .map(|(((name, _), samples), cpu)| (*name, Spread::of(samples), median_of(cpu)))
+            .collect();
+        Self {
+            stages,
+            index: Spread::of(&mut index_ms),
+            whole: Spread::of(&mut lat.whole),
+            cpu_whole: median_of(&mut lat.cpu_whole),
+            markers_per_view: lat.markers as f64 / (2 * runs) as f64,
+        }
+    }
+}
+
+/// "x.xxx ms", or "/" where not measured.
+fn ms_or_slash(v: Option<f64>) -> String {
+    v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"))
+}
+
+/// The pipeline benchmark (see the module docs).
+pub fn pipeline(b: &PipelineBench) -> Result<Report> {
+    let s = Setup::open(b)?;
+    let mut pipeline = Pipeline::new(&b.config)?;
+    let load_start = load_average();
+    eprintln!(
+        "pipeline benchmark: {} ({} frames of {}x{}, {}), {} warm-up + {} timed frame-runs per mode; {} cores, load average {load_start}",
+        b.recording.display(),
+        s.frames(),
+        s.size.0,
+        s.size.1,
+        s.method,
+        b.warmup,
+        b.runs,
+        s.cores
+    );
+    let (dets0, index_ms) = reference_indexing(&mut pipeline, &s.loaded, b)?;
+    let overhead_ns = clock_overhead_ns();
+    let lat = latency(&mut pipeline, &s.loaded, b, overhead_ns)?;
+    let tp = throughput_runs(b, &s, &dets0)?;
+    let loads = [load_start, load_average()];
+    let lat = LatencySummary::new(lat, index_ms, b.runs);
+    Ok(Report {
+        text: pipeline_text(b, &s, &lat, &tp, &loads),
+        json: pipeline_json(b, &s, &lat, &tp, loads),
+    })
+}
+
+/// The pipeline benchmark's table; `loads`: the load average at start and at end.
+fn pipeline_text(
+    b: &PipelineBench,
+    s: &Setup,
+    lat: &LatencySummary,
+    tp: &ThroughputRuns,
+    loads: &[String; 2],
+) -> String {
     let mut text = String::new();
     let _ = writeln!(
         text,
-        "stereo pipeline, {}: {n} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {method} (models {models}); calibration {}",
-        input.display(),
-        size.0,
-        size.1,
-        n.saturating_sub(1),
-        spec.display(),
+        "stereo pipeline, {}: {} frames of {}x{} decoded into memory before timing (disk not timed), walked 0..{} and back; method {} (models {}); calibration {}",
+        b.recording.display(),
+        s.frames(),
+        s.size.0,
+        s.size.1,
+        s.frames().saturating_sub(1),
+        s.method,
+        s.models,
+        b.config.calibration.clone().unwrap_or_default().display(),
     );
     let intra = b.config.localizer.session.intra_threads;
     let threads = if intra == 0 {
-        format!("{cores} (default: one per core)")
+        format!("{} (default: one per core)", s.cores)
     } else {
         intra.to_string()
     };
@@ -547,7 +670,7 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         "latency mode: one frame at a time through Pipeline::process, the two views' stages in parallel, {} timed frame-runs after {} warm-up{}; CPU = process CPU time, all threads",
         b.runs,
         b.warmup,
-        if ort {
+        if s.ort() {
             format!(", ONNX Runtime intra-op threads {threads}")
         } else {
             String::new()
@@ -558,56 +681,62 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
         "{:<44} {:>10} {:>10} {:>10} {:>10}",
         "stage", "median", "p90", "mean", "CPU med"
     );
-    let median_of = |s: &mut Vec<f64>| (!s.is_empty()).then(|| stats(s).0);
-    let ms = |v: Option<f64>| v.map_or_else(|| "/".to_owned(), |v| format!("{v:.3} ms"));
-    let mut stage_rows = Vec::new();
-    for ((name, samples), cpu) in STAGES.iter().zip(lat.times.iter_mut()).zip(lat.cpu.iter_mut()) {
-        if samples.is_empty() {
-            continue;
-        }
-        let (med, p90, mean) = stats(samples);
-        let cpu_med = median_of(cpu);
+    let rows = lat
+        .stages
+        .iter()
+        .map(|(name, t, cpu)| (*name, t, ms_or_slash(*cpu)))
+        .chain([(
+            "reference grid indexing (once per session)",
+            &lat.index,
+            "/".to_owned(),
+        )]);
+    for (name, t, cpu) in rows {
         let _ = writeln!(
             text,
-            "{name:<44} {med:>7.3} ms {p90:>7.3} ms {mean:>7.3} ms {:>10}",
-            ms(cpu_med)
-        );
-        stage_rows.push(
-            json!({"stage": name, "median_ms": med, "p90_ms": p90, "mean_ms": mean, "cpu_median_ms": cpu_med}),
+            "{name:<44} {:>7.3} ms {:>7.3} ms {:>7.3} ms {cpu:>10}",
+            t.median, t.p90, t.mean
         );
     }
-    let (idx_med, idx_p90, idx_mean) = stats(&mut lat.index_ms);
+    let w = lat.whole;
     let _ = writeln!(
         text,
-        "{:<44} {idx_med:>7.3} ms {idx_p90:>7.3} ms {idx_mean:>7.3} ms {:>10}",
-        "reference grid indexing (once per session)", "/"
+        "whole pipeline (localization + track(), decoded frames): median {:.2} ms, p90 {:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame",
+        w.median,
+        w.p90,
+        1e3 / w.median.max(1e-9),
+        ms_or_slash(lat.cpu_whole),
     );
-    let (w_med, w_p90, w_mean) = stats(&mut lat.whole);
-    let cpu_whole_med = median_of(&mut lat.cpu_whole);
+    write_throughput(&mut text, b, s, tp);
     let _ = writeln!(
         text,
-        "whole pipeline (localization + track(), decoded frames): median {w_med:.2} ms, p90 {w_p90:.2} ms per stereo frame ({:.0} frames/s one at a time); CPU {} per frame",
-        1e3 / w_med.max(1e-9),
-        ms(cpu_whole_med),
+        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; stages from their `tracing` spans (own time, nested spans excluded); load average {} at start, {} at end",
+        lat.markers_per_view, loads[0], loads[1],
     );
+    text
+}
+
+/// The throughput mode's lines of the pipeline benchmark's table.
+fn write_throughput(text: &mut String, b: &PipelineBench, s: &Setup, tp: &ThroughputRuns) {
     let _ = writeln!(
         text,
-        "throughput mode: {fps:.1} stereo frames/s over {} frames ({workers} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame{}",
+        "throughput mode: {:.1} stereo frames/s over {} frames ({} workers localizing frames in parallel{}, sequential tracker); CPU {} per frame{}",
+        tp.fps,
         b.runs,
-        if ort {
+        s.workers,
+        if s.ort() {
             ", one ONNX Runtime intra-op thread each"
         } else {
             ""
         },
-        ms(cpu_per_frame_tp),
-        spread_of_runs(&repeats)
+        ms_or_slash(tp.cpu_ms),
+        spread_of_runs(&tp.repeats)
     );
-    if let Some((whole_fps, whole_cpu)) = whole_input {
+    if let Some((whole_fps, whole_cpu)) = tp.whole_input {
         let _ = writeln!(
             text,
             "throughput mode on the whole input of every frame (--whole-input), right after: {whole_fps:.1} stereo frames/s; CPU {} per frame{}",
-            ms(whole_cpu),
-            cpu_per_frame_tp
+            ms_or_slash(whole_cpu),
+            tp.cpu_ms
                 .zip(whole_cpu)
                 .map_or_else(String::new, |(w, f)| format!(
                     " (the window: {:.2}x its CPU)",
@@ -615,43 +744,56 @@ pub fn pipeline(b: &PipelineBench) -> Result<Report> {
                 ))
         );
     }
-    let _ = writeln!(
-        text,
-        "not timed: exports (markers.csv / frames.csv rows, PLY, overlays, plots; see `gelstereo bench --track`); {:.1} markers per view; tracking stages from StereoSession::track's own stage marks; load average {load_start} at start, {load_end} at end",
-        lat.markers as f64 / (2 * b.runs) as f64,
-    );
-    let json = json!({
-        "recording": input.display().to_string(),
-        "calibration": spec.display().to_string(),
-        "method": method.as_str(),
-        "models": models,
-        "frames": n,
-        "image_size": [size.0, size.1],
+}
+
+/// The pipeline benchmark's figures as JSON; `loads`: the load average at start and at end.
+fn pipeline_json(
+    b: &PipelineBench,
+    s: &Setup,
+    lat: &LatencySummary,
+    tp: &ThroughputRuns,
+    loads: [String; 2],
+) -> serde_json::Value {
+    let [load_start, load_end] = loads;
+    let stages: Vec<serde_json::Value> = lat
+        .stages
+        .iter()
+        .map(|(name, t, cpu)| {
+            json!({"stage": name, "median_ms": t.median, "p90_ms": t.p90, "mean_ms": t.mean, "cpu_median_ms": cpu})
+        })
+        .collect();
+    let run = |(f, c): (f64, Option<f64>)| json!({"frames_per_s": f, "cpu_ms_per_frame": c});
+    json!({
+        "recording": b.recording.display().to_string(),
+        "calibration": b.config.calibration.clone().unwrap_or_default().display().to_string(),
+        "method": s.method.as_str(),
+        "models": s.models,
+        "frames": s.frames(),
+        "image_size": [s.size.0, s.size.1],
         "runs": b.runs,
         "warmup": b.warmup,
-        "cores": cores,
+        "cores": s.cores,
         "load_average_at_start": load_start,
         "load_average_at_end": load_end,
         "latency": {
-            "ort_intra_threads": intra,
-            "stages": stage_rows,
-            "reference_indexing_ms": {"median": idx_med, "p90": idx_p90, "mean": idx_mean},
-            "whole_ms": {"median": w_med, "p90": w_p90, "mean": w_mean},
-            "cpu_ms_per_frame": cpu_whole_med,
+            "ort_intra_threads": b.config.localizer.session.intra_threads,
+            "stages": stages,
+            "reference_indexing_ms": lat.index.json(),
+            "whole_ms": lat.whole.json(),
+            "cpu_ms_per_frame": lat.cpu_whole,
         },
         "throughput": {
-            "workers": workers,
+            "workers": s.workers,
             "ort_intra_threads": 1,
             "frames": b.runs,
-            "frames_per_s": fps,
-            "cpu_ms_per_frame": cpu_per_frame_tp,
-            "repeats": repeats.iter().map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})).collect::<Vec<_>>(),
-            "whole_input": whole_input.map(|(f, c)| json!({"frames_per_s": f, "cpu_ms_per_frame": c})),
+            "frames_per_s": tp.fps,
+            "cpu_ms_per_frame": tp.cpu_ms,
+            "repeats": tp.repeats.iter().copied().map(run).collect::<Vec<_>>(),
+            "whole_input": tp.whole_input.map(run),
         },
-        "tracking_stages_from": "StereoSession::track stage marks",
+        "tracking_stages_from": "tracing spans (own time)",
         "not_timed": "exports (CSV rows, PLY, overlays, plots)",
-    });
-    Ok(Report { text, json })
+    })
 }
 
 /// What the end-to-end benchmark runs.
