@@ -1,6 +1,6 @@
 //! The one error type of this crate.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// What can be wrong with a sensor description or a recording's `meta.json`: each error names the
 /// file, the field and what was expected against what was found.
@@ -48,4 +48,22 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 pub(crate) fn io_err(path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Error {
     let path = path.into();
     move |error| Error::Io { path, error }
+}
+
+/// The error of a JSON file (`path`) that does not parse into what was expected.
+pub fn syntax(path: &Path, e: &serde_json::Error) -> Error {
+    Error::SensorSyntax {
+        path: path.to_owned(),
+        message: e.to_string(),
+    }
+}
+
+/// The error of a field of `path` holding a value outside its range.
+pub fn field(path: &Path, name: &str, expected: &str, found: &str) -> Error {
+    Error::SensorField {
+        source_name: path.display().to_string(),
+        field: name.to_owned(),
+        expected: expected.to_owned(),
+        found: found.to_owned(),
+    }
 }

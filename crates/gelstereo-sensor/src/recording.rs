@@ -9,7 +9,7 @@ use gelstereo_core::limits::{MAX_DESCRIPTION_BYTES, MAX_GRID_SIDE, read_text_at_
 use gelstereo_core::{GridShape, ImageSize};
 use serde::Deserialize;
 
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, field, syntax};
 use crate::spec::SensorSpec;
 
 /// What a recording's `meta.json` states: each field is `None` when absent.
@@ -141,22 +141,6 @@ impl RecordingMeta {
             )),
             _ => Ok(()),
         }
-    }
-}
-
-fn syntax(path: &Path, e: &serde_json::Error) -> Error {
-    Error::SensorSyntax {
-        path: path.to_owned(),
-        message: e.to_string(),
-    }
-}
-
-fn field(path: &Path, name: &str, expected: &str, found: &str) -> Error {
-    Error::SensorField {
-        source_name: path.display().to_string(),
-        field: name.to_owned(),
-        expected: expected.to_owned(),
-        found: found.to_owned(),
     }
 }
 

@@ -8,26 +8,6 @@ use std::path::PathBuf;
 /// Sensor-file errors name the file, the field and what was expected against what was found.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// A sensor description file that is not valid JSON or misses / misspells a field.
-    #[error("{}: {message}", path.display())]
-    SensorSyntax {
-        /// The file.
-        path: PathBuf,
-        /// serde's message (field name, line and column).
-        message: String,
-    },
-    /// A field of a sensor description holds a value outside its valid range.
-    #[error("{source_name}: field '{field}': expected {expected}, found {found}")]
-    SensorField {
-        /// The file (or "built-in sensor").
-        source_name: String,
-        /// Dotted field path, e.g. `grid.pitch_mm`.
-        field: String,
-        /// What would be valid.
-        expected: String,
-        /// What was found.
-        found: String,
-    },
     /// A simulation parameter (command-line option, dataset setting) is impossible.
     #[error("invalid parameter {name} = {value}: expected {expected}")]
     Parameter {

@@ -66,19 +66,11 @@ fn is_relative_folder(path: &str) -> bool {
 }
 
 fn syntax(path: &Path, e: &serde_json::Error) -> Error {
-    Error::SensorSyntax {
-        path: path.to_owned(),
-        message: e.to_string(),
-    }
+    gelstereo_sensor::error::syntax(path, e).into()
 }
 
 fn field(path: &Path, name: &str, expected: &str, found: &str) -> Error {
-    Error::SensorField {
-        source_name: path.display().to_string(),
-        field: name.to_owned(),
-        expected: expected.to_owned(),
-        found: found.to_owned(),
-    }
+    gelstereo_sensor::error::field(path, name, expected, found).into()
 }
 
 #[cfg(test)]
