@@ -6,7 +6,7 @@
 // A test helper may panic: that is how a test reports failure.
 #![allow(clippy::expect_used, clippy::unwrap_used)]
 
-use gelstereo_core::{CsvTable, FrameSummary};
+use gelstereo::core::{CsvTable, FrameSummary};
 
 mod common;
 use common::{gelstereo, sample, text};
@@ -99,7 +99,7 @@ fn the_sample_gives_the_truths_force_and_area_and_records_the_gel() {
     // The PLYs are in the gel frame: the reference surface flat at z = 0 around the origin, the
     // pressed surface as deep as the truth.
     let cloud =
-        |n: usize| gelstereo_io::ply::read_marker_cloud(&out.join(format!("ply/cloud_{n:06}.ply"))).unwrap();
+        |n: usize| gelstereo::io::ply::read_marker_cloud(&out.join(format!("ply/cloud_{n:06}.ply"))).unwrap();
     let rest = cloud(0);
     let mean = |k: usize| rest.iter().map(|p| p.position_mm[k]).sum::<f64>() / rest.len() as f64;
     assert!(
@@ -222,7 +222,7 @@ fn bad_gel_facts_are_refused_by_name() {
 fn gross_onset(frames: &[FrameSummary]) -> Option<usize> {
     frames
         .iter()
-        .position(|f| f.slip == gelstereo_core::SlipState::GrossSlip)
+        .position(|f| f.slip == gelstereo::core::SlipState::GrossSlip)
 }
 
 #[test]
@@ -271,7 +271,7 @@ fn a_sliding_flat_punch_is_flagged_gross_within_a_frame_of_its_onset() {
     assert!(
         truth[..truth_onset]
             .iter()
-            .any(|f| f.slip == gelstereo_core::SlipState::PartialSlip),
+            .any(|f| f.slip == gelstereo::core::SlipState::PartialSlip),
         "the slide passes through partial slip first"
     );
     let onset = gross_onset(&est).expect("gross slip flagged");
@@ -283,7 +283,7 @@ fn a_sliding_flat_punch_is_flagged_gross_within_a_frame_of_its_onset() {
     assert!(
         est[..first_contact]
             .iter()
-            .all(|f| f.slip == gelstereo_core::SlipState::NoContact),
+            .all(|f| f.slip == gelstereo::core::SlipState::NoContact),
         "slip before contact"
     );
 }

@@ -31,7 +31,7 @@ fn doctor_passes_after_setup_without_any_environment_variable() {
 
 #[test]
 fn doctor_fails_with_a_fix_when_the_onnxruntime_library_is_removed() {
-    let installed = gelstereo_markers::runtime::locate().expect("setup installed ONNX Runtime");
+    let installed = gelstereo::markers::runtime::locate().expect("setup installed ONNX Runtime");
     let dir = tempfile::tempdir().unwrap();
     let copy = dir.path().join("libonnxruntime.so");
     std::fs::copy(&installed, &copy).unwrap();

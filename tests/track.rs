@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use gelstereo_core::{CsvTable, FrameSummary, GridIndex, MarkerRecord, MarkerStatus, SlipState};
+use gelstereo::core::{CsvTable, FrameSummary, GridIndex, MarkerRecord, MarkerStatus, SlipState};
 use opencv::prelude::MatTraitConst;
 
 mod common;

@@ -6,7 +6,7 @@
 
 mod common;
 
-use gelstereo_core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
+use gelstereo::core::table::{FRAME_COLUMNS, MARKER_COLUMNS};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -194,8 +194,8 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
     // Read back, every cell of markers.csv and frames.csv is there to the stream's precision:
     // px to 0.005, gel-frame mm to half a micrometre, camera-frame mm (through the gel frame) to
     // one micrometre, kPa to 0.005; words and flags exactly.
-    let table = gelstereo_core::table::CsvTable::read(&out.join("markers.csv")).unwrap();
-    let frames = gelstereo_core::table::CsvTable::read(&out.join("frames.csv")).unwrap();
+    let table = gelstereo::core::table::CsvTable::read(&out.join("markers.csv")).unwrap();
+    let frames = gelstereo::core::table::CsvTable::read(&out.join("frames.csv")).unwrap();
     let read: Vec<_> = gelstereo::sink::read_frames(text.as_bytes(), "stream.jsonl")
         .collect::<Result<_, _>>()
         .unwrap();
@@ -203,7 +203,7 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
     let mut row = 0;
     for (k, (frame, gel)) in read.iter().enumerate() {
         assert!(gel.is_some(), "frame {k} names its gel frame");
-        let summary = gelstereo_core::FrameSummary::from_table(&frames, k).unwrap();
+        let summary = gelstereo::core::FrameSummary::from_table(&frames, k).unwrap();
         assert_eq!(
             (frame.summary.slip, frame.summary.contact),
             (summary.slip, summary.contact)
@@ -215,7 +215,7 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
         ));
         let mut region = Vec::new();
         for m in &frame.markers {
-            let truth = gelstereo_core::MarkerRecord::from_table(&table, row).unwrap();
+            let truth = gelstereo::core::MarkerRecord::from_table(&table, row).unwrap();
             row += 1;
             if truth.in_contact == Some(true) {
                 region.push(truth.index);
@@ -231,7 +231,7 @@ fn jsonl_stream_of_the_sample_follows_its_schema_and_reads_back_as_the_tables() 
                 (truth.in_contact, truth.slipping),
                 "{at}"
             );
-            let px = |p: Option<gelstereo_core::Point2>| p.map(|p| [p.x, p.y]);
+            let px = |p: Option<gelstereo::core::Point2>| p.map(|p| [p.x, p.y]);
             assert!(close(px(m.left_px), px(truth.left_px), 0.005 + 1e-9), "{at}");
             assert!(close(px(m.right_px), px(truth.right_px), 0.005 + 1e-9), "{at}");
             assert!(

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
+use gelstereo::core::interrupt;
 use gelstereo_apps::adapt::{AdaptOptions, Progress};
-use gelstereo_core::interrupt;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::cmd_detect::LocalizerArgs;

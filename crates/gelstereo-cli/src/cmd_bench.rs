@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use gelstereo::PipelineConfig;
+use gelstereo::markers::Method;
 use gelstereo_apps::bench::{PipelineBench, localization};
-use gelstereo_markers::Method;
 
 use crate::cmd_detect::LocalizerArgs;
 
@@ -62,7 +62,7 @@ pub struct Args {
     grid: Option<String>,
     /// Pipeline benchmark: worker threads of the throughput mode; --track: localization threads of
     /// `gelstereo track`'s default mode (0: one per core; at most 256).
-    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
+    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo::core::limits::parse_thread_count)]
     workers: usize,
     /// Pipeline benchmark: run the throughput mode this many times, each with fresh workers, and
     /// report the median CPU per frame and frames/s with their range (a shared machine's speed moves

@@ -6,8 +6,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
+use gelstereo::geometry::{Board, CalibrationOptions, CalibrationPath};
 use gelstereo_apps::calibrate::{FolderCalibration, calibrate_folders};
-use gelstereo_geometry::{Board, CalibrationOptions, CalibrationPath};
 
 /// Arguments of `gelstereo calibrate`.
 #[derive(clap::Args, Debug)]
@@ -132,7 +132,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     println!("wrote {}", args.out);
     if let Some(path) = &args.report {
         let json = calibration.to_json(&args.out);
-        gelstereo_core::files::write_whole(path, serde_json::to_string_pretty(&json)?.as_bytes())
+        gelstereo::core::files::write_whole(path, serde_json::to_string_pretty(&json)?.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
@@ -163,7 +163,7 @@ fn baseline_check(measured_mm: f64, design_mm: Option<f64>, square_mm: f64) -> S
 }
 
 fn parse_baseline(text: &str) -> Result<f64, String> {
-    gelstereo_core::limits::parse_number_in(text, 0.1, 1000.0)
+    gelstereo::core::limits::parse_number_in(text, 0.1, 1000.0)
 }
 
 #[cfg(test)]

@@ -7,11 +7,11 @@ use std::io::Write as _;
 use std::path::PathBuf;
 
 use anyhow::{Context, bail};
+use gelstereo::core::CsvTable;
 use gelstereo::gel::GelFile;
 use gelstereo::source::FrameSource;
 use gelstereo::{Pipeline, PipelineConfig};
 use gelstereo_apps::calibrate_gel::fit_modulus;
-use gelstereo_core::CsvTable;
 
 /// Arguments of `gelstereo calibrate-gel`.
 #[derive(clap::Args, Debug)]
@@ -88,7 +88,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }),
     );
     let text = serde_json::to_string_pretty(&file.to_json(extra))? + "\n";
-    let mut out = gelstereo_io::atomic::AtomicFile::create(&args.out)?;
+    let mut out = gelstereo::io::atomic::AtomicFile::create(&args.out)?;
     out.write_all(text.as_bytes())
         .with_context(|| format!("cannot write {}", args.out.display()))?;
     out.commit()?;

@@ -44,7 +44,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .prefetch(gelstereo::track::PREFETCH_FRAMES)
         .step_by(args.every)
     {
-        if gelstereo_core::interrupt::requested() || args.frames.is_some_and(|n| writer.len() >= n) {
+        if gelstereo::core::interrupt::requested() || args.frames.is_some_and(|n| writer.len() >= n) {
             break;
         }
         match frame.images {

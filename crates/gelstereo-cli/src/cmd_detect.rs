@@ -7,13 +7,13 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
+use gelstereo::core::files::escaped;
+use gelstereo::core::{Detection, StereoPair};
+use gelstereo::io::AtomicFile;
+use gelstereo::io::images::{self, StereoRecording};
+use gelstereo::io::video::{self, VideoFrames};
+use gelstereo::markers::{BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, overlay};
 use gelstereo::sink::OutputFolder;
-use gelstereo_core::files::escaped;
-use gelstereo_core::{Detection, StereoPair};
-use gelstereo_io::AtomicFile;
-use gelstereo_io::images::{self, StereoRecording};
-use gelstereo_io::video::{self, VideoFrames};
-use gelstereo_markers::{BlobParams, InputFit, Localizer, LocalizerConfig, Method, SessionOptions, overlay};
 use opencv::core::Mat;
 
 use crate::pad_border::PadBorder;
@@ -42,7 +42,7 @@ pub struct LocalizerArgs {
     #[arg(long, value_name = "tuned|default|FILE", default_value = "tuned")]
     pub blob_params: String,
     /// ONNX Runtime intra-op threads (0: one per core; at most 256).
-    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo_core::limits::parse_thread_count)]
+    #[arg(long, default_value_t = 0, value_name = "N", value_parser = gelstereo::core::limits::parse_thread_count)]
     pub threads: usize,
     /// Never use the CUDA execution provider, even where ONNX Runtime has it.
     #[arg(long)]
@@ -76,7 +76,7 @@ impl LocalizerArgs {
             // The shipped file where the project's files are, else the same values compiled in
             // (an installed binary; a test keeps the two equal).
             "tuned" => {
-                let path = project::home().join(gelstereo_markers::blob::DEFAULT_PARAMS_FILE);
+                let path = project::home().join(gelstereo::markers::blob::DEFAULT_PARAMS_FILE);
                 if path.is_file() {
                     BlobParams::from_json_file(&path)?
                 } else {
@@ -238,7 +238,7 @@ impl Sink {
     ) -> anyhow::Result<()> {
         // Ctrl-C or SIGTERM: stop between images; the CSV's temporary file goes with the error and
         // an existing --out file stays as it was.
-        if gelstereo_core::interrupt::requested() {
+        if gelstereo::core::interrupt::requested() {
             bail!(
                 "interrupted after {} images; an existing --out file is left as it was",
                 self.images

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
+use gelstereo::markers::Method;
 use gelstereo_apps::eval::LocalizationEval;
-use gelstereo_markers::Method;
 
 use crate::cmd_detect::LocalizerArgs;
 

@@ -6,9 +6,9 @@
 use std::path::PathBuf;
 
 use anyhow::bail;
+use gelstereo::core::limits;
+use gelstereo::markers::Method;
 use gelstereo_apps::reconstruct::{Perturbation, ReconstructionJob};
-use gelstereo_core::limits;
-use gelstereo_markers::Method;
 
 use crate::cmd_detect::LocalizerArgs;
 
@@ -119,7 +119,7 @@ impl Args {
 /// Runs `gelstereo reconstruct`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let summary =
-        gelstereo_apps::reconstruct::run(&args.job()?, gelstereo_core::interrupt::flag(), &mut |w| {
+        gelstereo_apps::reconstruct::run(&args.job()?, gelstereo::core::interrupt::flag(), &mut |w| {
             eprintln!("warning: {w}")
         })?;
     if summary.interrupted() {

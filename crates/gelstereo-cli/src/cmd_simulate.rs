@@ -1,14 +1,14 @@
 //! `gelstereo simulate`: the synthetic GelStereo sensor writes a dataset of stereo recordings with
-//! exact ground truth (see `docs/sim.md`). The work is `gelstereo_sim::dataset`; this is argument
+//! exact ground truth (see `docs/sim.md`). The work is `gelstereo::sim::dataset`; this is argument
 //! parsing and a progress bar.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use gelstereo_sim::SensorSpec;
-use gelstereo_sim::checkerboard::write_checkerboard_set;
-use gelstereo_sim::dataset::{DatasetConfig, Randomization, write_dataset};
+use gelstereo::sim::SensorSpec;
+use gelstereo::sim::checkerboard::write_checkerboard_set;
+use gelstereo::sim::dataset::{DatasetConfig, Randomization, write_dataset};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Arguments of `gelstereo simulate`.
@@ -76,7 +76,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         None => SensorSpec::reference(),
     };
     if let Some(spec) = &args.checkerboard {
-        let board = gelstereo_geometry::Board::parse(spec, args.square_mm)?;
+        let board = gelstereo::geometry::Board::parse(spec, args.square_mm)?;
         let built = sensor.build()?;
         let start = Instant::now();
         write_checkerboard_set(&args.out, &built, &board, args.poses, args.seed, args.force)
@@ -103,7 +103,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         motion: args.motion.as_deref().map(str::parse).transpose()?,
     };
     config.validate()?;
-    let planned = gelstereo_sim::dataset::plan(&config)?;
+    let planned = gelstereo::sim::dataset::plan(&config)?;
     let written = planned
         .iter()
         .filter(|e| config.only_split.is_none_or(|s| e.split == s))

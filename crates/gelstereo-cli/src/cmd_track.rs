@@ -97,7 +97,7 @@ pub struct Args {
     /// gel's normal away from the cameras; the transform is in gel.json) or camera (the left
     /// camera's frame, as markers.csv's X_mm, Y_mm, Z_mm).
     #[arg(long, default_value = "gel", value_name = "FRAME")]
-    ply_frame: gelstereo_io::ply::CoordinateFrame,
+    ply_frame: gelstereo::io::ply::CoordinateFrame,
     /// Length factor of the displacement arrows in the overlays (0 to 1000).
     #[arg(long, default_value_t = 3.0,
           value_parser = |s: &str| gelstereo::core::limits::parse_number_in(s, 0.0, 1000.0))]
@@ -224,7 +224,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &mut frames,
         &mut sinks,
         &options,
-        gelstereo_core::interrupt::flag(),
+        gelstereo::core::interrupt::flag(),
         &mut |out| {
             progress.inc(1);
             for line in &out.log {

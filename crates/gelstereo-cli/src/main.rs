@@ -4,7 +4,7 @@
 use std::process::ExitCode;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
-use gelstereo_core::interrupt;
+use gelstereo::core::interrupt;
 
 mod cmd_adapt;
 mod cmd_bench;
@@ -74,7 +74,7 @@ fn main() -> ExitCode {
         Err(e) => e.exit(),
     };
     // Before any thread pool exists: rayon and OpenMP read these when their first pool starts.
-    if let Err(e) = gelstereo_core::limits::check_thread_env() {
+    if let Err(e) = gelstereo::core::limits::check_thread_env() {
         eprintln!("error: {e}");
         return ExitCode::FAILURE;
     }
@@ -130,7 +130,7 @@ fn one_line(error: &anyhow::Error) -> String {
 }
 
 /// SIGINT, SIGTERM and SIGHUP ask the running command to stop at its next frame boundary (its outputs
-/// stay whole; see `gelstereo_core::interrupt`); a second signal ends the process at once.
+/// stay whole; see `gelstereo::core::interrupt`); a second signal ends the process at once.
 fn stop_at_frame_boundary_on_signals() {
     let installed = ctrlc::set_handler(|| {
         if interrupt::requested() {

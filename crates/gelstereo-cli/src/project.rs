@@ -10,7 +10,7 @@ pub fn home() -> PathBuf {
 /// `gelstereo --version`: the binary's version and the OpenCV and ONNX Runtime it runs with.
 pub fn version_text() -> String {
     let opencv = opencv::core::get_version_string().unwrap_or_else(|e| format!("unavailable ({e})"));
-    let ort = match gelstereo_markers::runtime::init() {
+    let ort = match gelstereo::markers::runtime::init() {
         Ok(rt) => format!("{} ({})", rt.version, rt.library.display()),
         Err(e) => format!("not found: {e}"),
     };

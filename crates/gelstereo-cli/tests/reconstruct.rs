@@ -101,7 +101,7 @@ fn reconstruct_from_ground_truth_matches_the_simulator_and_reports_bad_inputs() 
     // (under the gross slip of frame 4, 0.9 mm deep, the surface dragged 2 mm, a marker or two of
     // the contact may go unindexed: coverage is checked above).
     for f in 0..6 {
-        let cloud = gelstereo_io::ply::read_marker_cloud(&out.join(format!("ply/{f:06}.ply"))).unwrap();
+        let cloud = gelstereo::io::ply::read_marker_cloud(&out.join(format!("ply/{f:06}.ply"))).unwrap();
         let placed = rows
             .iter()
             .filter(|r| r.starts_with(&format!("{f},")) && !r.split(',').nth(7).unwrap_or("").is_empty())
@@ -301,7 +301,7 @@ fn reconstruct_runs_the_blob_localizer_on_one_stereo_pair() {
         s(&l),
         s(&r),
     ]);
-    let cloud = gelstereo_io::ply::read_marker_cloud(&out.join("ply/000000.ply")).unwrap();
+    let cloud = gelstereo::io::ply::read_marker_cloud(&out.join("ply/000000.ply")).unwrap();
     // The tuned blob detector on the reference look finds nearly every marker (>= 95%).
     assert!(cloud.len() >= 500, "{} markers", cloud.len());
     assert!(cloud.iter().all(|p| p.reprojection_error_px <= 2.0));
@@ -346,7 +346,7 @@ fn reconstruct_reads_a_side_by_side_stereo_video() {
     let csv = std::fs::read_to_string(out.join("markers.csv")).unwrap();
     assert_eq!(csv.lines().count(), 1 + 3 * 529);
     // MJPG compression moves the blobs a little; nearly every marker is still reconstructed.
-    let cloud = gelstereo_io::ply::read_marker_cloud(&out.join("ply/000002.ply")).unwrap();
+    let cloud = gelstereo::io::ply::read_marker_cloud(&out.join("ply/000002.ply")).unwrap();
     assert!(cloud.len() >= 500, "{} markers", cloud.len());
 }
 

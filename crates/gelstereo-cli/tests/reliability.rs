@@ -363,7 +363,7 @@ fn interrupted_reconstruct_leaves_tables_and_point_clouds_in_step() {
         .map(|l| {
             assert_eq!(
                 l.split(',').count(),
-                gelstereo_core::table::MARKER_COLUMNS.len(),
+                gelstereo::core::table::MARKER_COLUMNS.len(),
                 "cut row {l}"
             );
             l.split(',').next().unwrap().parse().unwrap()
