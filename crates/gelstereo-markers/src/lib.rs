@@ -31,14 +31,17 @@ pub mod contract;
 pub mod dots;
 pub mod edge;
 pub mod lattice;
+pub mod layout;
 pub mod marknet;
 pub mod metrics;
 pub mod overlay;
 pub mod postprocess;
+pub mod region;
 mod resize;
 pub mod runtime;
 pub mod self_test;
 pub mod site_blobs;
+pub mod spacing;
 pub mod squeezed_blobs;
 pub mod window;
 pub mod yolo;
@@ -50,9 +53,8 @@ use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
 pub use contract::{AutoFit, MarknetContract, MreContract};
-pub use marknet::{
-    InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout, network_input, probe_layout,
-};
+pub use layout::{InputFit, InputLayout, fit_layout, probe_layout};
+pub use marknet::{Marknet, Mre, SessionOptions, network_input};
 pub use postprocess::PostProcess;
 pub use resize::{FILL_SAMPLE_STEP, Kernels, ResizeScratch};
 

@@ -29,7 +29,7 @@
 //! tests compare with `imgproc::resize` + `copy_make_border` on many sizes, both directions and
 //! every channel count.
 
-use crate::marknet::InputLayout;
+use crate::layout::InputLayout;
 use crate::window::Window;
 
 /// OpenCV's fixed-point weight scale of 8-bit bilinear resizing (`INTER_RESIZE_COEF_SCALE`).

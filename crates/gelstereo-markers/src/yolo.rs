@@ -29,9 +29,8 @@ use ort::session::Session;
 use ort::value::TensorRef;
 
 use crate::contract::{TensorSpec, check_signature};
-use crate::marknet::{
-    InputLayout, Opened, SessionOptions, check_aspect, onnx_err, open_session, write_layout,
-};
+use crate::layout::InputLayout;
+use crate::marknet::{Opened, SessionOptions, check_aspect, onnx_err, open_session, write_layout};
 use crate::resize::ResizeScratch;
 use crate::{Error, Localizer, Result, check_image, sort_detections};
 
