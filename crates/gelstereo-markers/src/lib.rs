@@ -43,6 +43,7 @@ pub mod self_test;
 pub mod site_blobs;
 pub mod spacing;
 pub mod squeezed_blobs;
+mod stream;
 pub mod window;
 pub mod yolo;
 

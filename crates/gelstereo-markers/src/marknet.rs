@@ -8,7 +8,7 @@
 //! remembered per image size; a fixed-input model gets the contract's whole-image stretch.
 //! Outputs are mapped back with `x_orig = (x_in - offset_x) * W / scaled_width - 0.5` (likewise y).
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
@@ -39,6 +39,7 @@ use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::site_blobs::blobs_at_empty_sites;
 use crate::spacing::nearest_neighbour_distances;
 use crate::squeezed_blobs::blobs_between_squeezed;
+use crate::stream::StreamState;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{
     Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
@@ -589,14 +590,8 @@ pub struct Marknet {
     post: PostProcess,
     mre: Option<Mre>,
     fit: InputFit,
-    /// Marker pitch (original px) measured per image size, for the "auto" fit of the next image.
-    pitch_memory: HashMap<ImageSize, f64>,
-    remember_pitch: bool,
-    /// Per image size and view (index in the batch): the window of the input the view runs on, or
-    /// `None` where its first frame showed that a window would not save enough or not hold
-    /// ([`crate::window`]).
-    window_memory: HashMap<(ImageSize, usize), Option<LatticeWindow>>,
-    lattice_window: bool,
+    /// The remembered pitches and lattice windows of the stream being localized.
+    stream: StreamState,
     /// Whether squeezed parts of the lattice get a closer look ([`crate::close_look`]).
     close_look: bool,
     /// Scratch of each batch slot's preprocessing.
@@ -637,10 +632,7 @@ impl Marknet {
             contract,
             mre: None,
             fit: InputFit::Auto,
-            pitch_memory: HashMap::new(),
-            remember_pitch: true,
-            window_memory: HashMap::new(),
-            lattice_window: true,
+            stream: StreamState::default(),
             close_look: true,
             resize: Vec::new(),
             parallel: false,
@@ -681,11 +673,7 @@ impl Marknet {
     /// streams of one sensor: one pass per image). Off, every image starts without a pitch (a first
     /// pass, and a second when the pitch asks for another scale), as the trainer's evaluation does.
     pub fn set_pitch_memory(&mut self, remember: bool) {
-        self.remember_pitch = remember;
-        if !remember {
-            self.pitch_memory.clear();
-            self.window_memory.clear();
-        }
+        self.stream.set_remember_pitch(remember);
     }
 
     /// Whether, with the pitch remembered, each view of a stream runs on a window around the
@@ -695,10 +683,7 @@ impl Marknet {
     /// [`Localizer::detect`] would each fall back to the whole input after trying the first's window
     /// (use `detect_stereo`, one localizer per camera, or turn windows off).
     pub fn set_lattice_window(&mut self, on: bool) {
-        self.lattice_window = on;
-        if !on {
-            self.window_memory.clear();
-        }
+        self.stream.set_lattice_window(on);
     }
 
     /// Whether the network looks again, at a larger scale, where the first pass's candidates lie
@@ -712,7 +697,7 @@ impl Marknet {
     /// The window view `slot` (index in the batch: 0 = left, 1 = right) of images of `size` runs
     /// on, if it has one.
     pub fn lattice_window(&self, size: ImageSize, slot: usize) -> Option<LatticeWindow> {
-        self.window_memory.get(&(size, slot)).copied().flatten()
+        self.stream.window(size, slot)
     }
 
     /// [`Localizer::fork`]: the models loaded again with `intra_threads`, the thresholds, the fit
@@ -728,10 +713,7 @@ impl Marknet {
         }
         net.post = self.post;
         net.fit = self.fit;
-        net.remember_pitch = self.remember_pitch;
-        net.pitch_memory = self.pitch_memory.clone();
-        net.lattice_window = self.lattice_window;
-        net.window_memory = self.window_memory.clone();
+        net.stream = self.stream.clone();
         net.close_look = self.close_look;
         Ok(net)
     }
@@ -771,7 +753,7 @@ impl Marknet {
 
     /// The layout the next image of `size` gets (with the remembered pitch, if any).
     pub fn next_layout(&self, size: ImageSize) -> InputLayout {
-        self.layout(size, self.pitch_memory.get(&size).copied())
+        self.layout(size, self.stream.pitch(size))
     }
 
     /// Whether the images of a batch (the two views of a stereo pair) are preprocessed, decoded and
@@ -1023,7 +1005,7 @@ impl Marknet {
         let unknown: Vec<usize> = whole_images
             .iter()
             .copied()
-            .filter(|&i| !self.pitch_memory.contains_key(&sizes[i]))
+            .filter(|&i| self.stream.pitch(sizes[i]).is_none())
             .collect();
         for scale in [PROBE_SCALE, FINE_PROBE_SCALE, COARSE_PROBE_SCALE] {
             // The fine and coarse probes only where no pass so far found a lattice; the fine one also
@@ -1173,9 +1155,7 @@ impl Marknet {
             if relayout {
                 wanted[i] = Some(layout);
             }
-            if self.remember_pitch && (relayout || !self.pitch_memory.contains_key(&sizes[i])) {
-                self.pitch_memory.insert(sizes[i], pitch);
-            }
+            self.stream.learn_pitch(sizes[i], pitch, relayout);
         }
         // With the pitch remembered, every image of a size runs under the layout the next one gets,
         // including the first (measured under the layout without a pitch, a few % off in scale): a
@@ -1183,7 +1163,7 @@ impl Marknet {
         // carries a per-marker bias into every displacement.
         let mut redo = Vec::new();
         for &i in todo {
-            let target = if self.remember_pitch && self.pitch_memory.contains_key(&sizes[i]) {
+            let target = if self.stream.pitch(sizes[i]).is_some() {
                 Some(self.next_layout(sizes[i]))
             } else {
                 wanted[i]
@@ -1253,7 +1233,7 @@ impl Marknet {
         let learnt: Vec<Option<LatticeWindow>> = sizes
             .iter()
             .enumerate()
-            .map(|(slot, &size)| self.window_of(size, slot))
+            .map(|(slot, &size)| self.stream.current_window(size, slot))
             .collect();
         let mut found = self.detect_in(images, &learnt)?;
         let fallen: Vec<(usize, Option<LatticeWindow>)> = (0..images.len())
@@ -1291,7 +1271,7 @@ impl Marknet {
             }
         }
         for (i, r) in fresh {
-            self.window_memory.insert((sizes[i], i), r.filter(|_| kept[i]));
+            self.stream.learn_window(sizes[i], i, r.filter(|_| kept[i]));
         }
         Ok(())
     }
@@ -1312,35 +1292,18 @@ impl Marknet {
         Ok(subset.iter().map(|&(i, _)| i).zip(found).collect())
     }
 
-    /// The window remembered for view `slot` of images of `size`, while it still belongs to the
-    /// remembered pitch (a relayout that changed the pitch makes the view learn a new one).
-    fn window_of(&mut self, size: ImageSize, slot: usize) -> Option<LatticeWindow> {
-        let pitch = self.pitch_memory.get(&size).copied();
-        let entry = self.window_memory.get(&(size, slot)).copied()?;
-        match entry {
-            Some(r) if Some(r.pitch_px) != pitch => {
-                self.window_memory.remove(&(size, slot));
-                None
-            }
-            r => r,
-        }
-    }
-
     /// Whether view `slot` of images of `size` may learn its window from a frame with `markers`
     /// markers: windows on, the isotropic "auto" fit, a remembered pitch, nothing learnt yet.
     fn may_learn_window(&self, size: ImageSize, slot: usize, markers: usize) -> bool {
-        self.remember_pitch
-            && self.lattice_window
-            && markers >= WINDOW_MIN_MARKERS
+        markers >= WINDOW_MIN_MARKERS
             && self.auto_fit().is_some_and(|f| !f.prefer_stretch)
-            && self.pitch_memory.contains_key(&size)
-            && !self.window_memory.contains_key(&(size, slot))
+            && self.stream.may_learn_window(size, slot)
     }
 
     /// The window around `markers` of an image of `size` in the input of the remembered pitch's
     /// layout ([`window::window_around`]).
     fn window_around(&self, size: ImageSize, markers: &[Detection]) -> Option<LatticeWindow> {
-        let pitch = *self.pitch_memory.get(&size)?;
+        let pitch = self.stream.pitch(size)?;
         let multiple = self.auto_fit()?.multiple;
         window::window_around(markers, size, pitch, &self.next_layout(size), multiple)
     }
