@@ -1,64 +1,41 @@
-//! Marknet (and its MRE) through ONNX Runtime: loading with a contract check, preprocessing any image
-//! size, batched inference of both stereo views, decoding and post-processing.
+//! The Marknet localizer (with its MRE, `marknet-mre`): batched inference of both stereo views on its
+//! [`Network`](crate::network) under the layouts of [`crate::layout`], decoding and post-processing.
 //!
-//! Preprocessing (`docs/model-contract.md`): the image is resized with OpenCV's bilinear `INTER_LINEAR`
-//! (half-pixel centres) into an [`InputLayout`], converted to planar RGB f32 in [0, 1] (grey replicated,
-//! BGRA's alpha dropped). The default [`InputFit::Auto`] of a dynamic-input model scales isotropically
+//! The default [`InputFit::Auto`] of a dynamic-input model scales isotropically
 //! so that the marker pitch lands where the network was trained, measured on a first pass and
 //! remembered per image size; a fixed-input model gets the contract's whole-image stretch.
 //! Outputs are mapped back with `x_orig = (x_in - offset_x) * W / scaled_width - 0.5` (likewise y).
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
-use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
-use ort::session::Session;
-use ort::session::builder::GraphOptimizationLevel;
-use ort::value::{TensorRef, ValueType};
-use rayon::iter::{IntoParallelIterator, ParallelIterator};
+use opencv::core::{Mat, MatTraitConst};
 
 use crate::border::settle_the_border;
 use crate::close_look::{SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of};
 use crate::contract::AutoFit;
-use crate::contract::{MARKNET_INPUT, MARKNET_OUTPUT, MRE_INPUT, MRE_OUTPUT, TensorSpec};
 use crate::dots::judge_the_dots;
 use crate::lattice::{
     LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
 };
 use crate::layout::{
-    COARSE_PROBE_SCALE, FINE_PROBE_SCALE, InputFit, InputLayout, MAX_INPUT_SIDE_PX, MAX_RELAYOUTS,
-    MIN_PITCH_SUPPORT, PROBE_MIN_COVER, PROBE_MIN_GAIN, PROBE_SCALE, decode_in_layout, fit_layout,
-    input_per_px, layout_geometry, probe_layout_at,
+    COARSE_PROBE_SCALE, FINE_PROBE_SCALE, InputFit, InputLayout, MAX_RELAYOUTS, MIN_PITCH_SUPPORT,
+    PROBE_MIN_COVER, PROBE_MIN_GAIN, PROBE_SCALE, decode_in_layout, fit_layout, input_per_px,
+    probe_layout_at,
 };
+use crate::mre::Mre;
+use crate::network::{Network, input_dims, map_images};
+use crate::onnx::SessionOptions;
 use crate::postprocess::{
     DecodeGeometry, MRE_FEATURES, Selection, dedup_radius_px, deduplicate, pitch_of_confident,
 };
 use crate::region::Region;
-use crate::resize::{Image, ResizeScratch, resize_into_planar};
 use crate::site_blobs::blobs_at_empty_sites;
 use crate::spacing::nearest_neighbour_distances;
 use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::stream::StreamState;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
-use crate::{
-    Error, Localizer, MarknetContract, MreContract, PostProcess, Result, check_image, cv_err, runtime,
-};
-
-/// Largest accepted ratio between an image's aspect ratio and the network input's: beyond it the resize
-/// squashes markers into shapes far from anything the network was trained on.
-pub const MAX_ASPECT_DISTORTION: f64 = 2.0;
-
-/// Below this scale (output px per original px, along either axis) the image is first reduced to its
-/// scaled size by area averaging (OpenCV `INTER_AREA`; `AREA_BELOW_SCALE` in the trainer), then
-/// placed as usual: bilinear sampling reads 2 x 2 pixels per output pixel, so a reduction of 3x or
-/// more skips most pixels, and scan lines or dots a few pixels wide alias into stripes and blobs (a
-/// 1280 x 720 gel of bright 25 px dots at a 90 px pitch under scan-line banding, run at 0.13 x: 54 of
-/// its 64 dots with bilinear sampling, all 64 and nothing else with area averaging;
-/// `bright_dots_under_scan_lines_reduced_a_lot_are_found_and_the_banding_is_not`). Milder reductions
-/// stay bilinear, as the network's training crops are: area averaging blurs small dots that
-/// bilinear sampling keeps sharp (a higher threshold cost a real sensor markers in contact).
-pub const AREA_BELOW_SCALE: f64 = 0.34;
+use crate::{Error, Localizer, MarknetContract, PostProcess, Result, check_image};
 
 /// What the passes of the "auto" fit and the closer look leave of one image, before the
 /// post-processing ([`Marknet::fitted_candidates`]).
@@ -218,375 +195,10 @@ impl Pass {
     }
 }
 
-/// ONNX Runtime session options shared by Marknet and MRE.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct SessionOptions {
-    /// Intra-op threads; 0 lets ONNX Runtime choose (one per core).
-    pub intra_threads: usize,
-    /// Register the CUDA execution provider when this ONNX Runtime build has it (the PyPI CPU wheel
-    /// does not; then the CPU provider runs).
-    pub use_cuda: bool,
-}
-
-impl Default for SessionOptions {
-    fn default() -> Self {
-        Self {
-            intra_threads: 0,
-            use_cuda: true,
-        }
-    }
-}
-
-pub(crate) fn onnx_err<'a>(path: &'a Path, what: &'static str) -> impl Fn(String) -> Error + 'a {
-    move |message| Error::Onnx {
-        path: path.to_path_buf(),
-        what,
-        message,
-    }
-}
-
-/// An error message when a model's output holds NaN or an infinity: broken weights (or a broken
-/// export) would otherwise give no markers and no word, or infinite candidates that later stages
-/// cannot place.
-pub(crate) fn check_finite(data: &[f32], output: &str) -> std::result::Result<(), String> {
-    match data.iter().position(|v| !v.is_finite()) {
-        Some(i) => Err(format!(
-            "output '{output}' holds {} (value {i} of {}): expected finite numbers; the model's \
-             weights or export are broken",
-            data[i],
-            data.len()
-        )),
-        None => Ok(()),
-    }
-}
-
-/// Feature rows every healthy MRE scores with finite numbers (all zeros, all ones, a ramp): run at
-/// load, they catch broken weights before any frame, since the MRE only sees the candidates Marknet
-/// is unsure of and a clear image may never reach it.
-#[allow(clippy::cast_precision_loss)]
-const MRE_PROBE_ROWS: [[f32; MRE_FEATURES]; 3] = {
-    let mut ramp = [0.0; MRE_FEATURES];
-    let mut k = 0;
-    while k < MRE_FEATURES {
-        ramp[k] = k as f32 / MRE_FEATURES as f32;
-        k += 1;
-    }
-    [[0.0; MRE_FEATURES], [1.0; MRE_FEATURES], ramp]
-};
-
-/// Runs Marknet once on a mid-grey input and checks every output is finite: NaN or infinite
-/// weights make a model useless on every frame, so they are an error at load (naming the model)
-/// rather than a flag on each frame. The input is the smallest a dynamic-input model takes (two of
-/// its size multiples a side, so the probe costs little), else the declared size.
-fn probe_marknet(path: &Path, session: &mut Session, contract: &MarknetContract) -> Result<()> {
-    let (w, h) = match contract.auto_fit {
-        Some(fit) => (2 * fit.multiple as usize, 2 * fit.multiple as usize),
-        None => (contract.input_width as usize, contract.input_height as usize),
-    };
-    let grey = vec![0.5f32; 3 * w * h];
-    let run = onnx_err(path, "a check run at load");
-    let input =
-        TensorRef::from_array_view(([1, 3, h, w], grey.as_slice())).map_err(|e| run(e.to_string()))?;
-    let outputs = session
-        .run(ort::inputs![MARKNET_INPUT => input])
-        .map_err(|e| run(e.to_string()))?;
-    let (_, raw) = outputs[MARKNET_OUTPUT]
-        .try_extract_tensor::<f32>()
-        .map_err(|e| run(e.to_string()))?;
-    check_finite(raw, MARKNET_OUTPUT).map_err(|m| run(format!("{m} (on a grey image)")))
-}
-
-/// A loaded model: its session, `metadata_props`, and input / output signatures.
-pub(crate) struct Opened {
-    pub(crate) session: Session,
-    pub(crate) metadata: BTreeMap<String, String>,
-    pub(crate) inputs: Vec<TensorSpec>,
-    pub(crate) outputs: Vec<TensorSpec>,
-}
-
-/// Loads a model file into a session, and reads its metadata and signature (every ONNX localizer
-/// opens its model through this one function).
-pub(crate) fn open_session(path: &Path, options: &SessionOptions) -> Result<Opened> {
-    std::fs::metadata(path).map_err(|source| Error::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let load = onnx_err(path, "loading the model");
-    gelstereo_core::limits::check_thread_count(options.intra_threads)
-        .map_err(|e| load(format!("intra-op threads: {e}")))?;
-    let rt = runtime::init()?;
-    let mut builder = Session::builder(&rt.environment)
-        .map_err(|e| load(e.to_string()))?
-        .with_optimization_level(GraphOptimizationLevel::Level3)
-        .map_err(|e| load(e.to_string()))?;
-    // Idle intra-op threads block instead of busy-waiting (ONNX Runtime's default is to spin): on cores
-    // shared with other work, spinning threads steal the cores the next operator needs and latency
-    // gets several times worse; on an otherwise idle machine spinning would save a few percent.
-    builder = builder
-        .with_intra_op_spinning(false)
-        .map_err(|e| load(e.to_string()))?;
-    if options.intra_threads > 0 {
-        builder = builder
-            .with_intra_threads(options.intra_threads)
-            .map_err(|e| load(e.to_string()))?;
-    }
-    if options.use_cuda && cuda_available() {
-        builder = builder
-            .with_execution_providers([ort::ep::CUDA::default().build()])
-            .map_err(|e| load(e.to_string()))?;
-    }
-    let session = builder.commit_from_file(path).map_err(|e| load(e.to_string()))?;
-    let meta_err = onnx_err(path, "reading metadata_props");
-    let metadata = session.metadata().map_err(|e| meta_err(e.to_string()))?;
-    let mut map = BTreeMap::new();
-    for key in metadata.custom_keys().map_err(|e| meta_err(e.to_string()))? {
-        if let Some(v) = metadata.custom(&key) {
-            map.insert(key, v);
-        }
-    }
-    drop(metadata);
-    let spec = |o: &ort::value::Outlet| match o.dtype() {
-        ValueType::Tensor { ty, shape, .. } => TensorSpec {
-            name: o.name().to_owned(),
-            float32: *ty == ort::value::TensorElementType::Float32,
-            dims: shape.to_vec(),
-        },
-        _ => TensorSpec {
-            name: o.name().to_owned(),
-            float32: false,
-            dims: Vec::new(),
-        },
-    };
-    let inputs = session.inputs().iter().map(spec).collect();
-    let outputs = session.outputs().iter().map(spec).collect();
-    Ok(Opened {
-        session,
-        metadata: map,
-        inputs,
-        outputs,
-    })
-}
-
-/// Checks that an image's aspect ratio is within [`MAX_ASPECT_DISTORTION`] of the network input's
-/// (the contract's whole-image stretch would distort markers beyond what training covered).
-pub(crate) fn check_aspect(size: ImageSize, input_width: u32, input_height: u32) -> Result<()> {
-    let img = f64::from(size.width) / f64::from(size.height);
-    let net = f64::from(input_width) / f64::from(input_height);
-    let ratio = if img > net { img / net } else { net / img };
-    if ratio > MAX_ASPECT_DISTORTION {
-        return Err(Error::Image {
-            property: "size",
-            expected: format!(
-                "an aspect ratio within {MAX_ASPECT_DISTORTION}x of the network input {input_width}x{input_height}"
-            ),
-            found: format!("{}x{}", size.width, size.height),
-        });
-    }
-    Ok(())
-}
-
-/// Resizes `image` into `layout` (OpenCV bilinear `INTER_LINEAR` on the 8-bit pixels: half-pixel
-/// centres, no antialiasing; the margin filled with the resized image's median colour) and writes it
-/// into `plane` as planar RGB f32 in [0, 1] (grey replicated, alpha dropped), in one pass
-/// bit-identical to OpenCV's resize + copyMakeBorder with that constant ([`crate::resize`]); with
-/// `window`, only that rectangle of the input (`plane` holds 3 x its pixels). `scratch` is kept
-/// between calls.
-pub(crate) fn write_layout(
-    image: &Mat,
-    layout: &InputLayout,
-    window: Option<&Window>,
-    scratch: &mut ResizeScratch,
-    plane: &mut [f32],
-) -> Result<()> {
-    let owned;
-    let image = if image.is_continuous() {
-        image
-    } else {
-        owned = image
-            .try_clone()
-            .map_err(cv_err("copy of a non-continuous image"))?;
-        &owned
-    };
-    let size = check_image(image)?;
-    let reduced;
-    let image = if f64::from(layout.scaled_width) < AREA_BELOW_SCALE * f64::from(size.width)
-        || f64::from(layout.scaled_height) < AREA_BELOW_SCALE * f64::from(size.height)
-    {
-        let mut out = Mat::default();
-        let to = opencv::core::Size::new(layout.scaled_width as i32, layout.scaled_height as i32);
-        opencv::imgproc::resize(image, &mut out, to, 0.0, 0.0, opencv::imgproc::INTER_AREA)
-            .map_err(cv_err("area reduction of a large image"))?;
-        reduced = out;
-        &reduced
-    } else {
-        image
-    };
-    let view = Image {
-        bytes: image.data_bytes().map_err(cv_err("image data"))?,
-        width: image.cols() as usize,
-        height: image.rows() as usize,
-        channels: image.channels() as usize,
-    };
-    resize_into_planar(&view, layout, window, scratch, plane);
-    Ok(())
-}
-
-/// The network input of `image` under `layout`, as Marknet feeds its network: the image resized
-/// (OpenCV's `INTER_LINEAR` bit for bit, area averaging first below 0.34 x), the rest of the input
-/// filled with its median colour, planar RGB f32 in [0, 1] (3 x input pixels) in `plane`. `scratch`
-/// is kept between calls and chooses the kernels ([`ResizeScratch::with_kernels`]); every kernel set
-/// gives the same bits. For looking at what the network sees and for timing the kernels
-/// (`gelstereo bench`).
-pub fn network_input(
-    image: &Mat,
-    layout: &InputLayout,
-    scratch: &mut ResizeScratch,
-    plane: &mut Vec<f32>,
-) -> Result<()> {
-    // The image itself is checked by `write_layout`.
-    let l = layout;
-    let fits = |offset: u32, scaled: u32, input: u32| {
-        scaled >= 1
-            && input <= MAX_INPUT_SIDE_PX
-            && offset.checked_add(scaled).is_some_and(|end| end <= input)
-    };
-    if !fits(l.offset_x, l.scaled_width, l.input_width) || !fits(l.offset_y, l.scaled_height, l.input_height)
-    {
-        return Err(Error::Image {
-            property: "layout",
-            expected: format!(
-                "a resized image of at least 1 x 1 px inside a network input of at most {MAX_INPUT_SIDE_PX} px a side"
-            ),
-            found: format!("{l:?}"),
-        });
-    }
-    plane.clear();
-    plane.resize(3 * l.input_width as usize * l.input_height as usize, 0.0);
-    write_layout(image, layout, None, scratch, plane)
-}
-
-/// Checks `image` and writes it into `plane` under `layout` ([`write_layout`]); `stretch_to`: the
-/// network input a whole-image stretch must keep the aspect ratio of ([`check_aspect`]).
-///
-/// The trainer divides by 255 before resizing; resizing the 8-bit image first differs by at most
-/// half a grey level (rounding), which `docs/model-contract.md` allows, and halves the cost.
-fn preprocess(
-    image: &Mat,
-    layout: &InputLayout,
-    window: Option<&Window>,
-    stretch_to: Option<(u32, u32)>,
-    scratch: &mut ResizeScratch,
-    plane: &mut [f32],
-) -> Result<()> {
-    let size = check_image(image)?;
-    if let Some((w, h)) = stretch_to {
-        check_aspect(size, w, h)?;
-    }
-    write_layout(image, layout, window, scratch, plane)
-}
-
-/// The input size an image runs at: its layout's, or its window's.
-fn input_dims(layout: &InputLayout, window: Option<&Window>) -> (u32, u32) {
-    window.map_or((layout.input_width, layout.input_height), |w| (w.width, w.height))
-}
-
-/// `items` mapped by `f`, in order: on rayon's thread pool when `parallel` and there are several
-/// (the images of a batch), else on the calling thread.
-fn map_images<T: Send, R: Send>(parallel: bool, items: Vec<T>, f: impl Fn(T) -> R + Sync + Send) -> Vec<R> {
-    if parallel && items.len() > 1 {
-        items.into_par_iter().map(f).collect()
-    } else {
-        items.into_iter().map(f).collect()
-    }
-}
-
-/// Opens an ONNX model and returns its `metadata_props`, sorted by key (what `gelstereo doctor` reports).
-pub fn model_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
-    Ok(open_session(path, &SessionOptions::default())?.metadata)
-}
-
-/// Whether this ONNX Runtime build includes the CUDA execution provider.
-pub fn cuda_available() -> bool {
-    use ort::ep::ExecutionProvider as _;
-    ort::ep::CUDA::is_available().unwrap_or(false)
-}
-
-/// The Marker Rationality Evaluator: 11 features in, the probability that a candidate is right out.
-pub struct Mre {
-    path: PathBuf,
-    session: Session,
-    contract: MreContract,
-    buffer: Vec<f32>,
-}
-
-impl std::fmt::Debug for Mre {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Mre")
-            .field("path", &self.path)
-            .field("contract", &self.contract)
-            .finish()
-    }
-}
-
-impl Mre {
-    /// Loads `path` and checks its contract.
-    pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
-        let Opened {
-            session,
-            metadata: meta,
-            inputs,
-            outputs,
-        } = open_session(path, options)?;
-        let contract = MreContract::from_model(path, &meta, &inputs, &outputs)?;
-        let mut mre = Self {
-            path: path.to_path_buf(),
-            session,
-            contract,
-            buffer: Vec::new(),
-        };
-        mre.score(&MRE_PROBE_ROWS)?;
-        Ok(mre)
-    }
-
-    /// The model's declared contract.
-    pub fn contract(&self) -> &MreContract {
-        &self.contract
-    }
-
-    /// Scores a batch of feature vectors (one run); an empty batch gives an empty result.
-    pub fn score(&mut self, features: &[[f32; MRE_FEATURES]]) -> Result<Vec<f32>> {
-        if features.is_empty() {
-            return Ok(Vec::new());
-        }
-        self.buffer.clear();
-        self.buffer.extend(features.iter().flatten());
-        let run = onnx_err(&self.path, "inference");
-        let input = TensorRef::from_array_view(([features.len(), MRE_FEATURES], self.buffer.as_slice()))
-            .map_err(|e| run(e.to_string()))?;
-        let outputs = self
-            .session
-            .run(ort::inputs![MRE_INPUT => input])
-            .map_err(|e| run(e.to_string()))?;
-        let (shape, data) = outputs[MRE_OUTPUT]
-            .try_extract_tensor::<f32>()
-            .map_err(|e| run(e.to_string()))?;
-        if data.len() != features.len() {
-            return Err(run(format!(
-                "output '{MRE_OUTPUT}' has shape {shape}, expected [{}, 1]",
-                features.len()
-            )));
-        }
-        check_finite(data, MRE_OUTPUT).map_err(run)?;
-        Ok(data.to_vec())
-    }
-}
-
 /// The Marknet localizer: `marknet` (c > `conf_marknet_only`) or, with an [`Mre`], `marknet-mre`.
 pub struct Marknet {
-    path: PathBuf,
+    net: Network,
     options: SessionOptions,
-    session: Session,
-    contract: MarknetContract,
     post: PostProcess,
     mre: Option<Mre>,
     fit: InputFit,
@@ -594,18 +206,15 @@ pub struct Marknet {
     stream: StreamState,
     /// Whether squeezed parts of the lattice get a closer look ([`crate::close_look`]).
     close_look: bool,
-    /// Scratch of each batch slot's preprocessing.
-    resize: Vec<ResizeScratch>,
     /// Work on the images of a batch in parallel ([`set_parallel`](Self::set_parallel)).
     parallel: bool,
-    input: Vec<f32>,
 }
 
 impl std::fmt::Debug for Marknet {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Marknet")
-            .field("path", &self.path)
-            .field("contract", &self.contract)
+            .field("path", &self.net.path)
+            .field("contract", &self.net.contract)
             .field("post", &self.post)
             .field("fit", &self.fit)
             .field("mre", &self.mre)
@@ -616,27 +225,16 @@ impl std::fmt::Debug for Marknet {
 impl Marknet {
     /// Loads `path` and checks its contract; the localizer is `marknet` until [`with_mre`](Self::with_mre).
     pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
-        let Opened {
-            mut session,
-            metadata: meta,
-            inputs,
-            outputs,
-        } = open_session(path, options)?;
-        let contract = MarknetContract::from_model(path, &meta, &inputs, &outputs)?;
-        probe_marknet(path, &mut session, &contract)?;
+        let net = Network::load(path, options)?;
         Ok(Self {
-            path: path.to_path_buf(),
             options: *options,
-            session,
-            post: contract.postprocess,
-            contract,
+            post: net.contract.postprocess,
+            net,
             mre: None,
             fit: InputFit::Auto,
             stream: StreamState::default(),
             close_look: true,
-            resize: Vec::new(),
             parallel: false,
-            input: Vec::new(),
         })
     }
 
@@ -651,7 +249,7 @@ impl Marknet {
 
     /// The model's declared contract.
     pub fn contract(&self) -> &MarknetContract {
-        &self.contract
+        &self.net.contract
     }
 
     /// The post-processing thresholds in use.
@@ -707,7 +305,7 @@ impl Marknet {
             intra_threads,
             ..self.options
         };
-        let mut net = Marknet::load(&self.path, &options)?;
+        let mut net = Marknet::load(&self.net.path, &options)?;
         if let Some(mre) = &self.mre {
             net = net.with_mre(Mre::load(&mre.path, &options)?)?;
         }
@@ -721,14 +319,14 @@ impl Marknet {
     /// Whether the "auto" fit applies (an [`InputFit::Auto`] localizer on a dynamic-input model).
     fn auto_fit(&self) -> Option<&AutoFit> {
         match self.fit {
-            InputFit::Auto => self.contract.auto_fit.as_ref(),
+            InputFit::Auto => self.net.contract.auto_fit.as_ref(),
             InputFit::Stretch | InputFit::Pad => None,
         }
     }
 
     /// The layout of an image of `size` given its marker pitch (used by the "auto" fit only).
     pub fn layout(&self, size: ImageSize, pitch_px: Option<f64>) -> InputLayout {
-        let (iw, ih) = (self.contract.input_width, self.contract.input_height);
+        let (iw, ih) = (self.net.contract.input_width, self.net.contract.input_height);
         if let Some(fit) = self.auto_fit() {
             return fit_layout(size, pitch_px, iw, ih, fit);
         }
@@ -769,70 +367,21 @@ impl Marknet {
         self.mre.is_some()
     }
 
-    /// Runs the network once on `images` under `layouts` (each on the whole input, or on the window
-    /// `windows` gives), all of one input size; returns the raw output (`[Gy, Gx, m, 3]` logits per
-    /// image, row-major, concatenated), in the spans `marknet.preprocess` and `marknet.network` (a
-    /// batch may take several passes under the "auto" fit).
+    /// [`Network::run_batch`] under this localizer's fit: a stretch must keep the aspect ratio
+    /// within bounds (the "auto" and "pad" layouts keep it). A batch may take several runs under the
+    /// "auto" fit.
     fn run_batch(
         &mut self,
         images: &[&Mat],
         windows: &[Option<Window>],
         layouts: &[InputLayout],
     ) -> Result<Vec<f32>> {
-        let Some(first) = layouts.first() else {
-            return Ok(Vec::new());
-        };
-        let (iw, ih) = input_dims(first, windows.first().and_then(Option::as_ref));
-        let (iw, ih) = (iw as usize, ih as usize);
-        let preprocessing = tracing::trace_span!("marknet.preprocess").entered();
-        self.input.resize(images.len() * 3 * iw * ih, 0.0);
-        if self.resize.len() < images.len() {
-            self.resize.resize_with(images.len(), ResizeScratch::default);
-        }
-        // A stretch must keep the aspect ratio within bounds (the "auto" and "pad" layouts keep it).
+        let contract = &self.net.contract;
         let stretch =
-            self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.contract.auto_fit.is_none());
-        let stretch_to = stretch.then_some((self.contract.input_width, self.contract.input_height));
-        let slots = images
-            .iter()
-            .zip(windows)
-            .zip(layouts)
-            .zip(self.input.chunks_exact_mut(3 * iw * ih))
-            .zip(self.resize.iter_mut())
-            .collect();
-        map_images(
-            self.parallel,
-            slots,
-            |((((image, window), layout), plane), scratch)| {
-                preprocess(image, layout, window.as_ref(), stretch_to, scratch, plane)
-            },
-        )
-        .into_iter()
-        .collect::<Result<()>>()?;
-        drop(preprocessing);
-        let _network = tracing::trace_span!("marknet.network").entered();
-        let run = onnx_err(&self.path, "inference");
-        let input = TensorRef::from_array_view(([images.len(), 3, ih, iw], self.input.as_slice()))
-            .map_err(|e| run(e.to_string()))?;
-        let outputs = self
-            .session
-            .run(ort::inputs![MARKNET_INPUT => input])
-            .map_err(|e| run(e.to_string()))?;
-        let (shape, raw) = outputs[MARKNET_OUTPUT]
-            .try_extract_tensor::<f32>()
-            .map_err(|e| run(e.to_string()))?;
-        let c = &self.contract;
-        let (gy, gx) = (ih / c.stride as usize, iw / c.stride as usize);
-        let per_image = gy * gx * c.candidates as usize * 3;
-        if raw.len() != per_image * images.len() {
-            return Err(run(format!(
-                "output '{MARKNET_OUTPUT}' has shape {shape}, expected [{}, {gy}, {gx}, {}, 3]",
-                images.len(),
-                c.candidates
-            )));
-        }
-        check_finite(raw, MARKNET_OUTPUT).map_err(run)?;
-        Ok(raw.to_vec())
+            self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && contract.auto_fit.is_none());
+        let stretch_to = stretch.then_some((contract.input_width, contract.input_height));
+        self.net
+            .run_batch(images, windows, layouts, stretch_to, self.parallel)
     }
 
     /// Runs the network on `images` as one batch under the layouts the next images of their sizes get
@@ -863,26 +412,7 @@ impl Marknet {
 
     /// The decoding geometry of an image of `size` under `layout`.
     pub fn geometry_for(&self, size: ImageSize, layout: &InputLayout) -> DecodeGeometry {
-        layout_geometry(size, layout, self.contract.stride, self.contract.candidates)
-    }
-
-    /// [`geometry_for`](Self::geometry_for) of the network run on `window` of the layout's input.
-    fn window_geometry(
-        &self,
-        size: ImageSize,
-        layout: &InputLayout,
-        window: Option<&Window>,
-    ) -> DecodeGeometry {
-        let whole = self.geometry_for(size, layout);
-        let Some(w) = window else { return whole };
-        let stride = self.contract.stride;
-        DecodeGeometry {
-            grid_y: (w.height / stride) as usize,
-            grid_x: (w.width / stride) as usize,
-            offset_x: whole.offset_x - f64::from(w.x),
-            offset_y: whole.offset_y - f64::from(w.y),
-            ..whole
-        }
+        self.net.geometry_for(size, layout)
     }
 
     /// The decoding geometry the next image of `size` gets ([`next_layout`](Self::next_layout)).
@@ -936,7 +466,8 @@ impl Marknet {
                 .map(|&i| {
                     (
                         i,
-                        self.window_geometry(sizes[i], &layouts[i], windows[i].as_ref()),
+                        self.net
+                            .window_geometry(sizes[i], &layouts[i], windows[i].as_ref()),
                     )
                 })
                 .zip(raw.chunks(per_image.max(1)))
@@ -1000,7 +531,7 @@ impl Marknet {
         let Some(fit) = self.auto_fit().copied() else {
             return Ok(found.into_iter().zip(layouts).collect());
         };
-        let (iw, ih) = (self.contract.input_width, self.contract.input_height);
+        let (iw, ih) = (self.net.contract.input_width, self.net.contract.input_height);
         let whole_images: Vec<usize> = (0..images.len()).filter(|&i| learnt[i].is_none()).collect();
         let unknown: Vec<usize> = whole_images
             .iter()
@@ -1479,9 +1010,6 @@ impl Localizer for Marknet {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::Kernels;
-    use opencv::core::{CV_8UC1, CV_8UC3, CV_8UC4, Scalar};
-    use opencv::prelude::*;
 
     /// A jittered 14 x 11 lattice (pitch 20 px) of confident candidates in a scrambled order, with
     /// doubtful ones between its dots, a row of 8 confident ones 45 px apart below it, and
@@ -1548,76 +1076,5 @@ mod tests {
             assert_eq!(fitted.fit, fit_lattice(&alone, &check, 1.0));
             assert!(fitted.fit.is_lattice && (150..=154).contains(&fitted.fit.members));
         }
-    }
-
-    /// Every pixel value at every channel position, converted exactly as `v / 255` into the right
-    /// plane (B, G, R swapped to R, G, B; grey replicated; alpha dropped) when the image is the
-    /// input's size.
-    #[test]
-    fn planar_rgb_is_exact_for_grey_bgr_and_bgra() -> Result<()> {
-        for (typ, n) in [(CV_8UC1, 1usize), (CV_8UC3, 3), (CV_8UC4, 4)] {
-            let (w, h) = (37, 29);
-            let mut m =
-                Mat::new_rows_cols_with_default(h, w, typ, Scalar::all(0.0)).map_err(cv_err("test"))?;
-            for (i, v) in m.data_bytes_mut().map_err(cv_err("test"))?.iter_mut().enumerate() {
-                *v = (i * 7 % 256) as u8;
-            }
-            let bytes = m.data_bytes().map_err(cv_err("test"))?.to_vec();
-            let hw = (w * h) as usize;
-            let mut plane = vec![-1.0f32; 3 * hw];
-            let same = InputLayout::stretch(w as u32, h as u32);
-            write_layout(&m, &same, None, &mut ResizeScratch::default(), &mut plane)?;
-            for p in 0..hw {
-                let px = &bytes[n * p..n * p + n];
-                let (r, g, b) = if n == 1 {
-                    (px[0], px[0], px[0])
-                } else {
-                    (px[2], px[1], px[0])
-                };
-                for (c, v) in [r, g, b].into_iter().enumerate() {
-                    assert_eq!(
-                        plane[c * hw + p].to_bits(),
-                        (v as f32 / 255.0).to_bits(),
-                        "{n} channels, px {p}"
-                    );
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// `network_input` gives the same bits with every kernel set and refuses a layout whose resized
-    /// image does not fit its input, naming the layout.
-    #[test]
-    fn the_network_input_is_the_same_with_every_kernel_set_and_a_bad_layout_is_refused() -> Result<()> {
-        let mut m =
-            Mat::new_rows_cols_with_default(480, 640, CV_8UC3, Scalar::all(0.0)).map_err(cv_err("test"))?;
-        for (i, v) in m.data_bytes_mut().map_err(cv_err("test"))?.iter_mut().enumerate() {
-            *v = (i * 31 % 253) as u8;
-        }
-        let layout = InputLayout {
-            input_width: 416,
-            input_height: 320,
-            scaled_width: 406,
-            scaled_height: 304,
-            offset_x: 5,
-            offset_y: 8,
-        };
-        let mut inputs = Vec::new();
-        for kernels in [Kernels::Avx512, Kernels::Sse, Kernels::Scalar] {
-            let mut plane = Vec::new();
-            network_input(&m, &layout, &mut ResizeScratch::with_kernels(kernels), &mut plane)?;
-            assert_eq!(plane.len(), 3 * 416 * 320);
-            inputs.push(plane.iter().map(|v| v.to_bits()).collect::<Vec<u32>>());
-        }
-        assert!(inputs.windows(2).all(|w| w[0] == w[1]));
-        let too_wide = InputLayout {
-            offset_x: 20,
-            ..layout
-        };
-        let err = network_input(&m, &too_wide, &mut ResizeScratch::default(), &mut Vec::new())
-            .expect_err("a resized image past the input's edge");
-        assert!(err.to_string().contains("image layout"), "{err}");
-        Ok(())
     }
 }

@@ -113,7 +113,7 @@ fn median_of(histogram: &[u32; 256]) -> f32 {
     0.0
 }
 
-/// What the preprocessing keeps between calls ([`crate::marknet::network_input`]): the taps of the
+/// What the preprocessing keeps between calls ([`crate::network::network_input`]): the taps of the
 /// latest sizes, the source row split into channel rows, and two rows resized horizontally (planar,
 /// `h >> 4` as i16: the only form the vertical pass reads), and which kernels it may use.
 #[derive(Debug)]

@@ -14,15 +14,14 @@ use gelstereo::markers::lattice::{LatticeCheck, fit_lattice, keep_fitted_lattice
 use gelstereo::markers::layout::{
     self, InputFit, InputLayout, MAX_INPUT_SIDE_PX, decode_in_layout, layout_geometry,
 };
-use gelstereo::markers::marknet::{
-    self, AREA_BELOW_SCALE, FittedCandidates, Marknet, SessionOptions, after_the_lattice,
-};
+use gelstereo::markers::marknet::{FittedCandidates, Marknet, after_the_lattice};
+use gelstereo::markers::network::{self, AREA_BELOW_SCALE};
 use gelstereo::markers::postprocess::{
     MISSING_DISTANCE_PITCH, MRE_FEATURES, MRE_NEIGHBOURS, PostProcess, Selection, dedup_radius_px,
     deduplicate, estimate_pitch_px,
 };
 use gelstereo::markers::region::Region;
-use gelstereo::markers::{FILL_SAMPLE_STEP, Localizer as _, ResizeScratch};
+use gelstereo::markers::{FILL_SAMPLE_STEP, Localizer as _, ResizeScratch, SessionOptions};
 use numpy::ndarray::{Array1, Array2, Array4};
 use numpy::{PyArray1, PyArray2, PyArray4, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray4};
 use pyo3::exceptions::PyValueError;
@@ -220,7 +219,7 @@ fn network_input<'py>(
     let layout = layout_of(layout);
     let plane = py.detach(|| {
         let mut plane = Vec::new();
-        marknet::network_input(&image, &layout, &mut ResizeScratch::default(), &mut plane)
+        network::network_input(&image, &layout, &mut ResizeScratch::default(), &mut plane)
             .map_err(|e| to_py(&e))?;
         PyResult::Ok(plane)
     })?;
