@@ -9,15 +9,11 @@
 use std::path::Path;
 
 use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections};
-use opencv::core::{Mat, MatTraitConst};
+use opencv::core::Mat;
 
-use crate::border::settle_the_border;
 use crate::close_look::{SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of};
 use crate::contract::AutoFit;
-use crate::dots::judge_the_dots;
-use crate::lattice::{
-    LatticeCheck, LatticeFit, fit_lattice, fit_lattice_with_distances, keep_fitted_lattice,
-};
+use crate::finish::finish_passes;
 use crate::layout::{
     COARSE_PROBE_SCALE, FINE_PROBE_SCALE, InputFit, InputLayout, MAX_RELAYOUTS, MIN_PITCH_SUPPORT,
     PROBE_MIN_COVER, PROBE_MIN_GAIN, PROBE_SCALE, decode_in_layout, fit_layout, input_per_px,
@@ -26,13 +22,10 @@ use crate::layout::{
 use crate::mre::Mre;
 use crate::network::{Network, input_dims, map_images};
 use crate::onnx::SessionOptions;
-use crate::postprocess::{
-    DecodeGeometry, MRE_FEATURES, Selection, dedup_radius_px, deduplicate, pitch_of_confident,
-};
+use crate::pass::Pass;
+use crate::postprocess::DecodeGeometry;
 use crate::region::Region;
-use crate::site_blobs::blobs_at_empty_sites;
 use crate::spacing::nearest_neighbour_distances;
-use crate::squeezed_blobs::blobs_between_squeezed;
 use crate::stream::StreamState;
 use crate::window::{self, LatticeWindow, WINDOW_MIN_MARKERS, Window};
 use crate::{Error, Localizer, MarknetContract, PostProcess, Result, check_image};
@@ -47,152 +40,6 @@ pub struct FittedCandidates {
     pub layout: InputLayout,
     /// The region a closer look re-examined, if any.
     pub looked: Option<Region>,
-}
-
-/// One image's candidates from one network pass, and what they say about its layout.
-#[derive(Debug, Clone, Default)]
-struct Pass {
-    /// Candidates with c > the pass's threshold, in the image's pixels, flat order.
-    candidates: Vec<Detection>,
-    /// Post-processing step 3's output for them: de-duplicated, by descending confidence.
-    kept: Vec<Detection>,
-    /// Post-processing step 2's pitch of the candidates (de-duplication, MRE features).
-    pitch_px: Option<f64>,
-    /// How many confident candidates support `layout_pitch_px`: with the lattice check, the lattice
-    /// members among the de-duplicated confident candidates (0 without a lattice); without it, every
-    /// confident candidate.
-    support: usize,
-    /// The marker pitch the layout follows (`None`: no lattice, the layout stays).
-    layout_pitch_px: Option<f64>,
-    /// With the lattice check: the de-duplicated confident candidates (sorted by y then x) and their
-    /// lattice fit, which the final lattice check reuses when its accepted markers are exactly these
-    /// (the MRE accepted none of the rest), as it does on most frames.
-    fitted: Option<FittedSet>,
-    /// The region a closer look re-examined ([`crate::close_look`]), if any.
-    looked: Option<Region>,
-    /// Whether the closer look found every one of `kept` at least [`SQUEEZED_NN_PITCH`] x `pitch_px`
-    /// from the others: the markers, a subset of them, then hold no squeezed pair either, and the
-    /// blob search between squeezed markers has nothing to search.
-    spread: bool,
-}
-
-/// What the lattice check and the edge margin need of an image besides its markers.
-#[derive(Debug, Clone, Copy)]
-struct Frame {
-    size: ImageSize,
-    /// Input px per original px of the final layout.
-    input_per_px: f64,
-    /// The candidates' pitch (post-processing step 2).
-    pitch_px: Option<f64>,
-    /// The region a closer look re-examined.
-    looked: Option<Region>,
-    /// [`Pass::spread`].
-    spread: bool,
-}
-
-/// Detections and their lattice fit at one input scale.
-#[derive(Debug, Clone)]
-struct FittedSet {
-    detections: Vec<Detection>,
-    input_per_px: f64,
-    fit: LatticeFit,
-}
-
-impl FittedSet {
-    /// The lattice fit of `kept_confident`, the de-duplicated candidates with c > `conf_keep`, sorted
-    /// by y then x as the final accepted markers are (so that their check can reuse the fit).
-    /// `confident_nn`: the nearest-neighbour distances of `candidates`' confident ones (in their
-    /// order), when de-duplication dropped none of them: the same points, whose distances the pitch
-    /// estimate measured; kept candidates lie pairwise apart, so both orders sort alike.
-    fn of_confident(
-        candidates: &[Detection],
-        kept_confident: &[Detection],
-        confident_nn: Option<Vec<f64>>,
-        conf_keep: f32,
-        check: &LatticeCheck,
-        input_per_px: f64,
-    ) -> Self {
-        let (detections, fit) = match confident_nn {
-            Some(nn) => {
-                let mut with_nn: Vec<(Detection, f64)> = candidates
-                    .iter()
-                    .filter(|d| d.confidence > conf_keep)
-                    .copied()
-                    .zip(nn)
-                    .collect();
-                with_nn.sort_by(|a, b| crate::detection_order(&a.0, &b.0));
-                let (detections, nn): (Vec<Detection>, Vec<f64>) = with_nn.into_iter().unzip();
-                let fit = fit_lattice_with_distances(&detections, nn, check, input_per_px);
-                (detections, fit)
-            }
-            None => {
-                let mut detections = kept_confident.to_vec();
-                crate::sort_detections(&mut detections);
-                let fit = fit_lattice(&detections, check, input_per_px);
-                (detections, fit)
-            }
-        };
-        Self {
-            detections,
-            input_per_px,
-            fit,
-        }
-    }
-
-    /// The fit, if it was made of exactly `accepted` at `input_per_px`.
-    fn fit_of(self, accepted: &[Detection], input_per_px: f64) -> Option<LatticeFit> {
-        (self.detections == accepted && self.input_per_px == input_per_px).then_some(self.fit)
-    }
-}
-
-impl Pass {
-    /// The candidates of an image of `size` run under `layout`, summarised for the layout decision.
-    fn new(candidates: Vec<Detection>, post: &PostProcess, size: ImageSize, layout: &InputLayout) -> Self {
-        let (pitch_px, confident_nn) = pitch_of_confident(&candidates, post.conf_keep);
-        let radius_px = dedup_radius_px(pitch_px, post);
-        let mut kept = candidates.clone();
-        deduplicate(&mut kept, radius_px);
-        // Step 3 visits in descending confidence and keeps that order: the confident ones lead.
-        let confident = kept.partition_point(|d| d.confidence > post.conf_keep);
-        let (support, layout_pitch_px, fitted) = match &post.lattice {
-            None => (confident_nn.len(), pitch_px, None),
-            Some(check) => {
-                let scale = input_per_px(size, layout);
-                let reuse_nn = (radius_px > 0.0 && confident == confident_nn.len()).then_some(confident_nn);
-                let fitted = FittedSet::of_confident(
-                    &candidates,
-                    &kept[..confident],
-                    reuse_nn,
-                    post.conf_keep,
-                    check,
-                    scale,
-                );
-                let (support, pitch) = if fitted.fit.is_lattice {
-                    (fitted.fit.members, fitted.fit.pitch_px)
-                } else {
-                    (0, None)
-                };
-                (support, pitch, Some(fitted))
-            }
-        };
-        Self {
-            candidates,
-            kept,
-            pitch_px,
-            support,
-            layout_pitch_px,
-            fitted,
-            looked: None,
-            spread: false,
-        }
-    }
-
-    /// The area the supporting candidates cover (count x pitch^2, original px^2): about the gel's for a
-    /// lattice and for a thinned-out one alike; a small part of it for several finds per oversized
-    /// marker (the pitch then measures the spread of the duplicates).
-    fn cover(&self) -> f64 {
-        self.support as f64 * self.layout_pitch_px.map_or(0.0, |p| p * p)
-    }
 }
 
 /// The Marknet localizer: `marknet` (c > `conf_marknet_only`) or, with an [`Mre`], `marknet-mre`.
@@ -845,120 +692,17 @@ impl Marknet {
         images: &[&Mat],
         learnt: &[Option<LatticeWindow>],
     ) -> Result<Vec<TieredDetections>> {
-        let with_mre = self.mre.is_some();
         let post = self.post;
-        let candidates = self.candidates_with_pitch(images, learnt, post.conf_low)?;
-        // Per image: its size, the input px per original px of its final layout (for the lattice
-        // check) and its candidates' pitch (for the edge margin).
-        let frames: Vec<Frame> = candidates
-            .iter()
-            .zip(images)
-            .map(|((pass, layout), image)| {
-                let size = ImageSize {
-                    width: image.cols().max(0) as u32,
-                    height: image.rows().max(0) as u32,
-                };
-                Frame {
-                    size,
-                    input_per_px: input_per_px(size, layout),
-                    pitch_px: pass.pitch_px,
-                    looked: pass.looked,
-                    spread: pass.spread,
-                }
-            })
-            .collect();
-        let (selections, fitted): (Vec<Selection>, Vec<Option<FittedSet>>) =
-            map_images(self.parallel, candidates, |(pass, _)| {
-                let selection = Selection::of_deduplicated(pass.kept, pass.pitch_px, &post, with_mre);
-                (selection, pass.fitted)
-            })
-            .into_iter()
-            .unzip();
-        let finish = |found: TieredDetections, fitted: Option<FittedSet>, frame: Frame| {
-            // The lattice check, beyond the model contract's steps (the border is settled after it).
-            let Some(check) = &post.lattice else {
-                return found;
-            };
-            let scale = frame.input_per_px;
-            let fit = fitted
-                .and_then(|f| f.fit_of(&found.accepted, scale))
-                .unwrap_or_else(|| fit_lattice(&found.accepted, check, scale));
-            keep_fitted_lattice(found, fit, check, frame.looked.as_ref(), Some(frame.size))
-        };
-        let pitch_and_spread: Vec<(Option<f64>, bool)> =
-            frames.iter().map(|f| (f.pitch_px, f.spread)).collect();
-        let found: Vec<TieredDetections> = match self.mre.as_mut() {
-            None => selections
-                .into_iter()
-                .zip(fitted)
-                .zip(frames)
-                .map(|((s, fitted), frame)| finish(s.finish_tiered(&[], post.accept), fitted, frame))
-                .collect(),
-            Some(mre) => {
-                let features: Vec<[f32; MRE_FEATURES]> = selections
-                    .iter()
-                    .flat_map(|s| s.features.iter().copied())
-                    .collect();
-                let scores = mre.score(&features)?;
-                let mut offset = 0;
-                selections
-                    .into_iter()
-                    .zip(fitted)
-                    .zip(frames)
-                    .map(|((s, fitted), frame)| {
-                        let n = s.pending.len();
-                        let mine = scores.get(offset..offset + n).unwrap_or(&[]);
-                        offset += n;
-                        finish(s.finish_tiered(mine, post.accept), fitted, frame)
-                    })
-                    .collect()
-            }
-        };
-        if post.lattice.is_none() {
-            return Ok(found);
-        }
-        // Dots the network missed, found as blobs: between squeezed markers (part of the closer
-        // look), then where the lattice's lines put a site at a hole or at the border.
-        let close_look = self.close_look;
-        found
-            .into_iter()
-            .zip(images)
-            .zip(pitch_and_spread)
-            .map(|((found, image), (pitch, spread))| {
-                after_the_lattice(found, image, pitch, close_look && !spread)
-            })
-            .collect()
+        let passes = self.candidates_with_pitch(images, learnt, post.conf_low)?;
+        finish_passes(
+            passes,
+            images,
+            &post,
+            self.mre.as_mut(),
+            self.close_look,
+            self.parallel,
+        )
     }
-}
-
-/// The steps after the lattice check on one image: the dots-on-a-gel check, the border, and the
-/// dots the network missed, found as blobs (between squeezed markers when `between_squeezed`, then
-/// at the lattice's empty sites). `pitch`: the candidates' pitch (post-processing step 2).
-pub fn after_the_lattice(
-    mut found: TieredDetections,
-    image: &Mat,
-    pitch: Option<f64>,
-    between_squeezed: bool,
-) -> Result<TieredDetections> {
-    // A regular pattern that is no marker gel (a checkerboard, a weave) can pass the lattice
-    // check; its "markers" then lose the look of dots on a gel.
-    if judge_the_dots(image, &found.accepted)?.is_some_and(|v| !v.dots()) {
-        let rejected = std::mem::take(&mut found.accepted);
-        found.second_tier.extend(rejected);
-        return Ok(found);
-    }
-    settle_the_border(&mut found, image, pitch)?;
-    let before = found.accepted.len();
-    if between_squeezed {
-        let blobs = blobs_between_squeezed(image, &found.accepted, pitch)?;
-        found.accepted.extend(blobs);
-    }
-    let at_sites = blobs_at_empty_sites(image, &found.accepted, pitch)?;
-    found.accepted.extend(at_sites);
-    if found.accepted.len() > before {
-        crate::sort_detections(&mut found.accepted);
-    }
-    Ok(found)
 }
 
 impl Localizer for Marknet {
@@ -1004,77 +748,5 @@ impl Localizer for Marknet {
         let right = out.pop().unwrap_or_default();
         let left = out.pop().unwrap_or_default();
         Ok(StereoPair::new(left, right))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A jittered 14 x 11 lattice (pitch 20 px) of confident candidates in a scrambled order, with
-    /// doubtful ones between its dots, a row of 8 confident ones 45 px apart below it, and
-    /// `duplicates` confident near-copies of its dots.
-    fn lattice_candidates(duplicates: usize) -> Vec<Detection> {
-        let jitter = |k: usize| ((k * 7919 + 13) % 1000) as f64 / 1000.0 - 0.5;
-        let mut out = Vec::new();
-        for k in 0..154 {
-            let site = (k * 37) % 154;
-            let (col, row) = ((site % 14) as f64, (site / 14) as f64);
-            let (x, y) = (30.0 + 20.0 * col + jitter(k), 30.0 + 20.0 * row + jitter(k + 500));
-            let c = 0.45 + 0.5 * (jitter(k + 900) + 0.5) as f32;
-            let at = |x: f64, y: f64, confidence: f32| Detection {
-                position: gelstereo_core::Point2::new(x, y),
-                confidence,
-            };
-            out.push(at(x, y, c));
-            if k % 3 == 0 {
-                out.push(at(x + 10.0, y + 10.0, 0.25));
-            }
-            if k < duplicates {
-                out.push(at(x + 1.0, y - 1.0, c - 0.01));
-            }
-            // Confident finds off the lattice, far apart: their distances must stay theirs.
-            if k < 8 {
-                out.push(at(30.0 + 45.0 * k as f64, 310.0, 0.9));
-            }
-        }
-        out
-    }
-
-    /// The pass de-duplicates all candidates once and reuses the pitch estimate's nearest-neighbour
-    /// distances for the lattice check when no confident candidate was dropped: among the confident
-    /// ones it keeps exactly what de-duplicating them alone keeps, and its fit is the one
-    /// `fit_lattice` makes of them, with and without dropped duplicates.
-    #[test]
-    fn one_deduplication_and_reused_distances_leave_the_fit_as_it_was() {
-        let post = PostProcess::default();
-        let check = post.lattice.expect("the default has the lattice check");
-        let size = ImageSize {
-            width: 340,
-            height: 340,
-        };
-        for duplicates in [0, 5] {
-            let candidates = lattice_candidates(duplicates);
-            let pass = Pass::new(candidates.clone(), &post, size, &InputLayout::stretch(340, 340));
-            let radius = dedup_radius_px(pass.pitch_px, &post);
-            let mut alone: Vec<Detection> = candidates
-                .iter()
-                .filter(|d| d.confidence > post.conf_keep)
-                .copied()
-                .collect();
-            deduplicate(&mut alone, radius);
-            assert_eq!(alone.len(), 162, "{duplicates} duplicates");
-            assert_eq!(&pass.kept[..alone.len()], &alone[..]);
-            assert!(
-                pass.kept[alone.len()..]
-                    .iter()
-                    .all(|d| d.confidence <= post.conf_keep)
-            );
-            crate::sort_detections(&mut alone);
-            let fitted = pass.fitted.expect("the lattice check runs");
-            assert_eq!(fitted.detections, alone);
-            assert_eq!(fitted.fit, fit_lattice(&alone, &check, 1.0));
-            assert!(fitted.fit.is_lattice && (150..=154).contains(&fitted.fit.members));
-        }
     }
 }

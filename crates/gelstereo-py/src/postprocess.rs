@@ -10,11 +10,12 @@
 use gelstereo::core::{Detection, ImageSize, Point2, TieredDetections};
 use gelstereo::markers::contract::AutoFit;
 use gelstereo::markers::edge::drop_past_the_edge;
+use gelstereo::markers::finish::after_the_lattice;
 use gelstereo::markers::lattice::{LatticeCheck, fit_lattice, keep_fitted_lattice};
 use gelstereo::markers::layout::{
     self, InputFit, InputLayout, MAX_INPUT_SIDE_PX, decode_in_layout, layout_geometry,
 };
-use gelstereo::markers::marknet::{FittedCandidates, Marknet, after_the_lattice};
+use gelstereo::markers::marknet::{FittedCandidates, Marknet};
 use gelstereo::markers::network::{self, AREA_BELOW_SCALE};
 use gelstereo::markers::postprocess::{
     MISSING_DISTANCE_PITCH, MRE_FEATURES, MRE_NEIGHBOURS, PostProcess, Selection, dedup_radius_px,
