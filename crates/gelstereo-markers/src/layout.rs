@@ -45,6 +45,63 @@ impl std::str::FromStr for InputFit {
     }
 }
 
+/// How a localizer fits images to its model's input: the [`InputFit`] chosen, and the model's nominal
+/// input size and "auto" fit rules (its contract's).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelFit {
+    /// The fit chosen.
+    pub fit: InputFit,
+    /// The model's nominal input width, px.
+    pub input_width: u32,
+    /// The model's nominal input height, px.
+    pub input_height: u32,
+    /// The model's "auto" fit rules (`None`: a fixed-input model).
+    pub auto_fit: Option<AutoFit>,
+}
+
+impl ModelFit {
+    /// The "auto" fit's rules where it applies (an [`InputFit::Auto`] fit of a dynamic-input model).
+    pub fn auto(&self) -> Option<&AutoFit> {
+        match self.fit {
+            InputFit::Auto => self.auto_fit.as_ref(),
+            InputFit::Stretch | InputFit::Pad => None,
+        }
+    }
+
+    /// The layout of an image of `size` given its marker pitch (used by the "auto" fit only).
+    pub fn layout(&self, size: ImageSize, pitch_px: Option<f64>) -> InputLayout {
+        let (iw, ih) = (self.input_width, self.input_height);
+        if let Some(fit) = self.auto() {
+            return fit_layout(size, pitch_px, iw, ih, fit);
+        }
+        match self.fit {
+            InputFit::Pad => {
+                let (w, h) = (f64::from(size.width), f64::from(size.height));
+                let scale = (f64::from(iw) / w).min(f64::from(ih) / h).min(1.0);
+                let nw = ((w * scale).round() as u32).clamp(1, iw);
+                let nh = ((h * scale).round() as u32).clamp(1, ih);
+                InputLayout {
+                    input_width: iw,
+                    input_height: ih,
+                    scaled_width: nw,
+                    scaled_height: nh,
+                    offset_x: (iw - nw) / 2,
+                    offset_y: (ih - nh) / 2,
+                }
+            }
+            InputFit::Auto | InputFit::Stretch => InputLayout::stretch(iw, ih),
+        }
+    }
+
+    /// The nominal input whose aspect ratio an image must keep within bounds: a whole-image
+    /// stretch's (the "auto" and "pad" layouts keep the image's own).
+    pub fn stretch_to(&self) -> Option<(u32, u32)> {
+        let stretch =
+            self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && self.auto_fit.is_none());
+        stretch.then_some((self.input_width, self.input_height))
+    }
+}
+
 /// Largest side of a network input the "auto" fit builds, px (bounds memory and time on huge images).
 pub const MAX_INPUT_SIDE_PX: u32 = 2048;
 
@@ -247,4 +304,55 @@ pub fn decode_in_layout(
         dets.retain(|d| (-0.5..=w).contains(&d.position.x) && (-0.5..=h).contains(&d.position.y));
     }
     dets
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn model_fit(fit: InputFit, dynamic: bool) -> ModelFit {
+        ModelFit {
+            fit,
+            input_width: 416,
+            input_height: 320,
+            auto_fit: dynamic.then_some(AutoFit {
+                multiple: 32,
+                pitch_min_px: 8.0,
+                pitch_max_px: 20.0,
+                pitch_target_px: 12.0,
+                prefer_stretch: false,
+            }),
+        }
+    }
+
+    /// Only a whole-image stretch (chosen, or a fixed-input model's "auto") bounds the aspect ratio,
+    /// and only the "auto" fit of a dynamic-input model follows the pitch.
+    #[test]
+    fn each_fit_gives_its_layout_and_aspect_bound() {
+        let size = ImageSize {
+            width: 640,
+            height: 240,
+        };
+        let auto = model_fit(InputFit::Auto, true);
+        assert_eq!(auto.stretch_to(), None);
+        let rules = model_fit(InputFit::Auto, true).auto_fit.unwrap();
+        assert_eq!(
+            auto.layout(size, Some(20.0)),
+            fit_layout(size, Some(20.0), 416, 320, &rules)
+        );
+        let fixed = model_fit(InputFit::Auto, false);
+        assert!(fixed.auto().is_none());
+        assert_eq!(fixed.stretch_to(), Some((416, 320)));
+        assert_eq!(fixed.layout(size, Some(20.0)), InputLayout::stretch(416, 320));
+        let stretch = model_fit(InputFit::Stretch, true);
+        assert_eq!((stretch.auto(), stretch.stretch_to()), (None, Some((416, 320))));
+        let pad = model_fit(InputFit::Pad, true);
+        assert_eq!(pad.stretch_to(), None);
+        let l = pad.layout(size, Some(20.0));
+        assert_eq!(
+            (l.scaled_width, l.scaled_height, l.offset_x, l.offset_y),
+            (416, 156, 0, 82),
+            "isotropic, centred in the nominal input"
+        );
+    }
 }

@@ -12,12 +12,10 @@ use gelstereo_core::{Detection, ImageSize, Point2, StereoPair, TieredDetections}
 use opencv::core::Mat;
 
 use crate::close_look::{SQUEEZED_NN_PITCH, close_look_input, close_look_zoom, merge, squeezed_region_of};
-use crate::contract::AutoFit;
 use crate::finish::finish_passes;
 use crate::layout::{
-    COARSE_PROBE_SCALE, FINE_PROBE_SCALE, InputFit, InputLayout, MAX_RELAYOUTS, MIN_PITCH_SUPPORT,
-    PROBE_MIN_COVER, PROBE_MIN_GAIN, PROBE_SCALE, decode_in_layout, fit_layout, input_per_px,
-    probe_layout_at,
+    COARSE_PROBE_SCALE, FINE_PROBE_SCALE, InputFit, InputLayout, MAX_RELAYOUTS, MIN_PITCH_SUPPORT, ModelFit,
+    PROBE_MIN_COVER, PROBE_MIN_GAIN, PROBE_SCALE, decode_in_layout, input_per_px, probe_layout_at,
 };
 use crate::mre::Mre;
 use crate::network::{Network, input_dims, map_images};
@@ -48,7 +46,8 @@ pub struct Marknet {
     options: SessionOptions,
     post: PostProcess,
     mre: Option<Mre>,
-    fit: InputFit,
+    /// How images are fitted to the network input.
+    fit: ModelFit,
     /// The remembered pitches and lattice windows of the stream being localized.
     stream: StreamState,
     /// Whether squeezed parts of the lattice get a closer look ([`crate::close_look`]).
@@ -63,7 +62,7 @@ impl std::fmt::Debug for Marknet {
             .field("path", &self.net.path)
             .field("contract", &self.net.contract)
             .field("post", &self.post)
-            .field("fit", &self.fit)
+            .field("fit", &self.fit.fit)
             .field("mre", &self.mre)
             .finish()
     }
@@ -73,12 +72,19 @@ impl Marknet {
     /// Loads `path` and checks its contract; the localizer is `marknet` until [`with_mre`](Self::with_mre).
     pub fn load(path: &Path, options: &SessionOptions) -> Result<Self> {
         let net = Network::load(path, options)?;
+        let c = &net.contract;
+        let fit = ModelFit {
+            fit: InputFit::Auto,
+            input_width: c.input_width,
+            input_height: c.input_height,
+            auto_fit: c.auto_fit,
+        };
         Ok(Self {
             options: *options,
             post: net.contract.postprocess,
             net,
             mre: None,
-            fit: InputFit::Auto,
+            fit,
             stream: StreamState::default(),
             close_look: true,
             parallel: false,
@@ -111,7 +117,7 @@ impl Marknet {
 
     /// Chooses how images are fitted to the network input ([`InputFit::Auto`] by default).
     pub fn set_fit(&mut self, fit: InputFit) {
-        self.fit = fit;
+        self.fit.fit = fit;
     }
 
     /// Whether the "auto" fit remembers the marker pitch measured per image size (default: yes, for
@@ -163,37 +169,9 @@ impl Marknet {
         Ok(net)
     }
 
-    /// Whether the "auto" fit applies (an [`InputFit::Auto`] localizer on a dynamic-input model).
-    fn auto_fit(&self) -> Option<&AutoFit> {
-        match self.fit {
-            InputFit::Auto => self.net.contract.auto_fit.as_ref(),
-            InputFit::Stretch | InputFit::Pad => None,
-        }
-    }
-
     /// The layout of an image of `size` given its marker pitch (used by the "auto" fit only).
     pub fn layout(&self, size: ImageSize, pitch_px: Option<f64>) -> InputLayout {
-        let (iw, ih) = (self.net.contract.input_width, self.net.contract.input_height);
-        if let Some(fit) = self.auto_fit() {
-            return fit_layout(size, pitch_px, iw, ih, fit);
-        }
-        match self.fit {
-            InputFit::Pad => {
-                let (w, h) = (f64::from(size.width), f64::from(size.height));
-                let scale = (f64::from(iw) / w).min(f64::from(ih) / h).min(1.0);
-                let nw = ((w * scale).round() as u32).clamp(1, iw);
-                let nh = ((h * scale).round() as u32).clamp(1, ih);
-                InputLayout {
-                    input_width: iw,
-                    input_height: ih,
-                    scaled_width: nw,
-                    scaled_height: nh,
-                    offset_x: (iw - nw) / 2,
-                    offset_y: (ih - nh) / 2,
-                }
-            }
-            InputFit::Auto | InputFit::Stretch => InputLayout::stretch(iw, ih),
-        }
+        self.fit.layout(size, pitch_px)
     }
 
     /// The layout the next image of `size` gets (with the remembered pitch, if any).
@@ -223,10 +201,7 @@ impl Marknet {
         windows: &[Option<Window>],
         layouts: &[InputLayout],
     ) -> Result<Vec<f32>> {
-        let contract = &self.net.contract;
-        let stretch =
-            self.fit == InputFit::Stretch || (self.fit == InputFit::Auto && contract.auto_fit.is_none());
-        let stretch_to = stretch.then_some((contract.input_width, contract.input_height));
+        let stretch_to = self.fit.stretch_to();
         self.net
             .run_batch(images, windows, layouts, stretch_to, self.parallel)
     }
@@ -375,10 +350,10 @@ impl Marknet {
             .collect();
         let windows: Vec<Option<Window>> = learnt.iter().map(|r| r.map(|r| r.window)).collect();
         let mut found = self.decode_pass(images, &windows, &sizes, &layouts, min_confidence)?;
-        let Some(fit) = self.auto_fit().copied() else {
+        let Some(fit) = self.fit.auto().copied() else {
             return Ok(found.into_iter().zip(layouts).collect());
         };
-        let (iw, ih) = (self.net.contract.input_width, self.net.contract.input_height);
+        let (iw, ih) = (self.fit.input_width, self.fit.input_height);
         let whole_images: Vec<usize> = (0..images.len()).filter(|&i| learnt[i].is_none()).collect();
         let unknown: Vec<usize> = whole_images
             .iter()
@@ -674,7 +649,7 @@ impl Marknet {
     /// markers: windows on, the isotropic "auto" fit, a remembered pitch, nothing learnt yet.
     fn may_learn_window(&self, size: ImageSize, slot: usize, markers: usize) -> bool {
         markers >= WINDOW_MIN_MARKERS
-            && self.auto_fit().is_some_and(|f| !f.prefer_stretch)
+            && self.fit.auto().is_some_and(|f| !f.prefer_stretch)
             && self.stream.may_learn_window(size, slot)
     }
 
@@ -682,7 +657,7 @@ impl Marknet {
     /// layout ([`window::window_around`]).
     fn window_around(&self, size: ImageSize, markers: &[Detection]) -> Option<LatticeWindow> {
         let pitch = self.stream.pitch(size)?;
-        let multiple = self.auto_fit()?.multiple;
+        let multiple = self.fit.auto()?.multiple;
         window::window_around(markers, size, pitch, &self.next_layout(size), multiple)
     }
 
