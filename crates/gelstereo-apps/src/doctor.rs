@@ -83,7 +83,7 @@ fn model_summary(path: &Path) -> Result<String, String> {
     if !path.exists() {
         return Err(format!("{} not found", path.display()));
     }
-    let metadata = gelstereo_markers::marknet::model_metadata(path).map_err(|e| e.to_string())?;
+    let metadata = gelstereo_markers::onnx::model_metadata(path).map_err(|e| e.to_string())?;
     if metadata.is_empty() {
         return Err(format!(
             "{} has no metadata_props (contract missing)",

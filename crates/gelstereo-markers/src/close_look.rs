@@ -14,8 +14,9 @@
 
 use gelstereo_core::{Detection, ImageSize, Point2};
 
-use crate::marknet::{InputLayout, input_per_px, layout_at_scale};
-use crate::postprocess::nearest_neighbour_distances;
+use crate::layout::{InputLayout, input_per_px, layout_at_scale};
+use crate::region::Region;
+use crate::spacing::nearest_neighbour_distances;
 use crate::window::{Window, window_of_span};
 
 /// A candidate whose nearest other candidate lies closer than this share of the pitch is squeezed.
@@ -54,32 +55,6 @@ pub const CLOSE_LOOK_MARGIN_PITCH: f64 = 1.5;
 /// Context the network sees beyond that region, in pitches, before the window is rounded out to the
 /// input multiple: a dot at the region's edge is seen whole.
 pub const CLOSE_LOOK_CONTEXT_PITCH: f64 = 1.0;
-
-/// A rectangle of an image, original px (pixel-centre convention), edges included.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Region {
-    /// Left edge.
-    pub x0: f64,
-    /// Top edge.
-    pub y0: f64,
-    /// Right edge.
-    pub x1: f64,
-    /// Bottom edge.
-    pub y1: f64,
-}
-
-impl Region {
-    /// Whether `d` lies inside (edges included).
-    pub fn contains(&self, d: &Detection) -> bool {
-        (self.x0..=self.x1).contains(&d.position.x) && (self.y0..=self.y1).contains(&d.position.y)
-    }
-
-    /// Its share of an image of `size`.
-    pub fn share_of(&self, size: ImageSize) -> f64 {
-        let area = f64::from(size.width) * f64::from(size.height);
-        ((self.x1 - self.x0).max(0.0) * (self.y1 - self.y0).max(0.0)) / area.max(1.0)
-    }
-}
 
 /// The region worth a closer look among `kept` (a pass's de-duplicated candidates) of an image of
 /// `size` with marker pitch `pitch_px`: the bounding box of the squeezed ones

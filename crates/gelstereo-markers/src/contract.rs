@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::postprocess::PostProcess;
+use crate::postprocess::{MISSING_DISTANCE_PITCH, MRE_FEATURES, MRE_NEIGHBOURS, PostProcess};
 use crate::{Error, Result};
 
 /// The `contract` value of a Marknet model with a dynamic input size (what the trainer writes).
@@ -22,10 +22,6 @@ pub const MARKNET_OUTPUT: &str = "raw";
 pub const MRE_INPUT: &str = "features";
 /// MRE's output name.
 pub const MRE_OUTPUT: &str = "score";
-/// Length of an MRE feature vector: 10 neighbour distances + the confidence.
-pub const MRE_FEATURES: usize = 11;
-/// Neighbour distances in an MRE feature vector.
-pub const MRE_NEIGHBOURS: usize = 10;
 
 /// One input or output of a model: its name, whether it is float32, and its dimensions (-1 = dynamic).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -380,8 +376,8 @@ impl MreContract {
         m.exact("distance_unit", "pitch")?;
         if let Some(found) = m.map.get("missing_distance") {
             let v: Option<f32> = found.trim().parse().ok();
-            if v != Some(crate::postprocess::MISSING_DISTANCE_PITCH) {
-                let expected = crate::postprocess::MISSING_DISTANCE_PITCH.to_string();
+            if v != Some(MISSING_DISTANCE_PITCH) {
+                let expected = MISSING_DISTANCE_PITCH.to_string();
                 return Err(m.err("missing_distance", expected, format!("'{found}'")));
             }
         }

@@ -35,7 +35,7 @@
 use gelstereo_core::{Detection, ImageSize, Point2};
 use opencv::core::{Mat, MatTraitConst, MatTraitConstManual};
 
-use crate::postprocess::{median_finite, nearest_neighbour_distances};
+use crate::spacing::{median_finite, nearest_neighbour_distances};
 use crate::{Result, check_image, cv_err};
 
 /// Markers whose look is judged, at most (spread evenly over the view's list, which is sorted by

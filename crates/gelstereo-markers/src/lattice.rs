@@ -58,9 +58,9 @@ use gelstereo_core::spatial::Buckets;
 use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, ImageSize, Point2, TieredDetections};
 
-use crate::close_look::Region;
 use crate::edge::{inside_the_image_px, outside_the_image};
-use crate::postprocess::{median_finite, nearest_neighbour_distances};
+use crate::region::Region;
+use crate::spacing::{median_finite, nearest_neighbour_distances};
 
 /// Parameters of the lattice check. The defaults are what `marknet-mre` uses.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -3,9 +3,12 @@
 //!
 //! - [`Localizer`]: the trait the CLI, the evaluator and the benchmarks use; [`create_localizer`] builds
 //!   one of the three [`Method`]s (`blob`, `marknet`, `marknet-mre`) from a [`LocalizerConfig`].
-//! - [`marknet`]: loading a Marknet ONNX model and checking its metadata contract
-//!   (`docs/model-contract.md`), preprocessing, batched stereo inference, and [`postprocess`]ing
-//!   (decoding, thresholds, de-duplication, MRE features and acceptance).
+//! - [`marknet`]: the Marknet localizer, composed of its [`network`] (the ONNX session, its metadata
+//!   contract `docs/model-contract.md`, preprocessing, batched stereo inference), the input
+//!   [`layout`] and its "auto" fit, the streaming state, and the post-processing: [`postprocess`]
+//!   (decoding, thresholds, de-duplication, MRE features and acceptance) and [`finish`] (the lattice
+//!   check and the steps after it). Types several steps share have modules of their own ([`layout`],
+//!   [`region`], [`spacing`]); no module imports one that imports it back (`tests/module_graph.rs`).
 //! - [`blob`]: the SimpleBlobDetector baseline with documented, file-based parameters.
 //! - [`metrics`]: one-to-one matching, precision / recall / loss and the easy / hard / contact splits
 //!   (docs/design.md "Metrics").
@@ -19,10 +22,11 @@
 //! - Detections come out sorted by y, then x, so results are deterministic.
 //!
 //! # Timing
-//! [`marknet::Marknet`] opens `tracing` spans (level TRACE, no fields) around the parts of a
-//! localization call: `marknet.preprocess` (resize, f32 tensor), `marknet.network` (the ONNX Runtime
-//! run) and `marknet.postprocess`, the whole call, in which the other two nest: its own time is the
-//! decoding, selection, layout decisions and MRE. Without a subscriber a span costs a level check.
+//! [`marknet::Marknet`] and its [`network`] open `tracing` spans (level TRACE, no fields) around the
+//! parts of a localization call: `marknet.preprocess` (resize, f32 tensor), `marknet.network` (the
+//! ONNX Runtime run) and `marknet.postprocess`, the whole call, in which the other two nest: its own
+//! time is the decoding, selection, layout decisions and MRE. Without a subscriber a span costs a
+//! level check.
 
 pub mod blob;
 pub mod border;
@@ -30,16 +34,25 @@ pub mod close_look;
 pub mod contract;
 pub mod dots;
 pub mod edge;
+pub mod finish;
 pub mod lattice;
+pub mod layout;
 pub mod marknet;
 pub mod metrics;
+pub mod mre;
+pub mod network;
+pub mod onnx;
 pub mod overlay;
+mod pass;
 pub mod postprocess;
+pub mod region;
 mod resize;
 pub mod runtime;
 pub mod self_test;
 pub mod site_blobs;
+pub mod spacing;
 pub mod squeezed_blobs;
+mod stream;
 pub mod window;
 pub mod yolo;
 
@@ -50,9 +63,11 @@ use opencv::core::{Mat, MatTraitConst};
 
 pub use blob::{BlobLocalizer, BlobParams};
 pub use contract::{AutoFit, MarknetContract, MreContract};
-pub use marknet::{
-    InputFit, InputLayout, Marknet, Mre, SessionOptions, fit_layout, network_input, probe_layout,
-};
+pub use layout::{InputFit, InputLayout, fit_layout, probe_layout};
+pub use marknet::Marknet;
+pub use mre::Mre;
+pub use network::network_input;
+pub use onnx::SessionOptions;
 pub use postprocess::PostProcess;
 pub use resize::{FILL_SAMPLE_STEP, Kernels, ResizeScratch};
 

@@ -19,7 +19,7 @@ use gelstereo_core::{Detection, Point2};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use serde::Serialize;
 
-use crate::postprocess::median_nearest_neighbour_px;
+use crate::spacing::median_nearest_neighbour_px;
 use crate::{Error, Result};
 
 /// r as a fraction of the marker pitch.

@@ -13,13 +13,16 @@
 //!    the 10 smallest distances to the OTHER kept candidates, ascending, divided by `pitch_px` (missing
 //!    ones, or all when the pitch is undefined, = 4.0), then c.
 
-use gelstereo_core::spatial::Buckets;
-use gelstereo_core::stats::median;
 use gelstereo_core::{Detection, Point2, TieredDetections};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
-use crate::contract::{MRE_FEATURES, MRE_NEIGHBOURS};
 use crate::lattice::LatticeCheck;
+use crate::spacing::{median_finite, median_nearest_neighbour_px, nearest_neighbour_distances};
+
+/// Length of an MRE feature vector: 10 neighbour distances + the confidence.
+pub const MRE_FEATURES: usize = 11;
+/// Neighbour distances in an MRE feature vector.
+pub const MRE_NEIGHBOURS: usize = 10;
 
 /// Value of a missing neighbour distance in an MRE feature (fewer than 10 other candidates), pitches.
 pub const MISSING_DISTANCE_PITCH: f32 = 4.0;
@@ -73,7 +76,7 @@ pub struct DecodeGeometry {
     pub scale_x: f64,
     /// Original pixels per input pixel along y (H / input_height).
     pub scale_y: f64,
-    /// Input pixels left of the image's first column (0 unless the image was padded, [`crate::marknet::InputFit::Pad`]).
+    /// Input pixels left of the image's first column (0 unless the image was padded, [`crate::layout::InputFit::Pad`]).
     pub offset_x: f64,
     /// Input pixels above the image's first row.
     pub offset_y: f64,
@@ -140,33 +143,6 @@ pub fn decode(raw: &[f32], geometry: &DecodeGeometry, min_confidence: f32) -> Ve
         }
     }
     out
-}
-
-/// Each point's distance to its nearest other point, px (infinite for a point alone).
-pub fn nearest_neighbour_distances(points: &[Point2]) -> Vec<f64> {
-    if points.len() < 2 {
-        return vec![f64::INFINITY; points.len()];
-    }
-    let grid = Buckets::with_one_point_per_cell(points);
-    (0..points.len())
-        .map(|i| grid.nearest_other_px(i).unwrap_or(f64::INFINITY))
-        .collect()
-}
-
-/// The median of the finite `distances`; `None` without any.
-pub fn median_finite(distances: &[f64]) -> Option<f64> {
-    median(
-        &mut distances
-            .iter()
-            .copied()
-            .filter(|d| d.is_finite())
-            .collect::<Vec<_>>(),
-    )
-}
-
-/// Median nearest-neighbour distance between `points`, px; `None` with fewer than two points.
-pub fn median_nearest_neighbour_px(points: &[Point2]) -> Option<f64> {
-    median_finite(&nearest_neighbour_distances(points))
 }
 
 /// The marker pitch estimate of step 2: median nearest-neighbour distance between candidates with

@@ -29,7 +29,7 @@
 //! tests compare with `imgproc::resize` + `copy_make_border` on many sizes, both directions and
 //! every channel count.
 
-use crate::marknet::InputLayout;
+use crate::layout::InputLayout;
 use crate::window::Window;
 
 /// OpenCV's fixed-point weight scale of 8-bit bilinear resizing (`INTER_RESIZE_COEF_SCALE`).
@@ -113,7 +113,7 @@ fn median_of(histogram: &[u32; 256]) -> f32 {
     0.0
 }
 
-/// What the preprocessing keeps between calls ([`crate::marknet::network_input`]): the taps of the
+/// What the preprocessing keeps between calls ([`crate::network::network_input`]): the taps of the
 /// latest sizes, the source row split into channel rows, and two rows resized horizontally (planar,
 /// `h >> 4` as i16: the only form the vertical pass reads), and which kernels it may use.
 #[derive(Debug)]

@@ -17,9 +17,9 @@ use gelstereo_core::{Detection, ImageSize, Point2};
 use opencv::core::{KeyPointTraitConst, Mat, MatTraitConst, MatTraitConstManual, Rect, Vector};
 use opencv::prelude::Feature2DTrait;
 
-use crate::close_look::Region;
 use crate::edge::{inside_the_image_px, outside_the_image};
 use crate::lattice::SITE_STEP;
+use crate::region::Region;
 use crate::squeezed_blobs::{BLOB_CONFIDENCE, detector_for, grey_roi, median, pixels_covering};
 use crate::{Result, cv_err};
 

@@ -20,10 +20,11 @@ use opencv::features2d::{SimpleBlobDetector, SimpleBlobDetector_Params};
 use opencv::imgproc;
 use opencv::prelude::Feature2DTrait;
 
-use crate::close_look::{Region, SQUEEZED_NN_PITCH, region_around};
+use crate::close_look::{SQUEEZED_NN_PITCH, region_around};
 use crate::edge::inside_the_image_px;
 use crate::lattice::{SURROUNDED_GAP_DEG, largest_gap};
-use crate::postprocess::nearest_neighbour_distances;
+use crate::region::Region;
+use crate::spacing::nearest_neighbour_distances;
 use crate::{Result, cv_err};
 
 /// Grey levels of the blob search, as shares of the way between the dots' median grey and the gel's:

@@ -13,7 +13,7 @@
 
 use gelstereo_core::{Detection, ImageSize};
 
-use crate::marknet::InputLayout;
+use crate::layout::InputLayout;
 
 /// Margin around the first frame's markers, in pitches, before the window is rounded out to the
 /// input multiple: room for the lattice to move before a frame falls back to the whole input, and
@@ -168,7 +168,7 @@ pub(crate) fn window_of_span(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::marknet::layout_at_scale;
+    use crate::layout::layout_at_scale;
     use gelstereo_core::Point2;
 
     fn lattice(x0: f64, y0: f64, (nx, ny): (usize, usize), pitch: f64) -> Vec<Detection> {

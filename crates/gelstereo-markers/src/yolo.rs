@@ -29,9 +29,9 @@ use ort::session::Session;
 use ort::value::TensorRef;
 
 use crate::contract::{TensorSpec, check_signature};
-use crate::marknet::{
-    InputLayout, Opened, SessionOptions, check_aspect, onnx_err, open_session, write_layout,
-};
+use crate::layout::InputLayout;
+use crate::network::{check_aspect, write_layout};
+use crate::onnx::{Opened, SessionOptions, onnx_err, open_session};
 use crate::resize::ResizeScratch;
 use crate::{Error, Localizer, Result, check_image, sort_detections};
 
@@ -504,7 +504,7 @@ impl YoloLocalizer {
                 self.contract.rows()
             )));
         }
-        crate::marknet::check_finite(raw, YOLO_OUTPUT).map_err(run)?;
+        crate::onnx::check_finite(raw, YOLO_OUTPUT).map_err(run)?;
         let c = &self.contract;
         Ok(sizes
             .iter()

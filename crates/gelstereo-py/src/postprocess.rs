@@ -8,18 +8,21 @@
 //! (the trainer's `PostConfig` and `FitConfig` dataclasses).
 
 use gelstereo::core::{Detection, ImageSize, Point2, TieredDetections};
-use gelstereo::markers::close_look::Region;
-use gelstereo::markers::contract::{AutoFit, MRE_FEATURES, MRE_NEIGHBOURS};
+use gelstereo::markers::contract::AutoFit;
 use gelstereo::markers::edge::drop_past_the_edge;
+use gelstereo::markers::finish::after_the_lattice;
 use gelstereo::markers::lattice::{LatticeCheck, fit_lattice, keep_fitted_lattice};
-use gelstereo::markers::marknet::{
-    self, AREA_BELOW_SCALE, FittedCandidates, InputFit, InputLayout, MAX_INPUT_SIDE_PX, Marknet,
-    SessionOptions, after_the_lattice, decode_in_layout, layout_geometry,
+use gelstereo::markers::layout::{
+    self, InputFit, InputLayout, MAX_INPUT_SIDE_PX, decode_in_layout, layout_geometry,
 };
+use gelstereo::markers::marknet::{FittedCandidates, Marknet};
+use gelstereo::markers::network::{self, AREA_BELOW_SCALE};
 use gelstereo::markers::postprocess::{
-    MISSING_DISTANCE_PITCH, PostProcess, Selection, dedup_radius_px, deduplicate, estimate_pitch_px,
+    MISSING_DISTANCE_PITCH, MRE_FEATURES, MRE_NEIGHBOURS, PostProcess, Selection, dedup_radius_px,
+    deduplicate, estimate_pitch_px,
 };
-use gelstereo::markers::{FILL_SAMPLE_STEP, Localizer as _, ResizeScratch};
+use gelstereo::markers::region::Region;
+use gelstereo::markers::{FILL_SAMPLE_STEP, Localizer as _, ResizeScratch, SessionOptions};
 use numpy::ndarray::{Array1, Array2, Array4};
 use numpy::{PyArray1, PyArray2, PyArray4, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray4};
 use pyo3::exceptions::PyValueError;
@@ -185,7 +188,7 @@ fn default_yolo_post(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 #[pyo3(signature = (width, height, pitch_px, fit))]
 fn fit_layout(width: u32, height: u32, pitch_px: Option<f64>, fit: FitArgs) -> PyResult<LayoutTuple> {
     let size = size_of(width, height)?;
-    let l = marknet::fit_layout(size, pitch_px, fit.nominal_width, fit.nominal_height, &fit.fit);
+    let l = layout::fit_layout(size, pitch_px, fit.nominal_width, fit.nominal_height, &fit.fit);
     Ok(layout_tuple(&l))
 }
 
@@ -194,14 +197,14 @@ fn fit_layout(width: u32, height: u32, pitch_px: Option<f64>, fit: FitArgs) -> P
 #[pyfunction]
 fn probe_layout(width: u32, height: u32, fit: FitArgs) -> PyResult<LayoutTuple> {
     let size = size_of(width, height)?;
-    let l = marknet::probe_layout(size, fit.nominal_width, fit.nominal_height, &fit.fit);
+    let l = layout::probe_layout(size, fit.nominal_width, fit.nominal_height, &fit.fit);
     Ok(layout_tuple(&l))
 }
 
 /// Input px per original px of a `width x height` image under `layout` (geometric mean of the axes).
 #[pyfunction]
 fn input_per_px(width: u32, height: u32, layout: LayoutTuple) -> PyResult<f64> {
-    Ok(marknet::input_per_px(size_of(width, height)?, &layout_of(layout)))
+    Ok(layout::input_per_px(size_of(width, height)?, &layout_of(layout)))
 }
 
 /// The network input of `image` (uint8 HxW grey or HxWx3 BGR) under `layout`, as Marknet feeds its
@@ -217,7 +220,7 @@ fn network_input<'py>(
     let layout = layout_of(layout);
     let plane = py.detach(|| {
         let mut plane = Vec::new();
-        marknet::network_input(&image, &layout, &mut ResizeScratch::default(), &mut plane)
+        network::network_input(&image, &layout, &mut ResizeScratch::default(), &mut plane)
             .map_err(|e| to_py(&e))?;
         PyResult::Ok(plane)
     })?;
