@@ -44,9 +44,9 @@ const SLIP_CONE: f64 = 0.9;
 pub struct ContactConfig {
     /// A frame is in contact when the 3 x 3 mean of the depth peaks above this floor, mm, and
     /// above `contact_noise_factor` x the frame's depth noise / 3 (the noise of a 3 x 3 mean).
-    /// 0.01 mm: the noise-free floor. 0.002 sees more of small shallow contacts on exact 3-D (a
-    /// cross 0.001-0.015 mm deep while it slides) but gave isolated false contacts of 0.005-0.009 mm
-    /// from images (val with Marknet-MRE: 7 -> 9 frames), where the robust noise estimate is low.
+    /// 0.01 mm: the noise-free floor. A lower floor sees more of small shallow contacts on exact
+    /// 3-D, but from images it lets isolated false contacts through in frames whose robust noise
+    /// estimate is low.
     pub min_depth_mm: f64,
     /// The gel: thickness, Young's modulus and Poisson ratio ([`Layer::REFERENCE`] by default).
     pub layer: Layer,

@@ -60,8 +60,7 @@ pub(crate) fn affine_at(
 /// quadratic is undetermined (fewer than 12 pairs, a singular system) or bends more than half of
 /// `scale` away from the affine one at `at` (extrapolating, not interpolating). It follows a
 /// curved surface: between the two views of a stereo pair the affine map of a marker's neighbours
-/// misses the deepest marker of a contact by up to 2 px, the quadratic by 0.6 px (v1 val, exact
-/// positions, 5 x 5 neighbourhoods: median 0.75 / 0.11 px).
+/// misses the deepest marker of a contact by several times what the quadratic one does.
 pub(crate) fn quadratic_at(pairs: &[([f64; 2], [f64; 2], f64)], at: Point2, scale: f64) -> Option<Point2> {
     let affine = affine_at(pairs.iter().copied(), at, scale)?;
     if pairs.len() < 12 {

@@ -44,8 +44,8 @@ pub struct SessionConfig {
     /// A marker tracked in both views whose left position lies farther than this fraction of its
     /// left pitch from where the map between the views of its neighbours puts its right one loses
     /// one of the two associations (see [`StereoSession`]'s check across views); 0 disables.
-    /// 0.25: with exact positions the affine map is off by up to 0.15 pitch at the deepest marker
-    /// of a contact (v1 val); with the fast model 0.3 left 2 id swaps on val, 0.25 and 0.2 none.
+    /// 0.25: above what the affine map misses by at the deepest marker of a contact with exact
+    /// positions, below the offsets that let id swaps through.
     pub stereo_outlier_pitch: f64,
 }
 

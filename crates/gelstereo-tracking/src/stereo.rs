@@ -197,10 +197,9 @@ impl ViewTracking {
     ///    `stereo_outlier_pitch` x its left pitch from where the affine map puts its right one took
     ///    another marker's detection in one view: the view where it sits farther from its own
     ///    lattice ([`Tracker::lattice_residual`]) loses the association. The per-view checks
-    ///    cannot see a detection that drifts with the wrong marker; the other view can (fast
-    ///    model, val `exp_0015`: a merged blob 4-8 px off in the left view's oblique contact).
-    ///    Affine, not quadratic: the quadratic map also follows neighbours mislocalized along
-    ///    with the wrong detection (v1 val, fast model: 2 id swaps left against 0).
+    ///    cannot see a detection that drifts with the wrong marker (a merged blob in one view's
+    ///    oblique contact); the other view can. Affine, not quadratic: the quadratic map also
+    ///    follows neighbours mislocalized along with the wrong detection, and lets the swap pass.
     /// 2. **Assist**: a marker tracked in one view but missed in the other is placed in the other
     ///    through the quadratic map (it follows the curved contact), not where its own
     ///    neighbours' motion carried its last position: under a sliding contact that lags by up

@@ -84,8 +84,8 @@ pub struct TrackerConfig {
     pub second_tier_gate_pitch: f64,
     /// A fine association is dropped when the marker's frame-to-frame motion differs from the
     /// weighted median motion of its associated neighbours (at least 3) by more than this fraction
-    /// of the local pitch; 0 disables the check. 0.2: on the v1 val split 0.3 and 0.25 left id
-    /// swaps where a sliding cube edge merges and shifts detections (`exp_0015`), 0.2 none there.
+    /// of the local pitch; 0 disables the check. 0.2: looser limits let id swaps through where a
+    /// sliding cube edge merges and shifts detections.
     pub motion_outlier_pitch: f64,
     /// A fine association next to a missed marker (8-neighbourhood) is dropped when its detection
     /// lies farther than this fraction of the local pitch from where the lattice puts the marker
