@@ -43,10 +43,10 @@ venv="$(ls -d "$CACHE"/venv-* 2>/dev/null | head -n 1)"
   || { echo "no maturin / auditwheel under $CACHE/venv-*: run scripts/setup.sh first" >&2; exit 1; }
 
 # --- 1. the minimal static OpenCV -----------------------------------------------------------------
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
 build_opencv() {
-  local work src
-  work="$(mktemp -d)"
-  trap 'rm -rf "$work"' RETURN
+  local src
   if [ ! -f "$CACHE/$OPENCV_SDIST" ] || ! echo "$OPENCV_SDIST_SHA256  $CACHE/$OPENCV_SDIST" | sha256sum -c --status; then
     say "downloading $OPENCV_SDIST"
     curl -sSfL -o "$CACHE/$OPENCV_SDIST.part" "$OPENCV_SDIST_URL"
@@ -73,7 +73,8 @@ build_opencv() {
     -DWITH_VULKAN=OFF -DWITH_WAYLAND=OFF \
     -DBUILD_TESTS=OFF -DBUILD_PERF_TESTS=OFF -DBUILD_EXAMPLES=OFF -DBUILD_opencv_apps=OFF \
     -DBUILD_DOCS=OFF -DBUILD_JAVA=OFF -DBUILD_opencv_python2=OFF -DBUILD_opencv_python3=OFF \
-    -DBUILD_opencv_js=OFF -DOPENCV_GENERATE_PKGCONFIG=ON >"$work/cmake.log" 2>&1 \
+    -DBUILD_opencv_js=OFF -DINSTALL_C_EXAMPLES=OFF -DINSTALL_PYTHON_EXAMPLES=OFF -DOPENCV_GENERATE_PKGCONFIG=ON \
+    >"$work/cmake.log" 2>&1 \
     || { tail -n 40 "$work/cmake.log" >&2; exit 1; }
   ninja -C "$work/build" -j "$JOBS" install >"$work/ninja.log" 2>&1 || { tail -n 40 "$work/ninja.log" >&2; exit 1; }
   touch "$PREFIX/.complete"
