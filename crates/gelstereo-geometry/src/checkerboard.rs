@@ -12,6 +12,12 @@ use gelstereo_core::{ImageSize, Point2};
 use nalgebra::{Isometry3, Point3, Vector2, Vector3};
 use opencv::core::{Mat, MatTraitConst, Point2f, Point3f, Size, TermCriteria, TermCriteria_Type, Vector};
 
+// stereoCalibrate with per-view errors: its name in the bindings of the OpenCV the crate links (build.rs).
+#[cfg(opencv_stereo_calibrate_rvecs)]
+use opencv::calib3d::stereo_calibrate_1 as stereo_calibrate_per_view;
+#[cfg(not(opencv_stereo_calibrate_rvecs))]
+use opencv::calib3d::stereo_calibrate_extended as stereo_calibrate_per_view;
+
 use crate::camera::{Camera, StereoRig};
 use crate::cv::{camera_from_cv, cv_err, isometry_from_rt};
 use crate::error::{Error, Result};
@@ -409,7 +415,7 @@ pub fn calibrate_stereo(
     let (mut k2, mut d2, rms_right_px) = mono(&img_r, "right")?;
     let (mut r, mut t, mut e, mut f) = (Mat::default(), Mat::default(), Mat::default(), Mat::default());
     let mut per_view = Mat::default();
-    let rms_stereo_px = opencv::calib3d::stereo_calibrate_extended(
+    let rms_stereo_px = stereo_calibrate_per_view(
         &obj,
         &img_l,
         &img_r,

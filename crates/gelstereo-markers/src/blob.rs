@@ -90,6 +90,8 @@ impl BlobParams {
                 filter_by_convexity: false,
                 min_convexity: 0.95,
                 max_convexity: f32::MAX,
+                #[cfg(opencv_blob_collect_contours)]
+                collect_contours: false,
             },
         }
     }

@@ -215,7 +215,8 @@ pub(crate) fn detector_for(
         min_area: AREA_PITCH2.0 * pitch2,
         max_area: AREA_PITCH2.1 * pitch2,
         filter_by_circularity: false,
-        min_circularity: 0.0,
+        // Unused with the filter off; newer OpenCV versions reject a bound that is not positive even so.
+        min_circularity: f32::MIN_POSITIVE,
         max_circularity: f32::MAX,
         filter_by_inertia: true,
         min_inertia_ratio: MIN_INERTIA_RATIO,
@@ -223,6 +224,8 @@ pub(crate) fn detector_for(
         filter_by_convexity: true,
         min_convexity: MIN_CONVEXITY,
         max_convexity: f32::MAX,
+        #[cfg(opencv_blob_collect_contours)]
+        collect_contours: false,
     };
     Ok(Some(
         SimpleBlobDetector::create(params).map_err(cv_err("SimpleBlobDetector::create"))?,
