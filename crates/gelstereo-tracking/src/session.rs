@@ -120,9 +120,9 @@ impl StereoSession {
         config: SessionConfig,
     ) -> Result<Self> {
         let track = ViewTracking::new(shape, left, right, &config)?;
-        let mut triangulate = Triangulation::new(triangulator, &track, &config);
-        let contact = ReferenceSurface::new(shape, triangulate.reference_mm(), config.contact.clone())?;
-        triangulate.set_pitch_mm(contact.pitch_mm());
+        let reference_mm = Triangulation::reference_points(&triangulator, &track);
+        let contact = ReferenceSurface::new(shape, &reference_mm, config.contact.clone())?;
+        let triangulate = Triangulation::new(triangulator, shape, reference_mm, contact.pitch_mm(), &config);
         let slip = SlipDetector::new(config.slip.clone())?;
         config.contact.validate()?;
         Ok(Self {
@@ -186,9 +186,8 @@ impl StereoSession {
             .collect();
         let surface = ReferenceSurface::new(self.shape(), &positions, self.config.contact.clone())?;
         self.track.rezero();
-        self.triangulate.set_pitch_mm(surface.pitch_mm());
+        self.triangulate.rezero(positions, surface.pitch_mm());
         self.contact = surface;
-        self.triangulate.rezero(positions);
         self.slip.reset();
         Ok(())
     }

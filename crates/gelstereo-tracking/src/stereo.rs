@@ -356,12 +356,10 @@ pub struct Triangulation {
 }
 
 impl Triangulation {
-    /// The reference points: the markers indexed in both views of `tracking`'s reference frame and
-    /// triangulated within the rig's bound. Call [`Self::set_pitch_mm`] with the reference
-    /// surface's pitch before the first frame.
-    pub fn new(triangulator: Triangulator, tracking: &ViewTracking, config: &SessionConfig) -> Self {
-        let shape = tracking.shape;
-        let mut reference_mm = vec![None; shape.count()];
+    /// The reference points of `tracking`'s reference frame (row-major): the markers indexed in both
+    /// views and triangulated within the rig's bound.
+    pub fn reference_points(triangulator: &Triangulator, tracking: &ViewTracking) -> Vec<Option<[f64; 3]>> {
+        let mut reference_mm = vec![None; tracking.shape.count()];
         for (lin, r) in reference_mm.iter_mut().enumerate() {
             if let Some((a, b)) = tracking.slots(lin)
                 && let Ok(t) = triangulator
@@ -371,6 +369,18 @@ impl Triangulation {
                 *r = Some([p.x, p.y, p.z]);
             }
         }
+        reference_mm
+    }
+
+    /// The stage against `reference_mm` (row-major, mm), whose surface has the lattice pitch
+    /// `pitch_mm`: it sets the noise floor of the outlier test.
+    pub fn new(
+        triangulator: Triangulator,
+        shape: GridShape,
+        reference_mm: Vec<Option<[f64; 3]>>,
+        pitch_mm: f64,
+        config: &SessionConfig,
+    ) -> Self {
         Self {
             shape,
             triangulator,
@@ -378,7 +388,7 @@ impl Triangulation {
             outlier_threshold: config.outlier_threshold,
             outlier_noise_mm: config.outlier_noise_mm,
             outlier_min_pitch: config.outlier_min_pitch,
-            floor_mm: 0.0,
+            floor_mm: config.outlier_min_pitch * pitch_mm,
             parallel: false,
         }
     }
@@ -388,26 +398,24 @@ impl Triangulation {
         &self.reference_mm
     }
 
-    /// The lattice pitch of the reference surface, mm: it sets the noise floor of the outlier test.
-    pub fn set_pitch_mm(&mut self, pitch_mm: f64) {
-        self.floor_mm = self.outlier_min_pitch * pitch_mm;
-    }
-
     /// Whether triangulation runs on rayon's thread pool (default: no).
     pub fn set_parallel(&mut self, parallel: bool) {
         self.parallel = parallel;
     }
 
-    /// Makes `positions` (row-major, mm) the reference points (drift correction).
-    pub fn rezero(&mut self, positions: Vec<Option<[f64; 3]>>) {
+    /// Makes `positions` (row-major, mm) the reference points, their surface's pitch `pitch_mm`
+    /// (drift correction).
+    pub fn rezero(&mut self, positions: Vec<Option<[f64; 3]>>, pitch_mm: f64) {
         self.reference_mm = positions;
+        self.floor_mm = self.outlier_min_pitch * pitch_mm;
     }
 
     /// One frame's tracks -> its 3-D points.
     pub fn run(&self, tracks: &ViewTracks) -> Points3 {
-        let _span = tracing::trace_span!("triangulate").entered();
-        let points = self.triangulate_all(&tracks.pixels);
-        drop(_span);
+        let points = {
+            let _span = tracing::trace_span!("triangulate").entered();
+            self.triangulate_all(&tracks.pixels)
+        };
         let _span = tracing::trace_span!("outliers").entered();
         let mut current: Vec<Option<[f64; 3]>> = points.iter().map(|t| t.map(|(p, _)| p)).collect();
         let reprojection_px = points.iter().map(|t| t.map(|(_, e)| e)).collect();
